@@ -1,0 +1,98 @@
+"""Exception hierarchy.
+
+Every error the library raises on purpose derives from :class:`SprintMapError`, so a caller (and
+the CLI, which turns these into a one-line ``Error: ...`` message) can catch them all at once.
+Each subclass carries a distinct exit code for the CLI.
+"""
+
+from __future__ import annotations
+
+
+class SprintMapError(Exception):
+    """Base class of every error raised on purpose by sprint-map."""
+
+    exit_code = 2
+
+
+class NotAMapError(SprintMapError):
+    """The path is missing or is not a sprint-map directory."""
+
+    exit_code = 3
+
+
+class MapExistsError(SprintMapError):
+    """``create`` was asked to use a directory that already holds something."""
+
+    exit_code = 4
+
+
+class MapLockedError(SprintMapError):
+    """Another process holds the map's writer lock."""
+
+    exit_code = 5
+
+
+class SchemaVersionError(SprintMapError):
+    """The map was written by an unknown (usually newer) schema version."""
+
+    exit_code = 6
+
+
+class MapCorruptError(SprintMapError):
+    """The map violates an invariant that opening cannot repair."""
+
+    exit_code = 7
+
+
+class DescriptorShapeError(SprintMapError):
+    """Descriptors have the wrong shape, dimension or dtype for this map."""
+
+    exit_code = 8
+
+
+class InvalidDescriptorError(SprintMapError):
+    """Descriptors contain NaN or Inf."""
+
+    exit_code = 9
+
+
+class EmptySequenceError(SprintMapError):
+    """A sequence with no frames was given."""
+
+    exit_code = 10
+
+
+class DuplicateNameError(SprintMapError):
+    """A sequence with this name already exists in the map."""
+
+    exit_code = 11
+
+
+class UnknownSequenceError(SprintMapError):
+    """No sequence with this id (or name) exists."""
+
+    exit_code = 12
+
+
+class InputError(SprintMapError):
+    """An input file (descriptors, positions, images, video) cannot be used."""
+
+    exit_code = 13
+
+
+class ReadOnlyMapError(SprintMapError):
+    """A write was attempted on a map opened read-only."""
+
+    exit_code = 14
+
+
+class ConfigError(SprintMapError):
+    """A configuration value is invalid."""
+
+    exit_code = 15
+
+
+class StorageIOError(SprintMapError):
+    """An operating-system I/O error (EIO, ENOSPC, ...) aborted an operation."""
+
+    exit_code = 16
