@@ -1,7 +1,8 @@
-"""Parameters of the SPRINT hidden Markov model (see ``docs/architecture.md``, "The model")."""
+"""Parameters of the SPRINT hidden Markov model (see ``docs/hmm.md`` for the model they define)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -12,33 +13,126 @@ from sprint_map import dataclass_dict
 class HMMConfig:
     """Frozen parameters of the place-recognition HMM.
 
+    Every open modelling choice of the filter is a field here; ``docs/hmm.md`` gives the exact
+    equations. Defaults were chosen on synthetic multi-traversal data and checked on Nordland
+    summer/winter HoG (``docs/hmm.md``, "Defaults").
+
     Parameters
     ----------
     k : int
-        Neighbours retrieved per query frame.
+        Neighbours the caller retrieves per query frame (the filter accepts any number of hits;
+        this is the facade's retrieval setting, kept here so a map remembers it).
     window : tuple of float
-        Forward transition window ``w``: ``w[0]`` is the probability of staying on the same image,
-        ``w[i]`` of moving ``i`` images ahead in the same sequence. Normalised on use.
+        Forward transition window ``w``: ``w[0]`` is the weight of staying on the same image,
+        ``w[i]`` of moving ``i`` images ahead in the same sequence. Normalised on use; never
+        backwards. Mass that would move past the last image of a sequence goes to the sink.
     edge_weight : float
-        Relative weight of following an inter-sequence edge versus staying in the own sequence.
+        ``beta``: relative weight of following an inter-sequence edge versus staying in the own
+        sequence. The row of a vertex ``u`` with out-edges ``u -> v_e`` (match probability
+        ``c_e``) sends ``1 / R`` into its own window and ``beta * c_e / R`` into the window of
+        ``v_e``, with ``R = 1 + beta * sum(c_e)``. 0 disables edges.
     prune_threshold : float
-        Components whose share of the belief falls below this leave the active set (paper: 1e-4).
+        Components whose share of the belief (sink included) falls below this after an update
+        leave the active set; their belief is dropped and the rest renormalised (paper: 1e-4).
+        0 disables pruning (the filter is then exact w.r.t. :class:`FullGraphFilter`).
+    restart_prob : float
+        ``epsilon``: prior mass re-injected each frame, uniformly over the frame's retrieval hits.
+        This is what lets a hit start a new hypothesis (after a turn, a gap, a new place).
+    new_place_prob : float
+        ``nu``: prior mass moved each frame into the sink ("off the map": the vehicle left the
+        mapped streets). Together with the sink's likelihood this is the novelty hypothesis.
+    dist_scale : float or None
+        ``T``: scale of the likelihood kernel, in squared-L2 distance units: a hit at distance
+        ``d`` has log-likelihood ``(d_far - d) / T + miss_margin`` relative to an unretrieved
+        vertex (``d_far``: the frame's largest hit distance). ``None`` (default) adapts ``T`` to
+        the descriptor: an exponential moving average of the frame's spread ``d_far - d_1``.
+    dist_scale_ema : float
+        Weight of the newest frame in that moving average (only used when ``dist_scale`` is
+        None).
+    dist_scale_factor : float
+        The adaptive ``T`` is this times the moving average (only used when ``dist_scale`` is
+        None).
+    miss_margin : float
+        Log-likelihood advantage of the farthest hit over an unretrieved vertex (which is only
+        known to be at least as far as the farthest hit).
+    novelty_margin : float
+        Log-likelihood of the sink ("not any mapped place") relative to an unretrieved vertex.
+        Between 0 and ``miss_margin`` the sink beats stale hypotheses that the retrieval no
+        longer supports but loses to hypotheses that keep being retrieved.
+    novelty_dist : float or None
+        Optional absolute test: if the best hit of a frame is farther than this squared distance,
+        the sink is scored like a hit at ``novelty_dist``, i.e. it explains the frame better than
+        every hit. ``None`` (default) disables it (distances are descriptor-dependent).
+    place_radius : int
+        ``r``: a place is the vertex's temporal neighbourhood ``[i - r, i + r]`` in its sequence
+        plus the same neighbourhood of every vertex reached from that neighbourhood over at most
+        ``place_hops`` edges (either direction). The decision's ``prob`` is the belief mass of
+        the place.
+    place_hops : int
+        ``h``: how many edges a place reaches across (drives chained by merge edges: one hop
+        per drive in the chain). 0 limits a place to one sequence.
+    decision_candidates : int
+        How many of the most probable vertices are scored by place mass; the decision is the
+        candidate whose place holds the most mass.
+    min_confidence : float
+        A decision whose place mass is below this is reported as "no match".
+    cache_budget_bytes : int
+        Byte budget of the LRU component cache (:class:`sprint_map.hmm.cache.ComponentCache`).
     """
 
     k: int = 10
-    window: tuple[float, ...] = (0.15, 0.35, 0.25, 0.15, 0.1)
+    window: tuple[float, ...] = (0.25, 0.5, 0.15, 0.07, 0.03)
     edge_weight: float = 1.0
     prune_threshold: float = 1e-4
+    restart_prob: float = 0.01
+    new_place_prob: float = 0.01
+    dist_scale: float | None = None
+    dist_scale_ema: float = 0.05
+    dist_scale_factor: float = 0.5
+    miss_margin: float = 1.0
+    novelty_margin: float = 0.25
+    novelty_dist: float | None = None
+    place_radius: int = 2
+    place_hops: int = 4
+    decision_candidates: int = 4
+    min_confidence: float = 0.2
+    cache_budget_bytes: int = 256 << 20
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise ValueError("k must be >= 1")
-        if not self.window or any(w < 0 for w in self.window) or sum(self.window) <= 0:
-            raise ValueError("window must be non-empty, non-negative and not all zero")
-        if self.edge_weight < 0:
-            raise ValueError("edge_weight must be >= 0")
-        if not 0 <= self.prune_threshold < 1:
-            raise ValueError("prune_threshold must be in [0, 1)")
+        if not _is_int(self.k) or self.k < 1:
+            raise ValueError("k must be an integer >= 1")
+        window = tuple(float(w) for w in self.window)
+        if not window or not all(math.isfinite(w) and w >= 0 for w in window) or sum(window) <= 0:
+            raise ValueError("window must be non-empty, finite, non-negative and not all zero")
+        object.__setattr__(self, "window", window)
+        _finite_range("edge_weight", self.edge_weight, 0.0, math.inf)
+        _finite_range("prune_threshold", self.prune_threshold, 0.0, 1.0, hi_open=True)
+        _finite_range("restart_prob", self.restart_prob, 0.0, 1.0)
+        _finite_range("new_place_prob", self.new_place_prob, 0.0, 1.0)
+        if self.restart_prob + self.new_place_prob >= 1:
+            raise ValueError("restart_prob + new_place_prob must be < 1")
+        if self.dist_scale is not None:
+            _finite_range("dist_scale", self.dist_scale, 0.0, math.inf, lo_open=True)
+        _finite_range("dist_scale_ema", self.dist_scale_ema, 0.0, 1.0, lo_open=True)
+        _finite_range("dist_scale_factor", self.dist_scale_factor, 0.0, math.inf, lo_open=True)
+        _finite_range("miss_margin", self.miss_margin, 0.0, 700.0)
+        _finite_range("novelty_margin", self.novelty_margin, -700.0, 700.0)
+        if self.novelty_dist is not None:
+            _finite_range("novelty_dist", self.novelty_dist, 0.0, math.inf)
+        if not _is_int(self.place_radius) or self.place_radius < 0:
+            raise ValueError("place_radius must be an integer >= 0")
+        if not _is_int(self.place_hops) or self.place_hops < 0:
+            raise ValueError("place_hops must be an integer >= 0")
+        if not _is_int(self.decision_candidates) or self.decision_candidates < 1:
+            raise ValueError("decision_candidates must be an integer >= 1")
+        _finite_range("min_confidence", self.min_confidence, 0.0, 1.0)
+        if not _is_int(self.cache_budget_bytes) or self.cache_budget_bytes < 0:
+            raise ValueError("cache_budget_bytes must be an integer >= 0")
+
+    @property
+    def window_len(self) -> int:
+        """``W``, the number of window weights."""
+        return len(self.window)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> HMMConfig:
@@ -48,3 +142,18 @@ class HMMConfig:
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready dict."""
         return dataclass_dict.to_dict(self)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _finite_range(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False,
+                  hi_open: bool = False) -> None:
+    """Raise ValueError unless ``value`` is a real number in the given range."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number")
+    if value < lo or (lo_open and value == lo) or value > hi or (hi_open and value == hi):
+        left = "(" if lo_open else "["
+        right = ")" if hi_open else "]"
+        raise ValueError(f"{name} must be in {left}{lo}, {hi}{right}")

@@ -1,0 +1,374 @@
+"""The ``sprint-map`` command line: a thin layer over :class:`sprint_map.SprintMap`.
+
+Every command is a few lines over the library plus help text with an example. Errors raised on
+purpose by the library (:class:`SprintMapError`) print one ``Error: ...`` line on stderr and exit
+with the error's own code; there is never a traceback for bad input.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from sprint_map import dataclass_dict
+from sprint_map.config import MapConfig
+from sprint_map.errors import InputError, SprintMapError
+from sprint_map.frontend.descriptors import DescriptorSpec
+from sprint_map.frontend.positions import read_positions
+from sprint_map.frontend.sources import ProgressCallback
+from sprint_map.map import SprintMap
+
+
+class _Group(click.Group):
+    """Turns library errors into one line on stderr and a distinct exit code."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except SprintMapError as exc:
+            click.echo(f"Error: {exc}", err=True)
+            sys.exit(exc.exit_code)
+        except OSError as exc:
+            click.echo(f"Error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
+                       err=True)
+            sys.exit(1)
+        except MemoryError:
+            click.echo("Error: out of memory", err=True)
+            sys.exit(1)
+
+
+def _emit(data: Any, as_json: bool, text: str) -> None:
+    click.echo(json.dumps(data, indent=2) if as_json else text)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="sprint-map")
+def main() -> None:
+    """sprint-map: a persistent, lifelong visual place-recognition map (SPRINT).
+
+    \b
+    Quick start:
+      sprint-map init city.map --dim 256
+      sprint-map ingest city.map monday.npy --name monday
+      sprint-map info city.map
+    """
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--dim", type=int, help="Descriptor dimension (for precomputed .npy descriptors).")
+@click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm"]),
+              default=None, help="Descriptor kind; hog/patchnorm set the dimension themselves.")
+@click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
+              help="JSON file of further MapConfig options (see docs/architecture.md).")
+def init(map_path: str, dim: int | None, descriptor: str | None, config_json: str | None) -> None:
+    """Create an empty map in MAP (which must be absent or empty).
+
+    \b
+    Examples:
+      sprint-map init city.map --descriptor hog      # images and video, the paper's HoG
+      sprint-map init city.map --dim 256             # precomputed .npy descriptors
+    """
+    options: dict[str, Any] = {}
+    if config_json:
+        try:
+            with open(config_json) as fh:
+                options = json.load(fh)
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read config {config_json}: {exc}") from exc
+    kind = descriptor or options.pop("descriptor", None) or ("precomputed" if dim else "hog")
+    if kind == "precomputed":
+        if dim is None:
+            raise InputError("--dim is required for precomputed descriptors")
+        config = MapConfig.from_dict({**options, "dim": dim, "descriptor": kind})
+    else:
+        params = options.pop("descriptor_params", {})
+        config = MapConfig.from_dict({**options, "descriptor": kind, "descriptor_params": params,
+                                      "dim": DescriptorSpec(kind, params).dim})
+        if dim is not None and dim != config.dim:
+            raise InputError(f"{kind} descriptors have {config.dim} dimensions, not {dim}")
+    with SprintMap.create(map_path, config) as m:
+        click.echo(f"created {m.path} ({config.descriptor}, dim {config.dim})")
+
+
+def _progress(quiet: bool, label: str) -> ProgressCallback | None:
+    """A one-line progress display on stderr; none with --quiet or when not a terminal."""
+    if quiet or not sys.stderr.isatty():
+        return None
+
+    def report(done: int, total: int | None) -> None:
+        of = f"/{total}" if total else ""
+        click.echo(f"\r{label}: {done}{of} frames", err=True, nl=False)
+        if total is not None and done >= total:
+            click.echo("", err=True)
+
+    return report
+
+
+def _hmm_overrides(k: int | None, window: str | None, pairs: tuple[str, ...]) -> dict[str, Any]:
+    """Per-call model overrides from --k, --window and repeated --hmm key=value."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise InputError(f"--hmm expects key=value, got {pair!r}")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    if k is not None:
+        out["k"] = k
+    if window is not None:
+        try:
+            out["window"] = [float(x) for x in window.split(",")]
+        except ValueError as exc:
+            raise InputError(f"--window expects comma-separated numbers: {window}") from exc
+    return out
+
+
+def _model_options(f: Any) -> Any:
+    f = click.option("--hmm", "hmm_pairs", multiple=True, metavar="KEY=VALUE",
+                     help="Override any HMM parameter for this call (repeatable).")(f)
+    f = click.option("--window", help="Forward transition window, e.g. 0.2,0.4,0.3,0.1.")(f)
+    f = click.option("--k", type=int, help="Neighbours retrieved per frame.")(f)
+    f = click.option("--stride", type=int, default=1, show_default=True,
+                     help="Keep every STRIDE-th frame (video and image folders).")(f)
+    f = click.option("--quiet", "-q", is_flag=True, help="No progress display.")(f)
+    return f
+
+
+def _read(m: SprintMap, source: str, stride: int, quiet: bool) -> tuple[np.ndarray, str]:
+    src = m.open_source(source, stride=stride, progress=_progress(quiet, "describing"))
+    return src.read_all(), src.name
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.argument("source", type=click.Path(exists=True))
+@click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name).")
+@click.option("--positions", type=click.Path(exists=True, dir_okay=False),
+              help="CSV frame,x,y[,heading_deg] with a header row.")
+@click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@_model_options
+def ingest(map_path: str, source: str, name: str | None, positions: str | None,
+           no_merge: bool, as_json: bool, stride: int, quiet: bool, k: int | None,
+           window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+    """Localise the drive SOURCE against MAP, then merge it with its decisions as edges.
+
+    SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
+    drive of an empty map is added as it is.
+
+    \b
+    Examples:
+      sprint-map ingest city.map drives/monday/ --positions drives/monday/positions.csv
+      sprint-map ingest city.map monday.npy --name monday --json
+      sprint-map ingest city.map tuesday.mp4 --stride 5 --no-merge
+    """
+    overrides = _hmm_overrides(k, window, hmm_pairs)
+    with SprintMap.open(map_path) as m:
+        descriptors, default_name = _read(m, source, stride, quiet)
+        pos = read_positions(positions, len(descriptors), stride)[:, 1:] if positions else None
+        hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
+        result = m.ingest(descriptors, name=name or default_name, positions=pos,
+                          merge=not no_merge, hmm=hmm, source=str(source))
+    out = result.to_dict()
+    matched = sum(d["seq_id"] is not None for d in out["decisions"])
+    _emit(out, as_json, f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
+                        f"{matched} matched, {out['edges_added']} edges, component "
+                        f"{out['component']}")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.argument("source", type=click.Path(exists=True))
+@click.option("--json", "as_json", is_flag=True, help="Print the decisions as JSON.")
+@click.option("--out", type=click.Path(dir_okay=False), help="Also write the JSON to this file.")
+@_model_options
+def localize(map_path: str, source: str, as_json: bool, out: str | None, stride: int,
+             quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+    """Localise the drive SOURCE against MAP without changing the map.
+
+    \b
+    Examples:
+      sprint-map localize city.map drives/friday/ --json
+      sprint-map localize city.map friday.npy --k 20 --out friday.json
+    """
+    overrides = _hmm_overrides(k, window, hmm_pairs)
+    with SprintMap.open(map_path, readonly=True) as m:
+        descriptors, _ = _read(m, source, stride, quiet)
+        decisions, timing = m.localize(descriptors, **overrides)
+    t = timing.to_dict()
+    data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
+    if out:
+        with open(out, "w") as fh:
+            json.dump(data, fh, indent=1)
+    matched = sum(d.is_match for d in decisions)
+    _emit(data, as_json, "\n".join(
+        [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")
+         + f"  p={d.prob:.3f}" for d in decisions]
+        + [f"{matched}/{len(decisions)} frames matched; per frame: retrieval "
+           f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
+def info(map_path: str, as_json: bool) -> None:
+    """Summarise MAP: counts, dimension, index and disk use.
+
+    \b
+    Example:
+      sprint-map info city.map --json
+    """
+    with SprintMap.open(map_path, readonly=True) as m:
+        data = m.info()
+    text = "\n".join(
+        f"{key}: {data[key]}"
+        for key in ("path", "schema_version", "sequences", "vertices", "edges", "components",
+                    "dim", "descriptor", "index", "disk_bytes")
+    )
+    _emit(data, as_json, text)
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
+def sequences(map_path: str, as_json: bool) -> None:
+    """List the sequences of MAP with their component.
+
+    \b
+    Example:
+      sprint-map sequences city.map --json
+    """
+    with SprintMap.open(map_path, readonly=True) as m:
+        rows = [
+            {"seq_id": s.seq_id, "name": s.name, "frames": s.length,
+             "component": m.component_of(s.seq_id)}
+            for s in m.sequences()
+        ]
+    text = "\n".join(f"{r['seq_id']:>6}  {r['frames']:>7} frames  component {r['component']:>6}  "
+                     f"{r['name']}" for r in rows)
+    _emit(rows, as_json, text or "(no sequences)")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print as JSON.")
+def components(map_path: str, as_json: bool) -> None:
+    """List the connected components of MAP (sequences joined by edges).
+
+    \b
+    Example:
+      sprint-map components city.map
+    """
+    with SprintMap.open(map_path, readonly=True) as m:
+        rows = [{"component": c.component, "sequences": c.sequences, "vertices": c.vertices}
+                for c in m.components()]
+    text = "\n".join(f"{r['component']:>6}  {r['vertices']:>8} vertices  sequences "
+                     f"{r['sequences']}" for r in rows)
+    _emit(rows, as_json, text or "(no components)")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def check(map_path: str, as_json: bool) -> None:
+    """Verify every invariant of MAP; exit 1 and list the violations if any.
+
+    \b
+    Example:
+      sprint-map check city.map
+    """
+    with SprintMap.open(map_path, readonly=True) as m:
+        report = m.check()
+    lines = [f"violation: {v}" for v in report.violations] + [f"note: {n}" for n in report.notes]
+    lines.append("ok" if report.ok else f"{len(report.violations)} violation(s)")
+    _emit(report.to_dict(), as_json, "\n".join(lines))
+    sys.exit(0 if report.ok else 1)
+
+
+def _log(quiet: bool) -> Any:
+    return (lambda _msg: None) if quiet else (lambda msg: click.echo(msg, err=True))
+
+
+@main.command(name="eval")
+@click.argument("dataset", type=click.Path(exists=True, file_okay=False))
+@click.option("--protocol", type=click.Choice(["lifelong", "pairs"]), default="lifelong",
+              show_default=True, help="lifelong: each traversal localised against all earlier "
+              "ones, then merged; pairs: one database, one query traversal.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Where results, plots and maps go (default: ./eval-<dataset name>).")
+@click.option("--database", help="pairs: database traversal (default: the first).")
+@click.option("--query", help="pairs: query traversal (default: the second).")
+@click.option("--both-directions", is_flag=True, help="pairs: also swap database and query.")
+@click.option("--descriptor", type=click.Choice(["hog", "patchnorm"]), default="hog",
+              show_default=True, help="Descriptor computed from the images.")
+@click.option("--alignment", type=click.Choice(["frame", "position"]),
+              help="Ground truth, if the data set has no dataset.json (Nordland: frame).")
+@click.option("--tolerance", type=int, help="Frame alignment: +/- frames counted correct.")
+@click.option("--radius", type=float, help="Position alignment: metres counted correct.")
+@_model_options
+def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None,
+          query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
+          tolerance: int | None, radius: float | None, stride: int, quiet: bool,
+          k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+    """Evaluate k-NN and SPRINT on DATASET (one folder per traversal); write JSON, markdown, PNGs.
+
+    \b
+    Examples:
+      sprint-map eval data/city --out eval-city
+      sprint-map eval ../shared/data/nordland --protocol pairs --database summer \\
+          --query winter --both-directions --alignment frame --tolerance 1
+    """
+    from sprint_map.evaluation.report import markdown_table, write_report
+    from sprint_map.evaluation.runner import EvalOptions, run_evaluation
+    from sprint_map.frontend.dataset import Dataset
+
+    gt: dict[str, Any] = {}
+    for key, value in (("alignment", alignment), ("tolerance_frames", tolerance),
+                       ("radius_m", radius)):
+        if value is not None:
+            gt[key] = value
+    data = Dataset.open(dataset, gt or None)
+    config = MapConfig.for_descriptor(descriptor)
+    overrides = _hmm_overrides(k, window, hmm_pairs)
+    hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
+    options = EvalOptions(protocol=protocol, database=database, query=query,
+                          both_directions=both_directions, stride=stride)
+    out = Path(out_dir or f"eval-{data.path.resolve().name}")
+    results = run_evaluation(data, out / "maps", config, options, hmm, log=_log(quiet))
+    paths = write_report(results, out)
+    click.echo(markdown_table(results))
+    click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+
+
+@main.command()
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="sprint-demo",
+              show_default=True, help="Where the data, maps, results and plots go.")
+@click.option("--dataset", "which", type=click.Choice(["auto", "city", "nordland"]),
+              default="auto", show_default=True,
+              help="auto: Nordland when it is present on this machine, else the generated city.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress messages.")
+def demo(out_dir: str, which: str, quiet: bool) -> None:
+    """Build a map from the embedded default data, evaluate it, print the table and plots.
+
+    With no data to download: the generated city (rendered images, several drives with
+    condition changes, aliasing and novel streets), or the Nordland summer/winter set when
+    present (found through $SPRINT_MAP_NORDLAND or ../shared/data/nordland).
+
+    \b
+    Example:
+      sprint-map demo --out sprint-demo
+    """
+    from sprint_map.evaluation.demo import run_demo
+    from sprint_map.evaluation.report import markdown_table
+
+    results, paths = run_demo(Path(out_dir), which, log=_log(quiet))
+    click.echo(markdown_table(results))
+    click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))

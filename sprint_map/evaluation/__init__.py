@@ -1,0 +1,1 @@
+"""Evaluation of place recognition on data sets: k-NN baselines versus SPRINT."""

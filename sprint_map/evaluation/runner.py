@@ -1,0 +1,254 @@
+"""Running the evaluation protocols on a data set.
+
+``pairs`` (the paper's Table I): one database traversal is mapped, one query traversal is
+localised against it. ``lifelong`` (the paper's Mapillary protocol): traversals are taken in
+order; each is localised against the map of all earlier ones and then merged into it with its
+decisions as edges.
+
+Every query frame is answered twice over the same map: by exact k-NN (FAISS flat search, the
+baseline) and by SPRINT, streamed frame by frame as a vehicle would (so the latencies reported
+are per-frame latencies, not batch averages).
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sprint_map.config import MapConfig
+from sprint_map.errors import InputError
+from sprint_map.evaluation.metrics import percentiles, pr_curve, recall_at_k
+from sprint_map.frontend.dataset import Dataset, Traversal
+from sprint_map.frontend.groundtruth import GroundTruth
+from sprint_map.hmm.config import HMMConfig
+from sprint_map.localizer import FrameDecision
+from sprint_map.map import SprintMap
+
+PROTOCOLS = ("lifelong", "pairs")
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """What to evaluate.
+
+    Parameters
+    ----------
+    protocol : {"lifelong", "pairs"}
+    database, query : str, optional
+        ``pairs``: traversal names (default the first and second traversal).
+    both_directions : bool
+        ``pairs``: also evaluate with database and query swapped.
+    stride : int
+        Keep every ``stride``-th frame of every traversal.
+    ks : tuple of int
+        k of the k-NN recall baselines.
+    """
+
+    protocol: str = "lifelong"
+    database: str | None = None
+    query: str | None = None
+    both_directions: bool = False
+    stride: int = 1
+    ks: tuple[int, ...] = (1, 5, 10)
+
+    def __post_init__(self) -> None:
+        if self.protocol not in PROTOCOLS:
+            raise InputError(f"protocol must be one of {', '.join(PROTOCOLS)}")
+
+
+@dataclass
+class QueryResult:
+    """Per-frame answers of one query traversal against one map state."""
+
+    query: str
+    database: list[str]
+    knn_correct: np.ndarray  # (Q, K) bool, ranked hits
+    has_match: np.ndarray  # (Q,) bool
+    best_correct: np.ndarray  # (Q,) bool: SPRINT's most probable place is a true match
+    accepted: np.ndarray  # (Q,) bool: SPRINT answered "match" (not "no match")
+    prob: np.ndarray  # (Q,) float: SPRINT's place probability
+    retrieval_ms: list[float]
+    hmm_ms: list[float]
+    active_vertices: list[int]
+    map_vertices: int
+    edges_added: int = 0
+
+    def summary(self, ks: tuple[int, ...]) -> dict[str, Any]:
+        knn = recall_at_k(self.knn_correct, self.has_match, ks)
+        denom = max(int(self.has_match.sum()), 1)
+        curve = pr_curve(self.prob, self.best_correct, self.has_match)
+        accepted_tp = self.accepted & self.best_correct & self.has_match
+        return {
+            "query": self.query,
+            "database": self.database,
+            "frames": int(len(self.has_match)),
+            "frames_with_match": int(self.has_match.sum()),
+            "map_vertices": self.map_vertices,
+            **{f"knn_recall@{k}": round(v, 4) for k, v in knn.items()},
+            "sprint_recall@1": round(float((self.best_correct & self.has_match).sum()) / denom, 4),
+            "decision_precision": round(
+                float(accepted_tp.sum()) / max(int(self.accepted.sum()), 1), 4),
+            "decision_recall": round(float(accepted_tp.sum()) / denom, 4),
+            "no_match_on_novel": round(float((~self.accepted & ~self.has_match).sum())
+                                       / max(int((~self.has_match).sum()), 1), 4),
+            "pr_auc": round(curve.auc, 4),
+            "recall@100%precision": round(curve.recall_at_full_precision, 4),
+            "retrieval_ms": percentiles(self.retrieval_ms),
+            "hmm_ms": percentiles(self.hmm_ms),
+            "active_vertices_mean": round(float(np.mean(self.active_vertices or [0])), 1),
+            "active_vertices_max": int(np.max(self.active_vertices or [0])),
+            "edges_added": self.edges_added,
+        }
+
+
+def describe(m: SprintMap, traversal: Traversal, stride: int) -> np.ndarray:
+    """Descriptors of a traversal, in the map's descriptor kind."""
+    source = traversal.open(m.config.descriptor_spec(), stride=stride)
+    rows = source.read_all()
+    if rows.shape[1] != m.config.dim:
+        raise InputError(f"{traversal.folder}: descriptors of dim {rows.shape[1]}, map has "
+                         f"{m.config.dim}")
+    return rows
+
+
+def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
+                   ks: tuple[int, ...], hmm: HMMConfig | None) -> tuple[QueryResult, list[FrameDecision]]:
+    """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both."""
+    names = {s.seq_id: s.name for s in m.sequences()}
+    db_names = list(names.values())
+    frames = np.arange(len(rows))
+    kmax = max(ks)
+    _, ids = m.search(rows, kmax)
+    located = m.store.locate(ids[ids >= 0].ravel())
+    seq = np.full(ids.shape, -1)
+    img = np.full(ids.shape, -1)
+    seq[ids >= 0] = [s for s, _ in located]
+    img[ids >= 0] = [i for _, i in located]
+    knn_correct = np.zeros(ids.shape, dtype=bool)
+    for seq_id, name in names.items():
+        mask = seq == seq_id
+        if mask.any():
+            qf = np.broadcast_to(frames[:, None], ids.shape)[mask]
+            knn_correct[mask] = gt.correct(query, qf, name, img[mask])
+    has_match = gt.has_match(query, frames, db_names)
+
+    localizer = m.localizer(hmm)
+    decisions = [localizer.step(row) for row in rows]
+    best_correct = np.zeros(len(rows), dtype=bool)
+    for d in decisions:
+        if d.best is not None:
+            s, i = d.best
+            best_correct[d.frame] = bool(gt.correct(query, d.frame, names[s], i))
+    result = QueryResult(
+        query=query,
+        database=db_names,
+        knn_correct=knn_correct,
+        has_match=has_match,
+        best_correct=best_correct,
+        accepted=np.array([d.is_match for d in decisions], dtype=bool),
+        prob=np.array([d.prob for d in decisions]),
+        retrieval_ms=localizer.timing.retrieval_ms,
+        hmm_ms=localizer.timing.hmm_ms,
+        active_vertices=localizer.timing.active_vertices,
+        map_vertices=m.stats()["vertices"],
+    )
+    return result, decisions
+
+
+def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
+                   hmm: HMMConfig | None = None, log: Log = lambda _: None) -> dict[str, Any]:
+    """Run ``options.protocol`` on ``dataset``, building maps under ``work_dir``.
+
+    Returns the results as a JSON-ready dict: one row per query traversal plus an ``overall``
+    row over all query frames.
+    """
+    work_dir.mkdir(parents=True, exist_ok=True)
+    gt = dataset.ground_truth(options.stride)
+    started = time.perf_counter()
+    results: list[QueryResult] = []
+    if options.protocol == "pairs":
+        names = dataset.names
+        if len(names) < 2 and not (options.database and options.query):
+            raise InputError(f"{dataset.path}: the pairs protocol needs two traversals")
+        db = options.database or names[0]
+        query = options.query or next(n for n in names if n != db)
+        pairs = [(db, query)] + ([(query, db)] if options.both_directions else [])
+        for db_name, q_name in pairs:
+            map_dir = _fresh(work_dir / f"map-{db_name}")
+            with SprintMap.create(map_dir, config) as m:
+                log(f"mapping {db_name}")
+                m.add_sequence(describe(m, dataset[db_name], options.stride), name=db_name,
+                               positions=_xy(dataset[db_name].positions(options.stride)))
+                log(f"localising {q_name} against {db_name}")
+                rows = describe(m, dataset[q_name], options.stride)
+                results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm)[0])
+    else:
+        map_dir = _fresh(work_dir / "map-lifelong")
+        with SprintMap.create(map_dir, config) as m:
+            for i, traversal in enumerate(dataset):
+                rows = describe(m, traversal, options.stride)
+                positions = _xy(traversal.positions(options.stride))
+                if i == 0:
+                    log(f"mapping {traversal.name} (first traversal)")
+                    m.add_sequence(rows, name=traversal.name, positions=positions)
+                    continue
+                log(f"localising {traversal.name} against {i} earlier traversal(s), then merging")
+                result, decisions = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm)
+                added = m.merge(rows, decisions, name=traversal.name, positions=positions)
+                result.edges_added = added.edges_added
+                results.append(result)
+    rows_out = [r.summary(options.ks) for r in results]
+    overall = _overall(results, options.ks)
+    return {
+        "dataset": str(dataset.path),
+        "protocol": options.protocol,
+        "stride": options.stride,
+        "ground_truth": gt.spec.to_dict(),
+        "config": config.to_dict(),
+        "hmm": (hmm or config.hmm).to_dict(),
+        "queries": rows_out,
+        "overall": overall,
+        "seconds": round(time.perf_counter() - started, 2),
+        "_curves": {r.query: pr_curve(r.prob, r.best_correct, r.has_match) for r in results},
+        "_latency": {"retrieval_ms": sum((r.retrieval_ms for r in results), []),
+                     "hmm_ms": sum((r.hmm_ms for r in results), [])},
+    }
+
+
+def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
+    if not results:
+        return {}
+    joined = QueryResult(
+        query="overall",
+        database=sorted({n for r in results for n in r.database}),
+        knn_correct=np.concatenate([r.knn_correct for r in results]),
+        has_match=np.concatenate([r.has_match for r in results]),
+        best_correct=np.concatenate([r.best_correct for r in results]),
+        accepted=np.concatenate([r.accepted for r in results]),
+        prob=np.concatenate([r.prob for r in results]),
+        retrieval_ms=sum((r.retrieval_ms for r in results), []),
+        hmm_ms=sum((r.hmm_ms for r in results), []),
+        active_vertices=sum((r.active_vertices for r in results), []),
+        map_vertices=max(r.map_vertices for r in results),
+        edges_added=sum(r.edges_added for r in results),
+    )
+    return joined.summary(ks)
+
+
+def _xy(positions: np.ndarray | None) -> np.ndarray | None:
+    """Positions as the map stores them: drop the leading frame-number column."""
+    return None if positions is None else positions[:, 1:]
+
+
+def _fresh(path: Path) -> Path:
+    """The evaluation owns its work directory: a map left by an earlier run is replaced."""
+    if path.exists():
+        shutil.rmtree(path)
+    return path

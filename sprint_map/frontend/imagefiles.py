@@ -1,0 +1,146 @@
+"""Image files on disk: which files count as images, in which order, and decoding them.
+
+Ordering is *natural*: digit runs compare as numbers, so ``img2.png`` comes before ``img10.png``
+(plain string order would put ``img10`` first and scramble a sequence whose frame numbers are not
+zero-padded). Ties are broken by the plain name, so the order is total and reproducible.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sprint_map.errors import InputError
+
+#: File extensions read as images (compared case-insensitively).
+IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"})
+
+#: File extensions treated as videos when a data-set traversal folder holds one.
+VIDEO_EXTENSIONS = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"})
+
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(name: str) -> tuple[tuple[tuple[int, int | str], ...], str]:
+    """Sort key that orders digit runs numerically (``"img2" < "img10"``).
+
+    Text runs compare case-insensitively; the raw name breaks ties (``"a01"`` vs ``"a1"``), so
+    distinct names never compare equal.
+    """
+    parts: list[tuple[int, int | str]] = []
+    for i, part in enumerate(_DIGITS.split(name)):
+        if i % 2:
+            parts.append((0, int(part)))
+        elif part:
+            parts.append((1, part.casefold()))
+    return tuple(parts), name
+
+
+def is_image_name(name: str) -> bool:
+    """True if the file name has one of :data:`IMAGE_EXTENSIONS` (any case)."""
+    return os.path.splitext(name)[1].lower() in IMAGE_EXTENSIONS
+
+
+def is_video_name(name: str) -> bool:
+    """True if the file name has one of :data:`VIDEO_EXTENSIONS` (any case)."""
+    return os.path.splitext(name)[1].lower() in VIDEO_EXTENSIONS
+
+
+def list_images(directory: Path) -> list[Path]:
+    """Image files directly inside ``directory``, in natural order.
+
+    Files with other extensions, hidden files (``.name``) and sub-directories are ignored.
+
+    Raises
+    ------
+    InputError
+        If ``directory`` is missing, is not a directory, cannot be listed or holds no image.
+    """
+    directory = Path(directory)
+    if not directory.exists():
+        raise InputError(f"{directory}: no such file or directory")
+    if not directory.is_dir():
+        raise InputError(f"{directory}: not a directory")
+    try:
+        with os.scandir(directory) as entries:
+            names = [
+                e.name
+                for e in entries
+                if not e.name.startswith(".") and is_image_name(e.name) and e.is_file()
+            ]
+    except OSError as exc:
+        raise InputError(f"{directory}: cannot list directory ({exc.strerror or exc})") from exc
+    if not names:
+        extensions = "/".join(sorted(ext[1:] for ext in IMAGE_EXTENSIONS))
+        raise InputError(f"{directory}: no image files ({extensions}) in directory")
+    names.sort(key=natural_key)
+    return [directory / name for name in names]
+
+
+def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
+    """Read and decode one image file.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    grayscale : bool
+        Decode straight to 8-bit gray (``cv2.IMREAD_GRAYSCALE``: for JPEG, libjpeg skips the
+        colour conversion, which is measurably faster than decoding BGR and converting).
+
+    Returns
+    -------
+    ndarray of uint8
+        ``(H, W)`` if ``grayscale`` else ``(H, W, 3)`` BGR.
+
+    Raises
+    ------
+    InputError
+        If the file cannot be read, or cannot be decoded completely (a truncated JPEG or PNG is
+        an error, not a silently grey-padded image); the message names the file.
+
+    Notes
+    -----
+    The bytes are read with Python and decoded with ``cv2.imdecode`` rather than ``cv2.imread``,
+    because ``imread`` reports every failure as ``None`` and prints truncated-JPEG warnings to
+    stderr without failing. ``imdecode`` releases the GIL, so threads decode in parallel.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
+    if not data:
+        raise InputError(f"{path}: empty image file")
+    if _is_truncated(data):
+        raise InputError(f"{path}: truncated image file")
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
+    try:
+        image = cv2.imdecode(buffer, flags)
+    except cv2.error as exc:  # some codecs raise instead of returning None
+        raise InputError(
+            f"{path}: cannot decode image ({str(exc).strip().splitlines()[-1]})"
+        ) from exc
+    if image is None or image.size == 0:
+        raise InputError(f"{path}: cannot decode image (corrupt or not an image)")
+    return image
+
+
+def _is_truncated(data: bytes) -> bool:
+    """True for a JPEG whose last scan is not followed by an end-of-image marker.
+
+    OpenCV 4.14 refuses a cut JPEG itself, but older 4.x builds (still allowed by the
+    dependency range) decode one cut anywhere after its header, padding it with grey and only
+    printing "Premature end of JPEG file". The check is structural: the end-of-image marker
+    ``FFD9`` must follow the last start-of-scan ``FFDA`` (entropy-coded data cannot contain
+    either, thanks to byte stuffing; an EXIF thumbnail's own markers come before the main scan,
+    and trailing bytes after the marker are allowed). Other formats' decoders fail by themselves.
+    """
+    if data[:3] != b"\xff\xd8\xff":
+        return False
+    last_scan = data.rfind(b"\xff\xda")
+    return last_scan < 0 or data.find(b"\xff\xd9", last_scan) < 0

@@ -1,0 +1,401 @@
+"""Frame sources: a directory of images, a video file or a ``.npy`` of descriptors, as a stream.
+
+:func:`open_source` inspects a path and returns a :class:`FrameSource` whose
+:meth:`~FrameSource.iter_batches` yields ``(n, dim)`` float32 descriptor batches in frame order.
+Images are decoded and described in parallel (see :mod:`sprint_map.frontend.parallel`); a video
+is decoded sequentially (a decoder is inherently sequential) and described in parallel; a
+``.npy`` is memory-mapped and streamed. Memory is bounded by ``batch_size`` plus a few chunks in
+flight per worker, never by the length of the source.
+
+Errors about the input are raised as :class:`~sprint_map.errors.InputError` (or
+:class:`~sprint_map.errors.DescriptorShapeError` / :class:`~sprint_map.errors.InvalidDescriptorError`
+for a ``.npy`` of the wrong shape or with non-finite values) with a one-line message that starts
+with the offending file. Listing and ``.npy`` validation happen in :func:`open_source`, so a bad
+source fails before any work is done; an image that does not decode can only be found while
+decoding, so it fails the iteration.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sprint_map.errors import DescriptorShapeError, InputError, InvalidDescriptorError
+from sprint_map.frontend.descriptors import DescriptorSpec
+from sprint_map.frontend.imagefiles import is_video_name, list_images, read_image
+from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
+
+#: ``progress(frames_done, total_or_None)``, called after each batch.
+ProgressCallback = Callable[[int, int | None], None]
+
+SOURCE_KINDS = ("images", "video", "npy")
+
+# Frames per task handed to a worker: large enough to amortise task overhead (~50 us per
+# future), small enough to balance two workers on a short directory.
+_MAX_CHUNK = 32
+
+
+@dataclass(frozen=True)
+class _Options:
+    stride: int
+    batch_size: int
+    workers: int
+    executor: str
+    progress: ProgressCallback | None
+
+
+class FrameSource(ABC):
+    """A sequence of frames, delivered as descriptor batches. Build one with :func:`open_source`.
+
+    Attributes
+    ----------
+    kind : str
+        ``"images"``, ``"video"`` or ``"npy"``.
+    path : Path
+        The directory or file.
+    name : str
+        Default sequence name: the directory name, or the file name without its extension.
+    spec : DescriptorSpec or None
+        How frames are described (``None`` for a ``.npy``, which holds descriptors already).
+    dim : int
+        Descriptor dimension.
+    count : int or None
+        Number of frames :meth:`iter_batches` will yield (after ``stride``), or ``None`` when
+        unknown before reading (a video: container frame counts are estimates).
+    stride : int
+        Every ``stride``-th frame is kept, starting with the first.
+    batch_size : int
+        Rows per yielded batch (the last one may be shorter).
+    workers : int
+        Parallel decode/describe workers.
+    progress : callable or None
+        Default progress callback of :meth:`iter_batches`.
+    """
+
+    kind: str
+
+    def __init__(
+        self, path: Path, spec: DescriptorSpec | None, dim: int, options: _Options
+    ) -> None:
+        self.path = path
+        self.name = path.stem if path.is_file() else path.resolve().name
+        self.spec = spec
+        self.dim = dim
+        self.stride = options.stride
+        self.batch_size = options.batch_size
+        self.workers = options.workers
+        self.executor = options.executor
+        self.progress = options.progress
+
+    @property
+    @abstractmethod
+    def count(self) -> int | None:
+        """Frames the source yields, or ``None`` if unknown until read."""
+
+    @abstractmethod
+    def _batches(self) -> Iterator[np.ndarray]:
+        """Yield the float32 batches (without progress reporting)."""
+
+    def iter_batches(self, progress: ProgressCallback | None = None) -> Iterator[np.ndarray]:
+        """Yield ``(n, dim)`` float32 descriptor batches in frame order.
+
+        Parameters
+        ----------
+        progress : callable, optional
+            Called as ``progress(frames_done, total)`` after each batch (``total`` is
+            :attr:`count`, ``None`` for a video); defaults to :attr:`progress`.
+
+        Raises
+        ------
+        InputError
+            On a frame that cannot be read or decoded, or a video that yields no frame.
+        """
+        report = progress if progress is not None else self.progress
+        done = 0
+        for batch in self._batches():
+            done += len(batch)
+            if report is not None:
+                report(done, self.count)
+            yield batch
+
+    def read_all(self, progress: ProgressCallback | None = None) -> np.ndarray:
+        """Return all descriptors as one ``(count, dim)`` float32 array.
+
+        Holds the whole sequence in memory (``count * dim * 4`` bytes); prefer
+        :meth:`iter_batches` for long sources.
+        """
+        batches = list(self.iter_batches(progress))
+        if not batches:
+            return np.empty((0, self.dim), dtype=np.float32)
+        return np.concatenate(batches)
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(path={str(self.path)!r}, kind={self.kind!r}, "
+            f"count={self.count}, dim={self.dim}, stride={self.stride})"
+        )
+
+
+def _single_threaded_opencv() -> None:
+    """Worker-process initialiser: each process is already one of N parallel workers, so
+    OpenCV's own thread pool (used by ``resize``) would only oversubscribe the cores."""
+    cv2.setNumThreads(1)
+
+
+def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> np.ndarray:
+    """Decode and describe a chunk of image files (runs in a worker)."""
+    out = np.empty((len(paths), spec.dim), dtype=np.float32)
+    for i, path in enumerate(paths):
+        out[i] = spec.describe(read_image(path, grayscale=True))
+    return out
+
+
+def _describe_frames(spec: DescriptorSpec, frames: list[np.ndarray]) -> np.ndarray:
+    """Describe a chunk of decoded video frames (runs in a worker thread)."""
+    return spec.describe_batch(frames)
+
+
+def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
+    if n_frames is None:
+        return max(1, min(_MAX_CHUNK, batch_size))
+    # At least ~4 chunks per worker so the tail of the directory still keeps every worker busy.
+    return max(1, min(_MAX_CHUNK, batch_size, math.ceil(n_frames / (4 * workers))))
+
+
+def _rebatch(chunks: Iterator[np.ndarray], batch_size: int) -> Iterator[np.ndarray]:
+    """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer)."""
+    buffer: list[np.ndarray] = []
+    held = 0
+    for chunk in chunks:
+        buffer.append(chunk)
+        held += len(chunk)
+        while held >= batch_size:
+            merged = np.concatenate(buffer) if len(buffer) > 1 else buffer[0]
+            yield merged[:batch_size]
+            rest = merged[batch_size:]
+            buffer = [rest] if len(rest) else []
+            held = len(rest)
+    if held:
+        yield np.concatenate(buffer) if len(buffer) > 1 else buffer[0]
+
+
+class ImageDirSource(FrameSource):
+    """Images of one directory, in natural file-name order."""
+
+    kind = "images"
+
+    def __init__(self, path: Path, spec: DescriptorSpec, options: _Options) -> None:
+        super().__init__(path, spec, spec.dim, options)
+        self.files: list[Path] = list_images(path)[:: self.stride]
+
+    @property
+    def count(self) -> int:
+        return len(self.files)
+
+    def _batches(self) -> Iterator[np.ndarray]:
+        assert self.spec is not None
+        size = _chunk_size(len(self.files), self.batch_size, self.workers)
+        chunks = [self.files[i : i + size] for i in range(0, len(self.files), size)]
+        work = functools.partial(_describe_files, self.spec)
+        initializer = _single_threaded_opencv if self.executor == "process" else None
+        results = ordered_map(work, chunks, self.workers, self.executor, initializer=initializer)
+        yield from _rebatch(results, self.batch_size)
+
+
+class VideoSource(FrameSource):
+    """Frames of a video file read with ``cv2.VideoCapture``.
+
+    Decoding runs in the calling thread (it is sequential by nature; FFmpeg may use its own
+    threads); frames skipped by ``stride`` are only ``grab()``-ed, not converted. Describing runs
+    in worker threads: shipping full frames to processes would cost more than describing them.
+    """
+
+    kind = "video"
+
+    def __init__(self, path: Path, spec: DescriptorSpec, options: _Options) -> None:
+        super().__init__(path, spec, spec.dim, options)
+        capture = self._open()
+        try:
+            if not capture.grab():
+                raise InputError(f"{path}: video has no frames")
+            frames = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+        finally:
+            capture.release()
+        #: Frame count from the container header after ``stride``; only an estimate (0 if
+        #: unknown), for progress display.
+        self.estimated_count = math.ceil(frames / self.stride) if frames > 0 else 0
+
+    @property
+    def count(self) -> None:
+        return None
+
+    def _open(self) -> cv2.VideoCapture:
+        capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
+            capture.release()
+            raise InputError(f"{self.path}: cannot open video (unsupported or corrupt file)")
+        return capture
+
+    def _frames(self, capture: cv2.VideoCapture, chunk: int) -> Iterator[list[np.ndarray]]:
+        index = 0
+        frames: list[np.ndarray] = []
+        while True:
+            if index % self.stride == 0:
+                ok, frame = capture.read()
+                if not ok or frame is None:
+                    break
+                frames.append(frame)
+                if len(frames) == chunk:
+                    yield frames
+                    frames = []
+            elif not capture.grab():
+                break
+            index += 1
+        if frames:
+            yield frames
+
+    def _batches(self) -> Iterator[np.ndarray]:
+        assert self.spec is not None
+        capture = self._open()
+        try:
+            chunk = _chunk_size(None, self.batch_size, self.workers)
+            work = functools.partial(_describe_frames, self.spec)
+            results = ordered_map(work, self._frames(capture, chunk), self.workers, "thread")
+            produced = 0
+            for batch in _rebatch(results, self.batch_size):
+                produced += len(batch)
+                yield batch
+            if produced == 0:
+                raise InputError(f"{self.path}: video yielded no frames")
+        finally:
+            capture.release()
+
+
+class NpySource(FrameSource):
+    """Precomputed descriptors: a 2-D float ``.npy`` array, one row per frame.
+
+    The file is memory-mapped and validated in full when opened (one sequential pass, about
+    1 GB/s from the page cache) so that a NaN in the last row fails before anything is ingested.
+    float64/float16 are converted to float32 batch by batch.
+    """
+
+    kind = "npy"
+
+    def __init__(self, path: Path, spec: DescriptorSpec | None, options: _Options) -> None:
+        array = _load_npy(path)
+        if spec is not None and array.shape[1] != spec.dim:
+            raise DescriptorShapeError(
+                f"{path}: descriptors have {array.shape[1]} dimensions, {spec} has {spec.dim}"
+            )
+        super().__init__(path, None, int(array.shape[1]), options)
+        self.array = array[:: self.stride]
+
+    @property
+    def count(self) -> int:
+        return int(self.array.shape[0])
+
+    def _batches(self) -> Iterator[np.ndarray]:
+        for start in range(0, self.count, self.batch_size):
+            yield np.ascontiguousarray(
+                self.array[start : start + self.batch_size], dtype=np.float32
+            )
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: cannot read .npy file ({exc})") from exc
+    if not isinstance(array, np.ndarray):  # np.load returns an NpzFile for a .npz renamed .npy
+        raise InputError(f"{path}: not a .npy array file")
+    if array.ndim != 2:
+        raise DescriptorShapeError(
+            f"{path}: expected a 2-D (frames x dims) array, got shape {array.shape}"
+        )
+    if not np.issubdtype(array.dtype, np.floating):
+        raise DescriptorShapeError(f"{path}: expected float descriptors, got dtype {array.dtype}")
+    if array.shape[0] == 0 or array.shape[1] == 0:
+        raise InputError(f"{path}: no descriptors (shape {array.shape})")
+    rows = max(1, (64 << 20) // max(1, array.shape[1] * array.dtype.itemsize))
+    for start in range(0, array.shape[0], rows):
+        finite = np.isfinite(array[start : start + rows]).all(axis=1)
+        if not finite.all():
+            row = start + int(np.argmin(finite))
+            raise InvalidDescriptorError(f"{path}: row {row} contains NaN or Inf")
+    return array
+
+
+def open_source(
+    path: str | Path,
+    spec: DescriptorSpec | None = None,
+    stride: int = 1,
+    batch_size: int = 256,
+    workers: int | None = None,
+    executor: str = "thread",
+    progress: ProgressCallback | None = None,
+) -> FrameSource:
+    """Open a directory of images, a video file or a ``.npy`` of descriptors.
+
+    Parameters
+    ----------
+    path : str or Path
+        A directory (its image files, natural order; other files are ignored), a video
+        (``.mp4 .avi .mov .mkv .m4v .mpg .mpeg .webm``) or a ``.npy`` of shape (frames, dims).
+    spec : DescriptorSpec, optional
+        Descriptor for images and video; default ``DescriptorSpec("hog")``, the paper's. For a
+        ``.npy`` it is only checked against the file's dimension.
+    stride : int
+        Keep every ``stride``-th frame (frames 0, stride, 2*stride, ...).
+    batch_size : int
+        Rows per batch from :meth:`FrameSource.iter_batches`.
+    workers : int, optional
+        Decode/describe workers; default: the cores available to this process.
+    executor : {"thread", "process"}
+        Worker kind for image directories (a video always uses threads). Threads are the
+        default: OpenCV releases the GIL, and they start instantly.
+    progress : callable, optional
+        ``progress(frames_done, total_or_None)`` after each batch.
+
+    Returns
+    -------
+    FrameSource
+
+    Raises
+    ------
+    InputError
+        Missing path, a directory without images, an unsupported file type, a video that cannot
+        be opened or has no frame, an unreadable ``.npy``.
+    DescriptorShapeError
+        A ``.npy`` that is not 2-D float, or does not match ``spec.dim``.
+    InvalidDescriptorError
+        A ``.npy`` containing NaN or Inf.
+    """
+    path = Path(path)
+    for name, value in (("stride", stride), ("batch_size", batch_size)):
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive integer")
+    if workers is None:
+        workers = default_workers()
+    if workers < 1:
+        raise ValueError("workers must be >= 1")
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}")
+    if not path.exists():
+        raise InputError(f"{path}: no such file or directory")
+    options = _Options(stride, batch_size, workers, executor, progress)
+    if path.is_dir():
+        return ImageDirSource(path, spec or DescriptorSpec("hog"), options)
+    if path.suffix.lower() == ".npy":
+        return NpySource(path, spec, options)
+    if is_video_name(path.name):
+        return VideoSource(path, spec or DescriptorSpec("hog"), options)
+    raise InputError(
+        f"{path}: unsupported source (expected an image directory, a video file or a .npy)"
+    )

@@ -1,0 +1,254 @@
+"""Per-frame decision: the most probable *place*, its belief mass, and novelty ("no match").
+
+Where several drives cover the same street, the belief of the true place is split over their
+vertices, so one vertex's posterior understates the confidence. The decision therefore scores a
+few candidate vertices (the most probable ones) by the mass of their place:
+
+    place(v) = N_r(v)  U  union of N_r(b) for every b joined to a vertex of N_r(v) by a path
+               of at most h edges (either direction),
+
+where ``N_r(v)`` is the images ``i - r .. i + r`` of v's sequence (``r = place_radius``,
+``h = place_hops``). Paths follow edges only, never temporal moves, so a place does not drift
+along the road when many drives are chained by their merge edges. The
+union is taken over slot intervals (no vertex counts twice), so the place mass is a probability
+in [0, 1]. The answer is the candidate with the largest place mass; it is "no match" when that
+mass is below ``min_confidence`` or when the sink ("off the map") holds at least as much.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sprint_map.hmm.graph import ComponentGraph
+
+#: Relative belief below which a vertex is not a decision candidate (see top_candidates).
+CANDIDATE_FLOOR = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    """One frame's localisation answer.
+
+    Attributes
+    ----------
+    vertex_id : int or None
+        The matched global vertex id; None for "no match" (the map does not know the place).
+    seq_id, image_id : int or None
+        The same vertex as (sequence id, image index); None for "no match".
+    prob : float
+        Belief mass of the best place (in [0, 1]); reported for "no match" too.
+    vertex_prob : float
+        Posterior of the best candidate vertex alone.
+    sink_prob : float
+        Posterior of the sink ("off the map": new place, or past the end of a sequence).
+    n_active_components, n_active_vertices : int
+        Size of the active set after this frame.
+    candidate_id : int or None
+        The best candidate vertex even when the answer is "no match" (None if the belief is all
+        in the sink).
+    """
+
+    vertex_id: int | None
+    seq_id: int | None
+    image_id: int | None
+    prob: float
+    vertex_prob: float
+    sink_prob: float
+    n_active_components: int
+    n_active_vertices: int
+    candidate_id: int | None = None
+
+    @property
+    def is_match(self) -> bool:
+        """Whether the frame was localised."""
+        return self.vertex_id is not None
+
+
+@dataclass(slots=True)
+class BeliefView:
+    """One component's belief in slot layout (what the decision code reads).
+
+    ``x[slot_first[s] + image]`` is the belief of image ``image`` of sequence ``s`` (in
+    ``graph.seq_ids`` order); other slots (gutters) hold 0.
+    """
+
+    graph: ComponentGraph
+    slot_first: np.ndarray
+    x: np.ndarray
+
+
+def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
+               ) -> list[tuple[int, int]]:
+    """The place of the vertex at ``slot`` as disjoint slot runs ``[start, stop)``, ascending.
+
+    Parameters
+    ----------
+    view : BeliefView
+    slot : int
+        Slot of the vertex.
+    radius : int
+        ``place_radius``.
+    hops : int
+        ``place_hops``: how many edges away from the vertex's neighbourhood the place reaches.
+
+    Notes
+    -----
+    O(r + h d log d) for the d vertices reached over h hops, a handful of numpy calls per hop;
+    never touches the rest of the component.
+    """
+    graph = view.graph
+    slot_first = view.slot_first
+    s = 0 if len(slot_first) == 1 else int(np.searchsorted(slot_first, slot, side="right")) - 1
+    first = int(slot_first[s])
+    image = slot - first
+    lo = max(image - radius, 0)
+    hi = min(image + radius, int(graph.seq_len[s]) - 1)
+    own = [(first + lo, first + hi + 1)]
+    if not graph.n_edges or hops < 1:
+        return own
+    base = int(graph.local_first[s])
+    indptr = graph.adj_indptr
+    indices = graph.adj_indices
+    seeds = np.arange(base + lo, base + hi + 1, dtype=np.int64)
+    frontier = np.setdiff1d(indices[indptr[base + lo]: indptr[base + hi + 1]], seeds)
+    if frontier.size == 0:
+        return own
+    # Follow edges only (aligned frames), never temporal moves: the place does not drift
+    # along the road however many drives are chained together.
+    visited = np.union1d(seeds, frontier)
+    for _ in range(hops - 1):
+        reached = np.setdiff1d(_csr_gather(indptr, indices, frontier), visited)
+        if reached.size == 0:
+            break
+        visited = np.union1d(visited, reached)
+        frontier = reached
+    nb = np.setdiff1d(visited, seeds, assume_unique=True)
+    nb_seq = np.searchsorted(graph.local_first, nb, side="right") - 1
+    nb_image = nb - graph.local_first[nb_seq]
+    nb_lo = np.maximum(nb_image - radius, 0)
+    nb_hi = np.minimum(nb_image + radius, graph.seq_len[nb_seq] - 1)
+    starts = np.append(slot_first[nb_seq] + nb_lo, own[0][0])
+    stops = np.append(slot_first[nb_seq] + nb_hi + 1, own[0][1])
+    order = np.argsort(starts, kind="stable")
+    starts = starts[order]
+    stops = np.maximum.accumulate(stops[order])
+    # A new run starts where an interval begins after everything before it has ended.
+    new = np.empty(len(starts), dtype=bool)
+    new[0] = True
+    np.greater_equal(starts[1:], stops[:-1], out=new[1:])
+    new_idx = np.flatnonzero(new)
+    run_starts = starts[new_idx].tolist()
+    run_stops = stops[np.append(new_idx[1:] - 1, len(starts) - 1)].tolist()
+    return list(zip(run_starts, run_stops, strict=True))
+
+
+def _csr_gather(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Concatenated adjacency lists of ``rows`` (vectorised)."""
+    starts = indptr[rows]
+    lengths = indptr[rows + 1] - starts
+    offsets = np.cumsum(lengths) - lengths
+    flat = np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(starts - offsets, lengths)
+    return indices[flat]
+
+
+def place_mass(view: BeliefView, slot: int, radius: int, hops: int = 1) -> float:
+    """Belief mass of the place of the vertex at ``slot`` (see the module docstring).
+
+    Notes
+    -----
+    Like :func:`place_runs`; each vertex of the place counts once.
+    """
+    return _runs_sum(view.x, place_runs(view, slot, radius, hops))
+
+
+def _runs_sum(x: np.ndarray, runs: list[tuple[int, int]]) -> float:
+    if len(runs) == 1:
+        start, stop = runs[0]
+        # A handful of values: a Python sum of the list beats a numpy reduction call.
+        return math.fsum(x[start:stop].tolist()) if stop - start <= 32 else float(
+            x[start:stop].sum())
+    # Gather the slots of all runs and add them up: the runs may lie far apart in the
+    # component, so no prefix sum over the span between them.
+    starts = np.array([r[0] for r in runs], dtype=np.int64)
+    lengths = np.array([r[1] - r[0] for r in runs], dtype=np.int64)
+    slots = np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(
+        starts - (np.cumsum(lengths) - lengths), lengths)
+    return float(x[slots].sum())
+
+
+def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], sink: float,
+           radius: int, hops: int, min_confidence: float, n_active_components: int,
+           n_active_vertices: int) -> Decision:
+    """Score candidates by place mass and apply the novelty rules.
+
+    Parameters
+    ----------
+    views : list of BeliefView
+    candidates : list of (vertex_prob, view index, slot)
+        The most probable vertices, best first, all with positive belief.
+    sink : float
+        Sink posterior.
+    radius, hops, min_confidence
+        ``place_radius``, ``place_hops`` and ``min_confidence`` of the config.
+    n_active_components, n_active_vertices : int
+        Reported as is.
+
+    Notes
+    -----
+    O(m (r + h d log d)) for m candidates (see :func:`place_runs`).
+    """
+    best: tuple[float, int, list[tuple[int, int]]] | None = None
+    for _, vi, slot in candidates:
+        runs = place_runs(views[vi], slot, radius, hops)
+        mass = min(_runs_sum(views[vi].x, runs), 1.0)
+        if best is None or mass > best[0]:
+            best = (mass, vi, runs)
+    if best is None:
+        return Decision(None, None, None, 0.0, 0.0, sink, n_active_components,
+                        n_active_vertices, None)
+    mass, vi, runs = best
+    # Report the most probable candidate inside the winning place (candidates are sorted by
+    # belief): its centre may be off the belief's peak by up to place_radius.
+    prob, slot = next((p, sl) for p, v, sl in candidates
+                      if v == vi and any(a <= sl < b for a, b in runs))
+    view = views[vi]
+    s = int(np.searchsorted(view.slot_first, slot, side="right")) - 1
+    image = slot - int(view.slot_first[s])
+    vid = int(view.graph.seq_first[s]) + image
+    if mass < min_confidence or sink >= mass:
+        return Decision(None, None, None, mass, prob, sink, n_active_components,
+                        n_active_vertices, vid)
+    return Decision(vid, int(view.graph.seq_ids[s]), image, mass, prob, sink,
+                    n_active_components, n_active_vertices, vid)
+
+
+def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, int]]:
+    """The ``m`` most probable vertices over all views, best first.
+
+    Only vertices holding at least :data:`CANDIDATE_FLOOR` times the largest belief qualify
+    (such a vertex cannot seed the most massive place; the floor keeps ``argpartition`` away
+    from the long runs of equal near-zero beliefs on which it degrades to O(n log n)-like work).
+
+    Notes
+    -----
+    O(sum of view sizes): a max, a comparison and a ``nonzero`` per view, then an
+    ``argpartition`` over the qualifying vertices only.
+    """
+    peak = max((float(v.x.max()) for v in views if v.x.size), default=0.0)
+    if peak <= 0.0:
+        return []
+    floor = peak * CANDIDATE_FLOOR
+    found: list[tuple[float, int, int]] = []
+    for vi, view in enumerate(views):
+        x = view.x
+        idx = (x >= floor).nonzero()[0]
+        if idx.size > m:
+            vals = x[idx]
+            idx = idx[np.argpartition(vals, vals.size - m)[vals.size - m:]]
+        for slot, p in zip(idx.tolist(), x[idx].tolist(), strict=True):
+            found.append((p, vi, slot))
+    found.sort(key=lambda c: (-c[0], c[1], c[2]))
+    return found[:m]

@@ -1,0 +1,346 @@
+"""The map as the HMM sees it: connected components as compact arrays, and where they come from.
+
+A map's vertices are images; a sequence's vertices have contiguous global ids
+(``seq_first[s] + image_id``). Sequences joined by inter-sequence edges form a component. The
+filter only ever looks at components, through the :class:`GraphSource` protocol, so it knows
+nothing of how the map is stored. :class:`MemoryGraphSource` is the in-memory implementation
+used by tests and benchmarks; the map facade implements the protocol over LMDB.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+_I64 = np.int64
+
+
+def _as_array(name: str, value: object, dtype: type) -> np.ndarray:
+    arr: np.ndarray = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be one-dimensional")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class ComponentGraph:
+    """Compact arrays for one connected component of the map.
+
+    Parameters
+    ----------
+    component_id : int
+        The component's id (whatever the source uses; the filter only compares them).
+    seq_ids : ndarray of int64, shape (S,)
+        Sequence ids in this component, sorted ascending.
+    seq_first : ndarray of int64, shape (S,)
+        Global vertex id of image 0 of each sequence.
+    seq_len : ndarray of int64, shape (S,)
+        Number of images of each sequence (>= 1).
+    edge_src, edge_dst : ndarray of int64, shape (E,)
+        Global vertex ids of the directed inter-sequence edges; both ends lie in this component.
+    edge_weight : ndarray of float64, shape (E,)
+        Match probability recorded when the edge was made (finite, >= 0).
+
+    Attributes
+    ----------
+    n_vertices : int
+        Number of vertices (images).
+    local_first : ndarray of int64, shape (S,)
+        Compact local index of image 0 of each sequence: sequences are laid out one after the
+        other in ``seq_ids`` order, so ``local = local_first[s] + image_id``.
+    edge_src_local, edge_dst_local : ndarray of int64, shape (E,)
+        Edge ends as compact local indices.
+    edge_src_seq, edge_dst_seq : ndarray of int64, shape (E,)
+        Index (into ``seq_ids``) of the sequence of each edge end.
+    adj_indptr, adj_indices : ndarray of int64
+        Undirected adjacency (CSR over compact local indices, both edge directions), used to
+        find the vertices of a place.
+
+    Raises
+    ------
+    ValueError
+        On inconsistent arrays: shapes, unsorted or repeated sequence ids, empty or overlapping
+        vertex ranges, an edge end outside the component, a negative or non-finite weight.
+
+    Notes
+    -----
+    Construction is O(S log S + E log E) time and O(n_vertices + E) memory (the adjacency
+    index pointer has one entry per vertex). The arrays are read-only.
+    """
+
+    component_id: int
+    seq_ids: np.ndarray
+    seq_first: np.ndarray
+    seq_len: np.ndarray
+    edge_src: np.ndarray
+    edge_dst: np.ndarray
+    edge_weight: np.ndarray
+
+    def __post_init__(self) -> None:
+        put = object.__setattr__
+        put(self, "component_id", int(self.component_id))
+        for name in ("seq_ids", "seq_first", "seq_len", "edge_src", "edge_dst"):
+            put(self, name, _as_array(name, getattr(self, name), _I64))
+        put(self, "edge_weight", _as_array("edge_weight", self.edge_weight, np.float64))
+        n_seq = len(self.seq_ids)
+        if n_seq == 0:
+            raise ValueError("a component has at least one sequence")
+        if len(self.seq_first) != n_seq or len(self.seq_len) != n_seq:
+            raise ValueError("seq_ids, seq_first and seq_len must have the same length")
+        if n_seq > 1 and not np.all(np.diff(self.seq_ids) > 0):
+            raise ValueError("seq_ids must be sorted and unique")
+        if np.any(self.seq_len < 1) or np.any(self.seq_first < 0):
+            raise ValueError("sequences must have length >= 1 and non-negative first vertex ids")
+        n_edges = len(self.edge_src)
+        if len(self.edge_dst) != n_edges or len(self.edge_weight) != n_edges:
+            raise ValueError("edge_src, edge_dst and edge_weight must have the same length")
+        if n_edges and (not np.all(np.isfinite(self.edge_weight)) or self.edge_weight.min() < 0):
+            raise ValueError("edge weights must be finite and >= 0")
+
+        by_first = np.argsort(self.seq_first, kind="stable")
+        first_sorted = self.seq_first[by_first]
+        if n_seq > 1 and np.any(first_sorted[1:] < first_sorted[:-1] + self.seq_len[by_first][:-1]):
+            raise ValueError("sequence vertex ranges overlap")
+        put(self, "_by_first", by_first)
+        put(self, "_first_sorted", first_sorted)
+        local_first = np.zeros(n_seq, dtype=_I64)
+        np.cumsum(self.seq_len[:-1], out=local_first[1:])
+        put(self, "local_first", local_first)
+        put(self, "n_vertices", int(self.seq_len.sum()))
+
+        src_seq = self.seq_index(self.edge_src)
+        dst_seq = self.seq_index(self.edge_dst)
+        if n_edges and (src_seq.min() < 0 or dst_seq.min() < 0):
+            raise ValueError("an edge end is not a vertex of this component")
+        put(self, "edge_src_seq", src_seq)
+        put(self, "edge_dst_seq", dst_seq)
+        src_local = local_first[src_seq] + (self.edge_src - self.seq_first[src_seq])
+        dst_local = local_first[dst_seq] + (self.edge_dst - self.seq_first[dst_seq])
+        put(self, "edge_src_local", src_local)
+        put(self, "edge_dst_local", dst_local)
+
+        # Undirected CSR: a place gathers vertices joined by an edge in either direction.
+        ends = np.concatenate([src_local, dst_local])
+        other = np.concatenate([dst_local, src_local])
+        order = np.argsort(ends, kind="stable")
+        indptr = np.zeros(self.n_vertices + 1, dtype=_I64)
+        np.cumsum(np.bincount(ends, minlength=self.n_vertices), out=indptr[1:])
+        put(self, "adj_indptr", indptr)
+        put(self, "adj_indices", other[order])
+
+    # Derived in __post_init__ (not constructor arguments).
+    n_vertices: int = field(init=False, repr=False)
+    local_first: np.ndarray = field(init=False, repr=False)
+    edge_src_seq: np.ndarray = field(init=False, repr=False)
+    edge_dst_seq: np.ndarray = field(init=False, repr=False)
+    edge_src_local: np.ndarray = field(init=False, repr=False)
+    edge_dst_local: np.ndarray = field(init=False, repr=False)
+    adj_indptr: np.ndarray = field(init=False, repr=False)
+    adj_indices: np.ndarray = field(init=False, repr=False)
+    _by_first: np.ndarray = field(init=False, repr=False)
+    _first_sorted: np.ndarray = field(init=False, repr=False)
+
+    @property
+    def n_sequences(self) -> int:
+        """Number of sequences."""
+        return len(self.seq_ids)
+
+    @property
+    def n_edges(self) -> int:
+        """Number of directed edges."""
+        return len(self.edge_src)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the arrays (what the component cache charges for it)."""
+        arrays = (self.seq_ids, self.seq_first, self.seq_len, self.edge_src, self.edge_dst,
+                  self.edge_weight, self.local_first, self.edge_src_seq, self.edge_dst_seq,
+                  self.edge_src_local, self.edge_dst_local, self.adj_indptr, self.adj_indices,
+                  self._by_first, self._first_sorted)
+        return int(sum(a.nbytes for a in arrays)) + 256
+
+    def seq_index(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Index (into ``seq_ids``) of the sequence holding each global vertex id, -1 if none.
+
+        Notes
+        -----
+        O(m log S) for m ids.
+        """
+        vids = np.asarray(vertex_ids, dtype=_I64)
+        pos = np.searchsorted(self._first_sorted, vids, side="right") - 1
+        clipped = np.maximum(pos, 0)
+        seq = self._by_first[clipped]
+        inside = (pos >= 0) & (vids < self.seq_first[seq] + self.seq_len[seq])
+        return np.where(inside, seq, -1)
+
+    def local_index(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Compact local index of each global vertex id (ValueError if one is not in here).
+
+        Notes
+        -----
+        O(m log S) for m ids.
+        """
+        vids = np.asarray(vertex_ids, dtype=_I64)
+        seq = self.seq_index(vids)
+        if seq.size and seq.min() < 0:
+            raise ValueError(f"vertex ids not in component {self.component_id}")
+        return self.local_first[seq] + (vids - self.seq_first[seq])
+
+    def global_index(self, local: np.ndarray) -> np.ndarray:
+        """Global vertex id of each compact local index.
+
+        Notes
+        -----
+        O(m log S) for m indices.
+        """
+        loc = np.asarray(local, dtype=_I64)
+        seq = np.searchsorted(self.local_first, loc, side="right") - 1
+        return self.seq_first[seq] + (loc - self.local_first[seq])
+
+    def vertex_ids(self) -> np.ndarray:
+        """All global vertex ids, in compact local order (O(n_vertices))."""
+        return self.global_index(np.arange(self.n_vertices, dtype=_I64))
+
+
+@runtime_checkable
+class GraphSource(Protocol):
+    """Where the filter gets components from (the map facade implements it over LMDB)."""
+
+    def components_of(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Return the int64 component id of each global vertex id (ValueError if unknown)."""
+        ...
+
+    def load_component(self, component_id: int) -> ComponentGraph:
+        """Return the compact arrays of one component."""
+        ...
+
+
+class _UnionFind:
+    """Union by size with path halving over ``n`` items (for MemoryGraphSource)."""
+
+    def __init__(self, n: int) -> None:
+        self.parent = list(range(n))
+        self.size = [1] * n
+
+    def find(self, a: int) -> int:
+        parent = self.parent
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra == rb:
+            return
+        if self.size[ra] < self.size[rb] or (self.size[ra] == self.size[rb] and rb < ra):
+            ra, rb = rb, ra
+        self.parent[rb] = ra
+        self.size[ra] += self.size[rb]
+
+
+class MemoryGraphSource:
+    """In-memory :class:`GraphSource` built from sequence lengths and edges.
+
+    Sequence ``s`` (0-based, in the given order) gets the vertex ids
+    ``sum(seq_lengths[:s]) ... + seq_lengths[s] - 1``, as the map facade assigns them. A
+    component's id is the smallest sequence id in it.
+
+    Parameters
+    ----------
+    seq_lengths : sequence of int
+        Length (>= 1) of each sequence.
+    edges : iterable of (int, int, float), optional
+        Directed inter-sequence edges ``(src_vertex, dst_vertex, weight)``.
+
+    Raises
+    ------
+    ValueError
+        On a length < 1, an edge end that is not a vertex, a negative or non-finite weight.
+
+    Notes
+    -----
+    Construction is O(S + E log E); ``components_of`` is O(m log S) for m ids;
+    ``load_component`` is O(S_c + E_c) plus the :class:`ComponentGraph` construction.
+    ``load_count`` counts loads (tests use it to check the cache).
+    """
+
+    def __init__(self, seq_lengths: Sequence[int],
+                 edges: Iterable[tuple[int, int, float]] = ()) -> None:
+        lengths = np.asarray(list(seq_lengths), dtype=_I64)
+        if lengths.ndim != 1 or lengths.size == 0 or lengths.min() < 1:
+            raise ValueError("seq_lengths must be a non-empty list of lengths >= 1")
+        self.seq_len = lengths
+        self.seq_first = np.zeros(len(lengths), dtype=_I64)
+        np.cumsum(lengths[:-1], out=self.seq_first[1:])
+        self.n_vertices = int(lengths.sum())
+        edge_list = list(edges)
+        src = np.array([e[0] for e in edge_list], dtype=_I64)
+        dst = np.array([e[1] for e in edge_list], dtype=_I64)
+        weight = np.array([e[2] for e in edge_list], dtype=np.float64)
+        if src.size:
+            if min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= self.n_vertices:
+                raise ValueError("edge end outside the map")
+            if not np.all(np.isfinite(weight)) or weight.min() < 0:
+                raise ValueError("edge weights must be finite and >= 0")
+        src_seq = self._seq_of(src)
+        dst_seq = self._seq_of(dst)
+        uf = _UnionFind(len(lengths))
+        for a, b in zip(src_seq.tolist(), dst_seq.tolist(), strict=True):
+            uf.union(a, b)
+        roots = np.array([uf.find(s) for s in range(len(lengths))], dtype=_I64)
+        # Component id = smallest sequence id of the component (stable under edge order).
+        comp_min = np.full(len(lengths), np.iinfo(np.int64).max, dtype=_I64)
+        np.minimum.at(comp_min, roots, np.arange(len(lengths), dtype=_I64))
+        self.seq_comp = comp_min[roots]
+        self._members: dict[int, np.ndarray] = {}
+        order = np.argsort(self.seq_comp, kind="stable")
+        comps, starts = np.unique(self.seq_comp[order], return_index=True)
+        for c, members in zip(comps.tolist(), np.split(order, starts[1:]), strict=True):
+            self._members[c] = members
+        edge_comp = self.seq_comp[src_seq] if src.size else np.empty(0, dtype=_I64)
+        edge_order = np.argsort(edge_comp, kind="stable")
+        self._edges: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        if src.size:
+            ecomps, estarts = np.unique(edge_comp[edge_order], return_index=True)
+            bounds = np.append(estarts, len(edge_order))
+            for i, c in enumerate(ecomps.tolist()):
+                sel = edge_order[bounds[i]:bounds[i + 1]]
+                self._edges[c] = (src[sel], dst[sel], weight[sel])
+        self.load_count = 0
+
+    def _seq_of(self, vids: np.ndarray) -> np.ndarray:
+        return np.searchsorted(self.seq_first, vids, side="right") - 1
+
+    @property
+    def component_ids(self) -> list[int]:
+        """Ids of all components, ascending."""
+        return sorted(self._members)
+
+    def components_of(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Component id of each global vertex id (ValueError on an unknown id)."""
+        vids = np.asarray(vertex_ids, dtype=_I64)
+        if vids.size and (vids.min() < 0 or vids.max() >= self.n_vertices):
+            raise ValueError("vertex id not in the map")
+        return self.seq_comp[self._seq_of(vids)]
+
+    def load_component(self, component_id: int) -> ComponentGraph:
+        """The compact arrays of component ``component_id`` (ValueError if unknown)."""
+        members = self._members.get(int(component_id))
+        if members is None:
+            raise ValueError(f"no component {component_id}")
+        self.load_count += 1
+        empty_i = np.empty(0, dtype=_I64)
+        src, dst, weight = self._edges.get(int(component_id),
+                                           (empty_i, empty_i, np.empty(0, dtype=np.float64)))
+        return ComponentGraph(component_id=int(component_id), seq_ids=members,
+                              seq_first=self.seq_first[members], seq_len=self.seq_len[members],
+                              edge_src=src, edge_dst=dst, edge_weight=weight)
+
+    def all_components(self) -> list[ComponentGraph]:
+        """Every component (for :class:`FullGraphFilter`); O(n_vertices + E)."""
+        return [self.load_component(c) for c in self.component_ids]

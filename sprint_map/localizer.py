@@ -1,0 +1,200 @@
+"""Localising a query sequence against a map, and turning its decisions into merge edges.
+
+Per frame: k-NN retrieval over the whole map (FAISS) gives the observations; the SPRINT filter
+updates the belief over the active set only; the most probable place is the decision. The
+:class:`Localizer` serves both a vehicle streaming frames one at a time (:meth:`Localizer.step`)
+and offline localisation of a whole sequence (:meth:`Localizer.localize`, which batches its
+k-NN searches: one search of B queries is much cheaper than B searches of one).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sprint_map.hmm.cache import ComponentCache
+from sprint_map.hmm.config import HMMConfig
+from sprint_map.hmm.sprint_filter import SprintFilter
+from sprint_map.map_graph import MapGraphSource
+from sprint_map.storage.store import EdgeSpec, validate_descriptors
+
+if TYPE_CHECKING:
+    from sprint_map.map import SprintMap
+
+#: Query rows per batched k-NN search in :meth:`Localizer.localize`.
+SEARCH_BATCH = 256
+
+
+@dataclass(frozen=True)
+class FrameDecision:
+    """The answer for one query frame; ``seq_id``/``image_id`` are None for "no match".
+
+    ``prob`` is the posterior mass of the decided place (the vertex, its temporal neighbours and
+    the vertices joined to them by edges); for "no match" it is that of the best candidate,
+    which ``best`` still names (``(seq_id, image_id)``, None when the map is empty).
+    """
+
+    frame: int
+    seq_id: int | None
+    image_id: int | None
+    prob: float
+    vertex_id: int | None = None
+    best: tuple[int, int] | None = None
+
+    @property
+    def is_match(self) -> bool:
+        return self.seq_id is not None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
+                "prob": round(float(self.prob), 6)}
+
+
+@dataclass
+class Timing:
+    """Per-frame timing, retrieval and HMM apart, and the active-set size after each frame.
+
+    In batch localisation one search serves many frames; each frame is charged an equal share.
+    """
+
+    retrieval_ms: list[float] = field(default_factory=list)
+    hmm_ms: list[float] = field(default_factory=list)
+    active_vertices: list[int] = field(default_factory=list)
+    active_components: list[int] = field(default_factory=list)
+
+    @property
+    def frames(self) -> int:
+        return len(self.hmm_ms)
+
+    def to_dict(self) -> dict[str, Any]:
+        n = max(self.frames, 1)
+        ret = np.asarray(self.retrieval_ms or [0.0])
+        hmm = np.asarray(self.hmm_ms or [0.0])
+        act = np.asarray(self.active_vertices or [0])
+        return {
+            "frames": self.frames,
+            "retrieval_ms_total": round(float(ret.sum()), 3),
+            "hmm_ms_total": round(float(hmm.sum()), 3),
+            "retrieval_ms_per_frame": round(float(ret.sum()) / n, 4),
+            "hmm_ms_per_frame": round(float(hmm.sum()) / n, 4),
+            "retrieval_ms_p50": round(float(np.percentile(ret, 50)), 4),
+            "retrieval_ms_p99": round(float(np.percentile(ret, 99)), 4),
+            "hmm_ms_p50": round(float(np.percentile(hmm, 50)), 4),
+            "hmm_ms_p99": round(float(np.percentile(hmm, 99)), 4),
+            "active_vertices_mean": round(float(act.mean()), 1),
+            "active_vertices_max": int(act.max()),
+        }
+
+
+class Localizer:
+    """Localise one query sequence, frame by frame, against ``smap``.
+
+    Parameters
+    ----------
+    smap : SprintMap
+        The map (read-only is enough); its state is read through LMDB snapshots.
+    hmm : HMMConfig, optional
+        Model parameters; default the map's own (``smap.config.hmm``).
+
+    Notes
+    -----
+    Per-frame cost: one k-NN search over the map, plus the HMM update in
+    O(W * n_active + nnz(U_active)) where ``n_active`` counts the vertices of the active
+    components only, plus loading components that join the active set (LRU-cached).
+    """
+
+    def __init__(self, smap: SprintMap, hmm: HMMConfig | None = None) -> None:
+        self.map = smap
+        self.config = hmm or smap.config.hmm
+        self.source = MapGraphSource(smap.store)
+        self.cache = ComponentCache(self.config.cache_budget_bytes)
+        self.filter = SprintFilter(self.config, self.source, self.cache)
+        self.timing = Timing()
+        self._empty = smap.stats()["vertices"] == 0
+        self._frame = 0
+
+    def reset(self) -> None:
+        """Start a new query sequence."""
+        self.filter.reset()
+        self.timing = Timing()
+        self._frame = 0
+
+    def step(self, descriptor: np.ndarray) -> FrameDecision:
+        """Localise one frame (a vehicle streaming its images)."""
+        row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim)
+        if self._empty:
+            return self._no_map_decision()
+        start = time.perf_counter()
+        dists, ids = self.map.search(row, self.config.k)
+        return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+
+    def localize(self, descriptors: np.ndarray | Iterable[np.ndarray]) -> list[FrameDecision]:
+        """Localise a whole sequence (array, or an iterable of row batches), batching searches."""
+        return list(self.iter_localize(descriptors))
+
+    def iter_localize(self, descriptors: np.ndarray | Iterable[np.ndarray]
+                      ) -> Iterator[FrameDecision]:
+        """Like :meth:`localize`, yielding decisions as batches are searched."""
+        batches = (
+            (descriptors[i : i + SEARCH_BATCH] for i in range(0, len(descriptors), SEARCH_BATCH))
+            if isinstance(descriptors, np.ndarray) else descriptors
+        )
+        for batch in batches:
+            rows = validate_descriptors(batch, self.map.config.dim)
+            if self._empty:
+                for _ in range(len(rows)):
+                    yield self._no_map_decision()
+                continue
+            start = time.perf_counter()
+            dists, ids = self.map.search(rows, self.config.k)
+            share = (time.perf_counter() - start) * 1e3 / len(rows)
+            for i in range(len(rows)):
+                yield self._update(ids[i], dists[i], share)
+
+    def _update(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float) -> FrameDecision:
+        start = time.perf_counter()
+        decision = self.filter.step(ids, dists)
+        self.timing.hmm_ms.append((time.perf_counter() - start) * 1e3)
+        self.timing.retrieval_ms.append(retrieval_ms)
+        self.timing.active_vertices.append(int(decision.n_active_vertices))
+        self.timing.active_components.append(int(decision.n_active_components))
+        frame = self._frame
+        self._frame += 1
+        if decision.vertex_id is None or decision.seq_id is None or decision.image_id is None:
+            best = None
+            if decision.candidate_id is not None:
+                best = self.map.store.locate([decision.candidate_id])[0]
+            return FrameDecision(frame, None, None, float(decision.prob), None, best)
+        return FrameDecision(frame, int(decision.seq_id), int(decision.image_id),
+                             float(decision.prob), int(decision.vertex_id),
+                             (int(decision.seq_id), int(decision.image_id)))
+
+    def _no_map_decision(self) -> FrameDecision:
+        self.timing.retrieval_ms.append(0.0)
+        self.timing.hmm_ms.append(0.0)
+        frame = self._frame
+        self._frame += 1
+        return FrameDecision(frame, None, None, 0.0)
+
+
+def merge_edges(decisions: Iterable[FrameDecision], threshold: float, both_ways: bool
+                ) -> list[EdgeSpec]:
+    """Edges that merging a localised sequence adds: one per confident decision.
+
+    A decision on frame ``i`` matched to ``(s, j)`` with ``prob >= threshold`` gives the edge
+    ``(new, i) -> (s, j)``, and with ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can
+    later cross from the old drive into the new one as well as back.
+    """
+    edges = []
+    for d in decisions:
+        if d.seq_id is None or d.image_id is None or d.prob < threshold:
+            continue
+        weight = min(1.0, float(d.prob))
+        edges.append(EdgeSpec((None, d.frame), (d.seq_id, d.image_id), weight, d.frame))
+        if both_ways:
+            edges.append(EdgeSpec((d.seq_id, d.image_id), (None, d.frame), weight, d.frame))
+    return edges

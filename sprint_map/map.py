@@ -1,0 +1,248 @@
+"""SprintMap: the library's front door, composing the store, retrieval and the HMM.
+
+The CLI is a thin layer over this class; everything it does can be done from Python::
+
+    from sprint_map import MapConfig, SprintMap
+
+    with SprintMap.create("city.map", MapConfig(dim=256)) as m:
+        m.add_sequence(descriptors, name="monday")
+    with SprintMap.open("city.map", readonly=True) as m:
+        print(m.info())
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sprint_map import dataclass_dict
+from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.errors import DescriptorShapeError, InputError
+from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
+from sprint_map.hmm.config import HMMConfig
+from sprint_map.localizer import FrameDecision, Localizer, Timing, merge_edges
+from sprint_map.storage.check import CheckReport, check_map
+from sprint_map.storage.keys import SequenceRecord
+from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """What :meth:`SprintMap.ingest` did: the commit, the decisions that made its edges."""
+
+    added: AddResult
+    decisions: list[FrameDecision]
+    timing: Timing
+
+    def to_dict(self) -> dict[str, Any]:
+        seq = self.added.sequence
+        return {
+            "seq_id": seq.seq_id,
+            "name": seq.name,
+            "frames": seq.length,
+            "component": self.added.component,
+            "edges_added": self.added.edges_added,
+            "decisions": [d.to_dict() for d in self.decisions],
+            "timing": self.timing.to_dict(),
+        }
+
+
+class SprintMap:
+    """A persistent place-recognition map.
+
+    Open with :meth:`create` or :meth:`open`, preferably as a context manager; one process at a
+    time may open a map for writing, any number for reading (each sees consistent snapshots).
+    """
+
+    def __init__(self, store: MapStore) -> None:
+        self.store = store
+
+    # --- lifecycle --------------------------------------------------------------------------
+    @classmethod
+    def create(cls, path: str | os.PathLike[str], config: MapConfig) -> SprintMap:
+        """Create an empty map in ``path`` (absent or empty) and open it for writing."""
+        return cls(MapStore.create(path, config))
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> SprintMap:
+        """Open an existing map; a writer recovers interrupted writes first.
+
+        Notes
+        -----
+        O(1) in the size of the map: reads the meta record, and for a writer truncates the one
+        shard that may hold uncommitted rows. Raises ``MapLockedError`` at once if another
+        process is writing.
+        """
+        return cls(MapStore.open(path, readonly=readonly))
+
+    def close(self) -> None:
+        """Persist the index (writer) and release the map."""
+        self.store.close()
+
+    def flush(self) -> None:
+        """Persist the index now (it is a cache; LMDB is already durable)."""
+        self.store.flush()
+
+    def __enter__(self) -> SprintMap:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def path(self) -> Path:
+        return self.store.path
+
+    @property
+    def config(self) -> MapConfig:
+        return self.store.config
+
+    @property
+    def readonly(self) -> bool:
+        return self.store.readonly
+
+    # --- writing ----------------------------------------------------------------------------
+    def add_sequence(
+        self,
+        descriptors: Any,
+        name: str | None = None,
+        positions: np.ndarray | None = None,
+        edges: Sequence[EdgeSpec] = (),
+        source: str = "",
+    ) -> AddResult:
+        """Append a sequence as it is (no localisation) with optional edges, atomically.
+
+        See :meth:`sprint_map.storage.store.MapStore.add_sequence`.
+        """
+        return self.store.add_sequence(
+            descriptors, name=name, positions=positions, edges=edges, source=source
+        )
+
+    def ingest(
+        self,
+        descriptors: Any,
+        name: str | None = None,
+        positions: np.ndarray | None = None,
+        *,
+        merge: bool = True,
+        hmm: HMMConfig | None = None,
+        source: str = "",
+    ) -> IngestResult:
+        """Localise a drive against the map, then commit it with its decisions as edges.
+
+        The lifelong step of the paper: every frame is localised against the map as it stands;
+        each decision with probability at least ``config.merge_threshold`` becomes an edge (both
+        ways if ``config.merge_both_ways``), and the sequence, its edges and the union-find
+        merges are committed in one transaction. With ``merge=False``, or on an empty map, the
+        sequence is appended as it is, without localisation or edges.
+        """
+        decisions: list[FrameDecision] = []
+        timing = Timing()
+        if merge and self.stats()["vertices"]:
+            localizer = Localizer(self, hmm)
+            decisions = localizer.localize(np.asarray(descriptors))
+            timing = localizer.timing
+        added = self.merge(descriptors, decisions, name=name, positions=positions, source=source)
+        return IngestResult(added, decisions, timing)
+
+    def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
+              positions: np.ndarray | None = None, source: str = "") -> AddResult:
+        """Commit a localised drive with its confident decisions as edges, atomically."""
+        edges = merge_edges(decisions, self.config.merge_threshold, self.config.merge_both_ways)
+        return self.add_sequence(descriptors, name=name, positions=positions, edges=edges,
+                                 source=source)
+
+    def localizer(self, hmm: HMMConfig | None = None, **overrides: Any) -> Localizer:
+        """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
+
+        ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``).
+        """
+        base = hmm or self.config.hmm
+        return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
+
+    def localize(self, descriptors: Any, **overrides: Any) -> tuple[list[FrameDecision], Timing]:
+        """Localise a whole query sequence without changing the map; batches its searches."""
+        localizer = self.localizer(**overrides)
+        return localizer.localize(np.asarray(descriptors)), localizer.timing
+
+    def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
+                    progress: ProgressCallback | None = None) -> FrameSource:
+        """Open images, a video or a ``.npy`` as descriptors that fit this map.
+
+        Raises
+        ------
+        InputError
+            Images or video given to a map of precomputed descriptors.
+        DescriptorShapeError
+            A ``.npy`` whose dimension is not the map's.
+        """
+        spec = self.config.descriptor_spec()
+        src = Path(path)
+        if spec is None and src.suffix.lower() != ".npy":
+            raise InputError(
+                f"{src}: this map holds precomputed descriptors (dim {self.config.dim}); give a "
+                ".npy of descriptors, or create the map with --descriptor hog for images/video"
+            )
+        source = open_source(src, spec, stride=stride, progress=progress)
+        if source.dim != self.config.dim:
+            raise DescriptorShapeError(
+                f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
+            )
+        return source
+
+    # --- reading ----------------------------------------------------------------------------
+    def sequence(self, seq_id: int) -> SequenceRecord:
+        return self.store.sequence(seq_id)
+
+    def sequences(self) -> list[SequenceRecord]:
+        return self.store.sequences()
+
+    def component_of(self, seq_id: int) -> int:
+        return self.store.component_of(seq_id)
+
+    def components(self) -> list[ComponentInfo]:
+        return self.store.components()
+
+    def descriptors(self, seq_id: int) -> np.ndarray:
+        return self.store.descriptors(seq_id)
+
+    def positions(self, seq_id: int) -> np.ndarray | None:
+        return self.store.positions(seq_id)
+
+    def stats(self) -> dict[str, int]:
+        """Counts of sequences, vertices, edges and components. O(1)."""
+        return self.store.stats()
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
+        return self.store.search(queries, k)
+
+    def check(self) -> CheckReport:
+        """Verify every on-disk invariant (best on a map opened read-only)."""
+        return check_map(self.store)
+
+    def info(self) -> dict[str, Any]:
+        """Summary for ``sprint-map info --json``. O(1) but for the directory walk."""
+        stats = self.stats()
+        index = self.store.index
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "path": str(self.path),
+            "sequences": stats["sequences"],
+            "vertices": stats["vertices"],
+            "edges": stats["edges"],
+            "components": stats["components"],
+            "dim": self.config.dim,
+            "descriptor": self.config.descriptor,
+            "index": {
+                "type": "IndexIDMap2(IndexFlatL2)",
+                "ntotal": index.covered if index.index is not None else index.persisted_on_disk(),
+            },
+            "disk_bytes": self.store.disk_bytes(),
+            "config": self.config.to_dict(),
+        }

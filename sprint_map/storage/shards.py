@@ -1,0 +1,164 @@
+"""Append-only descriptor shards: raw float32 rows in fixed-capacity files, memory-mapped to read.
+
+Vertex ids are dense and descriptors are appended in vertex-id order, so vertex ``v`` lives in
+shard ``v // shard_rows`` at row ``v % shard_rows``: no per-vertex location is stored. A shard
+is sealed (never written again) once full. The committed row count of each shard is recorded in
+LMDB; bytes past it belong to an uncommitted append and are truncated when a writer opens the
+map. Readers only ever map committed rows, so they never see an append in flight.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from sprint_map.errors import StorageIOError
+from sprint_map.storage.atomic import fsync_dir
+
+ROW_DTYPE = np.dtype("<f4")
+
+
+class ShardSet:
+    """The ``shards/`` directory of a map.
+
+    Parameters
+    ----------
+    directory : Path
+        The ``shards/`` directory.
+    dim : int
+        Descriptor dimension (floats per row).
+    shard_rows : int
+        Rows per shard file.
+    """
+
+    def __init__(self, directory: Path, dim: int, shard_rows: int) -> None:
+        self.directory = directory
+        self.dim = dim
+        self.shard_rows = shard_rows
+        self.row_bytes = dim * ROW_DTYPE.itemsize
+        self._maps: dict[int, tuple[int, np.memmap]] = {}
+
+    def path(self, shard: int) -> Path:
+        return self.directory / f"shard-{shard:06d}.f32"
+
+    def lengths_for(self, total_rows: int) -> dict[int, int]:
+        """Committed rows per shard when the map holds ``total_rows`` vertices."""
+        full, rest = divmod(total_rows, self.shard_rows)
+        lengths = dict.fromkeys(range(full), self.shard_rows)
+        if rest:
+            lengths[full] = rest
+        return lengths
+
+    # --- recovery -------------------------------------------------------------------------
+    def recover(self, total_rows: int) -> list[str]:
+        """Truncate the open shard to the committed length and delete shards past it.
+
+        Only the shard being filled and any created after it can hold uncommitted bytes, so
+        this touches O(1) files however large the map is.
+        """
+        actions = []
+        shard, rest = divmod(total_rows, self.shard_rows)
+        path = self.path(shard)
+        if path.exists():
+            if rest == 0:
+                path.unlink()
+                actions.append(f"removed uncommitted shard {path.name}")
+            elif path.stat().st_size != rest * self.row_bytes:
+                os.truncate(path, rest * self.row_bytes)
+                actions.append(f"truncated {path.name} to {rest} committed rows")
+        shard += 1
+        while self.path(shard).exists():
+            self.path(shard).unlink()
+            actions.append(f"removed uncommitted shard {self.path(shard).name}")
+            shard += 1
+        if actions:
+            fsync_dir(self.directory)
+        self._maps.clear()
+        return actions
+
+    # --- writing ----------------------------------------------------------------------------
+    def append(self, start_row: int, rows: np.ndarray) -> dict[int, int]:
+        """Write ``rows`` at global row ``start_row`` and fsync them.
+
+        Returns the new committed length of every shard touched, to be recorded in LMDB by the
+        caller's commit. Nothing is visible to readers until that commit.
+
+        Raises
+        ------
+        StorageIOError
+            On any write or fsync error; the caller must roll back with :meth:`recover`.
+        """
+        rows = np.ascontiguousarray(rows, dtype=ROW_DTYPE)
+        lengths: dict[int, int] = {}
+        created = False
+        done = 0
+        try:
+            while done < len(rows):
+                row = start_row + done
+                shard, offset = divmod(row, self.shard_rows)
+                take = min(len(rows) - done, self.shard_rows - offset)
+                path = self.path(shard)
+                created |= not path.exists()
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+                try:
+                    # Drop any stale tail first, then write at the committed offset.
+                    os.ftruncate(fd, offset * self.row_bytes)
+                    view = rows[done : done + take].data.cast("B")
+                    written = 0
+                    while written < len(view):
+                        written += os.pwrite(fd, view[written:], offset * self.row_bytes + written)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                lengths[shard] = offset + take
+                done += take
+            if created:
+                fsync_dir(self.directory)
+        except OSError as exc:
+            raise StorageIOError(f"cannot write descriptor shard: {exc.strerror or exc}") from exc
+        return lengths
+
+    # --- reading ----------------------------------------------------------------------------
+    def _map(self, shard: int, committed: int) -> np.memmap:
+        cached = self._maps.get(shard)
+        if cached is not None and cached[0] == committed:
+            return cached[1]
+        path = self.path(shard)
+        try:
+            mm = np.memmap(path, dtype=ROW_DTYPE, mode="r", shape=(committed, self.dim))
+        except (OSError, ValueError) as exc:
+            raise StorageIOError(f"cannot map {path}: {exc}") from exc
+        self._maps[shard] = (committed, mm)
+        return mm
+
+    def rows(self, start: int, stop: int, total_rows: int) -> np.ndarray:
+        """Rows ``start..stop-1`` (global vertex ids) of a map holding ``total_rows`` rows.
+
+        A range inside one shard is a zero-copy read-only view of the memory map; a range that
+        spans shards is copied.
+        """
+        if not 0 <= start <= stop <= total_rows:
+            raise IndexError(f"rows {start}..{stop} outside 0..{total_rows}")
+        parts = []
+        row = start
+        while row < stop:
+            shard, offset = divmod(row, self.shard_rows)
+            committed = min(self.shard_rows, total_rows - shard * self.shard_rows)
+            take = min(stop - row, self.shard_rows - offset)
+            parts.append(self._map(shard, committed)[offset : offset + take])
+            row += take
+        if not parts:
+            return np.empty((0, self.dim), dtype=ROW_DTYPE)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def take(self, vertex_ids: np.ndarray, total_rows: int) -> np.ndarray:
+        """Rows of arbitrary vertex ids (copied)."""
+        out = np.empty((len(vertex_ids), self.dim), dtype=ROW_DTYPE)
+        for i, vid in enumerate(np.asarray(vertex_ids, dtype=np.int64)):
+            out[i] = self.rows(int(vid), int(vid) + 1, total_rows)[0]
+        return out
+
+    def close(self) -> None:
+        self._maps.clear()

@@ -1,0 +1,572 @@
+"""MapStore: the persistent map directory (LMDB + descriptor shards + FAISS index).
+
+The store knows sequences, vertices, edges, components and descriptors; it knows nothing of HMMs.
+
+Commit protocol for :meth:`MapStore.add_sequence` (see ``docs/architecture.md``):
+
+1. validate everything (nothing is written for bad input);
+2. append the descriptor rows to the shards and fsync them (invisible: LMDB does not count them);
+3. one LMDB write transaction records the sequence, its vertex range, per-vertex data, edges,
+   union-find merges, shard lengths and counters: **the commit point**;
+4. add the rows to the in-memory index (if loaded); persist it every ``index_persist_every``
+   vertices and on close.
+
+A kill before 3 leaves bytes past the committed shard length, truncated on the next writable
+open; a kill after 3 leaves an index that lags LMDB, caught up from the shards on load.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lmdb
+import numpy as np
+
+from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.errors import (
+    DescriptorShapeError,
+    DuplicateNameError,
+    EmptySequenceError,
+    InputError,
+    InvalidDescriptorError,
+    MapCorruptError,
+    MapExistsError,
+    NotAMapError,
+    ReadOnlyMapError,
+    SchemaVersionError,
+    SprintMapError,
+    UnknownSequenceError,
+)
+from sprint_map.storage.atomic import fsync_dir, remove_partials
+from sprint_map.storage.crash import crash_point
+from sprint_map.storage.index_store import IndexStore
+from sprint_map.storage.keys import (
+    EDGE_KEY,
+    VERTEX_VAL,
+    EdgeRecord,
+    SequenceRecord,
+    read_u32,
+    read_u64,
+    u32,
+    u64,
+)
+from sprint_map.storage.lmdb_env import LmdbEnv
+from sprint_map.storage.lock import WriterLock
+from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.union_find import UnionFindStore
+
+LMDB_DIR = "map.lmdb"
+SHARDS_DIR = "shards"
+INDEX_DIR = "index"
+COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
+
+
+@dataclass(frozen=True)
+class EdgeSpec:
+    """An inter-sequence edge to commit with a new sequence.
+
+    ``src`` and ``dst`` are ``(seq_id, image_id)``; ``seq_id`` ``None`` means the sequence
+    being added. ``weight`` is the match probability; ``frame`` the query frame that made it.
+    """
+
+    src: tuple[int | None, int]
+    dst: tuple[int | None, int]
+    weight: float = 1.0
+    frame: int | None = None
+
+
+@dataclass(frozen=True)
+class AddResult:
+    """What :meth:`MapStore.add_sequence` committed."""
+
+    sequence: SequenceRecord
+    component: int
+    edges_added: int
+
+
+@dataclass(frozen=True)
+class ComponentInfo:
+    component: int
+    sequences: list[int]
+    vertices: int
+
+
+def validate_descriptors(descriptors: Any, dim: int) -> np.ndarray:
+    """Return ``descriptors`` as a C-contiguous float32 (N, dim) array or raise a clear error."""
+    arr = np.asarray(descriptors)
+    if arr.dtype.kind not in "fiu":
+        raise DescriptorShapeError(f"descriptors must be numeric, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise DescriptorShapeError(f"descriptors must be a 2-D array (N x {dim}), got {arr.shape}")
+    if arr.shape[1] != dim:
+        raise DescriptorShapeError(
+            f"descriptor dimension {arr.shape[1]} does not match the map's dimension {dim}"
+        )
+    if arr.shape[0] == 0:
+        raise EmptySequenceError("the sequence has no frames")
+    with np.errstate(over="ignore"):  # values beyond float32 become Inf, refused just below
+        arr = np.ascontiguousarray(arr, dtype=np.float32)
+    if not np.isfinite(arr).all():
+        bad = int(np.argmax(~np.isfinite(arr).all(axis=1)))
+        raise InvalidDescriptorError(f"descriptor of frame {bad} contains NaN or Inf")
+    return arr
+
+
+class MapStore:
+    """A map directory opened for reading, or for writing by this process alone.
+
+    Use :meth:`create` or :meth:`open`; close with :meth:`close` or a ``with`` block.
+
+    Notes
+    -----
+    Opening reads the meta record and, for a writer, truncates the one open shard: O(1) in the
+    number of vertices, edges and shards. Nothing else is loaded until asked for.
+    """
+
+    def __init__(self, path: Path, env: LmdbEnv, lock: WriterLock | None, readonly: bool) -> None:
+        self.path = path
+        self.env = env
+        self._lock = lock
+        self.readonly = readonly
+        with env.read() as txn:
+            meta = env.db("meta")
+            raw_version = txn.get(b"schema_version", db=meta)
+            if raw_version is None:
+                raise NotAMapError(f"not a sprint-map directory (no schema version): {path}")
+            version = int(raw_version)
+            if version != SCHEMA_VERSION:
+                raise SchemaVersionError(
+                    f"map schema version {version} is not supported by this sprint-map "
+                    f"(it reads version {SCHEMA_VERSION}){'; upgrade sprint-map' if version > SCHEMA_VERSION else ''}"
+                )
+            raw_config = txn.get(b"config", db=meta)
+            if raw_config is None:
+                raise MapCorruptError(f"map has no config record: {path}")
+            self.config = MapConfig.from_dict(json.loads(bytes(raw_config)))
+            self.created = float(txn.get(b"created", db=meta) or 0)
+        self.uf = UnionFindStore(env)
+        self.shards = ShardSet(path / SHARDS_DIR, self.config.dim, self.config.shard_rows)
+        self.index = IndexStore(path / INDEX_DIR, self.config.dim, writable=not readonly)
+        self.recovery: list[str] = []
+
+    # --- lifecycle --------------------------------------------------------------------------
+    @classmethod
+    def create(cls, path: str | os.PathLike[str], config: MapConfig) -> MapStore:
+        """Create a new, empty map at ``path`` (absent or an empty directory) and open it."""
+        root = Path(path)
+        if root.exists() and (not root.is_dir() or any(root.iterdir())):
+            raise MapExistsError(f"refusing to create a map in non-empty path: {root}")
+        root.mkdir(parents=True, exist_ok=True)
+        for sub in (SHARDS_DIR, INDEX_DIR, LMDB_DIR):
+            (root / sub).mkdir(exist_ok=True)
+        lock = WriterLock(root)
+        lock.acquire()
+        env = None
+        try:
+            env = LmdbEnv(root / LMDB_DIR, readonly=False, map_size=config.initial_map_size,
+                          create=True)
+
+            def body(txn: lmdb.Transaction) -> None:
+                meta = env.db("meta")
+                # The schema version is written last in the same transaction: a directory
+                # without it is "not a map", never a half map.
+                for name in COUNTERS:
+                    txn.put(name.encode(), u64(0), db=meta)
+                txn.put(b"config", json.dumps(config.to_dict()).encode(), db=meta)
+                txn.put(b"created", repr(time.time()).encode(), db=meta)
+                txn.put(b"schema_version", str(SCHEMA_VERSION).encode(), db=meta)
+
+            env.write(body)
+            fsync_dir(root)
+            return cls(root, env, lock, readonly=False)
+        except BaseException:
+            if env is not None:
+                env.close()
+            lock.release()
+            raise
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> MapStore:
+        """Open an existing map. A writer takes the map's lock and recovers interrupted writes."""
+        root = Path(path)
+        if not root.is_dir() or not (root / LMDB_DIR / "data.mdb").is_file():
+            raise NotAMapError(f"not a sprint-map directory: {root}")
+        lock = None
+        if not readonly:
+            if not os.access(root, os.W_OK):
+                raise ReadOnlyMapError(f"map directory is not writable: {root}")
+            lock = WriterLock(root)
+            lock.acquire()
+        env = None
+        try:
+            env = LmdbEnv(root / LMDB_DIR, readonly=readonly)
+            store = cls(root, env, lock, readonly)
+        except BaseException:
+            # py-lmdb refuses a second open of an environment that is still open in this
+            # process, so a refused open (e.g. SchemaVersionError) must not leave it open.
+            if env is not None:
+                env.close()
+            if lock is not None:
+                lock.release()
+            raise
+        if not readonly:
+            store._recover()
+        return store
+
+    def _recover(self) -> None:
+        """Bring files back to the committed state (writer only). O(1) in the map size."""
+        for directory in (self.path, self.path / SHARDS_DIR, self.path / INDEX_DIR):
+            for removed in remove_partials(directory):
+                self.recovery.append(f"removed leftover temp file {removed.name}")
+        committed = self.counter("next_vertex_id")
+        self.recovery.extend(self.shards.recover(committed))
+        self.recovery.extend(self.index.discard_ahead(committed))
+
+    def close(self) -> None:
+        """Persist the index (writer) and release everything. Idempotent."""
+        if self.env is None:
+            return
+        try:
+            if not self.readonly:
+                self.flush()
+        finally:
+            self.shards.close()
+            self.env.close()
+            self.env = None  # type: ignore[assignment]
+            if self._lock is not None:
+                self._lock.release()
+
+    def flush(self) -> None:
+        """Persist the in-memory index if it covers vertices the file on disk does not."""
+        self._require_writer()
+        self.index.persist()
+
+    def __enter__(self) -> MapStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _require_writer(self) -> None:
+        if self.readonly:
+            raise ReadOnlyMapError("the map is open read-only")
+
+    # --- meta -------------------------------------------------------------------------------
+    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
+        if txn is None:
+            with self.env.read() as txn:
+                return self.counter(name, txn)
+        raw = txn.get(name.encode(), db=self.env.db("meta"))
+        if raw is None:
+            raise MapCorruptError(f"meta record {name!r} is missing")
+        return read_u64(raw)
+
+    def stats(self) -> dict[str, int]:
+        """Counts of the map from its meta record. O(1)."""
+        with self.env.read() as txn:
+            counts = {name: self.counter(name, txn) for name in COUNTERS}
+        return {
+            "sequences": counts["n_sequences"],
+            "vertices": counts["next_vertex_id"],
+            "edges": counts["n_edges"],
+            "components": counts["n_components"],
+        }
+
+    def disk_bytes(self) -> int:
+        """Bytes used by the map directory (actual allocation, LMDB files are sparse)."""
+        total = 0
+        for dirpath, _, files in os.walk(self.path):
+            for name in files:
+                with contextlib.suppress(FileNotFoundError):  # removed by a writer meanwhile
+                    total += os.stat(os.path.join(dirpath, name)).st_blocks * 512
+        return total
+
+    # --- sequences and vertices -------------------------------------------------------------
+    def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord:
+        """The record of sequence ``seq_id``. O(log n_sequences)."""
+        if txn is None:
+            with self.env.read() as txn:
+                return self.sequence(seq_id, txn)
+        raw = txn.get(u32(seq_id), db=self.env.db("sequences")) if 0 <= seq_id < 2**32 else None
+        if raw is None:
+            raise UnknownSequenceError(f"no sequence {seq_id} in the map")
+        return SequenceRecord.decode(raw)
+
+    def sequence_by_name(self, name: str) -> SequenceRecord:
+        with self.env.read() as txn:
+            raw = txn.get(name.encode(), db=self.env.db("seq_names"))
+            if raw is None:
+                raise UnknownSequenceError(f"no sequence named {name!r} in the map")
+            return self.sequence(read_u32(raw), txn)
+
+    def sequences(self) -> list[SequenceRecord]:
+        """All sequence records in id order. O(n_sequences)."""
+        with self.env.read() as txn:
+            return [SequenceRecord.decode(v) for _, v in txn.cursor(db=self.env.db("sequences"))]
+
+    def locate(self, vertex_ids: Iterable[int], txn: lmdb.Transaction | None = None
+               ) -> list[tuple[int, int]]:
+        """``(seq_id, image_id)`` of each vertex id. O(log n_sequences) per vertex."""
+        if txn is None:
+            with self.env.read() as txn:
+                return self.locate(vertex_ids, txn)
+        total = self.counter("next_vertex_id", txn)
+        cursor = txn.cursor(db=self.env.db("vrange"))
+        out = []
+        for vid in vertex_ids:
+            vid = int(vid)
+            if not 0 <= vid < total or not cursor.set_range(u64(vid)):
+                raise MapCorruptError(f"vertex {vid} is not in the map")
+            seq = self.sequence(read_u32(cursor.value()), txn)
+            out.append((seq.seq_id, vid - seq.first_vertex))
+        return out
+
+    def vertex_id(self, seq_id: int, image_id: int, txn: lmdb.Transaction | None = None) -> int:
+        seq = self.sequence(seq_id, txn)
+        if not 0 <= image_id < seq.length:
+            raise UnknownSequenceError(
+                f"sequence {seq_id} has no image {image_id} (it has {seq.length})"
+            )
+        return seq.first_vertex + image_id
+
+    def descriptors(self, seq_id: int) -> np.ndarray:
+        """The descriptors of a sequence (a read-only memory-mapped view when in one shard)."""
+        with self.env.read() as txn:
+            seq = self.sequence(seq_id, txn)
+            total = self.counter("next_vertex_id", txn)
+        return self.shards.rows(seq.first_vertex, seq.first_vertex + seq.length, total)
+
+    def positions(self, seq_id: int) -> np.ndarray | None:
+        """Per-vertex ``(x, y, heading, timestamp)`` of a sequence, or None if none were given."""
+        with self.env.read() as txn:
+            seq = self.sequence(seq_id, txn)
+            db = self.env.db("vertex_data")
+            if txn.get(u64(seq.first_vertex), db=db) is None:
+                return None
+            out = np.full((seq.length, 4), np.nan)
+            cursor = txn.cursor(db=db)
+            cursor.set_range(u64(seq.first_vertex))
+            for key, value in cursor:
+                vid = read_u64(key)
+                if vid > seq.last_vertex:
+                    break
+                out[vid - seq.first_vertex] = VERTEX_VAL.unpack(value)
+        return out
+
+    # --- components --------------------------------------------------------------------------
+    def component_of(self, seq_id: int, txn: lmdb.Transaction | None = None) -> int:
+        """Component id (union-find root sequence) of ``seq_id``. O(alpha(n)) amortised."""
+        if txn is None:
+            with self.env.read() as txn:
+                return self.component_of(seq_id, txn)
+        self.sequence(seq_id, txn)
+        return self.uf.find(txn, seq_id)
+
+    def components(self) -> list[ComponentInfo]:
+        """Every component with its sequences and vertex count. O(n_sequences)."""
+        with self.env.read() as txn:
+            return [
+                ComponentInfo(root, self.uf.members(txn, root), verts)
+                for root, _, verts in self.uf.components(txn)
+            ]
+
+    def component_sequences(self, root: int, txn: lmdb.Transaction) -> list[SequenceRecord]:
+        return [self.sequence(s, txn) for s in self.uf.members(txn, root)]
+
+    # --- edges ------------------------------------------------------------------------------
+    def edges_from(self, first: int, last: int, txn: lmdb.Transaction | None = None
+                   ) -> list[EdgeRecord]:
+        """Edges whose source vertex lies in ``first..last``. O(log E + edges returned)."""
+        if txn is None:
+            with self.env.read() as txn:
+                return self.edges_from(first, last, txn)
+        out = []
+        cursor = txn.cursor(db=self.env.db("edges"))
+        if cursor.set_range(EDGE_KEY.pack(first, 0)):
+            for key, value in cursor:
+                if EDGE_KEY.unpack(key)[0] > last:
+                    break
+                out.append(EdgeRecord.decode(key, value))
+        return out
+
+    def edges(self) -> list[EdgeRecord]:
+        """Every edge. O(E): for export and checks, not for queries."""
+        with self.env.read() as txn:
+            return [EdgeRecord.decode(k, v) for k, v in txn.cursor(db=self.env.db("edges"))]
+
+    # --- retrieval ---------------------------------------------------------------------------
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k-NN over every committed descriptor: ``(squared L2 distances, vertex ids)``."""
+        queries = validate_descriptors(queries, self.config.dim)
+        total = self.counter("next_vertex_id")
+        self.index.load(total, self.shards)
+        return self.index.search(queries, k)
+
+    # --- writing ----------------------------------------------------------------------------
+    def add_sequence(
+        self,
+        descriptors: Any,
+        *,
+        name: str | None = None,
+        positions: np.ndarray | None = None,
+        edges: Sequence[EdgeSpec] = (),
+        source: str = "",
+    ) -> AddResult:
+        """Append a sequence, its vertices and edges in one atomic commit.
+
+        Parameters
+        ----------
+        descriptors : array_like, shape (N, dim)
+            One descriptor per frame (converted to float32; NaN/Inf refused).
+        name : str, optional
+            Unique sequence name (default ``seq-<id>``). Names are unique within a map.
+        positions : array_like, shape (N, 2..4), optional
+            Per-frame ``x, y[, heading_deg[, timestamp]]``.
+        edges : sequence of EdgeSpec
+            Inter-sequence edges to commit with it; their sequences' components are merged.
+        source : str
+            Free text recording where the sequence came from.
+
+        Notes
+        -----
+        O(N * dim) shard I/O + O(N) LMDB puts + O(E log n) for edges and unions.
+        """
+        self._require_writer()
+        rows = validate_descriptors(descriptors, self.config.dim)
+        n = len(rows)
+        pos = self._validate_positions(positions, n)
+        with self.env.read() as txn:
+            seq_id = self.counter("next_seq_id", txn)
+            first = self.counter("next_vertex_id", txn)
+            seq_name = f"seq-{seq_id}" if name is None else name
+            if not seq_name or len(seq_name.encode()) > 500:
+                raise InputError("sequence name must be 1 to 500 bytes")
+            if txn.get(seq_name.encode(), db=self.env.db("seq_names")) is not None:
+                raise DuplicateNameError(f"a sequence named {seq_name!r} already exists")
+            resolved = [self._resolve_edge(e, seq_id, first, n, txn) for e in edges]
+        record = SequenceRecord(seq_id, seq_name, n, first, time.time(), source)
+
+        try:
+            lengths = self.shards.append(first, rows)
+            crash_point("add.shards_written")
+            component, added = self.env.write(
+                lambda txn: self._commit(txn, record, lengths, pos, resolved)
+            )
+        except BaseException:
+            # Also when the append itself failed half-way (EIO, ENOSPC): drop what it wrote.
+            self.shards.recover(first)
+            raise
+        crash_point("add.committed")
+        self._after_commit(first, rows)
+        return AddResult(record, component, added)
+
+    def _validate_positions(self, positions: Any, n: int) -> np.ndarray | None:
+        if positions is None:
+            return None
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[0] != n or not 2 <= pos.shape[1] <= 4:
+            raise InputError(
+                f"positions must be {n} rows of x, y[, heading[, time]], got shape {pos.shape}"
+            )
+        out = np.full((n, 4), np.nan)
+        out[:, : pos.shape[1]] = pos
+        if not np.isfinite(out[:, :2]).all():
+            raise InputError("positions contain NaN or Inf in x or y")
+        return out
+
+    def _resolve_edge(self, edge: EdgeSpec, new_seq: int, first: int, n: int,
+                      txn: lmdb.Transaction) -> tuple[int, int, int, int, EdgeSpec]:
+        ends = []
+        for seq, image in (edge.src, edge.dst):
+            if seq is None or seq == new_seq:
+                if not 0 <= image < n:
+                    raise InputError(f"edge endpoint image {image} outside the new sequence")
+                ends.append((new_seq, first + image))
+            else:
+                ends.append((seq, self.vertex_id(seq, image, txn)))
+        (src_seq, src), (dst_seq, dst) = ends
+        if src_seq == dst_seq:
+            raise InputError(f"edge {edge.src} -> {edge.dst} does not join two sequences")
+        if not (0 <= edge.weight <= 1 and math.isfinite(edge.weight)):
+            raise InputError(f"edge weight must be in [0, 1], got {edge.weight}")
+        return src, dst, src_seq, dst_seq, edge
+
+    def _commit(self, txn: lmdb.Transaction, record: SequenceRecord, lengths: dict[int, int],
+                pos: np.ndarray | None, edges: list[tuple[int, int, int, int, EdgeSpec]]
+                ) -> tuple[int, int]:
+        db = self.env.db
+        meta = db("meta")
+        txn.put(u32(record.seq_id), record.encode(), db=db("sequences"))
+        txn.put(record.name.encode(), u32(record.seq_id), db=db("seq_names"))
+        txn.put(u64(record.last_vertex), u32(record.seq_id), db=db("vrange"))
+        if pos is not None:
+            vdb = db("vertex_data")
+            txn.cursor(db=vdb).putmulti(
+                ((u64(record.first_vertex + i), VERTEX_VAL.pack(*row))
+                 for i, row in enumerate(pos.tolist())),
+                append=True,
+            )
+        for shard, length in lengths.items():
+            txn.put(u32(shard), u64(length), db=db("shards"))
+        self.uf.add(txn, record.seq_id, record.length)
+        n_components = self.counter("n_components", txn) + 1
+        added = 0
+        now = time.time()
+        for src, dst, src_seq, dst_seq, spec in edges:
+            key = EDGE_KEY.pack(src, dst)
+            value = EdgeRecord(src, dst, spec.weight, record.seq_id, spec.frame, now).encode_value()
+            if txn.get(key, db=db("edges")) is None:
+                added += 1
+            txn.put(key, value, db=db("edges"))  # a repeated edge keeps its newest provenance
+            txn.put(EDGE_KEY.pack(dst, src), b"", db=db("edges_rev"))
+            if self.uf.find(txn, src_seq) != self.uf.find(txn, dst_seq):
+                self.uf.union(txn, src_seq, dst_seq)
+                n_components -= 1
+        txn.put(b"next_seq_id", u64(record.seq_id + 1), db=meta)
+        txn.put(b"next_vertex_id", u64(record.first_vertex + record.length), db=meta)
+        txn.put(b"n_sequences", u64(self.counter("n_sequences", txn) + 1), db=meta)
+        txn.put(b"n_edges", u64(self.counter("n_edges", txn) + added), db=meta)
+        txn.put(b"n_components", u64(n_components), db=meta)
+        crash_point("add.before_commit")
+        return self.uf.find(txn, record.seq_id), added
+
+    def _after_commit(self, first: int, rows: np.ndarray) -> None:
+        if self.index.index is not None:
+            if self.index.covered == first:
+                self.index.add(first, rows)
+            else:  # cannot happen with one writer; reload rather than guess
+                self.index.reset()
+        total = first + len(rows)
+        on_disk = self.index.persisted if self.index.index is not None else (
+            self.index.persisted_on_disk())
+        # A flat index file is rewritten whole on every persist, so the interval grows with the
+        # file (geometric): total bytes written stay O(final size), not O(size^2 / interval).
+        cfg = self.config
+        if total - on_disk >= max(cfg.index_persist_every, cfg.index_persist_growth * on_disk):
+            if self.index.index is None:
+                self.index.load(total, self.shards)
+            self.flush()
+
+
+def is_map(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` looks like a map directory (cheap, no open)."""
+    return (Path(path) / LMDB_DIR / "data.mdb").is_file()
+
+
+__all__ = [
+    "AddResult",
+    "ComponentInfo",
+    "EdgeSpec",
+    "MapStore",
+    "SprintMapError",
+    "is_map",
+    "validate_descriptors",
+]

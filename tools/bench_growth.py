@@ -1,0 +1,131 @@
+"""Fig. 7 of the SPRINT paper: per-frame inference time as the map grows, drive after drive.
+
+A synthetic city of streets (descriptor level: each place has an appearance vector; a drive sees
+it through a condition-dependent distortion plus noise) is driven by ``--sequences`` drives of
+random routes over its streets at varying speed. Each drive is localised against the map of all
+earlier drives and merged into it with its decisions as edges, exactly as ``sprint-map ingest``
+does (``SprintMap.ingest``). We record the mean per-frame HMM and retrieval time of each drive.
+
+    python tools/bench_growth.py --json growth.json --png growth.png
+    python tools/bench_growth.py --quick            # 20 drives, for a smoke run
+
+Goal: flat; the last 10 drives no slower than 1.5x the first 10 that had a map to match.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sprint_map import MapConfig
+from sprint_map.map import SprintMap
+
+
+def make_city(rng: np.random.Generator, n_streets: int, street_len: int, dim: int
+              ) -> np.ndarray:
+    """Appearance of every place: (n_streets, street_len, dim), smooth along each street."""
+    raw = rng.normal(size=(n_streets, street_len + 8, dim)).astype(np.float32)
+    kernel = np.ones(8, dtype=np.float32) / 8  # neighbouring places look alike
+    smooth = np.apply_along_axis(lambda v: np.convolve(v, kernel, "valid"), 1, raw)
+    return smooth[:, :street_len]
+
+
+def drive(rng: np.random.Generator, city: np.ndarray, frames: int) -> np.ndarray:
+    """One drive: a route of whole street stretches at varying speed under one condition."""
+    n_streets, street_len, dim = city.shape
+    condition = np.eye(dim, dtype=np.float32) + rng.normal(0, 0.25, (dim, dim)).astype(np.float32)
+    out = []
+    while sum(len(o) for o in out) < frames:
+        street = rng.integers(n_streets)
+        start = rng.integers(0, street_len // 2)
+        speed = rng.uniform(0.7, 1.4)
+        pos = start + np.arange(int((street_len - start) / speed)) * speed
+        out.append(city[street, pos.astype(int)])
+    seq = np.concatenate(out)[:frames] @ condition
+    seq += rng.normal(0, 0.6 * seq.std(), seq.shape).astype(np.float32)
+    seq /= np.linalg.norm(seq, axis=1, keepdims=True)
+    return seq.astype(np.float32)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sequences", type=int, default=80)
+    parser.add_argument("--frames", type=int, default=625, help="frames per drive (80 x 625 = 50k)")
+    parser.add_argument("--dim", type=int, default=128)
+    parser.add_argument("--streets", type=int, default=60)
+    parser.add_argument("--street-len", type=int, default=400)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="20 drives of 300 frames")
+    parser.add_argument("--json", type=Path, help="write the rows here")
+    parser.add_argument("--png", type=Path, help="plot here")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.sequences, args.frames = 20, 300
+    rng = np.random.default_rng(args.seed)
+    city = make_city(rng, args.streets, args.street_len, args.dim)
+    rows = []
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        SprintMap.create(Path(tmp) / "growth.map", MapConfig(dim=args.dim)) as m,
+    ):
+        print(f"{'seq':>4} {'frames':>6} {'map_vertices':>12} {'hmm_ms':>8} {'retr_ms':>8} "
+              f"{'active':>8} {'edges':>6} {'comps':>5}")
+        for i in range(args.sequences):
+            seq = drive(rng, city, args.frames)
+            before = m.stats()["vertices"]
+            start = time.perf_counter()
+            result = m.ingest(seq, name=f"drive-{i:03d}")
+            t = result.timing.to_dict()
+            row = {
+                "sequence": i,
+                "frames": len(seq),
+                "map_vertices": before,
+                "hmm_ms_per_frame": t["hmm_ms_per_frame"] if i else None,
+                "retrieval_ms_per_frame": t["retrieval_ms_per_frame"] if i else None,
+                "active_vertices_mean": t["active_vertices_mean"] if i else None,
+                "edges_added": result.added.edges_added,
+                "components": m.stats()["components"],
+                "ingest_s": round(time.perf_counter() - start, 3),
+            }
+            rows.append(row)
+            print(f"{i:>4} {len(seq):>6} {before:>12} {row['hmm_ms_per_frame'] or 0:>8.4f} "
+                  f"{row['retrieval_ms_per_frame'] or 0:>8.4f} "
+                  f"{row['active_vertices_mean'] or 0:>8.0f} {row['edges_added']:>6} "
+                  f"{row['components']:>5}", flush=True)
+    timed = [r for r in rows if r["hmm_ms_per_frame"] is not None]
+    first = float(np.mean([r["hmm_ms_per_frame"] for r in timed[:10]]))
+    last = float(np.mean([r["hmm_ms_per_frame"] for r in timed[-10:]]))
+    ratio = last / first
+    print(f"\nHMM ms/frame: first 10 drives with a map {first:.4f}, last 10 {last:.4f}, "
+          f"ratio {ratio:.2f} (goal <= 1.5)")
+    out = {"rows": rows, "first10_hmm_ms": first, "last10_hmm_ms": last, "ratio": ratio,
+           "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+    if args.png:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ax.plot([r["sequence"] for r in timed], [r["hmm_ms_per_frame"] for r in timed], "o-",
+                label="HMM (SPRINT)")
+        ax.plot([r["sequence"] for r in timed], [r["retrieval_ms_per_frame"] for r in timed],
+                "s-", label="retrieval (exact k-NN, batched)")
+        ax.set(xlabel="sequence number", ylabel="mean time per frame (ms)",
+               title="Per-frame inference time as the map grows (paper Fig. 7)")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(args.png, dpi=110)
+    return 0 if ratio <= 1.5 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
