@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
@@ -142,11 +141,6 @@ def _model_options(f: Any) -> Any:
     return f
 
 
-def _read(m: SprintMap, source: str, stride: int, quiet: bool) -> tuple[np.ndarray, str]:
-    src = m.open_source(source, stride=stride, progress=_progress(quiet, "describing"))
-    return src.read_all(), src.name
-
-
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("source", type=click.Path(exists=True))
@@ -172,10 +166,11 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path) as m:
-        descriptors, default_name = _read(m, source, stride, quiet)
-        pos = read_positions(positions, len(descriptors), stride)[:, 1:] if positions else None
+        src = m.open_source(source, stride=stride, progress=_progress(quiet, "ingesting"))
+        pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
-        result = m.ingest(descriptors, name=name or default_name, positions=pos,
+        # Streamed: each batch is described, localised and written (uncommitted) in turn.
+        result = m.ingest(src.iter_batches(), name=name or src.name, positions=pos,
                           merge=not no_merge, hmm=hmm, source=str(source))
     out = result.to_dict()
     matched = sum(d["seq_id"] is not None for d in out["decisions"])
@@ -201,9 +196,10 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, stride:
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m:
-        descriptors, _ = _read(m, source, stride, quiet)
-        decisions, timing = m.localize(descriptors, **overrides)
-    t = timing.to_dict()
+        src = m.open_source(source, stride=stride, progress=_progress(quiet, "localising"))
+        localizer = m.localizer(**overrides)
+        decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
+    t = localizer.timing.to_dict()
     data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
     if out:
         with open(out, "w") as fh:

@@ -20,7 +20,8 @@ from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.map_graph import MapGraphSource
-from sprint_map.storage.store import EdgeSpec, validate_descriptors
+from sprint_map.storage.store import EdgeSpec
+from sprint_map.storage.validation import validate_descriptors
 
 if TYPE_CHECKING:
     from sprint_map.map import SprintMap

@@ -13,7 +13,7 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,7 +25,7 @@ from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import DescriptorShapeError, InputError
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localizer import FrameDecision, Localizer, Timing, merge_edges
+from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
 from sprint_map.storage.check import CheckReport, check_map
 from sprint_map.storage.keys import SequenceRecord
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
@@ -125,7 +125,7 @@ class SprintMap:
 
     def ingest(
         self,
-        descriptors: Any,
+        descriptors: np.ndarray | Iterable[np.ndarray],
         name: str | None = None,
         positions: np.ndarray | None = None,
         *,
@@ -140,15 +140,35 @@ class SprintMap:
         ways if ``config.merge_both_ways``), and the sequence, its edges and the union-find
         merges are committed in one transaction. With ``merge=False``, or on an empty map, the
         sequence is appended as it is, without localisation or edges.
+
+        Parameters
+        ----------
+        descriptors : ndarray (N, dim), or an iterable of (n_i, dim) batches
+            A batch iterable (e.g. ``FrameSource.iter_batches()``) is streamed: each batch is
+            localised and written to the shards (uncommitted) as it arrives, so memory is
+            bounded by the batch, not the drive.
+
+        Notes
+        -----
+        Per frame: one k-NN search (batched) and one HMM step over the active set.
         """
+        batches: Iterable[np.ndarray]
+        if isinstance(descriptors, np.ndarray):
+            batches = (descriptors[i : i + SEARCH_BATCH]
+                       for i in range(0, len(descriptors), SEARCH_BATCH))
+        else:
+            batches = descriptors
+        localizer = Localizer(self, hmm) if merge and self.stats()["vertices"] else None
         decisions: list[FrameDecision] = []
-        timing = Timing()
-        if merge and self.stats()["vertices"]:
-            localizer = Localizer(self, hmm)
-            decisions = localizer.localize(np.asarray(descriptors))
-            timing = localizer.timing
-        added = self.merge(descriptors, decisions, name=name, positions=positions, source=source)
-        return IngestResult(added, decisions, timing)
+        with self.store.begin_sequence(name, source) as writer:
+            for batch in batches:
+                if localizer is not None:
+                    decisions.extend(localizer.localize(batch))
+                writer.append(batch)
+            edges = merge_edges(decisions, self.config.merge_threshold,
+                                self.config.merge_both_ways)
+            added = writer.commit(positions, edges)
+        return IngestResult(added, decisions, localizer.timing if localizer else Timing())
 
     def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
               positions: np.ndarray | None = None, source: str = "") -> AddResult:

@@ -32,11 +32,7 @@ import numpy as np
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
-    DescriptorShapeError,
-    DuplicateNameError,
-    EmptySequenceError,
     InputError,
-    InvalidDescriptorError,
     MapCorruptError,
     MapExistsError,
     NotAMapError,
@@ -60,8 +56,10 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
+from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.union_find import UnionFindStore
+from sprint_map.storage.validation import validate_descriptors
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
@@ -83,6 +81,10 @@ class EdgeSpec:
     frame: int | None = None
 
 
+#: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
+ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
+
+
 @dataclass(frozen=True)
 class AddResult:
     """What :meth:`MapStore.add_sequence` committed."""
@@ -97,27 +99,6 @@ class ComponentInfo:
     component: int
     sequences: list[int]
     vertices: int
-
-
-def validate_descriptors(descriptors: Any, dim: int) -> np.ndarray:
-    """Return ``descriptors`` as a C-contiguous float32 (N, dim) array or raise a clear error."""
-    arr = np.asarray(descriptors)
-    if arr.dtype.kind not in "fiu":
-        raise DescriptorShapeError(f"descriptors must be numeric, got dtype {arr.dtype}")
-    if arr.ndim != 2:
-        raise DescriptorShapeError(f"descriptors must be a 2-D array (N x {dim}), got {arr.shape}")
-    if arr.shape[1] != dim:
-        raise DescriptorShapeError(
-            f"descriptor dimension {arr.shape[1]} does not match the map's dimension {dim}"
-        )
-    if arr.shape[0] == 0:
-        raise EmptySequenceError("the sequence has no frames")
-    with np.errstate(over="ignore"):  # values beyond float32 become Inf, refused just below
-        arr = np.ascontiguousarray(arr, dtype=np.float32)
-    if not np.isfinite(arr).all():
-        bad = int(np.argmax(~np.isfinite(arr).all(axis=1)))
-        raise InvalidDescriptorError(f"descriptor of frame {bad} contains NaN or Inf")
-    return arr
 
 
 class MapStore:
@@ -156,6 +137,7 @@ class MapStore:
         self.shards = ShardSet(path / SHARDS_DIR, self.config.dim, self.config.shard_rows)
         self.index = IndexStore(path / INDEX_DIR, self.config.dim, writable=not readonly)
         self.recovery: list[str] = []
+        self._writing: SequenceWriter | None = None
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -439,51 +421,19 @@ class MapStore:
         -----
         O(N * dim) shard I/O + O(N) LMDB puts + O(E log n) for edges and unions.
         """
-        self._require_writer()
         rows = validate_descriptors(descriptors, self.config.dim)
-        n = len(rows)
-        pos = self._validate_positions(positions, n)
-        with self.env.read() as txn:
-            seq_id = self.counter("next_seq_id", txn)
-            first = self.counter("next_vertex_id", txn)
-            seq_name = f"seq-{seq_id}" if name is None else name
-            if not seq_name or len(seq_name.encode()) > 500:
-                raise InputError("sequence name must be 1 to 500 bytes")
-            if txn.get(seq_name.encode(), db=self.env.db("seq_names")) is not None:
-                raise DuplicateNameError(f"a sequence named {seq_name!r} already exists")
-            resolved = [self._resolve_edge(e, seq_id, first, n, txn) for e in edges]
-        record = SequenceRecord(seq_id, seq_name, n, first, time.time(), source)
+        with SequenceWriter(self, name, source) as writer:
+            # Everything is validated before the first row is written.
+            writer.prepare(positions, edges, len(rows))
+            writer.append(rows)
+            return writer.commit(positions, edges)
 
-        try:
-            lengths = self.shards.append(first, rows)
-            crash_point("add.shards_written")
-            component, added = self.env.write(
-                lambda txn: self._commit(txn, record, lengths, pos, resolved)
-            )
-        except BaseException:
-            # Also when the append itself failed half-way (EIO, ENOSPC): drop what it wrote.
-            self.shards.recover(first)
-            raise
-        crash_point("add.committed")
-        self._after_commit(first, rows)
-        return AddResult(record, component, added)
-
-    def _validate_positions(self, positions: Any, n: int) -> np.ndarray | None:
-        if positions is None:
-            return None
-        pos = np.asarray(positions, dtype=np.float64)
-        if pos.ndim != 2 or pos.shape[0] != n or not 2 <= pos.shape[1] <= 4:
-            raise InputError(
-                f"positions must be {n} rows of x, y[, heading[, time]], got shape {pos.shape}"
-            )
-        out = np.full((n, 4), np.nan)
-        out[:, : pos.shape[1]] = pos
-        if not np.isfinite(out[:, :2]).all():
-            raise InputError("positions contain NaN or Inf in x or y")
-        return out
+    def begin_sequence(self, name: str | None = None, source: str = "") -> SequenceWriter:
+        """Start streaming a new sequence: ``append`` batches, then ``commit`` (atomic)."""
+        return SequenceWriter(self, name, source)
 
     def _resolve_edge(self, edge: EdgeSpec, new_seq: int, first: int, n: int,
-                      txn: lmdb.Transaction) -> tuple[int, int, int, int, EdgeSpec]:
+                      txn: lmdb.Transaction) -> ResolvedEdge:
         ends = []
         for seq, image in (edge.src, edge.dst):
             if seq is None or seq == new_seq:
@@ -538,13 +488,14 @@ class MapStore:
         crash_point("add.before_commit")
         return self.uf.find(txn, record.seq_id), added
 
-    def _after_commit(self, first: int, rows: np.ndarray) -> None:
+    def _after_commit(self, first: int, frames: int) -> None:
         if self.index.index is not None:
             if self.index.covered == first:
-                self.index.add(first, rows)
+                # The rows are in the page cache: read them back from the shards' memory map.
+                self.index.catch_up(first + frames, self.shards)
             else:  # cannot happen with one writer; reload rather than guess
                 self.index.reset()
-        total = first + len(rows)
+        total = first + frames
         on_disk = self.index.persisted if self.index.index is not None else (
             self.index.persisted_on_disk())
         # A flat index file is rewritten whole on every persist, so the interval grows with the

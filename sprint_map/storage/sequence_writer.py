@@ -1,0 +1,133 @@
+"""Streaming one new sequence into a map: rows as they come, one atomic commit at the end.
+
+A drive can be longer than memory allows (a 100k-frame video is 700 MB of HoG descriptors), so
+its rows go to the shards batch by batch, invisible to readers (LMDB still records the old shard
+lengths), while the caller localises each batch. :meth:`SequenceWriter.commit` then records the
+sequence, its positions and edges in one LMDB transaction: the commit point. Leaving the ``with``
+block without committing, or any error, truncates the shards back: nothing is half-visible.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sprint_map.errors import (
+    DuplicateNameError,
+    EmptySequenceError,
+    InputError,
+    SprintMapError,
+)
+from sprint_map.storage.crash import crash_point
+from sprint_map.storage.keys import SequenceRecord
+from sprint_map.storage.validation import validate_descriptors, validate_positions
+
+if TYPE_CHECKING:
+    from sprint_map.storage.store import AddResult, EdgeSpec, MapStore, ResolvedEdge
+
+
+class SequenceWriter:
+    """Writes one new sequence into ``store``; use as a context manager.
+
+    Parameters
+    ----------
+    store : MapStore
+        A map open for writing; one sequence may be in progress at a time.
+    name : str, optional
+        Unique sequence name (default ``seq-<id>``); checked now, before any row is written.
+    source : str
+        Free text recording where the sequence came from.
+    """
+
+    def __init__(self, store: MapStore, name: str | None = None, source: str = "") -> None:
+        store._require_writer()
+        if store._writing is not None:
+            raise SprintMapError("another sequence is already being written to this map")
+        with store.env.read() as txn:
+            self.seq_id = store.counter("next_seq_id", txn)
+            self.first = store.counter("next_vertex_id", txn)
+            self.name = f"seq-{self.seq_id}" if name is None else name
+            if not self.name or len(self.name.encode()) > 500:
+                raise InputError("sequence name must be 1 to 500 bytes")
+            if txn.get(self.name.encode(), db=store.env.db("seq_names")) is not None:
+                raise DuplicateNameError(
+                    f"a sequence named {self.name!r} already exists (choose another name)"
+                )
+        self.store = store
+        self.source = source
+        self.frames = 0
+        self._lengths: dict[int, int] = {}
+        self._done = False
+        store._writing = self
+
+    def __enter__(self) -> SequenceWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if not self._done:
+            self.abort()
+
+    def prepare(self, positions: Any, edges: Sequence[EdgeSpec], frames: int
+                ) -> tuple[np.ndarray | None, list[ResolvedEdge]]:
+        """Validate positions and edges for a sequence of ``frames`` frames (writes nothing)."""
+        pos = validate_positions(positions, frames)
+        with self.store.env.read() as txn:
+            resolved = [
+                self.store._resolve_edge(e, self.seq_id, self.first, frames, txn) for e in edges
+            ]
+        return pos, resolved
+
+    def append(self, rows: Any) -> None:
+        """Write a batch of descriptor rows (validated; fsynced; not yet visible)."""
+        if self._done:
+            raise SprintMapError("the sequence was already committed or aborted")
+        arr = np.asarray(rows)
+        if arr.ndim == 2 and arr.shape[0] == 0:
+            return
+        try:
+            arr = validate_descriptors(arr, self.store.config.dim, first_frame=self.frames)
+            self._lengths.update(self.store.shards.append(self.first + self.frames, arr))
+        except BaseException:
+            self.abort()
+            raise
+        self.frames += len(arr)
+
+    def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = ()) -> AddResult:
+        """Record the sequence with its positions and edges in one LMDB transaction.
+
+        Raises
+        ------
+        EmptySequenceError
+            If no row was appended. Any error aborts the sequence (nothing is committed).
+        """
+        from sprint_map.storage.store import AddResult
+
+        try:
+            if self.frames == 0:
+                raise EmptySequenceError("the sequence has no frames")
+            pos, resolved = self.prepare(positions, edges, self.frames)
+            record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
+                                    self.source)
+            crash_point("add.shards_written")
+            component, added = self.store.env.write(
+                lambda txn: self.store._commit(txn, record, self._lengths, pos, resolved)
+            )
+        except BaseException:
+            self.abort()
+            raise
+        self._done = True
+        self.store._writing = None
+        crash_point("add.committed")
+        self.store._after_commit(self.first, self.frames)
+        return AddResult(record, component, added)
+
+    def abort(self) -> None:
+        """Drop every row appended so far (truncate the shards to the committed length)."""
+        if self._done:
+            return
+        self._done = True
+        self.store._writing = None
+        self.store.shards.recover(self.first)
