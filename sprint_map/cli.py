@@ -303,8 +303,9 @@ def _log(quiet: bool) -> Any:
 @click.option("--database", help="pairs: database traversal (default: the first).")
 @click.option("--query", help="pairs: query traversal (default: the second).")
 @click.option("--both-directions", is_flag=True, help="pairs: also swap database and query.")
-@click.option("--descriptor", type=click.Choice(["hog", "patchnorm"]), default="hog",
-              show_default=True, help="Descriptor computed from the images.")
+@click.option("--descriptor", type=click.Choice(["auto", "hog", "patchnorm", "precomputed"]),
+              default="auto", show_default=True,
+              help="auto: the traversals' descriptors.npy if they have them, else HoG of images.")
 @click.option("--alignment", type=click.Choice(["frame", "position"]),
               help="Ground truth, if the data set has no dataset.json (Nordland: frame).")
 @click.option("--tolerance", type=int, help="Frame alignment: +/- frames counted correct.")
@@ -323,7 +324,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
           --query winter --both-directions --alignment frame --tolerance 1
     """
     from sprint_map.evaluation.report import markdown_table, write_report
-    from sprint_map.evaluation.runner import EvalOptions, run_evaluation
+    from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
     from sprint_map.frontend.dataset import Dataset
 
     gt: dict[str, Any] = {}
@@ -332,7 +333,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
         if value is not None:
             gt[key] = value
     data = Dataset.open(dataset, gt or None)
-    config = MapConfig.for_descriptor(descriptor)
+    config = config_for(data, descriptor)
     overrides = _hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     options = EvalOptions(protocol=protocol, database=database, query=query,

@@ -261,7 +261,11 @@ class SprintMap:
             "descriptor": self.config.descriptor,
             "index": {
                 "type": "IndexIDMap2(IndexFlatL2)",
-                "ntotal": index.covered if index.index is not None else index.persisted_on_disk(),
+                # The index is a cache that catches up from the shards when loaded, so a search
+                # always covers every committed vertex; "persisted" is what the file on disk holds.
+                "ntotal": index.covered if index.index is not None else stats["vertices"],
+                "persisted": index.persisted if index.index is not None
+                else index.persisted_on_disk(),
             },
             "disk_bytes": self.store.disk_bytes(),
             "config": self.config.to_dict(),

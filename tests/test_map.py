@@ -63,7 +63,8 @@ def test_info_is_cheap_and_complete(map_path, config):
     assert info["schema_version"] == SCHEMA_VERSION
     assert (info["sequences"], info["vertices"], info["edges"], info["components"]) == (3, 26, 1, 2)
     assert (info["dim"], info["descriptor"]) == (DIM, "precomputed")
-    assert info["index"]["ntotal"] == 0  # nothing searched yet, so nothing persisted
+    # Nothing searched yet, so nothing persisted; a search would still cover all 26.
+    assert (info["index"]["ntotal"], info["index"]["persisted"]) == (26, 0)
     assert info["disk_bytes"] >= 26 * DIM * 4
     assert MapConfig.from_dict(info["config"]) == config
 
@@ -74,9 +75,9 @@ def test_flush_persists_the_index_and_info_reports_it(map_path, drives, rng):
         m.add_sequence(rng.standard_normal((5, DIM)))
         m.flush()
         assert [u for u, _ in index_files(map_path / INDEX_DIR)] == [31]
-        assert m.info()["index"]["ntotal"] == 31
+        assert m.info()["index"]["persisted"] == 31
     with SprintMap.open(map_path, readonly=True) as m:
-        assert m.info()["index"]["ntotal"] == 31  # from the file name, without loading
+        assert m.info()["index"]["persisted"] == 31  # from the file name, without loading
 
 
 def test_readonly_facade_refuses_writes(map_path, drives):

@@ -20,9 +20,9 @@ frame's initialisation and the activation of every sequence the query enters. Bo
   :class:`~sprint_map.hmm.MemoryGraphSource` with its LRU component cache.
 
 The timed call is ``update`` (the inference step the paper times); ``*_step_ms`` columns also
-time ``step`` (update + decision) over a quarter of the frames. The two filters alternate run
-by run so that load from other processes hits both alike; rows give the mean over runs (as the
-paper) and the median (robust to such load). The garbage collector is off while timing (as
+time ``step`` (update + decision) over a quarter of the frames. Each filter runs its runs in a
+block; rows give the mean over runs (as the paper) and the median (robust to load from other
+processes). The garbage collector is off while timing (as
 ``timeit`` does); both filters are single-threaded. Prints a table; ``--json`` writes ``{"rows": [{"nodes",
 "seq_len", "full_ms", "sprint_ms", ...}]}``; ``--png`` a log-log plot. ``--quick`` runs 3 runs
 of 50 frames up to 100k nodes.
@@ -52,8 +52,7 @@ def time_run(filt: Any, start: int, steps: int, n_nodes: int, *, decide: bool) -
     """Seconds per frame of one run: reset, then ``steps`` frames from vertex ``start``.
 
     An untimed warm-up of WARMUP frames elsewhere in the map precedes the run, so that each run
-    starts with warm CPU caches whatever ran before it (the other filter, at 1M nodes, streams
-    ~100 MB per frame through the caches).
+    starts with warm CPU caches whatever ran before it.
     """
     ids = np.zeros(1, dtype=np.int64)
     dists = np.zeros(1, dtype=np.float32)
@@ -79,8 +78,8 @@ def bench(nodes: tuple[int, ...], seq_lens: tuple[int, ...], runs: int, steps: i
           seed: int = 0) -> list[dict[str, Any]]:
     """Run every (nodes, seq_len) configuration; return the result rows.
 
-    The two filters alternate run by run, so that load from other processes on the machine
-    hits both alike; each row reports the mean over runs (as the paper) and the median.
+    Each filter runs all its runs in a block (its steady state); each row reports the mean
+    over runs (as the paper) and the median (robust to load from other processes).
     """
     rng = np.random.default_rng(seed)
     config = HMMConfig()
@@ -97,13 +96,17 @@ def bench(nodes: tuple[int, ...], seq_lens: tuple[int, ...], runs: int, steps: i
             times: dict[str, list[float]] = {"full": [], "sprint": [], "full_step": [],
                                              "sprint_step": []}
             active: list[int] = []
+            # One filter at a time: at 1M nodes the full graph streams ~100 MB per frame through
+            # the CPU caches, which would otherwise slow the next SPRINT frames ~1.7x.
             for start in starts:
-                times["full"].append(time_run(full, start, steps, n, decide=False))
                 times["sprint"].append(time_run(sprint, start, steps, n, decide=False))
                 active.append(sprint.n_active_vertices)
             for start in starts:
-                times["full_step"].append(time_run(full, start, step_frames, n, decide=True))
+                times["full"].append(time_run(full, start, steps, n, decide=False))
+            for start in starts:
                 times["sprint_step"].append(time_run(sprint, start, step_frames, n, decide=True))
+            for start in starts:
+                times["full_step"].append(time_run(full, start, step_frames, n, decide=True))
             ms = {k: 1e3 * statistics.mean(v) for k, v in times.items()}
             med = {k: 1e3 * statistics.median(v) for k, v in times.items()}
             row = {

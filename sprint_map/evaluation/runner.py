@@ -108,6 +108,17 @@ class QueryResult:
         }
 
 
+def config_for(dataset: Dataset, descriptor: str = "auto") -> MapConfig:
+    """Map config for evaluating ``dataset``: ``auto`` takes the data set's own descriptors
+    (``descriptors.npy`` traversals: precomputed, of their dimension), else HoG from images."""
+    first = dataset.traversals[0]
+    if descriptor == "auto":
+        descriptor = "precomputed" if first.kind == "npy" else "hog"
+    if descriptor == "precomputed":
+        return MapConfig(dim=first.open().dim)
+    return MapConfig.for_descriptor(descriptor)
+
+
 def describe(m: SprintMap, traversal: Traversal, stride: int) -> np.ndarray:
     """Descriptors of a traversal, in the map's descriptor kind."""
     source = traversal.open(m.config.descriptor_spec(), stride=stride)

@@ -72,12 +72,11 @@ class FullGraphFilter:
         self._obs = ObservationModel(config)
         self._eps = config.restart_prob
         self._nu = config.new_place_prob
-        self.x = np.zeros(self.n_vertices + 1)
         self.reset()
 
     def reset(self) -> None:
         """Forget the belief (all mass off the map until the first frame)."""
-        self.x = np.zeros(self.n_vertices + 1)
+        self.x: np.ndarray = np.zeros(self.n_vertices + 1)
         self.x[-1] = 1.0
         self._started = False
         self.frames = 0

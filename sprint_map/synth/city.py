@@ -66,9 +66,6 @@ class CityConfig:
     detail : float
         Individual details (posters, signs, trees, ...) per 10 m of facade: more details, more
         distinctive places.
-    facade_templates : int
-        If > 0, buildings of a style are crops of this many template fronts (near-copies, like
-        row houses); 0 draws each building afresh.
     width, height : int
         Image size in pixels.
     fov_deg : float
@@ -92,7 +89,6 @@ class CityConfig:
     street_m: float = 14.0
     n_styles: int = 4
     detail: float = 1.0
-    facade_templates: int = 0
     width: int = 160
     height: int = 120
     fov_deg: float = 90.0
@@ -111,8 +107,6 @@ class CityConfig:
             raise ValueError(f"conditions must be names from {', '.join(CONDITIONS)}")
         if self.speed_m <= 0 or self.detail < 0 or not 0 <= self.stop_prob <= 1:
             raise ValueError("speed_m must be > 0, detail >= 0, stop_prob in [0, 1]")
-        if self.facade_templates < 0:
-            raise ValueError("facade_templates must be >= 0")
         if self.revisit <= 0:
             raise ValueError("revisit must be > 0")
         Camera(self.width, self.height, self.fov_deg)  # validates the image parameters
@@ -210,9 +204,7 @@ class _World:
         self.layout: CityLayout = build_layout(
             rng, config.grid[0], config.grid[1], config.block_m, config.street_m, config.n_styles
         )
-        self.atlas: Atlas = build_atlas(
-            self.layout, rng, detail=config.detail, templates=config.facade_templates
-        )
+        self.atlas: Atlas = build_atlas(self.layout, rng, detail=config.detail)
         self.camera = Camera(config.width, config.height, config.fov_deg)
         self.plans: list[TraversalPlan] = []
         driven: set[Edge] = set()

@@ -9,7 +9,8 @@ two traversals at the same pose see the same image.
 
 The view is rendered at ``supersample`` times the output size and reduced with ``INTER_AREA``,
 which removes the shimmer of unfiltered texture minification. Cost for a 160x120 output
-(320x240 internally, ~350 walls): about 2 ms, most of it the ray/wall intersections.
+(320x240 internally, ~320 walls of which ~80 face the camera and lie ahead of it): about 2.5 ms,
+half of it building the per-pixel remap tables, a fifth the ray/wall intersections.
 """
 
 from __future__ import annotations

@@ -82,7 +82,6 @@ def draw_facade(
     px_per_m: float,
     rng: np.random.Generator,
     detail: float = 1.0,
-    template: np.ndarray | None = None,
 ) -> np.ndarray:
     """Draw one building front.
 
@@ -97,11 +96,6 @@ def draw_facade(
         Source of the per-building variation.
     detail : float
         Expected number of individual details (posters, signs, trees, ...) per 10 m of front.
-    template : ndarray, optional
-        A larger front of the same style (:func:`draw_template`): the wall, shop and windows
-        are a random bottom-aligned crop of it instead of freshly drawn, so buildings of one
-        style become near-copies that differ only in height, details and grime, like a street
-        of identical row houses (stronger perceptual aliasing).
 
     Returns
     -------
@@ -109,14 +103,7 @@ def draw_facade(
     """
     s = px_per_m
     h, w = max(2, round(height_m * s)), max(2, round(length_m * s))
-    if template is None:
-        img = _base_front(style, h, w, s, rng)
-    else:
-        th, tw = template.shape[:2]
-        if th < h or tw < w:
-            raise ValueError("template smaller than the building")
-        x0 = int(rng.integers(0, tw - w + 1))
-        img = template[th - h :, x0 : x0 + w].copy()
+    img = _base_front(style, h, w, s, rng)
     if style.cornice:
         _rect(img, 0, 0, w, 0.5 * s, _vary(style.frame, rng, 20))
     for _ in range(rng.poisson(detail * length_m / 10.0)):
@@ -126,14 +113,6 @@ def draw_facade(
     stains = cv2.resize(rng.normal(0, 1, (max(2, h // 24), max(2, w // 24))), (w, h))
     noise = rng.normal(0, style.noise, (h, w, 1)) + 8.0 * stains[:, :, None]
     return np.clip(img + noise, 0, 255).astype(np.uint8)
-
-
-def draw_template(
-    style: FacadeStyle, length_m: float, height_m: float, px_per_m: float, rng: np.random.Generator
-) -> np.ndarray:
-    """A front without details or grime, to crop buildings from (see :func:`draw_facade`)."""
-    h, w = max(2, round(height_m * px_per_m)), max(2, round(length_m * px_per_m))
-    return _base_front(style, h, w, px_per_m, rng)
 
 
 def _base_front(

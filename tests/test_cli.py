@@ -1,0 +1,148 @@
+"""The CLI through click's CliRunner: JSON contracts, one-line errors, exit codes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sprint_map.cli import main
+from sprint_map.errors import (
+    DescriptorShapeError,
+    DuplicateNameError,
+    InvalidDescriptorError,
+    MapExistsError,
+    NotAMapError,
+)
+
+DIM = 16
+
+
+def run(*args: str):
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+@pytest.fixture
+def drives(tmp_path, rng):
+    """Three noisy drives over the same 60 places, as .npy files."""
+    places = rng.standard_normal((60, DIM))
+    paths = []
+    for i in range(3):
+        x = places + 0.3 * rng.standard_normal(places.shape)
+        path = tmp_path / f"drive{i}.npy"
+        np.save(path, (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32))
+        paths.append(path)
+    return paths
+
+
+@pytest.fixture
+def map_path(tmp_path):
+    path = tmp_path / "city.map"
+    result = run("init", path, "--dim", DIM)
+    assert result.exit_code == 0, result.output
+    return path
+
+
+def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
+    csv = tmp_path / "pos.csv"
+    csv.write_text("frame,x,y\n" + "".join(f"{i},{i}.0,0\n" for i in range(60)))
+    first = json.loads(run("ingest", map_path, drives[0], "--positions", csv, "--json").output)
+    assert first == {"seq_id": 0, "name": "drive0", "frames": 60, "component": 0,
+                     "edges_added": 0, "decisions": [], "timing": first["timing"]}
+    second = json.loads(run("ingest", map_path, drives[1], "--json").output)
+    assert len(second["decisions"]) == 60
+    assert set(second["decisions"][0]) == {"frame", "seq_id", "image_id", "prob"}
+    assert second["edges_added"] > 0 and second["component"] == 0
+    assert {"retrieval_ms_per_frame", "hmm_ms_per_frame"} <= set(second["timing"])
+    third = json.loads(run("ingest", map_path, drives[2], "--no-merge", "--json").output)
+    assert third["decisions"] == [] and third["edges_added"] == 0 and third["component"] == 2
+
+    info = json.loads(run("info", map_path, "--json").output)
+    assert {k: info[k] for k in ("schema_version", "sequences", "vertices", "components", "dim")} \
+        == {"schema_version": 1, "sequences": 3, "vertices": 180, "components": 2, "dim": DIM}
+    assert info["edges"] == second["edges_added"]
+    assert info["index"]["ntotal"] == 180 and info["index"]["type"]
+    assert info["disk_bytes"] > 0
+    seqs = json.loads(run("sequences", map_path, "--json").output)
+    assert [(s["seq_id"], s["name"], s["frames"], s["component"]) for s in seqs] == [
+        (0, "drive0", 60, 0), (1, "drive1", 60, 0), (2, "drive2", 60, 2)]
+    comps = json.loads(run("components", map_path, "--json").output)
+    assert comps == [{"component": 0, "sequences": [0, 1], "vertices": 120},
+                     {"component": 2, "sequences": [2], "vertices": 60}]
+    result = run("check", map_path, "--json")
+    assert result.exit_code == 0 and json.loads(result.output)["ok"]
+
+
+def test_localize_is_read_only_and_writes_out(map_path, drives, tmp_path):
+    run("ingest", map_path, drives[0])
+    before = json.loads(run("info", map_path, "--json").output)
+    out = tmp_path / "dec.json"
+    result = run("localize", map_path, drives[1], "--json", "--out", out, "--k", 5,
+                 "--hmm", "restart_prob=0.02")
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert json.loads(out.read_text()) == data
+    assert len(data["decisions"]) == 60 and "timing" in data
+    matched = [d for d in data["decisions"] if d["seq_id"] is not None]
+    assert len(matched) > 40
+    after = json.loads(run("info", map_path, "--json").output)
+    assert {k: after[k] for k in ("sequences", "vertices", "edges")} == \
+        {k: before[k] for k in ("sequences", "vertices", "edges")}
+
+
+@pytest.mark.parametrize(
+    ("make", "error"),
+    [
+        (lambda p: np.save(p, np.full((4, DIM), np.nan, np.float32)), InvalidDescriptorError),
+        (lambda p: np.save(p, np.zeros((4, DIM + 1), np.float32)), DescriptorShapeError),
+        (lambda p: np.save(p, np.zeros((0, DIM), np.float32)), None),
+    ],
+)
+def test_bad_descriptors_give_one_line_and_commit_nothing(map_path, tmp_path, make, error):
+    bad = tmp_path / "bad.npy"
+    make(bad)
+    result = CliRunner().invoke(main, ["ingest", str(map_path), str(bad)])
+    assert result.exit_code != 0
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
+    assert "Traceback" not in result.output
+    if error is not None:
+        assert result.exit_code == error.exit_code
+    assert json.loads(run("info", map_path, "--json").output)["vertices"] == 0
+
+
+def test_errors_exit_with_their_codes(map_path, drives, tmp_path):
+    run("ingest", map_path, drives[0], "--name", "a")
+    dup = CliRunner().invoke(main, ["ingest", str(map_path), str(drives[1]), "--name", "a"])
+    assert dup.exit_code == DuplicateNameError.exit_code
+    assert dup.output.startswith("Error: a sequence named 'a' already exists")
+    not_map = CliRunner().invoke(main, ["info", str(tmp_path)])
+    assert not_map.exit_code == NotAMapError.exit_code and "not a sprint-map" in not_map.output
+    again = CliRunner().invoke(main, ["init", str(map_path), "--dim", "4"])
+    assert again.exit_code == MapExistsError.exit_code
+    images = CliRunner().invoke(main, ["ingest", str(map_path), str(tmp_path)])
+    assert images.exit_code != 0 and "precomputed" in images.output
+
+
+def test_check_reports_violations_with_exit_1(map_path, drives):
+    run("ingest", map_path, drives[0])
+    shard = next((map_path / "shards").iterdir())
+    with open(shard, "r+b") as fh:
+        fh.truncate(100)
+    result = CliRunner().invoke(main, ["check", str(map_path)])
+    assert result.exit_code == 1
+    assert "violation: shard file" in result.output
+
+
+def test_init_hog_sets_the_dimension(tmp_path):
+    result = run("init", tmp_path / "h.map", "--descriptor", "hog")
+    assert "dim 1764" in result.output
+    info = json.loads(run("info", tmp_path / "h.map", "--json").output)
+    assert info["dim"] == 1764 and info["descriptor"] == "hog"
+
+
+def test_every_command_has_an_example():
+    for name, command in main.commands.items():
+        assert "Example" in (command.help or ""), name
