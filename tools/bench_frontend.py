@@ -2,13 +2,13 @@
 
 Usage::
 
-    python tests/frontend/bench_frontend.py ingest DIR [--repeat 3]
+    python tools/bench_frontend.py ingest DIR [--repeat 3]
         HoG ingest frames/s from an image directory: 1 worker, 2 threads, 2 processes.
-    python tests/frontend/bench_frontend.py make-jpegs DIR [--frames 400]
+    python tools/bench_frontend.py make-jpegs DIR [--frames 400]
         Write 640x480 JPEGs of the synthetic city to DIR (input for ``ingest``).
-    python tests/frontend/bench_frontend.py synth [--seeds 0,1,2,3] [--traversals 6] [--frames 300]
+    python tools/bench_frontend.py synth [--seeds 0,1,2,3] [--traversals 6] [--frames 300]
         Generation time and HoG k-NN@1/5/10 on the synthetic city.
-    python tests/frontend/bench_frontend.py nordland [PATH]
+    python tools/bench_frontend.py nordland [PATH]
         Summer -> winter HoG k-NN@1/5/10 at +/- 1 frame (README: 41.4 / 58.0 / 64.4 %).
 """
 
