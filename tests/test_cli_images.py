@@ -1,0 +1,90 @@
+"""Images and video through the CLI: HoG maps, streaming ingest, bad files named and refused."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sprint_map.cli import main
+from sprint_map.errors import InputError
+
+
+def run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def frames(rng, n, shift=0.0):
+    """A textured strip seen through a sliding window: consecutive frames overlap."""
+    strip = cv2.GaussianBlur((rng.random((120, 40 * n + 200)) * 255).astype(np.uint8), (5, 5), 0)
+    return [np.clip(strip[:, 40 * i: 40 * i + 160] * (1 - shift) + 40 * shift, 0, 255)
+            .astype(np.uint8) for i in range(n)]
+
+
+@pytest.fixture
+def hog_map(tmp_path):
+    path = tmp_path / "h.map"
+    assert run("init", path, "--descriptor", "hog").exit_code == 0
+    return path
+
+
+def test_image_folder_and_video_ingest(tmp_path, rng, hog_map):
+    images = frames(rng, 30)
+    folder = tmp_path / "drive-a"
+    folder.mkdir()
+    for i, img in enumerate(images):  # natural order: img2 before img10
+        cv2.imwrite(str(folder / f"img{i}.png"), img)
+    result = run("ingest", hog_map, folder, "--json", "-q")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["frames"] == 30
+
+    video = tmp_path / "drive-b.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 120), False)
+    for img in images:
+        writer.write(img)
+    writer.release()
+    result = run("ingest", hog_map, video, "--stride", 2, "--json", "-q")
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output)
+    assert out["frames"] == 15 and out["name"] == "drive-b"
+    matched = [d for d in out["decisions"] if d["seq_id"] == 0]
+    # The video shows the same strip: most frames localise on the folder's drive at 2x speed.
+    assert len(matched) >= 10
+    assert np.mean([abs(d["image_id"] - 2 * d["frame"]) <= 2 for d in matched]) > 0.8
+    assert run("check", hog_map).exit_code == 0
+
+
+def test_truncated_image_is_named_and_nothing_is_committed(tmp_path, rng, hog_map):
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for i, img in enumerate(frames(rng, 8)):
+        cv2.imwrite(str(folder / f"{i:03d}.jpg"), img)
+    data = (folder / "005.jpg").read_bytes()
+    (folder / "005.jpg").write_bytes(data[: len(data) // 3])
+    result = run("ingest", hog_map, folder, "-q")
+    assert result.exit_code == InputError.exit_code
+    assert "005.jpg" in result.output and result.output.startswith("Error: ")
+    assert "Traceback" not in result.output
+    info = json.loads(run("info", hog_map, "--json").output)
+    assert (info["sequences"], info["vertices"]) == (0, 0)
+    assert list((hog_map / "shards").iterdir()) == []
+
+
+@pytest.mark.parametrize("kind", ["empty-dir", "not-an-image", "npy-wrong-dim"])
+def test_bad_sources_fail_with_one_line(tmp_path, hog_map, kind):
+    if kind == "empty-dir":
+        source = tmp_path / "empty"
+        source.mkdir()
+    elif kind == "not-an-image":
+        source = tmp_path / "notes.png"
+        source.write_text("not a picture")
+    else:
+        source = tmp_path / "d.npy"
+        np.save(source, np.zeros((3, 10), np.float32))
+    result = run("ingest", hog_map, source, "-q")
+    assert result.exit_code != 0
+    assert len(result.output.strip().splitlines()) == 1 and result.output.startswith("Error: ")
+    assert json.loads(run("info", hog_map, "--json").output)["vertices"] == 0
