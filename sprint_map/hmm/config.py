@@ -1,4 +1,4 @@
-"""Parameters of the SPRINT hidden Markov model (see ``docs/hmm.md`` for the model they define)."""
+"""Parameters of the SPRINT hidden Markov model (see ``docs/architecture.md`` ("The HMM") for the model they define)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from sprint_map import dataclass_dict
 class HMMConfig:
     """Frozen parameters of the place-recognition HMM.
 
-    Every open modelling choice of the filter is a field here; ``docs/hmm.md`` gives the exact
+    Every open modelling choice of the filter is a field here; ``docs/architecture.md`` ("The HMM") gives the exact
     equations. Defaults were chosen by small grid searches on synthetic multi-traversal data and
-    on Nordland summer -> winter HoG (``docs/hmm.md``, "Defaults").
+    on Nordland summer -> winter HoG (``docs/architecture.md`` ("The HMM"), "Defaults").
 
     Parameters
     ----------
