@@ -72,23 +72,12 @@ class BeliefView:
     """One component's belief in slot layout (what the decision code reads).
 
     ``x[slot_first[s] + image]`` is the belief of image ``image`` of sequence ``s`` (in
-    ``graph.seq_ids`` order); other slots (gutters) hold 0. Only the *live* slots can hold
-    belief: ``idx`` (ascending) if given, else the slice ``x[a:b]`` (``b = None``: all of ``x``).
+    ``graph.seq_ids`` order); other slots (gutters) hold 0.
     """
 
     graph: ComponentGraph
     slot_first: np.ndarray
     x: np.ndarray
-    idx: np.ndarray | None = None
-    a: int = 0
-    b: int | None = None
-
-    def live(self) -> tuple[np.ndarray, np.ndarray | int]:
-        """``(values, slots)`` of the live slots: ``slots`` is an index array or, for a slice,
-        the slot of ``values[0]``."""
-        if self.idx is not None:
-            return self.x[self.idx], self.idx
-        return self.x[self.a:self.b], self.a
 
 
 def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
@@ -245,26 +234,21 @@ def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, in
 
     Notes
     -----
-    O(live slots of the views): a max, a comparison and a ``nonzero`` per view, then an
+    O(sum of view sizes): a max, a comparison and a ``nonzero`` per view, then an
     ``argpartition`` over the qualifying vertices only.
     """
-    lives = [v.live() for v in views]
-    peak = max((float(vals.max()) for vals, _ in lives if vals.size), default=0.0)
+    peak = max((float(v.x.max()) for v in views if v.x.size), default=0.0)
     if peak <= 0.0:
         return []
     floor = peak * CANDIDATE_FLOOR
     found: list[tuple[float, int, int]] = []
-    for vi, (vals, slots) in enumerate(lives):
-        pos = (vals >= floor).nonzero()[0]
-        if pos.size > m:
-            sel = vals[pos]
-            pos = pos[np.argpartition(sel, sel.size - m)[sel.size - m:]]
-        probs = vals[pos].tolist()
-        if isinstance(slots, int):
-            where = (pos + slots).tolist()
-        else:
-            where = slots[pos].tolist()
-        for slot, p in zip(where, probs, strict=True):
+    for vi, view in enumerate(views):
+        x = view.x
+        idx = (x >= floor).nonzero()[0]
+        if idx.size > m:
+            vals = x[idx]
+            idx = idx[np.argpartition(vals, vals.size - m)[vals.size - m:]]
+        for slot, p in zip(idx.tolist(), x[idx].tolist(), strict=True):
             found.append((p, vi, slot))
     found.sort(key=lambda c: (-c[0], c[1], c[2]))
     return found[:m]

@@ -1,28 +1,19 @@
-"""SPRINT: the place-recognition HMM run only where the belief is.
-
-Two levels of sparsity (``docs/architecture.md`` ("The HMM")). The *active set* holds the components (connected by
-edges) that hold belief, as in the paper; inside each active component only the *live support*
-is propagated: windows of slots of its sequences (:mod:`sprint_map.hmm.support`). In a lifelong
-map every merge adds edges until most of the map is one component, so the second level is what
-keeps a step independent of the map.
+"""SPRINT: the place-recognition HMM run only on the components that hold belief.
 
 Per frame (``docs/architecture.md`` ("The HMM"), "Per-frame data flow"):
 
 1. observe: hits -> likelihood ratios (:mod:`sprint_map.hmm.observation`);
 2. locate every hit in the active set; activate the components of the others (graph source,
    through the LRU cache); a bad hit raises here, before the belief is touched;
-3. propagate the windows of every active component (window + edges leaving them; overflow ->
-   sink), scaled by ``1 - eps - nu``; windows grow by ``W - 1``, edge targets open windows;
-   the sink keeps its mass and receives ``nu``;
+3. propagate every active component (window + edges; overflow -> sink), scale by
+   ``1 - eps - nu``; the sink keeps its mass and receives ``nu``;
 4. inject ``eps / n_hits`` at every hit and multiply hits and sink by their likelihood ratios
-   (every other vertex has ratio 1: nothing to do); a hit outside the windows opens one;
-5. prune components whose share is below ``prune_threshold``; trim window slots whose share is
-   below ``support_threshold``; normalise what is left;
-6. (``decide``) score the most probable live vertices by place mass; novelty rules.
+   (every other vertex has ratio 1: nothing to do);
+5. normalise; drop components whose share is below ``prune_threshold``; renormalise;
+6. (``decide``) score the most probable vertices by place mass; novelty rules.
 
-Nothing in a step is sized by the map or by a component: the work is O(W live + edges leaving
-the live windows + k log S_active), plus, for a newly active component, its load (cached) and an
-O(n_c + E_c log E_c) set-up.
+Nothing in a step is sized by the map: the work is O(W n_active + nnz(U_active) + k log S_active)
+plus, for a newly active component, its load (cached) and an O(n_c + E_c) set-up.
 """
 
 from __future__ import annotations
@@ -38,8 +29,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision, decide, top_candidates
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
-from sprint_map.hmm.support import runs
-from sprint_map.hmm.transition import FLUSH_EVERY, ComponentTransition
+from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, ComponentTransition
 
 
 class SprintFilter:
@@ -56,18 +46,11 @@ class SprintFilter:
         Shared LRU cache of components; by default a private one of
         ``config.cache_budget_bytes``.
 
-    Attributes
-    ----------
-    pruned_mass, trimmed_mass : float
-        Belief dropped so far by component pruning and by support trimming (each step's share,
-        summed); ``last_pruned_mass`` and ``last_trimmed_mass`` are the last step's.
-
     Notes
     -----
-    A step costs O(W live + E_live + k log S_active), ``live`` = slots of the live windows,
-    ``E_live`` = edges leaving them: never O(map), and not O(component) either (only a newly
-    active component's load and set-up are). Memory is a slot vector per active component plus
-    the cache budget. Not thread-safe (one filter per query stream).
+    A step costs O(W n_active + nnz(U_active) + k log S_active) where ``n_active`` is the
+    number of vertices of the active components: never O(map). Memory is the active components'
+    belief vectors plus the cache budget. Not thread-safe (one filter per query stream).
 
     Examples
     --------
@@ -93,15 +76,11 @@ class SprintFilter:
         self._nu = config.new_place_prob
         self._scale = 1.0 - config.restart_prob - config.new_place_prob
         self._prune = config.prune_threshold
-        self._support = config.support_threshold
         self._sink = 1.0
         self._started = False
-        self._n_propagated = 0
         self.frames = 0
         self.pruned_mass = 0.0
         self.last_pruned_mass = 0.0
-        self.trimmed_mass = 0.0
-        self.last_trimmed_mass = 0.0
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -110,12 +89,9 @@ class SprintFilter:
         self._obs.reset()
         self._sink = 1.0
         self._started = False
-        self._n_propagated = 0
         self.frames = 0
         self.pruned_mass = 0.0
         self.last_pruned_mass = 0.0
-        self.trimmed_mass = 0.0
-        self.last_trimmed_mass = 0.0
 
     @property
     def n_active_components(self) -> int:
@@ -124,22 +100,7 @@ class SprintFilter:
 
     @property
     def n_active_vertices(self) -> int:
-        """Vertices propagated by the last update (the per-step state size).
-
-        The live windows the step propagated (edge targets included), summed over the active
-        components; 0 after the first frame (nothing to propagate yet). Not the size of the
-        components: see :attr:`n_component_vertices`.
-        """
-        return self._n_propagated
-
-    @property
-    def n_live_vertices(self) -> int:
-        """Vertices in the live windows now (what the next step propagates, before growth)."""
-        return sum(c.n_live for c in self._active)
-
-    @property
-    def n_component_vertices(self) -> int:
-        """Vertices of the active components (what the paper's filter would propagate)."""
+        """Number of vertices of the active components (the per-step state size)."""
         return self._active.n_vertices
 
     @property
@@ -153,7 +114,7 @@ class SprintFilter:
         return self._sink
 
     def posterior(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """The belief over the vertices of the active components (live or not).
+        """The belief over the vertices of the active components.
 
         Returns
         -------
@@ -165,8 +126,7 @@ class SprintFilter:
 
         Notes
         -----
-        O(n log n) for the n vertices of the active components; for tests and diagnostics, not
-        for the per-frame path.
+        O(n_active log n_active); for tests and diagnostics, not for the per-frame path.
         """
         vids: list[np.ndarray] = []
         probs: list[np.ndarray] = []
@@ -214,7 +174,7 @@ class SprintFilter:
         Same parameters and errors as :meth:`step`.
         """
         # This is the hot path of the whole system (and of tools/bench_fig4.py): plain Python
-        # over the k hits and the active components, a few numpy calls per component and stage.
+        # over the k hits and the active components, one numpy call per component and stage.
         vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
         n_hits = len(vids)
         comps = self._active.comps
@@ -224,15 +184,31 @@ class SprintFilter:
             located = [hit] if hit is not None else self._locate(vids)
         else:
             located = self._locate(vids) if n_hits else []
-        n_prop = 0
         if self._started:
             scale = self._scale
             sink = scale * self._sink + self._nu
-            flush = self.frames % FLUSH_EVERY == 0
+            exact = self.frames % FLUSH_EVERY == 0
             for comp in comps.values():
-                if comp.n_windows:  # a just-activated component holds no belief yet
-                    sink += comp.propagate(flush, scale)
-                    n_prop += comp.n_propagated
+                if exact:
+                    np.putmask(comp.x, comp.x < FLUSH_BELOW, 0.0)
+                if comp.mass > 0.0:  # a just-activated component holds no belief yet
+                    trans = comp.trans
+                    if trans.simple:
+                        # One sequence, no edges (inlined ComponentTransition.propagate): the
+                        # W - 1 tail of the convolution is what ran past the sequence end.
+                        # Propagation keeps mass, so the component's new mass is known
+                        # without summing it (re-summed exactly every FLUSH_EVERY frames).
+                        y = np.correlate(comp.x, trans.krev, "full")
+                        n = trans.n_state
+                        spill = math.fsum(y[n:].tolist())
+                        comp.x = y[:n]
+                        comp.mass = scale * comp.mass - spill
+                        if exact or comp.mass < spill:
+                            comp.mass = float(comp.x.dot(trans.ones))
+                    else:
+                        comp.x, spill = trans.propagate(comp.x)
+                        comp.mass = float(comp.x.dot(trans.ones))
+                    sink += spill
             if n_hits:
                 inject = self._eps / n_hits
             else:
@@ -247,16 +223,12 @@ class SprintFilter:
             else:
                 sink = 1.0
                 inject = 0.0
-        self._n_propagated = n_prop
         for (comp, slot), lik in zip(located, liks, strict=True):
             x = comp.x
             old = x.item(slot)
             new = (old + inject) * lik
             x[slot] = new
             comp.mass += new - old
-            # A hit outside the live windows opens one (a new hypothesis from the restart mass).
-            if comp.n_windows != 1 or not comp.a <= slot < comp.b:
-                comp.pending.append(slot)
         self._normalise(sink * sink_lik)
         self.frames += 1
 
@@ -292,14 +264,8 @@ class SprintFilter:
         return out
 
     def _normalise(self, sink: float) -> None:
-        """Prune components, trim windows, normalise (one pass over the live slots).
-
-        Components below ``prune_threshold`` of the total are dropped first; then slots below
-        ``support_threshold`` of what is left are trimmed from the windows; the rest is
-        normalised. Both dropped masses are recorded as shares of the step's total.
-        """
-        active = self._active
-        comps = active.comps
+        """Normalise, prune components below ``prune_threshold``, renormalise."""
+        comps = self._active.comps
         total = sink
         low = math.inf
         for comp in comps.values():
@@ -310,7 +276,7 @@ class SprintFilter:
         if not 0.0 < total < math.inf:
             # Numerical breakdown (all likelihoods underflowed): fall back to "off the map";
             # the restart mass brings the belief back on the next frames.
-            active.clear()
+            self._active.clear()
             self._sink = 1.0
             return
         pruned = 0.0
@@ -318,29 +284,16 @@ class SprintFilter:
             limit = self._prune * total
             for cid in [cid for cid, comp in comps.items() if comp.mass < limit]:
                 pruned += comps[cid].mass
-                active.remove(cid)
+                self._active.remove(cid)
             total = sink + sum(c.mass for c in comps.values())
-        # Trimming is relative to the belief left after pruning (sink included); interior runs
-        # are cut at least every FLUSH_EVERY frames (every frame where windows are rebuilt).
-        limit = self._support * total
-        interior = self.frames % FLUSH_EVERY == FLUSH_EVERY - 1
-        trimmed = 0.0
-        empty: list[int] = []
-        for cid, comp in comps.items():
-            trimmed += comp.trim(limit, interior)
-            if not comp.n_windows:
-                empty.append(cid)
-        for cid in empty:  # all its belief was negligible: it holds nothing any more
-            active.remove(cid)
-        step_total = total + pruned
-        self.last_pruned_mass = pruned / step_total
-        self.pruned_mass += self.last_pruned_mass
-        self.last_trimmed_mass = trimmed / step_total
-        self.trimmed_mass += self.last_trimmed_mass
-        total -= trimmed
+            pruned /= pruned + total
+        self.last_pruned_mass = pruned
+        self.pruned_mass += pruned
         inv = 1.0 / total
         for comp in comps.values():
-            comp.normalise(inv)
+            x = comp.x
+            np.multiply(x, inv, out=x)
+            comp.mass *= inv
         self._sink = sink * inv
 
     def decide(self) -> Decision:
@@ -348,15 +301,14 @@ class SprintFilter:
 
         Notes
         -----
-        O(live) for the candidate search (a max, a comparison and a ``nonzero`` over the live
-        slots of each active component) plus O(m (r + h d log d)) for the place masses of the m
-        candidates.
+        O(n_active) for the candidate search (a max, a comparison and a ``nonzero`` per active
+        component) plus O(m (r + h d log d)) for the place masses of the m candidates.
         """
         cfg = self.config
         views = [c.view() for c in self._active]
         candidates = top_candidates(views, cfg.decision_candidates)
         return decide(views, candidates, self._sink, cfg.place_radius, cfg.place_hops,
-                      cfg.min_confidence, len(self._active), self._n_propagated)
+                      cfg.min_confidence, len(self._active), self._active.n_vertices)
 
     # ------------------------------------------------------------------ map changes
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
@@ -368,7 +320,7 @@ class SprintFilter:
 
         Notes
         -----
-        O(live) plus the loads of the affected components.
+        O(n_active) plus the loads of the affected components.
         """
         if component_ids is None:
             self.cache.clear()
@@ -377,16 +329,10 @@ class SprintFilter:
         comps = list(self._active)
         if not comps:
             return
-        vid_parts: list[np.ndarray] = []
-        prob_parts: list[np.ndarray] = []
-        for c in comps:
-            slots = c.live_slots()
-            vals = c.x[slots]
-            held = vals > 0.0
-            vid_parts.append(c.trans.vertex_of_slots(slots[held]))
-            prob_parts.append(vals[held])
-        vids = np.concatenate(vid_parts)
-        probs = np.concatenate(prob_parts)
+        vids = np.concatenate([c.graph.vertex_ids() for c in comps])
+        probs = np.concatenate([c.x[c.trans.vertex_slots()] for c in comps])
+        keep = probs > 0.0
+        vids, probs = vids[keep], probs[keep]
         self._active.clear()
         if not vids.size:
             return
@@ -395,10 +341,5 @@ class SprintFilter:
             graph = self.cache.get(int(cid), self.source.load_component)
             comp = self._active.add(ComponentTransition(graph, self.config))
             sel = comp_ids == cid
-            slots = comp.trans.slots_of(vids[sel])
-            order = np.argsort(slots, kind="stable")
-            slots = slots[order]
-            comp.x[slots] = probs[sel][order]
-            lo, hi, _, _ = runs(slots, comp.trans.gap)
-            comp.set_windows(lo, hi)
+            comp.x[comp.trans.slots_of(vids[sel])] = probs[sel]
             comp.mass = float(probs[sel].sum())

@@ -21,7 +21,7 @@ def maps(draw: st.DrawFn) -> tuple[list[int], list[tuple[int, int, float]]]:
 
 
 @st.composite
-def configs(draw: st.DrawFn, prune: float, support: float = 0.0) -> HMMConfig:
+def configs(draw: st.DrawFn, prune: float) -> HMMConfig:
     window = tuple(draw(st.lists(st.sampled_from([0.0, 0.1, 0.3, 0.5, 1.0]), min_size=1,
                                  max_size=6)))
     if sum(window) == 0:
@@ -30,7 +30,6 @@ def configs(draw: st.DrawFn, prune: float, support: float = 0.0) -> HMMConfig:
         window=window,
         edge_weight=draw(st.sampled_from([0.0, 0.5, 1.0, 3.0])),
         prune_threshold=prune,
-        support_threshold=support,
         restart_prob=draw(st.sampled_from([0.0, 0.01, 0.2])),
         new_place_prob=draw(st.sampled_from([0.0, 0.01, 0.1])),
         dist_scale=draw(st.sampled_from([None, 0.05, 0.5])),
