@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+import cv2
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
@@ -21,6 +22,7 @@ from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
 from sprint_map.frontend.sources import ProgressCallback
 from sprint_map.map import SprintMap
+from sprint_map.storage.repair import repair_map
 
 
 class _Group(click.Group):
@@ -56,6 +58,8 @@ def main() -> None:
       sprint-map ingest city.map monday.npy --name monday
       sprint-map info city.map
     """
+    # OpenCV logs its own warning lines for a corrupt image; the one-line error says it all.
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 @main.command()
@@ -80,7 +84,8 @@ def init(map_path: str, dim: int | None, descriptor: str | None, config_json: st
                 options = json.load(fh)
         except (OSError, json.JSONDecodeError) as exc:
             raise InputError(f"cannot read config {config_json}: {exc}") from exc
-    kind = descriptor or options.pop("descriptor", None) or ("precomputed" if dim else "hog")
+    kind = descriptor or options.pop("descriptor", None) or (
+        "precomputed" if dim is not None else "hog")
     if kind == "precomputed":
         if dim is None:
             raise InputError("--dim is required for precomputed descriptors")
@@ -135,7 +140,7 @@ def _model_options(f: Any) -> Any:
                      help="Override any HMM parameter for this call (repeatable).")(f)
     f = click.option("--window", help="Forward transition window, e.g. 0.2,0.4,0.3,0.1.")(f)
     f = click.option("--k", type=int, help="Neighbours retrieved per frame.")(f)
-    f = click.option("--stride", type=int, default=1, show_default=True,
+    f = click.option("--stride", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Keep every STRIDE-th frame (video and image folders).")(f)
     f = click.option("--quiet", "-q", is_flag=True, help="No progress display.")(f)
     return f
@@ -143,9 +148,9 @@ def _model_options(f: Any) -> Any:
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
-@click.argument("source", type=click.Path(exists=True))
+@click.argument("source", type=click.Path())
 @click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name).")
-@click.option("--positions", type=click.Path(exists=True, dir_okay=False),
+@click.option("--positions", type=click.Path(dir_okay=False),
               help="CSV frame,x,y[,heading_deg] with a header row.")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
@@ -172,6 +177,8 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
         result = m.ingest(src.iter_batches(), name=name or src.name, positions=pos,
                           merge=not no_merge, hmm=hmm, source=str(source))
+    for warning in m.warnings:
+        click.echo(f"Warning: {warning}", err=True)
     out = result.to_dict()
     matched = sum(d["seq_id"] is not None for d in out["decisions"])
     _emit(out, as_json, f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
@@ -181,7 +188,7 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
-@click.argument("source", type=click.Path(exists=True))
+@click.argument("source", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Print the decisions as JSON.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Also write the JSON to this file.")
 @_model_options
@@ -273,19 +280,33 @@ def components(map_path: str, as_json: bool) -> None:
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--repair", is_flag=True, help="Rebuild what is derivable (shard tails, index, "
+              "union-find, lookups, temp files), then check; takes the writer lock.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def check(map_path: str, as_json: bool) -> None:
+def check(map_path: str, repair: bool, as_json: bool) -> None:
     """Verify every invariant of MAP; exit 1 and list the violations if any.
 
+    With --repair, first fix what the map's own data can rebuild and report what it cannot;
+    exit 0 when the map is healthy afterwards.
+
     \b
-    Example:
+    Examples:
       sprint-map check city.map
+      sprint-map check city.map --repair
     """
-    with SprintMap.open(map_path, readonly=True) as m:
-        report = m.check()
-    lines = [f"violation: {v}" for v in report.violations] + [f"note: {n}" for n in report.notes]
-    lines.append("ok" if report.ok else f"{len(report.violations)} violation(s)")
-    _emit(report.to_dict(), as_json, "\n".join(lines))
+    if repair:
+        fixed = repair_map(map_path)
+        report, data = fixed.after, fixed.to_dict()
+        lines = [f"repaired: {r}" for r in fixed.repaired] + [f"skipped: {s}" for s in fixed.skipped]
+    else:
+        with SprintMap.open(map_path, readonly=True) as m:
+            report = m.check()
+        data, lines = report.to_dict(), []
+    lines += [f"violation: {v}" for v in report.violations] + [f"note: {n}" for n in report.notes]
+    done = f" ({len(fixed.repaired)} repaired)" if repair else ""
+    left = f" left after repair ({', '.join(sorted(report.areas))})" if repair else ""
+    lines.append(f"ok{done}" if report.ok else f"{len(report.violations)} violation(s){left}")
+    _emit(data, as_json, "\n".join(lines))
     sys.exit(0 if report.ok else 1)
 
 

@@ -2,16 +2,20 @@
 
 Every error the library raises on purpose derives from :class:`SprintMapError`, so a caller (and
 the CLI, which turns these into a one-line ``Error: ...`` message) can catch them all at once.
-Each subclass carries a distinct exit code for the CLI.
+Each class carries a distinct exit code for the CLI (1 is for other OS errors and for ``check``
+finding violations, 2 for command-line usage errors reported by click).
 """
 
 from __future__ import annotations
 
 
 class SprintMapError(Exception):
-    """Base class of every error raised on purpose by sprint-map."""
+    """Base class of every error raised on purpose by sprint-map.
 
-    exit_code = 2
+    Raised as such only for a misuse of the API (e.g. two sequences written at once).
+    """
+
+    exit_code = 17
 
 
 class NotAMapError(SprintMapError):
@@ -56,12 +60,6 @@ class InvalidDescriptorError(SprintMapError):
     exit_code = 9
 
 
-class EmptySequenceError(SprintMapError):
-    """A sequence with no frames was given."""
-
-    exit_code = 10
-
-
 class DuplicateNameError(SprintMapError):
     """A sequence with this name already exists in the map."""
 
@@ -78,6 +76,12 @@ class InputError(SprintMapError):
     """An input file (descriptors, positions, images, video) cannot be used."""
 
     exit_code = 13
+
+
+class EmptySequenceError(InputError):
+    """A sequence with no frames was given (one frame is enough: a one-frame sequence is valid)."""
+
+    exit_code = 10
 
 
 class ReadOnlyMapError(SprintMapError):

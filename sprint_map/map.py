@@ -106,6 +106,11 @@ class SprintMap:
     def readonly(self) -> bool:
         return self.store.readonly
 
+    @property
+    def warnings(self) -> list[str]:
+        """Problems that failed no call and lost nothing (e.g. the index cache not saved)."""
+        return self.store.warnings
+
     # --- writing ----------------------------------------------------------------------------
     def add_sequence(
         self,

@@ -1,7 +1,6 @@
-"""Subprocess helper of the crash, lock and concurrency tests (run as a script, never imported
-by pytest as a test module).
+"""The crash harness: writer processes to kill (child side) and the checks after each kill.
 
-Modes::
+Run as a script it is the child side (never imported by pytest as a test module)::
 
     crash_worker.py write MAP --seed S [--count N] [--length L]
         Open MAP for writing, print ``ready``, and add sequences ``n, n+1, ...`` (``n`` =
@@ -14,11 +13,17 @@ Modes::
         Try to open MAP for writing; print JSON ``{"error", "message", "seconds"}``.
     crash_worker.py zygote
         A fork server: imports everything once, then for each JSON line on stdin
-        ``{"op": "spawn", ...write options..., "ack": FILE}`` forks a ``write`` child that appends
-        ``ready`` and ``ack <i>`` lines to FILE (``os.write``: in the kernel once it returns) and
-        replies ``{"pid": ...}``; ``{"op": "wait", "pid": P}`` reaps it and replies
-        ``{"signal": ..., "code": ...}``. Forking a warmed-up process makes a kill-and-restart
-        cycle cost milliseconds instead of a Python start-up (~0.7 s with numpy/faiss/cv2).
+        ``{"op": "spawn", "ack": FILE, ...}`` forks a child that runs ``write`` (the default)
+        or, with ``"mode": "repair"``, ``check --repair``, with ``SPRINT_MAP_CRASH_AT`` set to
+        ``"crash_at"`` if given; the child appends ``ready``, ``ack <i>``, ``done`` lines to FILE
+        (``os.write``: in the kernel once it returns) and the zygote replies ``{"pid": ...}``;
+        ``{"op": "wait", "pid": P}`` reaps it and replies ``{"signal": ..., "code": ...}``.
+        Forking a warmed-up process makes a kill-and-restart cycle cost milliseconds instead of
+        a Python start-up (~0.7 s with numpy/faiss/cv2).
+
+Imported (by ``tests/test_crash.py`` and ``tools/crash_soak.py``) it is the parent side:
+:class:`Zygote` (the client), :func:`verify` (after a kill: the map holds exactly a prefix of the
+stream, bit for bit, with the components of its edges) and :func:`kill_loop` (random kills).
 """
 
 from __future__ import annotations
@@ -26,21 +31,40 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
+import signal
+import subprocess
 import sys
 import time
 import traceback
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
+import networkx as nx
 import numpy as np
 
+from sprint_map.config import MapConfig
 from sprint_map.errors import SprintMapError
+from sprint_map.storage.check import CheckReport, check_map
+from sprint_map.storage.crash import CRASH_ENV
+from sprint_map.storage.keys import read_u64
+from sprint_map.storage.repair import repair_map
 from sprint_map.storage.store import EdgeSpec, MapStore
 
 WORKER = Path(__file__).resolve()
 MAX_LENGTH = 90
+#: Rows per append when a sequence is streamed (every third sequence), as ``ingest`` does.
+STREAM_BATCH = 16
+#: The one violation a kill may leave on a map no writer has reopened yet: a partial index file
+#: (the next writable open deletes it).
+PARTIAL_INDEX_PREFIX = "leftover temp file index/flat."
+
+
+# --- the stream of sequences -----------------------------------------------------------------
 
 
 def _rng(seed: int, index: int, what: str) -> np.random.Generator:
@@ -83,12 +107,32 @@ def planned_sequence(seed: int, index: int, dim: int, fixed_length: int | None =
     return Planned(f"w-{index}", descriptors, positions, tuple(edges))
 
 
+@lru_cache(maxsize=8192)
+def planned(seed: int, index: int, dim: int, length: int | None) -> Planned:
+    """:func:`planned_sequence`, memoised for the parent that re-verifies after every kill."""
+    return planned_sequence(seed, index, dim, length)
+
+
 def add_planned(store: MapStore, seed: int, index: int, length: int | None = None) -> None:
-    """Add sequence ``index`` of stream ``seed`` to ``store`` (it must be the next seq id)."""
+    """Add sequence ``index`` of stream ``seed`` to ``store`` (it must be the next seq id).
+
+    Every third sequence is streamed in batches through ``begin_sequence`` (the ``ingest``
+    path: rows written uncommitted batch by batch, one commit); the others in one call (the
+    ``add_sequence``/``merge`` path). Both commit the same content.
+    """
     plan = planned_sequence(seed, index, store.config.dim, length)
-    result = store.add_sequence(plan.descriptors, name=plan.name, positions=plan.positions,
-                                edges=plan.edges)
+    if index % 3 == 1:
+        with store.begin_sequence(plan.name) as writer:
+            for start in range(0, len(plan.descriptors), STREAM_BATCH):
+                writer.append(plan.descriptors[start : start + STREAM_BATCH])
+            result = writer.commit(plan.positions, plan.edges)
+    else:
+        result = store.add_sequence(plan.descriptors, name=plan.name, positions=plan.positions,
+                                    edges=plan.edges)
     assert result.sequence.seq_id == index
+
+
+# --- child side --------------------------------------------------------------------------------
 
 
 def write(path: str, seed: int, count: int | None, length: int | None,
@@ -105,8 +149,37 @@ def write(path: str, seed: int, count: int | None, length: int | None,
     emit("done")
 
 
+def repair(path: str, emit: Callable[[str], None]) -> None:
+    """Run ``check --repair`` on ``path``; emit ``repaired <json report>``."""
+    emit("ready")
+    emit("repaired " + json.dumps(repair_map(path).to_dict()))
+
+
 def _stdout_emit(line: str) -> None:
     print(line, flush=True)
+
+
+def _child(request: dict[str, Any]) -> None:
+    """The body of a zygote child: never returns."""
+    status = 0
+    try:
+        os.environ.pop(CRASH_ENV, None)
+        if request.get("crash_at"):
+            os.environ[CRASH_ENV] = request["crash_at"]
+        fd = os.open(request["ack"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+        def emit(line: str, fd: int = fd) -> None:
+            os.write(fd, f"{line}\n".encode())
+
+        if request.get("mode", "write") == "repair":
+            repair(request["map"], emit)
+        else:
+            write(request["map"], request["seed"], request.get("count"), request.get("length"),
+                  emit)
+    except BaseException:
+        traceback.print_exc()
+        status = 1
+    os._exit(status)
 
 
 def _zygote() -> None:
@@ -115,20 +188,8 @@ def _zygote() -> None:
         if request["op"] == "spawn":
             sys.stdout.flush()
             pid = os.fork()
-            if pid == 0:  # child: never returns into the zygote loop
-                status = 0
-                try:
-                    fd = os.open(request["ack"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-
-                    def emit(line: str, fd: int = fd) -> None:
-                        os.write(fd, f"{line}\n".encode())
-
-                    write(request["map"], request["seed"], request.get("count"),
-                          request.get("length"), emit)
-                except BaseException:
-                    traceback.print_exc()
-                    status = 1
-                os._exit(status)
+            if pid == 0:
+                _child(request)
             reply: dict[str, object] = {"pid": pid}
         elif request["op"] == "wait":
             _, status = os.waitpid(request["pid"], 0)
@@ -139,6 +200,284 @@ def _zygote() -> None:
         else:
             raise ValueError(f"unknown op {request['op']!r}")
         print(json.dumps(reply), flush=True)
+
+
+# --- parent side -------------------------------------------------------------------------------
+
+
+class Zygote:
+    """Client of ``crash_worker.py zygote``: forks ready-to-run writers in milliseconds."""
+
+    def __init__(self, log: Path) -> None:
+        self.log = log
+        self._stderr = log.open("w")
+        self.proc = subprocess.Popen(
+            [sys.executable, str(WORKER), "zygote"], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=self._stderr, text=True,
+        )
+
+    def _ask(self, request: dict[str, Any]) -> dict[str, Any]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        assert line, f"zygote died: {self.log.read_text()}"
+        reply: dict[str, Any] = json.loads(line)
+        return reply
+
+    def spawn(self, **request: Any) -> int:
+        """Fork a child (see the module docstring for the request); return its pid."""
+        return int(self._ask({"op": "spawn", **request})["pid"])
+
+    def wait(self, pid: int) -> dict[str, Any]:
+        return self._ask({"op": "wait", "pid": pid})
+
+    def run(self, **request: Any) -> dict[str, Any]:
+        """Spawn a child and wait for it to end (by itself or by its crash point)."""
+        return self.wait(self.spawn(**request))
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+        self._stderr.close()
+
+
+def wait_for_line(path: Path, word: str, timeout: float = 120.0) -> list[str]:
+    """Poll an ack file until it holds ``word`` (generous timeout: only a hang trips it)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        lines = read_lines(path)
+        if word in lines:
+            return lines
+        time.sleep(0.002)
+    raise AssertionError(f"no {word!r} in {path} after {timeout} s")
+
+
+def read_acks(path: Path) -> set[int]:
+    text = path.read_text() if path.exists() else ""
+    return {int(line.split()[1]) for line in text.split("\n") if line.startswith("ack ")}
+
+
+def expected_edges(seed: int, index: int, dim: int, length: int | None,
+                   first: list[int]) -> dict[tuple[int, int], tuple[float, int | None]]:
+    out = {}
+    for spec in planned(seed, index, dim, length).edges:
+        ends = [first[index if s is None else s] + image for s, image in (spec.src, spec.dst)]
+        out[(ends[0], ends[1])] = (spec.weight, spec.frame)  # a repeat keeps the later one
+    return out
+
+
+def expected_components(seed: int, n: int, dim: int, length: int | None
+                        ) -> set[frozenset[int]]:
+    """Connected components (networkx) of the first ``n`` sequences joined by their edges."""
+    graph = nx.Graph()
+    graph.add_nodes_from(range(n))
+    for i in range(n):
+        for spec in planned(seed, i, dim, length).edges:
+            graph.add_edge(*(i if s is None else s for s, _ in (spec.src, spec.dst)))
+    return {frozenset(c) for c in nx.connected_components(graph)}
+
+
+def verify(path: Path, seed: int, acked: set[int], length: int | None = None) -> CheckReport:
+    """Open read-only and assert the map holds exactly a prefix of the worker stream.
+
+    Every acknowledged sequence is there; every sequence there is whole and bit for bit the
+    planned one (descriptors, positions, edges with their provenance); the components are those
+    of the planned edges. Descriptors and positions are compared in bulk (all shards against
+    the concatenated stream) so that re-verifying the whole map after every kill stays cheap.
+    Returns the check report; the caller decides which violations a fresh crash may leave.
+    """
+    with MapStore.open(path, readonly=True) as store:
+        dim = store.config.dim
+        records = store.sequences()
+        n = len(records)
+        assert acked <= set(range(n)), f"acknowledged {sorted(acked - set(range(n)))} missing"
+        plans = [planned(seed, i, dim, length) for i in range(n)]
+        first = np.cumsum([0] + [len(p.descriptors) for p in plans]).tolist()
+        for i, (rec, plan) in enumerate(zip(records, plans, strict=True)):
+            assert (rec.seq_id, rec.name, rec.first_vertex, rec.length) == (
+                i, plan.name, first[i], len(plan.descriptors))
+        total = first[-1]
+        assert store.stats()["vertices"] == total
+        if n:
+            want = np.concatenate([p.descriptors for p in plans])
+            assert store.shards.rows(0, total, total).tobytes() == want.tobytes()
+        with store.env.read() as txn:
+            stored = list(txn.cursor(db=store.env.db("vertex_data")))
+        got_ids = np.array([read_u64(k) for k, _ in stored], dtype=np.int64)
+        got_pos = np.frombuffer(b"".join(v for _, v in stored), dtype=">f8").reshape(-1, 4)
+        with_pos = [i for i, p in enumerate(plans) if p.positions is not None]
+        want_ids = np.array([v for i in with_pos for v in range(first[i], first[i + 1])],
+                            dtype=np.int64)
+        want_pos = np.full((len(want_ids), 4), np.nan)
+        if with_pos:
+            want_pos[:, :3] = np.concatenate([plans[i].positions for i in with_pos])
+        np.testing.assert_array_equal(got_ids, want_ids)
+        np.testing.assert_array_equal(got_pos, want_pos)
+        edges: dict[int, dict[tuple[int, int], tuple[float, int | None]]] = {}
+        for e in store.edges():
+            assert e.query_seq is not None
+            edges.setdefault(e.query_seq, {})[(e.src, e.dst)] = (e.weight, e.frame)
+        for i in range(n):
+            assert edges.get(i, {}) == expected_edges(seed, i, dim, length, first)
+        assert set(edges) <= set(range(n))
+        components = store.components()
+        assert {frozenset(c.sequences) for c in components} == expected_components(
+            seed, n, dim, length)
+        for comp in components:
+            assert comp.vertices == sum(len(plans[s].descriptors) for s in comp.sequences)
+        return check_map(store)
+
+
+def assert_ok_but_partials(report: CheckReport) -> None:
+    """``check`` passes but for partial index files (a map no writer has reopened yet)."""
+    unexpected = [v for v in report.violations if not v.startswith(PARTIAL_INDEX_PREFIX)]
+    assert not unexpected, report.violations
+
+
+def assert_search_finds_everything(path: Path) -> None:
+    with MapStore.open(path, readonly=True) as store:
+        total = store.stats()["vertices"]
+        rows = store.shards.rows(0, total, total)
+        _, ids = store.search(rows, k=1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(total))
+
+
+def create_map(path: Path, **config: Any) -> None:
+    MapStore.create(path, MapConfig(**config)).close()
+
+
+#: What recovery or repair may find after a kill: files past the commit, and an index cache not
+#: persisted yet; never a derived record or an index to rebuild.
+CRASH_LEFTOVERS = ("removed leftover temp file", "truncated shard-", "removed uncommitted shard",
+                   "wrote the missing index")
+
+#: Random-kill maps: small shards and frequent index persists put shard creation and index
+#: publication among the moments a kill can hit.
+KILL_MAP = {"dim": 16, "shard_rows": 128, "index_persist_every": 150}
+
+
+@dataclass
+class KillStats:
+    """What :func:`kill_loop` did. ``violations`` must stay empty; the rest is what the kills
+    hit (timing, so reported, never asserted)."""
+
+    kills: int = 0
+    maps: int = 0
+    sequences_verified: int = 0  # acknowledged sequences compared bit for bit, over all kills
+    sequences_committed: int = 0  # distinct sequences in the maps at the end
+    vertices_committed: int = 0
+    killed_before_ready: int = 0  # during fork, open and recovery
+    partial_index_left: int = 0
+    uncommitted_rows_left: int = 0
+    recovered_by_open: int = 0
+    repaired_by_check_repair: int = 0
+    seconds: float = 0.0
+    violations: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def kill_loop(root: Path, zygote: Zygote, kills: int, seed: int, *, kills_per_map: int = 25,
+              max_wait: float = 0.04, keep_going: bool = False,
+              progress: Callable[[KillStats], None] | None = None) -> KillStats:
+    """SIGKILL writers at random instants, ``kills`` times; verify the map after every kill.
+
+    A writer (forked by ``zygote``) opens the map and adds the stream of ``seed``; it is killed
+    after a random delay (15 % of the kills land before it is ready: during open and recovery;
+    the others up to ``max_wait`` s after). After each kill: the map opened read-only holds
+    every acknowledged sequence bit for bit, nothing else but whole sequences of the stream, the
+    components of its edges, and passes ``check`` but for a partial index file; then a writable
+    open (the recovery any writer does; odd kills) or ``check --repair`` (even kills: it must
+    find nothing but files past the commit) leaves it passing ``check`` strictly. Every
+    ``kills_per_map`` kills a last writer runs to completion (the stream continues: the map
+    repaired itself), is verified and searched, and a fresh map starts, so that the cost of a
+    kill stays flat. A violation (an ``AssertionError``) is raised, or with ``keep_going``
+    recorded in the stats and the map abandoned.
+    """
+    stats = KillStats()
+    started = time.monotonic()
+    rng = np.random.default_rng(seed)
+    while stats.kills < kills:
+        stats.maps += 1
+        path, map_seed = root / f"map-{stats.maps}", seed * 1_000_003 + stats.maps
+        try:
+            _one_map(path, zygote, min(kills_per_map, kills - stats.kills), map_seed, rng,
+                     max_wait, stats)
+        except AssertionError as exc:
+            if not keep_going:
+                raise
+            stats.violations.append(f"map {stats.maps} (seed {map_seed}): {exc}")
+        shutil.rmtree(path, ignore_errors=True)
+        stats.seconds = round(time.monotonic() - started, 2)
+        if progress is not None:
+            progress(stats)
+    return stats
+
+
+def _one_map(path: Path, zygote: Zygote, kills: int, seed: int, rng: np.random.Generator,
+             max_wait: float, stats: KillStats) -> None:
+    create_map(path, **KILL_MAP)
+    acks = path.parent / f"{path.name}.acks"
+    acked: set[int] = set()
+    try:
+        for _ in range(kills):
+            acks.unlink(missing_ok=True)
+            pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks))
+            if rng.random() < 0.15:
+                time.sleep(rng.uniform(0, 0.004))
+            else:
+                wait_for_line(acks, "ready")
+                time.sleep(rng.uniform(0, max_wait))
+            os.kill(pid, signal.SIGKILL)
+            status = zygote.wait(pid)
+            assert status["signal"] == signal.SIGKILL, (status, zygote.log.read_text())
+            stats.kills += 1
+            stats.killed_before_ready += "ready" not in read_lines(acks)
+            acked |= read_acks(acks)
+            report = verify(path, seed, acked)
+            assert_ok_but_partials(report)
+            stats.sequences_verified += len(acked)
+            stats.partial_index_left += bool(report.violations)
+            stats.uncommitted_rows_left += any("uncommitted" in n for n in report.notes)
+            if stats.kills % 2:  # what the next writer's open does
+                with MapStore.open(path) as store:
+                    stats.recovered_by_open += bool(store.recovery)
+                with MapStore.open(path, readonly=True) as store:
+                    report = check_map(store)
+                assert report.ok, report.violations
+            else:  # check --repair, on a map no writer has reopened
+                fixed = repair_map(path)
+                assert fixed.ok and not fixed.skipped, fixed.to_dict()
+                # A kill leaves only files past the commit: nothing derived may need a rebuild.
+                assert all(r.startswith(CRASH_LEFTOVERS) for r in fixed.repaired), fixed.repaired
+                stats.repaired_by_check_repair += bool(fixed.repaired)
+
+        # A last writer runs to completion: the stream continues, the map repaired itself.
+        acks.unlink(missing_ok=True)
+        status = zygote.run(map=str(path), seed=seed, ack=str(acks), count=5)
+        assert status == {"signal": None, "code": 0}, zygote.log.read_text()
+        assert "done" in read_lines(acks)
+        before = len(acked)
+        acked |= read_acks(acks)
+        report = verify(path, seed, acked)
+        assert report.ok, report.violations
+        assert len(acked) >= before + 5
+        assert_search_finds_everything(path)
+        stats.sequences_committed += report.checked["sequences"]
+        stats.vertices_committed += report.checked["vertices"]
+    finally:
+        acks.unlink(missing_ok=True)
+
+
+def read_lines(path: Path) -> list[str]:
+    """The lines a child acknowledged in ``path`` so far."""
+    return path.read_text().split("\n")[:-1] if path.exists() else []
+
+
+# --- command line ------------------------------------------------------------------------------
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,10 +1,11 @@
 """Crash consistency with real processes and real SIGKILLs.
 
-(a) A writer SIGKILLs itself at each named crash point of the commit protocol; (b) a writer is
-killed at random instants, over and over, and restarted. After every kill the map must pass
-``check``, hold every acknowledged sequence bit for bit, and hold each other sequence either
-wholly or not at all. Writers add the deterministic stream of ``tests/crash_worker.py``, so the
-test regenerates what each sequence must contain.
+(a) A process SIGKILLs itself at each named crash point of every write path (adding a sequence,
+persisting the index, a writer's recovery at open, ``check --repair``); (b) writers are killed
+at random instants, over and over, and restarted. After every kill the map must pass ``check``,
+hold every acknowledged sequence bit for bit, hold each other sequence either wholly or not at
+all, and have the components of its edges. Writers add the deterministic stream of
+``tests/crash_worker.py``, so the test regenerates what each sequence must contain.
 """
 
 from __future__ import annotations
@@ -13,23 +14,29 @@ import importlib.util
 import json
 import os
 import re
+import shutil
 import signal
-import subprocess
 import sys
 import time
-from functools import cache
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import faiss
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
-from sprint_map.storage.check import CheckReport, check_map
-from sprint_map.storage.crash import CRASH_ENV, CRASH_POINTS
-from sprint_map.storage.keys import read_u64
-from sprint_map.storage.store import MapStore
+from sprint_map.storage.check import check_map
+from sprint_map.storage.crash import (
+    ADD_POINTS,
+    CRASH_POINTS,
+    INDEX_POINTS,
+    RECOVER_POINTS,
+    REPAIR_POINTS,
+)
+from sprint_map.storage.index_store import index_files
+from sprint_map.storage.keys import u32, u64
+from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
 WORKER_PATH = Path(__file__).with_name("crash_worker.py")
 
@@ -45,111 +52,73 @@ def _load_worker() -> ModuleType:
 
 
 worker = _load_worker()
-
-#: A partial index file is the one trace a kill may leave that ``check`` reports on a map no
-#: writer has reopened yet; the next writable open deletes it.
-PARTIAL_INDEX = re.compile(r"^leftover temp file index/flat\.\d{12}\.faiss\.partial$")
+verify = worker.verify
+create_map = worker.create_map
 
 
-@cache
-def planned(seed: int, index: int, dim: int, length: int | None) -> Any:
-    return worker.planned_sequence(seed, index, dim, length)
+@pytest.fixture(scope="module")
+def zygote(tmp_path_factory):
+    z = worker.Zygote(tmp_path_factory.mktemp("zygote") / "zygote.log")
+    yield z
+    z.close()
 
 
-def expected_edges(seed: int, index: int, dim: int, length: int | None,
-                   first: list[int]) -> dict[tuple[int, int], tuple[float, int | None]]:
-    out = {}
-    for spec in planned(seed, index, dim, length).edges:
-        ends = [first[index if s is None else s] + image for s, image in (spec.src, spec.dst)]
-        out[(ends[0], ends[1])] = (spec.weight, spec.frame)  # a repeat keeps the later one
-    return out
+def run_child(zygote: Any, ack: Path, **request: Any) -> list[str]:
+    """Run one zygote child to its end; return the lines it acknowledged."""
+    status = zygote.run(ack=str(ack), **request)
+    if request.get("crash_at"):
+        assert status["signal"] == signal.SIGKILL, (status, zygote.log.read_text())
+    else:
+        assert status == {"signal": None, "code": 0}, zygote.log.read_text()
+    return worker.read_lines(ack)
 
 
-def verify(path: Path, seed: int, acked: set[int], length: int | None = None) -> CheckReport:
-    """Open read-only and assert the map holds exactly a prefix of the worker stream.
+def shard(path: Path, n: int) -> Path:
+    return path / SHARDS_DIR / f"shard-{n:06d}.f32"
 
-    Descriptors and positions are compared in bulk (all shards against the concatenated
-    stream) so that re-verifying the whole map after every kill stays cheap. Returns the check
-    report; the caller decides which violations a fresh crash may leave.
+
+SEED, LENGTH = 7, 40
+
+
+@pytest.fixture
+def three(tmp_path):
+    """A map with three acknowledged sequences of 40 rows (shard_rows=64: shard 1 is open).
+
+    Persisting the index after every add makes the index crash points fire inside an add.
     """
-    with MapStore.open(path, readonly=True) as store:
-        dim = store.config.dim
-        records = store.sequences()
-        n = len(records)
-        assert acked <= set(range(n)), f"acknowledged {sorted(acked - set(range(n)))} missing"
-        plans = [planned(seed, i, dim, length) for i in range(n)]
-        first = np.cumsum([0] + [len(p.descriptors) for p in plans]).tolist()
-        for i, (rec, plan) in enumerate(zip(records, plans, strict=True)):
-            assert (rec.seq_id, rec.name, rec.first_vertex, rec.length) == (
-                i, plan.name, first[i], len(plan.descriptors))
-        total = first[-1]
-        assert store.stats()["vertices"] == total
-        if n:
-            want = np.concatenate([p.descriptors for p in plans])
-            assert store.shards.rows(0, total, total).tobytes() == want.tobytes()
-        with store.env.read() as txn:
-            stored = list(txn.cursor(db=store.env.db("vertex_data")))
-        got_ids = np.array([read_u64(k) for k, _ in stored], dtype=np.int64)
-        got_pos = np.frombuffer(b"".join(v for _, v in stored), dtype=">f8").reshape(-1, 4)
-        with_pos = [i for i, p in enumerate(plans) if p.positions is not None]
-        want_ids = np.array([v for i in with_pos for v in range(first[i], first[i + 1])],
-                            dtype=np.int64)
-        want_pos = np.full((len(want_ids), 4), np.nan)
-        if with_pos:
-            want_pos[:, :3] = np.concatenate([plans[i].positions for i in with_pos])
-        np.testing.assert_array_equal(got_ids, want_ids)
-        np.testing.assert_array_equal(got_pos, want_pos)
-        edges: dict[int, dict[tuple[int, int], tuple[float, int | None]]] = {}
-        for e in store.edges():
-            assert e.query_seq is not None
-            edges.setdefault(e.query_seq, {})[(e.src, e.dst)] = (e.weight, e.frame)
-        for i in range(n):
-            assert edges.get(i, {}) == expected_edges(seed, i, dim, length, first)
-        assert set(edges) <= set(range(n))
-        return check_map(store)
-
-
-def assert_ok_but_partials(report: CheckReport) -> None:
-    unexpected = [v for v in report.violations if not PARTIAL_INDEX.match(v)]
-    assert not unexpected, report.violations
-
-
-def assert_search_finds_everything(path: Path) -> None:
-    with MapStore.open(path, readonly=True) as store:
-        total = store.stats()["vertices"]
-        rows = store.shards.rows(0, total, total)
-        _, ids = store.search(rows, k=1)
-    np.testing.assert_array_equal(ids[:, 0], np.arange(total))
-
-
-def create_map(path: Path, **config: Any) -> None:
-    MapStore.create(path, MapConfig(**config)).close()
-
-
-# --- (a) named crash points ------------------------------------------------------------------
-
-PRESENT_AFTER = {"add.committed", "index.partial_written", "index.published"}
-assert set(CRASH_POINTS) > PRESENT_AFTER
-
-
-@pytest.mark.parametrize("point", CRASH_POINTS)
-def test_kill_at_each_crash_point(tmp_path, point):
-    path, seed, length = tmp_path / "m", 7, 40
-    # shard_rows=64: the fourth sequence (rows 120..159) spills into a new shard; persisting
-    # the index after every add makes the index crash points fire inside that add.
+    path = tmp_path / "m"
     create_map(path, dim=8, shard_rows=64, index_persist_every=1, index_persist_growth=0)
-    with MapStore.open(path) as store:  # three acknowledged sequences, by this process
+    with MapStore.open(path) as store:
         for i in range(3):
-            worker.add_planned(store, seed, i, length)
-    proc = subprocess.run(
-        [sys.executable, str(WORKER_PATH), "write", str(path), "--seed", str(seed),
-         "--count", "3", "--length", str(length)],
-        capture_output=True, text=True, timeout=300, env={**os.environ, CRASH_ENV: point},
-    )
-    assert proc.returncode == -signal.SIGKILL, proc.stderr
-    assert proc.stdout.split() == ["ready"]  # killed inside its first add: sequence 3
+            worker.add_planned(store, SEED, i, LENGTH)
+    return path
 
-    report = verify(path, seed, {0, 1, 2}, length)
+
+def continue_stream(path: Path, upto: int) -> list[str]:
+    """A writer's open (recovery), then the stream continues to ``upto`` sequences."""
+    with MapStore.open(path) as store:
+        recovery = store.recovery
+        for i in range(store.stats()["sequences"], upto):
+            worker.add_planned(store, SEED, i, LENGTH)
+    report = verify(path, SEED, set(range(upto)), LENGTH)
+    assert report.ok, report.violations
+    worker.assert_search_finds_everything(path)
+    return list(recovery)
+
+
+# --- (a) named crash points: adding a sequence, persisting the index --------------------------
+
+PRESENT_AFTER = {"add.committed", *INDEX_POINTS}
+
+
+@pytest.mark.parametrize("point", ADD_POINTS + INDEX_POINTS)
+def test_kill_at_each_write_point(three, zygote, point):
+    path = three
+    lines = run_child(zygote, path.parent / "ack", map=str(path), seed=SEED, count=3,
+                      length=LENGTH, crash_at=point)
+    assert lines == ["ready"]  # killed inside its first add: sequence 3
+
+    report = verify(path, SEED, {0, 1, 2}, LENGTH)
     with MapStore.open(path, readonly=True) as store:
         in_flight_committed = store.stats()["sequences"] == 4
     assert in_flight_committed == (point in PRESENT_AFTER)
@@ -159,20 +128,17 @@ def test_kill_at_each_crash_point(tmp_path, point):
     else:
         assert report.ok, report.violations
     # Killed after the rows were written but before the commit: 8 rows (of 32 bytes) past the
-    # committed end of shard 1, and an uncommitted shard 2 (not the check's business: LMDB
-    # does not know it).
+    # committed end of shard 1, and an uncommitted shard 2.
     rows_written_uncommitted = point in {"add.shards_written", "add.before_commit"}
     if rows_written_uncommitted:
         assert any("shard-000001.f32 has 256 uncommitted bytes" in n for n in report.notes)
+        assert any("shard-000002.f32 holds no committed row" in n for n in report.notes)
     if point in {"add.committed", "index.partial_written"}:
         # The index file still covers the first three sequences; the first search after the
-        # crash must catch up from the shards (assert_search_finds_everything below).
+        # crash must catch up from the shards (continue_stream checks it).
         assert "index lags the map by 40 vertices (caught up on load)" in report.notes
 
-    with MapStore.open(path) as store:  # recovery, then the stream continues
-        recovery = store.recovery
-        for i in range(store.stats()["sequences"], 6):
-            worker.add_planned(store, seed, i, length)
+    recovery = continue_stream(path, 6)
     if rows_written_uncommitted:
         assert recovery == ["truncated shard-000001.f32 to 56 committed rows",
                             "removed uncommitted shard shard-000002.f32"]
@@ -180,121 +146,130 @@ def test_kill_at_each_crash_point(tmp_path, point):
         assert recovery == ["removed leftover temp file flat.000000000160.faiss.partial"]
     else:
         assert recovery == []
-    report = verify(path, seed, set(range(6)), length)
-    assert report.ok, report.violations
-    assert_search_finds_everything(path)
+
+
+# --- a writer's recovery at open -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("point", RECOVER_POINTS)
+def test_kill_during_recovery_at_open(three, zygote, point):
+    """Killed while its open cleans up after an earlier kill: the next open finishes the job."""
+    path = three
+    run_child(zygote, path.parent / "ack1", map=str(path), seed=SEED, count=1, length=LENGTH,
+              crash_at="add.shards_written")  # uncommitted rows in shards 1 and 2
+    (path / INDEX_DIR / "flat.000000000999.faiss.partial").write_bytes(b"torn")
+    (_, persisted), = index_files(path / INDEX_DIR)
+    shutil.copy(persisted, path / INDEX_DIR / "flat.000000000200.faiss")  # ahead of the map
+
+    lines = run_child(zygote, path.parent / "ack2", map=str(path), seed=SEED, length=LENGTH,
+                      crash_at=point)
+    assert lines == []  # killed inside the open, before "ready"
+
+    report = verify(path, SEED, {0, 1, 2}, LENGTH)
+    assert report.violations == ["index file flat.000000000200.faiss is ahead of the map "
+                                 "(120 vertices)"]
+    truncated = point == "recover.shards_truncated"
+    assert any("uncommitted bytes" in n for n in report.notes) != truncated
+    assert continue_stream(path, 5) == (
+        [] if truncated else ["truncated shard-000001.f32 to 56 committed rows",
+                              "removed uncommitted shard shard-000002.f32"]
+    ) + ["removed index flat.000000000200.faiss: ahead of the map (120 vertices)"]
+
+
+# --- check --repair ---------------------------------------------------------------------------
+
+
+def damage_everything_derivable(path: Path) -> None:
+    """Break one record of every derivable area, plus shard tails, temp files and the index."""
+    with MapStore.open(path) as store:
+        db = store.env.db
+        joined = next(c for c in store.components() if len(c.sequences) > 1)
+        other = next(s for s in joined.sequences if s != joined.component)
+
+        def body(txn: Any) -> None:
+            store.uf.add(txn, other, 1)  # split off a joined sequence: components
+            cursor = txn.cursor(db=db("edges_rev"))
+            assert cursor.first()
+            cursor.delete()  # edge_index
+            txn.put(b"n_sequences", u64(99), db=db("meta"))  # lookup
+            txn.put(u32(0), u64(5), db=db("shards"))  # shard_lengths
+
+        store.env.write(body)
+        total = store.stats()["vertices"]
+        rows = np.array(store.shards.rows(0, total, total))
+    with shard(path, 0).open("ab") as f:  # garbage past a sealed shard
+        f.write(b"\x7f" * 10)
+    with shard(path, 2).open("ab") as f:  # a torn append to the open shard
+        f.write(b"\x01" * 50)
+    (path / SHARDS_DIR / "shard-000002.f32.partial").write_bytes(b"x")
+    (path / "meta.partial").write_bytes(b"x")
+    (_, file), = index_files(path / INDEX_DIR)
+    rows[0] += 1  # an index whose vectors are not the shards' (same stamp, same size)
+    index = faiss.IndexIDMap2(faiss.IndexFlatL2(rows.shape[1]))
+    index.add_with_ids(rows, np.arange(len(rows)))
+    faiss.write_index(index, str(file))
+
+
+def repair_in_child(zygote: Any, path: Path, ack: Path, crash_at: str | None = None
+                    ) -> dict[str, Any] | None:
+    lines = run_child(zygote, ack, map=str(path), mode="repair", crash_at=crash_at)
+    done = [json.loads(line.split(" ", 1)[1]) for line in lines if line.startswith("repaired ")]
+    return done[0] if done else None
+
+
+@pytest.mark.parametrize("point", RECOVER_POINTS + REPAIR_POINTS + INDEX_POINTS)
+def test_kill_at_each_repair_point(tmp_path, zygote, point):
+    """Killed anywhere in ``check --repair``: the map opens, and repairing again converges."""
+    path = tmp_path / "m"
+    create_map(path, dim=8, shard_rows=64, index_persist_every=1, index_persist_growth=0)
+    with MapStore.open(path) as store:  # 160 rows: shards 0 and 1 sealed, 2 open
+        for i in range(4):
+            worker.add_planned(store, SEED, i, LENGTH)
+    damage_everything_derivable(path)
+    with MapStore.open(path, readonly=True) as store:
+        assert check_map(store).areas == {"lookup", "shard_lengths", "edge_index", "components",
+                                          "index", "temp"}
+
+    assert repair_in_child(zygote, path, tmp_path / "ack1", crash_at=point) is None  # killed
+    with MapStore.open(path, readonly=True) as store:  # still a map, the data intact
+        assert [s.name for s in store.sequences()] == [f"w-{i}" for i in range(4)]
+    done = repair_in_child(zygote, path, tmp_path / "ack2")
+    assert done is not None and done["ok"], done
+    again = repair_in_child(zygote, path, tmp_path / "ack3")
+    assert again == {**done, "found": [], "repaired": []}  # converged: nothing left to do
+    report = verify(path, SEED, set(range(4)), LENGTH)
+    assert report.ok and not report.notes, (report.violations, report.notes)
+    worker.assert_search_finds_everything(path)
+
+
+# --- every crash point is real and exercised ------------------------------------------------
+
+
+def test_every_crash_point_is_in_the_code_and_tested():
+    names = set()
+    for source in Path(worker.__file__).parents[1].joinpath("sprint_map").rglob("*.py"):
+        names |= set(re.findall(r'crash_point\("([^"]+)"\)', source.read_text()))
+    assert names == set(CRASH_POINTS)
+    tested = set(ADD_POINTS + INDEX_POINTS) | set(RECOVER_POINTS) | set(REPAIR_POINTS)
+    assert tested == set(CRASH_POINTS)
 
 
 # --- (b) random kills -------------------------------------------------------------------------
 
 
-class Zygote:
-    """Client of ``crash_worker.py zygote``: forks ready-to-run writers in milliseconds."""
-
-    def __init__(self, log: Path) -> None:
-        self.log = log
-        self._stderr = log.open("w")
-        self.proc = subprocess.Popen(
-            [sys.executable, str(WORKER_PATH), "zygote"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, stderr=self._stderr, text=True,
-        )
-
-    def _ask(self, request: dict[str, Any]) -> dict[str, Any]:
-        assert self.proc.stdin is not None and self.proc.stdout is not None
-        self.proc.stdin.write(json.dumps(request) + "\n")
-        self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        assert line, f"zygote died: {self.log.read_text()}"
-        reply: dict[str, Any] = json.loads(line)
-        return reply
-
-    def spawn(self, **request: Any) -> int:
-        return int(self._ask({"op": "spawn", **request})["pid"])
-
-    def wait(self, pid: int) -> dict[str, Any]:
-        return self._ask({"op": "wait", "pid": pid})
-
-    def close(self) -> None:
-        assert self.proc.stdin is not None
-        self.proc.stdin.close()
-        self.proc.wait(timeout=60)
-        self._stderr.close()
-
-
-@pytest.fixture
-def zygote(tmp_path):
-    z = Zygote(tmp_path / "zygote.log")
-    yield z
-    z.close()
-
-
-def wait_for_line(path: Path, word: str, timeout: float = 120.0) -> list[str]:
-    """Poll an ack file until it holds ``word`` (generous timeout: only a hang trips it)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        lines = path.read_text().split("\n") if path.exists() else []
-        if word in lines:
-            return lines
-        time.sleep(0.005)
-    raise AssertionError(f"no {word!r} in {path} after {timeout} s")
-
-
-def read_acks(path: Path) -> set[int]:
-    text = path.read_text() if path.exists() else ""
-    return {int(line.split()[1]) for line in text.split("\n") if line.startswith("ack ")}
-
-
-def kill_loop(tmp_path: Path, zygote: Zygote, kills: int, seed: int) -> dict[str, int]:
-    path = tmp_path / "m"
-    # Small shards and frequent index persists put shard creation and index publication
-    # among the moments a kill can hit.
-    create_map(path, dim=16, shard_rows=128, index_persist_every=150)
-    rng = np.random.default_rng(seed)
-    acked: set[int] = set()
-    sizes = []
-    # What the kills hit, for the report printed by the tests (never asserted: it is timing).
-    seen = {"kills": kills, "before_ready": 0, "partial_index_left": 0, "uncommitted_rows_left": 0}
-    for k in range(kills):
-        acks = tmp_path / f"acks-{k}"
-        pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks))
-        if rng.random() < 0.15:
-            time.sleep(rng.uniform(0, 0.02))  # during open and recovery
-            seen["before_ready"] += 1
-        else:
-            wait_for_line(acks, "ready")
-            time.sleep(rng.uniform(0, 0.25))
-        os.kill(pid, signal.SIGKILL)
-        status = zygote.wait(pid)
-        assert status["signal"] == signal.SIGKILL, (status, zygote.log.read_text())
-        acked |= read_acks(acks)
-        report = verify(path, seed, acked)
-        assert_ok_but_partials(report)
-        sizes.append(report.checked["sequences"])
-        seen["partial_index_left"] += bool(report.violations)
-        seen["uncommitted_rows_left"] += any("uncommitted" in n for n in report.notes)
-
-    # A last writer runs to completion: the stream continues, the map repairs itself.
-    acks = tmp_path / "acks-final"
-    pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks), count=5)
-    assert zygote.wait(pid) == {"signal": None, "code": 0}, zygote.log.read_text()
-    assert "done" in acks.read_text().split("\n")
-    acked |= read_acks(acks)
-    report = verify(path, seed, acked)
-    assert report.ok, report.violations
-    assert report.checked["sequences"] == (sizes[-1] if sizes else 0) + 5
-    assert_search_finds_everything(path)
-    seen["sequences"] = report.checked["sequences"]
-    seen["vertices"] = report.checked["vertices"]
-    return seen
-
-
 def test_random_kills(tmp_path, zygote):
-    print(kill_loop(tmp_path, zygote, kills=30, seed=11))
+    stats = worker.kill_loop(tmp_path, zygote, kills=200, seed=11)
+    print(stats.to_dict())
+    assert stats.kills == 200 and not stats.violations
 
 
 @pytest.mark.slow
-def test_random_kills_long(tmp_path, zygote):
-    print(kill_loop(tmp_path, zygote, kills=150, seed=12))
+def test_random_kills_longer_writes(tmp_path, zygote):
+    """Fewer, longer-lived writers: larger maps, more index publications per writer."""
+    stats = worker.kill_loop(tmp_path, zygote, kills=100, seed=12, kills_per_map=50,
+                             max_wait=0.25)
+    print(stats.to_dict())
+    assert stats.kills == 100 and not stats.violations
 
 
 # --- readers beside a writer ----------------------------------------------------------------
@@ -304,19 +279,19 @@ def test_readers_see_consistent_snapshots_while_a_writer_adds(tmp_path, zygote):
     """Read-only opens in this process while another process commits: every snapshot is a
     complete prefix of the stream, and a search sees every committed row."""
     path, seed = tmp_path / "m", 5
-    create_map(path, dim=16, shard_rows=128, index_persist_every=150)
+    create_map(path, **worker.KILL_MAP)
     acks = tmp_path / "acks"
     pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks))
     try:
-        wait_for_line(acks, "ready")
+        worker.wait_for_line(acks, "ready")
         seen = []
-        acked_at_start = len(read_acks(acks))
+        acked_at_start = len(worker.read_acks(acks))
         deadline = time.monotonic() + 120
         # Keep reading until the writer has committed more since the first read, so reads and
         # writes did interleave (no timing assumption: only a hang trips the deadline).
-        while len(seen) < 10 or len(read_acks(acks)) <= acked_at_start + 5:
+        while len(seen) < 10 or len(worker.read_acks(acks)) <= acked_at_start + 5:
             assert time.monotonic() < deadline, "writer made no progress"
-            before = read_acks(acks)
+            before = worker.read_acks(acks)
             with MapStore.open(path, readonly=True) as store:
                 n = store.stats()["sequences"]
                 if n:
@@ -332,7 +307,7 @@ def test_readers_see_consistent_snapshots_while_a_writer_adds(tmp_path, zygote):
     finally:
         os.kill(pid, signal.SIGKILL)
         zygote.wait(pid)
-    assert_ok_but_partials(verify(path, seed, read_acks(acks)))
+    worker.assert_ok_but_partials(verify(path, seed, worker.read_acks(acks)))
 
 
 def verify_snapshot_prefix(path: Path, seed: int) -> None:
@@ -341,7 +316,7 @@ def verify_snapshot_prefix(path: Path, seed: int) -> None:
         dim = store.config.dim
         first = 0
         for i, rec in enumerate(store.sequences()):
-            plan = planned(seed, i, dim, None)
+            plan = worker.planned(seed, i, dim, None)
             assert (rec.name, rec.first_vertex, rec.length) == (
                 plan.name, first, len(plan.descriptors))
             assert store.descriptors(i).tobytes() == plan.descriptors.tobytes()

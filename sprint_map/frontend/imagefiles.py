@@ -53,7 +53,8 @@ def is_video_name(name: str) -> bool:
 def list_images(directory: Path) -> list[Path]:
     """Image files directly inside ``directory``, in natural order.
 
-    Files with other extensions, hidden files (``.name``) and sub-directories are ignored.
+    Files with other extensions, hidden files (``.name``) and sub-directories are ignored; a
+    dangling symbolic link with an image name is listed (reading it is an ``InputError``).
 
     Raises
     ------
@@ -70,7 +71,9 @@ def list_images(directory: Path) -> list[Path]:
             names = [
                 e.name
                 for e in entries
-                if not e.name.startswith(".") and is_image_name(e.name) and e.is_file()
+                if not e.name.startswith(".") and is_image_name(e.name)
+                # A dangling link is a frame that cannot be read, not a file to skip silently.
+                and (e.is_file() or (e.is_symlink() and not os.path.exists(e.path)))
             ]
     except OSError as exc:
         raise InputError(f"{directory}: cannot list directory ({exc.strerror or exc})") from exc

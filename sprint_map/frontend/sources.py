@@ -27,7 +27,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sprint_map.errors import DescriptorShapeError, InputError, InvalidDescriptorError
+from sprint_map.errors import (
+    DescriptorShapeError,
+    EmptySequenceError,
+    InputError,
+    InvalidDescriptorError,
+)
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import is_video_name, list_images, read_image
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
@@ -321,7 +326,9 @@ def _load_npy(path: Path) -> np.ndarray:
         )
     if not np.issubdtype(array.dtype, np.floating):
         raise DescriptorShapeError(f"{path}: expected float descriptors, got dtype {array.dtype}")
-    if array.shape[0] == 0 or array.shape[1] == 0:
+    if array.shape[0] == 0:
+        raise EmptySequenceError(f"{path}: no descriptors (shape {array.shape})")
+    if array.shape[1] == 0:
         raise InputError(f"{path}: no descriptors (shape {array.shape})")
     rows = max(1, (64 << 20) // max(1, array.shape[1] * array.dtype.itemsize))
     for start in range(0, array.shape[0], rows):

@@ -1,7 +1,7 @@
 """Named crash points for crash-recovery tests.
 
 Setting ``SPRINT_MAP_CRASH_AT=<name>`` makes the process SIGKILL itself when it reaches the
-crash point of that name, so tests can kill a real writer at each step of the commit protocol.
+crash point of that name, so tests can kill a real writer at each step of every write path.
 Unset (the normal case) a crash point costs one dictionary look-up.
 """
 
@@ -12,14 +12,31 @@ import signal
 
 CRASH_ENV = "SPRINT_MAP_CRASH_AT"
 
-#: Every crash point in the write paths, in commit-protocol order.
-CRASH_POINTS = (
+#: Adding a sequence (``add_sequence``, streamed ``ingest``, ``merge``), in commit order.
+ADD_POINTS = (
     "add.shards_written",  # descriptor rows written and fsynced, LMDB not yet committed
     "add.before_commit",  # inside the LMDB write transaction, before it commits
     "add.committed",  # LMDB committed, in-memory index not yet updated
+)
+#: Persisting the index (periodically while adding, on flush and close, in repair).
+INDEX_POINTS = (
     "index.partial_written",  # index file written to *.partial, not yet renamed
     "index.published",  # new index file renamed into place, older ones not yet removed
 )
+#: A writer's open bringing the files back to the committed state.
+RECOVER_POINTS = (
+    "recover.partials_removed",  # temp files removed, shard tail not yet truncated
+    "recover.shards_truncated",  # shard tail truncated, stale index files not yet removed
+)
+#: ``check --repair`` (after the writer's open, so the recover points fire in it too).
+REPAIR_POINTS = (
+    "repair.shards_truncated",  # every shard cut to its committed length
+    "repair.before_commit",  # inside the LMDB transaction rebuilding derived records
+    "repair.committed",  # derived records committed, index not yet rebuilt
+)
+
+#: Every crash point in the write paths.
+CRASH_POINTS = ADD_POINTS + INDEX_POINTS + RECOVER_POINTS + REPAIR_POINTS
 
 
 def crash_point(name: str) -> None:

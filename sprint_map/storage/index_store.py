@@ -4,7 +4,8 @@ The index file is ``index/flat.<upto>.faiss`` where ``upto`` is the number of ve
 (vertex ids ``0..upto-1``; FAISS id = vertex id). Because LMDB is the source of truth, the index
 may lag it (the missing tail is re-added from the shards when the index is loaded) but never
 lead it: a file stamped beyond the committed vertex count (LMDB lost or never made the commit) is
-discarded and the index rebuilt from the shards.
+discarded and the index rebuilt from the shards. So is a file whose size is not the size its
+stamp implies (cut short, or garbage appended): one ``stat``, no read.
 
 Loading is lazy: opening a map does not read the index; the first search does.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import re
+from functools import cache
 from pathlib import Path
 
 import faiss
@@ -36,6 +38,37 @@ def index_files(directory: Path) -> list[tuple[int, Path]]:
             if match:
                 found.append((int(match.group(1)), entry))
     return sorted(found)
+
+
+@cache
+def _header_bytes(dim: int) -> int:
+    return len(faiss.serialize_index(faiss.IndexIDMap2(faiss.IndexFlatL2(dim))))
+
+
+def file_bytes(dim: int, upto: int) -> int:
+    """Size of the file :meth:`IndexStore.persist` writes for ``upto`` vectors of ``dim``.
+
+    A flat index stores each vector (``4 * dim`` bytes) and its id (8 bytes) after a header
+    of fixed size, so the size is exact and checking it catches a torn or padded file.
+    """
+    return _header_bytes(dim) + upto * (4 * dim + 8)
+
+
+def file_problem(path: Path, upto: int, committed: int, dim: int) -> str | None:
+    """Why the index file ``path`` stamped ``upto`` cannot be trusted, or None. One ``stat``.
+
+    The reason reads after "is": ``f"{path.name} is {reason}"``.
+    """
+    if upto > committed:
+        return f"ahead of the map ({committed} vertices)"
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return "gone (removed meanwhile)"
+    want = file_bytes(dim, upto)
+    if size != want:
+        return f"torn: {size} bytes, {upto} vectors of dim {dim} take {want}"
+    return None
 
 
 class IndexStore:
@@ -69,17 +102,23 @@ class IndexStore:
         files = index_files(self.directory)
         return files[-1][0] if files else 0
 
-    def discard_ahead(self, committed: int) -> list[str]:
-        """Delete index files stamped beyond ``committed`` vertices (writer, at open).
+    def discard_untrusted(self, committed: int) -> list[str]:
+        """Delete index files ahead of ``committed`` vertices or torn (writer, at open).
 
-        Such a file saw commits LMDB no longer has. Left in place, it would be trusted again
-        as soon as new, different commits bring the vertex count up to its stamp.
+        A file ahead saw commits LMDB no longer has; left in place, it would be trusted again
+        as soon as new, different commits bring the vertex count up to its stamp. A torn file
+        (its size is not what its stamp implies) would only fail to load later.
+
+        Notes
+        -----
+        One ``stat`` per index file (normally one file): O(1) in the map size.
         """
         actions = []
         for upto, path in index_files(self.directory):
-            if upto > committed:
+            problem = file_problem(path, upto, committed, self.dim)
+            if problem is not None:
                 path.unlink(missing_ok=True)
-                actions.append(f"removed index {path.name}: ahead of the map ({committed})")
+                actions.append(f"removed index {path.name}: {problem}")
         if actions:
             fsync_dir(self.directory)
         return actions
@@ -99,8 +138,9 @@ class IndexStore:
             return self.index
         index = None
         for upto, path in reversed(index_files(self.directory)):
-            if upto > committed:
-                self.events.append(f"index {path.name} is ahead of the map ({committed}); discarded")
+            problem = file_problem(path, upto, committed, self.dim)
+            if problem is not None:
+                self.events.append(f"index {path.name} is {problem}; discarded")
                 if self.writable:
                     path.unlink(missing_ok=True)
                 continue
@@ -171,7 +211,8 @@ class IndexStore:
                 raise OSError(errno.EIO, str(exc)) from exc
             crash_point("index.partial_written")
 
-        publish(path, write)
+        # FAISS reports a failed write only on stderr: the size tells (see atomic.publish).
+        publish(path, write, expected_size=file_bytes(self.dim, upto))
         crash_point("index.published")
         for older, old_path in index_files(self.directory):
             if older != upto:
@@ -179,6 +220,23 @@ class IndexStore:
         fsync_dir(self.directory)
         self.persisted = upto
         return True
+
+    def rebuild(self, committed: int, shards: ShardSet) -> None:
+        """Rebuild the index from the shards and publish it in place of every index file.
+
+        Notes
+        -----
+        O(committed * dim) to read the shards and write the file, published atomically
+        (:meth:`persist`): a kill leaves the old files or the new one, never a torn one.
+        """
+        assert self.writable
+        self.index = self._empty()
+        self.persisted = 0
+        self.catch_up(committed, shards)
+        if not self.persist():  # an empty map: no file at all
+            for _, path in index_files(self.directory):
+                path.unlink(missing_ok=True)
+            fsync_dir(self.directory)
 
     def reset(self) -> None:
         """Forget the in-memory index (it is reloaded on the next search)."""

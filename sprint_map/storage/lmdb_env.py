@@ -7,6 +7,8 @@ survives SIGKILL and power loss.
 
 from __future__ import annotations
 
+import fcntl
+import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -14,7 +16,8 @@ from typing import TypeVar
 
 import lmdb
 
-from sprint_map.errors import NotAMapError, StorageIOError
+from sprint_map.errors import MapLockedError, NotAMapError, StorageIOError
+from sprint_map.storage.lock import LOCK_NAME
 
 T = TypeVar("T")
 
@@ -55,6 +58,13 @@ class LmdbEnv:
     ) -> None:
         if not create and not (path / "data.mdb").is_file():
             raise NotAMapError(f"not a sprint-map directory (no {path / 'data.mdb'})")
+        self.readonly = readonly
+        self._broken: str | None = None
+        self._reader_lock: int | None = None
+        # LMDB readers register in lock.mdb, which they must be able to write. A reader that
+        # cannot (a read-only map directory) reads without it, holding a shared flock on the
+        # map's LOCK instead so that no writer can run meanwhile (see _lock_out_writers).
+        lockless = readonly and not create and not _lock_file_writable(path)
         try:
             self.env = lmdb.open(
                 str(path),
@@ -63,14 +73,21 @@ class LmdbEnv:
                 readonly=readonly,
                 create=create,
                 subdir=True,
+                lock=not lockless,
                 # Python threads share read transactions' slots poorly; one slot per txn.
                 max_readers=256,
             )
         except lmdb.Error as exc:
             raise StorageIOError(f"cannot open {path}: {exc}") from exc
-        self.readonly = readonly
-        # A reader killed with -9 leaves a slot that pins old pages and grows the file.
-        self.env.reader_check()
+        if lockless:
+            try:
+                self._reader_lock = _lock_out_writers(path.parent)
+            except BaseException:
+                self.env.close()
+                raise
+        else:
+            # A reader killed with -9 leaves a slot that pins old pages and grows the file.
+            self.env.reader_check()
         self._dbs: dict[str, lmdb._Database] = {}
         if readonly:
             # Without an explicit txn py-lmdb commits its own read txn, which publishes the
@@ -79,8 +96,11 @@ class LmdbEnv:
                 for name in DB_NAMES:
                     self._dbs[name] = self.env.open_db(name.encode(), create=False)
             except lmdb.NotFoundError as exc:
-                self.env.close()
+                self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
+            except lmdb.Error as exc:
+                self.close()
+                raise StorageIOError(f"cannot open {path}: {exc}") from exc
         else:
             # Only creation makes the databases: opening must not write into an LMDB
             # environment that is not a map.
@@ -89,23 +109,43 @@ class LmdbEnv:
                     for name in DB_NAMES:
                         self._dbs[name] = self.env.open_db(name.encode(), txn=txn, create=create)
             except lmdb.NotFoundError as exc:
-                self.env.close()
+                self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
+            except lmdb.Error as exc:
+                self.close()
+                raise StorageIOError(f"cannot open {path}: {exc}") from exc
 
     def db(self, name: str) -> lmdb._Database:
         return self._dbs[name]
 
+    def _usable(self) -> None:
+        if self._broken is not None:
+            raise StorageIOError(f"the map's LMDB environment is unusable: {self._broken}; "
+                                 "reopen the map")
+
     @contextmanager
     def read(self) -> Iterator[lmdb.Transaction]:
-        """A consistent read snapshot for the duration of the ``with`` block."""
+        """A consistent read snapshot for the duration of the ``with`` block.
+
+        Raises
+        ------
+        StorageIOError
+            For any LMDB error, at the start or inside the block.
+        """
+        self._usable()
         try:
-            txn = self.env.begin(buffers=False)
-        except lmdb.MapResizedError:
-            # Another process grew the map: adopt its size, then retry.
-            self.env.set_mapsize(0)
-            txn = self.env.begin(buffers=False)
+            try:
+                txn = self.env.begin(buffers=False)
+            except lmdb.MapResizedError:
+                # Another process grew the map: adopt its size, then retry.
+                self.env.set_mapsize(0)
+                txn = self.env.begin(buffers=False)
+        except lmdb.Error as exc:
+            raise StorageIOError(f"cannot read the map's LMDB: {exc}") from exc
         try:
             yield txn
+        except lmdb.Error as exc:
+            raise StorageIOError(f"cannot read the map's LMDB: {exc}") from exc
         finally:
             txn.abort()
 
@@ -115,17 +155,54 @@ class LmdbEnv:
         ``body`` must do all its writes through ``txn`` and be safe to run again: on
         ``MapFullError`` the transaction is aborted, the map size doubled (with no transaction
         open in this process, as LMDB requires) and ``body`` re-run from scratch.
+
+        Raises
+        ------
+        StorageIOError
+            For any other LMDB error (I/O error, disk full at commit), or when the map cannot
+            grow (no address space or memory for the larger map). Nothing was committed. A
+            failed commit is not retried, and a map that could not grow is unusable in this
+            process until reopened.
+
+        Notes
+        -----
+        Each doubling re-runs ``body``: O(log(final / initial size)) runs in the worst case,
+        and a commit that fills the map runs at most twice in practice. Each run first clears
+        the reader slots of dead processes (O(readers), one ``kill(pid, 0)`` each): a reader
+        killed during a long writer session must not pin old pages until the next open.
         """
         while True:
+            self._usable()
             try:
+                self.env.reader_check()
                 with self.env.begin(write=True) as txn:
                     return body(txn)
             except lmdb.MapFullError:
-                self.env.set_mapsize(self.env.info()["map_size"] * 2)
+                self._grow()
             except lmdb.MapResizedError:
-                self.env.set_mapsize(0)
+                self._adopt_size()
             except lmdb.Error as exc:
                 raise StorageIOError(f"LMDB write failed: {exc}") from exc
+
+    def _grow(self) -> None:
+        size = 0
+        try:
+            size = self.map_size()
+            self.env.set_mapsize(size * 2)
+        except lmdb.Error as exc:
+            # py-lmdb closes an environment whose resize failed.
+            self._broken = f"could not grow it from {size} to {size * 2} bytes ({exc})"
+            raise StorageIOError(
+                f"the map's LMDB is full ({size} bytes) and cannot grow to {size * 2} "
+                f"bytes: {exc}; nothing was committed"
+            ) from exc
+
+    def _adopt_size(self) -> None:
+        try:
+            self.env.set_mapsize(0)
+        except lmdb.Error as exc:
+            self._broken = f"could not adopt the map's new size ({exc})"
+            raise StorageIOError(f"cannot adopt the map's new LMDB size: {exc}") from exc
 
     def map_size(self) -> int:
         return int(self.env.info()["map_size"])
@@ -136,3 +213,37 @@ class LmdbEnv:
 
     def close(self) -> None:
         self.env.close()
+        if self._reader_lock is not None:
+            os.close(self._reader_lock)  # drops the shared flock
+            self._reader_lock = None
+
+
+def _lock_file_writable(path: Path) -> bool:
+    """Whether this process may write LMDB's lock file (or create it) in ``path``."""
+    lock_file = path / "lock.mdb"
+    if lock_file.exists():
+        return os.access(lock_file, os.R_OK | os.W_OK)
+    return os.access(path, os.W_OK)
+
+
+def _lock_out_writers(root: Path) -> int | None:
+    """Hold a shared flock on ``root/LOCK`` so that no writer opens the map; return its fd.
+
+    Writers take the same lock exclusively (:mod:`sprint_map.storage.lock`), so a reader that
+    cannot register in LMDB's lock file is refused while a writer is at work, and a writer is
+    refused while such a reader is open.
+    """
+    try:
+        fd = os.open(root / LOCK_NAME, os.O_RDONLY)
+    except FileNotFoundError:
+        return None  # no writer ever ran here, and none can create the lock file
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise MapLockedError(
+            f"map is being written by another process and this process cannot register as an "
+            f"LMDB reader (no write access to {root / 'map.lmdb' / 'lock.mdb'}); retry when "
+            f"the writer is done: {root / LOCK_NAME}"
+        ) from None
+    return fd

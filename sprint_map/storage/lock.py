@@ -47,3 +47,23 @@ class WriterLock:
     @property
     def held(self) -> bool:
         return self._fd is not None
+
+
+def writer_active(directory: Path) -> bool:
+    """Whether some process holds the writer lock of the map at ``directory`` right now.
+
+    Probes with a shared, non-blocking ``flock`` on a descriptor of our own, released at once.
+    Only meaningful from a process that is not itself the writer (a second open file
+    description of the same process conflicts with its own exclusive lock too).
+    """
+    try:
+        fd = os.open(directory / LOCK_NAME, os.O_RDONLY)
+    except OSError:  # no LOCK file: no writer ever opened this map, or it is not readable
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)  # closing drops our shared lock, if we got it
+    return False

@@ -4,7 +4,9 @@ A drive can be longer than memory allows (a 100k-frame video is 700 MB of HoG de
 its rows go to the shards batch by batch, invisible to readers (LMDB still records the old shard
 lengths), while the caller localises each batch. :meth:`SequenceWriter.commit` then records the
 sequence, its positions and edges in one LMDB transaction: the commit point. Leaving the ``with``
-block without committing, or any error, truncates the shards back: nothing is half-visible.
+block without committing, or any error, truncates the shards back: nothing is half-visible. (If
+the truncation fails too, the error that caused it is the one raised; the rows stay invisible
+and the next writer's open truncates them.)
 """
 
 from __future__ import annotations
@@ -18,12 +20,16 @@ import numpy as np
 from sprint_map.errors import (
     DuplicateNameError,
     EmptySequenceError,
-    InputError,
     SprintMapError,
+    StorageIOError,
 )
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import SequenceRecord
-from sprint_map.storage.validation import validate_descriptors, validate_positions
+from sprint_map.storage.validation import (
+    validate_descriptors,
+    validate_name,
+    validate_positions,
+)
 
 if TYPE_CHECKING:
     from sprint_map.storage.store import AddResult, EdgeSpec, MapStore, ResolvedEdge
@@ -50,8 +56,7 @@ class SequenceWriter:
             self.seq_id = store.counter("next_seq_id", txn)
             self.first = store.counter("next_vertex_id", txn)
             self.name = f"seq-{self.seq_id}" if name is None else name
-            if not self.name or len(self.name.encode()) > 500:
-                raise InputError("sequence name must be 1 to 500 bytes")
+            validate_name(self.name)
             if txn.get(self.name.encode(), db=store.env.db("seq_names")) is not None:
                 raise DuplicateNameError(
                     f"a sequence named {self.name!r} already exists (choose another name)"
@@ -66,9 +71,12 @@ class SequenceWriter:
     def __enter__(self) -> SequenceWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, *exc: object) -> None:
         if not self._done:
-            self.abort()
+            if exc_type is None:
+                self.abort()
+            else:
+                self._rollback_after_error()
 
     def prepare(self, positions: Any, edges: Sequence[EdgeSpec], frames: int
                 ) -> tuple[np.ndarray | None, list[ResolvedEdge]]:
@@ -91,7 +99,7 @@ class SequenceWriter:
             arr = validate_descriptors(arr, self.store.config.dim, first_frame=self.frames)
             self._lengths.update(self.store.shards.append(self.first + self.frames, arr))
         except BaseException:
-            self.abort()
+            self._rollback_after_error()
             raise
         self.frames += len(arr)
 
@@ -116,18 +124,38 @@ class SequenceWriter:
                 lambda txn: self.store._commit(txn, record, self._lengths, pos, resolved)
             )
         except BaseException:
-            self.abort()
+            self._rollback_after_error()
             raise
         self._done = True
         self.store._writing = None
         crash_point("add.committed")
-        self.store._after_commit(self.first, self.frames)
+        try:
+            self.store._after_commit(self.first, self.frames)
+        except StorageIOError as exc:
+            # The sequence is committed and durable; the index is a cache of it. Failing the
+            # call would invite a retry that adds the sequence twice.
+            self.store.warnings.append(f"sequence {record.name!r} committed, but the index "
+                                       f"cache was not updated ({exc}); rebuilt when needed")
         return AddResult(record, component, added)
 
     def abort(self) -> None:
-        """Drop every row appended so far (truncate the shards to the committed length)."""
+        """Drop every row appended so far (truncate the shards to the committed length).
+
+        Raises
+        ------
+        StorageIOError
+            If the shards cannot be truncated; the rows stay invisible (LMDB never counted
+            them) and the next writer's open truncates them.
+        """
         if self._done:
             return
         self._done = True
         self.store._writing = None
         self.store.shards.recover(self.first)
+
+    def _rollback_after_error(self) -> None:
+        """:meth:`abort` while an error propagates: a failed rollback must not mask the error."""
+        try:
+            self.abort()
+        except StorageIOError as exc:
+            self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")

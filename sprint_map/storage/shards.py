@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from sprint_map.errors import StorageIOError
-from sprint_map.storage.atomic import fsync_dir
+from sprint_map.storage import atomic
 
 ROW_DTYPE = np.dtype("<f4")
 
@@ -57,25 +57,37 @@ class ShardSet:
 
         Only the shard being filled and any created after it can hold uncommitted bytes, so
         this touches O(1) files however large the map is.
+
+        Raises
+        ------
+        StorageIOError
+            If a file cannot be truncated or removed (the next writer's open tries again).
         """
         actions = []
         shard, rest = divmod(total_rows, self.shard_rows)
         path = self.path(shard)
-        if path.exists():
-            if rest == 0:
-                path.unlink()
-                actions.append(f"removed uncommitted shard {path.name}")
-            elif path.stat().st_size != rest * self.row_bytes:
-                os.truncate(path, rest * self.row_bytes)
-                actions.append(f"truncated {path.name} to {rest} committed rows")
-        shard += 1
-        while self.path(shard).exists():
-            self.path(shard).unlink()
-            actions.append(f"removed uncommitted shard {self.path(shard).name}")
+        try:
+            if path.exists():
+                if rest == 0:
+                    atomic.unlink(path)
+                    actions.append(f"removed uncommitted shard {path.name}")
+                elif path.stat().st_size != rest * self.row_bytes:
+                    atomic.truncate(path, rest * self.row_bytes)
+                    actions.append(f"truncated {path.name} to {rest} committed rows")
             shard += 1
-        if actions:
-            fsync_dir(self.directory)
-        self._maps.clear()
+            while self.path(shard).exists():
+                path = self.path(shard)
+                atomic.unlink(path)
+                actions.append(f"removed uncommitted shard {path.name}")
+                shard += 1
+            if actions:
+                atomic.fsync_dir(self.directory)
+        except OSError as exc:
+            raise StorageIOError(
+                f"cannot roll back descriptor shard {path.name}: {exc.strerror or exc}"
+            ) from exc
+        finally:
+            self._maps.clear()
         return actions
 
     # --- writing ----------------------------------------------------------------------------
@@ -94,6 +106,7 @@ class ShardSet:
         lengths: dict[int, int] = {}
         created = False
         done = 0
+        path = self.path(start_row // self.shard_rows)
         try:
             while done < len(rows):
                 row = start_row + done
@@ -101,23 +114,23 @@ class ShardSet:
                 take = min(len(rows) - done, self.shard_rows - offset)
                 path = self.path(shard)
                 created |= not path.exists()
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+                fd = atomic.open_for_write(path)
                 try:
                     # Drop any stale tail first, then write at the committed offset.
-                    os.ftruncate(fd, offset * self.row_bytes)
+                    atomic.truncate(path, offset * self.row_bytes, fd)
                     view = rows[done : done + take].data.cast("B")
-                    written = 0
-                    while written < len(view):
-                        written += os.pwrite(fd, view[written:], offset * self.row_bytes + written)
-                    os.fsync(fd)
+                    atomic.write_at(fd, path, view, offset * self.row_bytes)
+                    atomic.fsync(fd, path)  # a failure is final: the caller rolls back
                 finally:
                     os.close(fd)
                 lengths[shard] = offset + take
                 done += take
             if created:
-                fsync_dir(self.directory)
+                atomic.fsync_dir(self.directory)
         except OSError as exc:
-            raise StorageIOError(f"cannot write descriptor shard: {exc.strerror or exc}") from exc
+            raise StorageIOError(
+                f"cannot write descriptor shard {path.name}: {exc.strerror or exc}"
+            ) from exc
         return lengths
 
     # --- reading ----------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from sprint_map.errors import (
     ReadOnlyMapError,
     SchemaVersionError,
     SprintMapError,
+    StorageIOError,
     UnknownSequenceError,
 )
 from sprint_map.storage.atomic import fsync_dir, remove_partials
@@ -137,6 +138,8 @@ class MapStore:
         self.shards = ShardSet(path / SHARDS_DIR, self.config.dim, self.config.shard_rows)
         self.index = IndexStore(path / INDEX_DIR, self.config.dim, writable=not readonly)
         self.recovery: list[str] = []
+        #: Problems that lost nothing and failed no operation (e.g. the index cache not saved).
+        self.warnings: list[str] = []
         self._writing: SequenceWriter | None = None
 
     # --- lifecycle --------------------------------------------------------------------------
@@ -183,8 +186,10 @@ class MapStore:
             raise NotAMapError(f"not a sprint-map directory: {root}")
         lock = None
         if not readonly:
-            if not os.access(root, os.W_OK):
-                raise ReadOnlyMapError(f"map directory is not writable: {root}")
+            for part in (root, root / LMDB_DIR, root / LMDB_DIR / "data.mdb", root / SHARDS_DIR,
+                         root / INDEX_DIR):
+                if part.exists() and not os.access(part, os.W_OK):
+                    raise ReadOnlyMapError(f"map is not writable ({part}); it can only be read")
             lock = WriterLock(root)
             lock.acquire()
         env = None
@@ -200,7 +205,13 @@ class MapStore:
                 lock.release()
             raise
         if not readonly:
-            store._recover()
+            try:
+                store._recover()
+            except BaseException:  # e.g. an I/O error: release the map, as a failed open must
+                env.close()
+                if lock is not None:
+                    lock.release()
+                raise
         return store
 
     def _recover(self) -> None:
@@ -208,9 +219,11 @@ class MapStore:
         for directory in (self.path, self.path / SHARDS_DIR, self.path / INDEX_DIR):
             for removed in remove_partials(directory):
                 self.recovery.append(f"removed leftover temp file {removed.name}")
+        crash_point("recover.partials_removed")
         committed = self.counter("next_vertex_id")
         self.recovery.extend(self.shards.recover(committed))
-        self.recovery.extend(self.index.discard_ahead(committed))
+        crash_point("recover.shards_truncated")
+        self.recovery.extend(self.index.discard_untrusted(committed))
 
     def close(self) -> None:
         """Persist the index (writer) and release everything. Idempotent."""
@@ -218,7 +231,10 @@ class MapStore:
             return
         try:
             if not self.readonly:
-                self.flush()
+                try:
+                    self.flush()
+                except StorageIOError as exc:  # a cache of committed data: nothing is lost
+                    self.warnings.append(f"index cache not saved ({exc}); rebuilt when needed")
         finally:
             self.shards.close()
             self.env.close()
@@ -227,9 +243,19 @@ class MapStore:
                 self._lock.release()
 
     def flush(self) -> None:
-        """Persist the in-memory index if it covers vertices the file on disk does not."""
+        """Persist the in-memory index if it covers vertices the file on disk does not.
+
+        Raises
+        ------
+        StorageIOError
+            If the index file cannot be written; the committed map is untouched.
+        """
         self._require_writer()
-        self.index.persist()
+        try:
+            self.index.persist()
+        except OSError as exc:  # e.g. the directory fsync after removing older index files
+            raise StorageIOError(f"cannot save the index in {self.path / INDEX_DIR}: "
+                                 f"{exc.strerror or exc}") from exc
 
     def __enter__(self) -> MapStore:
         return self
@@ -455,8 +481,7 @@ class MapStore:
         db = self.env.db
         meta = db("meta")
         txn.put(u32(record.seq_id), record.encode(), db=db("sequences"))
-        txn.put(record.name.encode(), u32(record.seq_id), db=db("seq_names"))
-        txn.put(u64(record.last_vertex), u32(record.seq_id), db=db("vrange"))
+        self.put_lookups(txn, record)
         if pos is not None:
             vdb = db("vertex_data")
             txn.cursor(db=vdb).putmulti(
@@ -487,6 +512,11 @@ class MapStore:
         txn.put(b"n_components", u64(n_components), db=meta)
         crash_point("add.before_commit")
         return self.uf.find(txn, record.seq_id), added
+
+    def put_lookups(self, txn: lmdb.Transaction, record: SequenceRecord) -> None:
+        """Write the name and vertex-range index entries of ``record`` (derived from it)."""
+        txn.put(record.name.encode(), u32(record.seq_id), db=self.env.db("seq_names"))
+        txn.put(u64(record.last_vertex), u32(record.seq_id), db=self.env.db("vrange"))
 
     def _after_commit(self, first: int, frames: int) -> None:
         if self.index.index is not None:

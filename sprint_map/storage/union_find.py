@@ -21,7 +21,7 @@ a sequence's keys move O(log n) times over the life of the map: O(n log n) in to
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 
 import lmdb
 
@@ -90,6 +90,32 @@ class UnionFindStore:
         txn.put(u32(ra), COMP_VAL.pack(seqs_a + seqs_b, verts_a + verts_b), db=self._comp)
         txn.delete(u32(rb), db=self._comp)
         return ra
+
+    def rebuild(self, txn: lmdb.Transaction, lengths: Mapping[int, int],
+                joins: Iterable[tuple[int, int]]) -> int:
+        """Replace everything by the union-find of sequences ``lengths`` joined by ``joins``.
+
+        ``lengths`` maps each sequence to its vertex count; ``joins`` are ``(seq, seq)`` pairs
+        (the edges). The unions are replayed in commit order (a pair when the later of its two
+        sequences was added), so the partition is the one the commits made and the roots
+        (component ids) mostly theirs: the order of the unions inside one commit is not stored,
+        and where a commit joined several components, another may win a tie. Returns the number
+        of components.
+
+        Notes
+        -----
+        O((n + J) alpha(n)) finds plus O(n log n) membership moves; used by ``check --repair``.
+        """
+        for db in (self._uf, self._members, self._comp):
+            txn.drop(db, delete=False)
+        pending = sorted({(max(a, b), min(a, b)) for a, b in joins})
+        done = 0
+        for seq in sorted(lengths):
+            self.add(txn, seq, lengths[seq])
+            while done < len(pending) and pending[done][0] <= seq:
+                self.union(txn, *pending[done])
+                done += 1
+        return sum(1 for _ in self.components(txn))
 
     def members(self, txn: lmdb.Transaction, root: int) -> list[int]:
         """Sequence ids of the component rooted at ``root``, ascending. O(component size)."""

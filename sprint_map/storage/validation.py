@@ -54,3 +54,19 @@ def validate_positions(positions: Any, n: int) -> np.ndarray | None:
     if not np.isfinite(out[:, :2]).all():
         raise InputError("positions contain NaN or Inf in x or y")
     return out
+
+
+#: Longest sequence name, in UTF-8 bytes.
+MAX_NAME_BYTES = 500
+
+
+def validate_name(name: str) -> None:
+    """Refuse a sequence name that is empty, too long, or holds control characters.
+
+    Names are unique within a map (checked by the writer) and printed one per line by the
+    CLI, so a newline, a tab or any other non-printing character (but the space) is refused.
+    """
+    if not isinstance(name, str) or not name or len(name.encode()) > MAX_NAME_BYTES:
+        raise InputError(f"sequence name must be 1 to {MAX_NAME_BYTES} bytes of text")
+    if not name.isprintable():
+        raise InputError(f"sequence name {name!r} contains non-printing characters")

@@ -1,0 +1,190 @@
+"""``check --repair``: rebuild what is derivable from the map's own data, report what is not.
+
+LMDB's sequence records and edges and the shards' committed rows are the data; everything else
+is derived from them and can be rebuilt (:data:`sprint_map.storage.check.REPAIRABLE`):
+
+1. the writer's open removes leftover ``*.partial`` files, truncates the open shard and discards
+   index files ahead of the map or torn (``MapStore._recover``);
+2. every shard longer than its committed length is cut back (the bytes past it were never
+   committed);
+3. one LMDB write transaction rebuilds the broken derived records: the name and vertex-range
+   indexes and sequence counters, the shard lengths, the reverse edge index and edge counter,
+   and the union-find with its membership lists, totals and component counter;
+4. if the persisted index is still unsound (or there is none: the open may have discarded a torn
+   one), it is rebuilt from the shards and published atomically.
+
+What is not derivable is reported, never guessed: sequence records that do not tile the vertex
+ids (then nothing at all is touched, not even by the writer's open: every derived record and
+file length depends on that tiling), a shard file
+missing or shorter than its committed rows, an edge with an endpoint outside the map or inside
+one sequence.
+
+Every step is idempotent and leaves an openable map, so a kill anywhere (crash points
+``repair.*``, and the ``recover.*`` and ``index.*`` ones on the way) is undone by running the
+repair again.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import lmdb
+
+from sprint_map.storage.atomic import fsync_file, truncate
+from sprint_map.storage.check import (
+    CheckReport,
+    MapRecords,
+    check_map,
+    check_sequences,
+    sequence_edges,
+)
+from sprint_map.storage.crash import crash_point
+from sprint_map.storage.keys import EDGE_KEY, u32, u64
+from sprint_map.storage.store import MapStore
+
+#: Areas rebuilt by the LMDB transaction of step 3.
+RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components")
+
+
+@dataclass
+class RepairReport:
+    """What :func:`repair_map` found after the writer's open (``found``), did (``repaired``,
+    the open's recovery included) and declined to do (``skipped``), and the check of the map
+    afterwards (``after``): ``ok`` when the map is now healthy."""
+
+    found: list[str] = field(default_factory=list)
+    repaired: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    after: CheckReport = field(default_factory=CheckReport)
+
+    @property
+    def ok(self) -> bool:
+        return self.after.ok
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"ok": self.ok, "found": self.found, "repaired": self.repaired,
+                "skipped": self.skipped, "unrepaired": self.after.violations,
+                "after": self.after.to_dict()}
+
+
+def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
+    """Repair the map at ``path`` as far as its own data allows, then check it.
+
+    Takes the writer lock (``MapLockedError`` while another process writes).
+
+    Notes
+    -----
+    O(sequences + edges + shards) LMDB work and ``stat`` calls, like ``check``; rebuilding the
+    index, when needed, reads every shard row: O(vertices * dim).
+    """
+    report = RepairReport()
+    # Even a writer's open truncates the open shard at next_vertex_id: first make sure the
+    # records it trusts are sound (LMDB snapshots are consistent: no lock needed to read).
+    with MapStore.open(path, readonly=True) as store:
+        tiling = check_sequences(store)
+    if "sequences" in tiling.areas:
+        report.found = tiling.violations
+        report.skipped.append("nothing touched: the sequence records do not tile the vertex "
+                              "ids, and every derived record and file length depends on them")
+    else:
+        with MapStore.open(path) as store:
+            report.repaired.extend(store.recovery)
+            before = check_map(store, seed=seed)
+            report.found = before.violations
+            total = store.counter("next_vertex_id")
+            report.repaired.extend(truncate_shard_tails(store, total))
+            crash_point("repair.shards_truncated")
+            report.repaired.extend(rebuild_records(store, before.areas))
+            crash_point("repair.committed")
+            report.repaired.extend(_repair_index(store, total, before.areas, report.skipped))
+    with MapStore.open(path, readonly=True) as store:
+        report.after = check_map(store, seed=seed)
+    return report
+
+
+def truncate_shard_tails(store: MapStore, total: int) -> list[str]:
+    """Cut every shard file longer than its committed length back to it (fsynced).
+
+    The writer's open does this for the open shard only (O(1)); here every shard is looked at.
+    O(shards) ``stat`` calls.
+    """
+    shards = store.shards
+    actions = []
+    for shard, rows in shards.lengths_for(total).items():
+        path = shards.path(shard)
+        want = rows * shards.row_bytes
+        if path.exists() and path.stat().st_size > want:
+            truncate(path, want)
+            fsync_file(path)
+            actions.append(f"truncated {path.name} to {rows} committed rows")
+    return actions
+
+
+def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
+    """Rebuild the derived LMDB records of the broken ``areas`` in one write transaction.
+
+    Notes
+    -----
+    O(sequences + edges) reads and puts, plus the union-find replay (see
+    :meth:`sprint_map.storage.union_find.UnionFindStore.rebuild`).
+    """
+    todo = [area for area in RECORD_AREAS if area in areas]
+    if not todo:
+        return []
+    db = store.env.db
+
+    def body(txn: lmdb.Transaction) -> list[str]:
+        records = MapRecords.read(store, txn)
+        meta, actions = db("meta"), []
+        if "lookup" in todo:
+            for name in ("seq_names", "vrange"):
+                txn.drop(db(name), delete=False)
+            for seq in records.seqs:
+                store.put_lookups(txn, seq)
+            next_seq = max([records.counters["next_seq_id"]] + [s.seq_id + 1 for s in records.seqs])
+            txn.put(b"next_seq_id", u64(next_seq), db=meta)
+            txn.put(b"n_sequences", u64(len(records.seqs)), db=meta)
+            actions.append(f"rebuilt the name and vertex-range indexes of {len(records.seqs)} "
+                           "sequences and their counters")
+        if "shard_lengths" in todo:
+            txn.drop(db("shards"), delete=False)
+            lengths = store.shards.lengths_for(records.total)
+            for shard, rows in lengths.items():
+                txn.put(u32(shard), u64(rows), db=db("shards"))
+            actions.append(f"rewrote the committed lengths of {len(lengths)} shards")
+        if "edge_index" in todo:
+            txn.drop(db("edges_rev"), delete=False)
+            reverse = sorted(EDGE_KEY.pack(dst, src) for src, dst in records.edges)
+            txn.cursor(db=db("edges_rev")).putmulti(((k, b"") for k in reverse), append=True)
+            txn.put(b"n_edges", u64(len(records.edges)), db=meta)
+            actions.append(f"rebuilt the reverse index of {len(records.edges)} edges")
+        if "components" in todo:
+            joins = [(a, b) for _, _, a, b in sequence_edges(records)]
+            n = store.uf.rebuild(txn, {s.seq_id: s.length for s in records.seqs}, joins)
+            txn.put(b"n_components", u64(n), db=meta)
+            actions.append(f"rebuilt union-find and the member lists of {n} components from "
+                           f"{len(joins)} edges")
+        crash_point("repair.before_commit")
+        return actions
+
+    return store.env.write(body)
+
+
+def _repair_index(store: MapStore, total: int, areas: set[str], skipped: list[str]
+                  ) -> list[str]:
+    """Rebuild an unsound index (steps 2 and 3 change neither it nor any committed row), or
+    write a missing one (none persisted yet, or the writer's open discarded a torn one)."""
+    missing = "index" not in areas and total > 0 and not store.index.persisted_on_disk()
+    if "index" not in areas and not missing:
+        return []
+    if "shard_files" in areas:
+        skipped.append("index not rebuilt: shard files are missing committed rows")
+        return []
+    store.index.rebuild(total, store.shards)
+    verb = "wrote the missing" if missing else "rebuilt the"
+    return [f"{verb} index from the shards ({total} vertices)"]
+
+
+__all__ = ["RepairReport", "rebuild_records", "repair_map", "truncate_shard_tails"]
