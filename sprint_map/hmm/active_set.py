@@ -1,47 +1,222 @@
-"""The active set: the components that currently hold belief, and where a vertex lives in them."""
+"""The active set: the components that hold belief, the live windows inside them, and where a
+vertex lives in them."""
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from collections.abc import Iterator
 
 import numpy as np
 
+from sprint_map.hmm import support
 from sprint_map.hmm.decision import BeliefView
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.hmm.transition import ComponentTransition
 
+_I64 = np.int64
+_EMPTY = np.empty(0, dtype=_I64)
+
 
 class ActiveComponent:
-    """One active component: its transition and its belief vector (slot layout).
+    """One active component: its transition, its belief (slot layout) and its live windows.
 
     Attributes
     ----------
     component_id : int
     trans : ComponentTransition
-    x : ndarray of float64, shape (trans.n_state,)
-        Belief of every slot (gutters 0); normalised together with the other components and
-        the sink after each update.
+    x : ndarray of float64, shape (trans.n_slots,)
+        Raw belief of every slot (the filter's posterior is ``x`` times its global normaliser);
+        0 outside the windows (and in gutters).
     mass : float
-        ``x.sum()`` as of the last update.
+        Raw belief held by the component, as of the last update.
+    n_windows : int
+        Number of live windows (0: the component holds no belief yet).
+    lo, hi : ndarray of int64
+        The windows ``[lo, hi)`` (sorted, disjoint, at least ``trans.gap`` apart) when
+        ``n_windows != 1``.
+    a, b, end : int
+        The window ``[a, b)`` and the end slot of its sequence when ``n_windows == 1`` (the
+        common case of a vehicle on one mapped road: its step is a few slice operations, inlined
+        in :meth:`SprintFilter.update <sprint_map.hmm.sprint_filter.SprintFilter.update>`).
+    n_propagated : int
+        Slots propagated by the last update (the input windows, edge targets included).
+    pending : list of int
+        Slots written this frame outside the windows (hits); they join the windows when the
+        update finishes (:meth:`settle`).
     """
 
-    __slots__ = ("component_id", "mass", "trans", "x")
+    __slots__ = ("a", "b", "component_id", "end", "hi", "live", "lo", "mass", "n_propagated",
+                 "n_windows", "pending", "trans", "x")
 
     def __init__(self, trans: ComponentTransition) -> None:
         self.component_id = trans.graph.component_id
         self.trans = trans
-        self.x = np.zeros(trans.n_state)
+        self.x = np.zeros(trans.n_slots)
         self.mass = 0.0
+        self.lo = self.hi = _EMPTY
+        self.a = self.b = self.end = 0
+        self.n_windows = 0
+        self.n_propagated = 0
+        self.pending: list[int] = []
+        self.live: np.ndarray | None = None
 
     @property
     def graph(self) -> ComponentGraph:
         """The component's arrays."""
         return self.trans.graph
 
-    def view(self) -> BeliefView:
-        """The belief in the form the decision code reads."""
-        return BeliefView(self.trans.graph, self.trans.slot_first, self.x)
+    @property
+    def n_live(self) -> int:
+        """Slots in the live windows."""
+        if self.n_windows == 1:
+            return self.b - self.a
+        return int((self.hi - self.lo).sum())
+
+    def windows(self) -> tuple[np.ndarray, np.ndarray]:
+        """The live windows ``[lo, hi)`` as sorted int64 arrays."""
+        if self.n_windows == 1:
+            return np.array([self.a], dtype=_I64), np.array([self.b], dtype=_I64)
+        return self.lo, self.hi
+
+    def set_windows(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Replace the windows (sorted, disjoint, at least ``trans.gap`` apart)."""
+        self.lo, self.hi = lo, hi
+        self.n_windows = n = lo.size
+        if n == 1:
+            self.a, self.b = int(lo[0]), int(hi[0])
+            self.end = self.trans.seq_end_of(self.a)
+        self.live = None
+
+    def live_slots(self) -> np.ndarray:
+        """All slots of the windows, ascending (cached until the windows change)."""
+        if self.live is None:
+            lo, hi = self.windows()
+            self.live = support.ranges(lo, hi - lo)
+        return self.live
+
+    def propagate(self, flush_below: float) -> float:
+        """One propagation step of the windows; return the overflow (mass for the sink).
+
+        Parameters
+        ----------
+        flush_below : float
+            Zero beliefs below this first (0: no flush; see
+            :data:`~sprint_map.hmm.transition.FLUSH_BELOW`).
+
+        Notes
+        -----
+        :meth:`ComponentTransition.propagate_windows`, O(W live + edges leaving the windows).
+        (The filter inlines the one-window case without edges.)
+        """
+        x = self.x
+        lo, hi = self.windows()
+        if flush_below:
+            idx = self.live_slots()
+            v = x[idx]
+            np.putmask(v, v < flush_below, 0.0)
+            x[idx] = v
+        lo, hi, spill, mass, n_prop = self.trans.propagate_windows(x, lo, hi)
+        self.set_windows(lo, hi)
+        self.mass = mass
+        self.n_propagated = n_prop
+        return spill
+
+    def settle(self, limit: float, lone: bool) -> float:
+        """Fold the frame's new slots into the windows and trim them; return the mass trimmed.
+
+        Parameters
+        ----------
+        limit : float
+            Belief (in the units of ``x``) below which a slot is negligible; 0 trims nothing.
+        lone : bool
+            Whether to trim a single window without new slots too (the filter does it every
+            ``TRIM_EVERY`` frames). Several windows, or new slots, are always trimmed: their
+            windows are rebuilt anyway.
+
+        Returns
+        -------
+        float
+            Belief trimmed; the cut slots are set to 0.
+
+        Notes
+        -----
+        Trimming cuts negligible slots from the ends of every window and splits windows at
+        runs of at least ``trans.gap`` negligible slots (:func:`sprint_map.hmm.support.trim`).
+        One window and no new slot: two numpy calls, plus two slice writes if its ends are cut;
+        otherwise O(live) with about 30 numpy calls (merge, trim).
+        """
+        pending = self.pending
+        x = self.x
+        if pending and self.n_windows <= 1 and len(pending) == 1:
+            # One new slot next to (or instead of) a single window: extend it in Python.
+            slot = pending[0]
+            gap = self.trans.gap
+            if not self.n_windows:
+                self.pending = []
+                self.a, self.b, self.n_windows = slot, slot + 1, 1
+                self.end = self.trans.seq_end_of(slot)
+                self.live = None
+                pending = self.pending
+            elif self.a - gap <= slot < self.b + gap and self.trans.seq_end_of(slot) == self.end:
+                self.pending = []
+                self.a, self.b = min(self.a, slot), max(self.b, slot + 1)
+                self.live = None
+                pending = self.pending
+        if self.n_windows == 1 and not pending:
+            if not lone or limit <= 0.0:
+                return 0.0
+            a, b = self.a, self.b
+            above = (x[a:b] >= limit).nonzero()[0]
+            n_above = above.size
+            if n_above == b - a:
+                return 0.0
+            if n_above and int(above[-1]) - int(above[0]) + 1 == n_above:
+                # One run: cut the ends only.
+                na, nb = a + int(above[0]), a + int(above[-1]) + 1
+                cut = _cut(x, a, na) + _cut(x, nb, b)
+                self.a, self.b = na, nb
+                self.live = None
+                self.mass -= cut
+                return cut
+        lo, hi = self.windows()
+        extra: np.ndarray | None = None
+        if pending:
+            extra = np.array(pending, dtype=_I64)
+            self.pending = []
+        new_lo, new_hi, live, trimmed = support.trim(x, lo, hi, limit, self.trans.gap, extra)
+        self.set_windows(new_lo, new_hi)
+        self.live = live
+        self.mass -= trimmed
+        return trimmed
+
+    def rescale(self, factor: float) -> None:
+        """Multiply the live belief by ``factor`` (O(live))."""
+        if self.n_windows == 1:
+            v = self.x[self.a:self.b]
+            v *= factor
+        elif self.n_windows:
+            idx = self.live_slots()
+            self.x[idx] *= factor
+        self.mass *= factor
+
+    def view(self, scale: float = 1.0) -> BeliefView:
+        """The belief for the decision code: live slots, and ``scale`` (posterior = x * scale)."""
+        if self.n_windows == 1:
+            return BeliefView(self.trans.graph, self.trans.slot_first, self.x, a=self.a,
+                              b=self.b, scale=scale)
+        return BeliefView(self.trans.graph, self.trans.slot_first, self.x,
+                          idx=self.live_slots(), scale=scale)
+
+
+def _cut(x: np.ndarray, start: int, stop: int) -> float:
+    """Zero ``x[start:stop]`` and return what it held."""
+    if stop <= start:
+        return 0.0
+    part = x[start:stop]
+    held = math.fsum(part.tolist()) if stop - start <= 64 else float(part.sum())
+    part[:] = 0.0
+    return held
 
 
 class ActiveSet:
@@ -51,7 +226,9 @@ class ActiveSet:
     -----
     :meth:`locate` is O(log S_active) in pure Python (a bisect over the first vertex ids of the
     active sequences), so a hit inside the active set never reaches the graph source. The index
-    is rebuilt lazily after the set changed, in O(S_active log S_active).
+    is rebuilt lazily after a component joined, in O(S_active log S_active); a component that
+    leaves is only dropped from ``comps`` (:meth:`locate` skips index entries whose owner is no
+    longer active), so pruning never rebuilds it.
     """
 
     __slots__ = ("_dirty", "_ends", "_firsts", "_owners", "_slot0", "comps", "n_vertices")
@@ -88,7 +265,6 @@ class ActiveSet:
         """Deactivate a component (its belief is dropped)."""
         comp = self.comps.pop(component_id)
         self.n_vertices -= comp.graph.n_vertices
-        self._dirty = True
 
     def clear(self) -> None:
         """Deactivate everything."""
@@ -102,14 +278,23 @@ class ActiveSet:
             self._rebuild()
         i = bisect_right(self._firsts, vertex_id) - 1
         if i >= 0 and vertex_id < self._ends[i]:
-            return self._owners[i], self._slot0[i] + vertex_id - self._firsts[i]
+            owner = self._owners[i]
+            if self.comps.get(owner.component_id) is owner:
+                return owner, self._slot0[i] + vertex_id - self._firsts[i]
         return None
 
     def _rebuild(self) -> None:
         comps = list(self.comps.values())
         self._dirty = False
-        if not comps:
-            self._firsts, self._ends, self._owners, self._slot0 = [], [], [], []
+        if sum(c.graph.n_sequences for c in comps) <= 64:
+            # Few sequences: sorting Python tuples beats the numpy round trip.
+            rows = sorted((first, first + length, slot, i)
+                          for i, c in enumerate(comps)
+                          for first, length, slot in c.trans.ranges)
+            self._firsts = [r[0] for r in rows]
+            self._ends = [r[1] for r in rows]
+            self._slot0 = [r[2] for r in rows]
+            self._owners = [comps[r[3]] for r in rows]
             return
         firsts = np.concatenate([c.graph.seq_first for c in comps])
         ends = firsts + np.concatenate([c.graph.seq_len for c in comps])

@@ -1,4 +1,4 @@
-"""Parameters of the SPRINT hidden Markov model (see ``docs/architecture.md`` ("The HMM") for the model they define)."""
+"""Parameters of the SPRINT hidden Markov model (``docs/architecture.md``, "The HMM")."""
 
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ from sprint_map import dataclass_dict
 class HMMConfig:
     """Frozen parameters of the place-recognition HMM.
 
-    Every open modelling choice of the filter is a field here; ``docs/architecture.md`` ("The HMM") gives the exact
-    equations. Defaults were chosen by small grid searches on synthetic multi-traversal data and
-    on Nordland summer -> winter HoG (``docs/architecture.md`` ("The HMM"), "Defaults").
+    Every open modelling choice of the filter is a field here; ``docs/architecture.md`` ("The
+    HMM") gives the exact equations. Defaults were chosen by small grid searches on synthetic
+    multi-traversal data and on Nordland summer -> winter HoG (``docs/architecture.md``, "The
+    HMM", "Defaults").
 
     Parameters
     ----------
@@ -35,7 +36,17 @@ class HMMConfig:
     prune_threshold : float
         Components whose share of the belief (sink included) falls below this after an update
         leave the active set; their belief is dropped and the rest renormalised (paper: 1e-4).
-        0 disables pruning (the filter is then exact w.r.t. :class:`FullGraphFilter`).
+        0 disables pruning. With ``support_threshold`` also 0 the filter is exact w.r.t.
+        :class:`FullGraphFilter`.
+    support_threshold : float
+        Inside an active component only the *live support* is propagated: windows (runs of
+        slots of one sequence) that hold belief. After each update, slots whose belief is below
+        this share of the total (sink included) are trimmed from the ends of their window, and
+        windows are split where at least ``W - 1`` consecutive slots are below it; the trimmed
+        belief is dropped and the rest renormalised (like pruning, per slot). This is what makes
+        the per-frame cost follow the belief rather than the component, which in a lifelong map
+        grows into one giant component. 0 never trims: windows only grow (by ``W - 1`` per
+        frame) and the filter stays exact.
     restart_prob : float
         ``epsilon``: prior mass re-injected each frame, uniformly over the frame's retrieval hits.
         This is what lets a hit start a new hypothesis (after a turn, a gap, a new place).
@@ -86,6 +97,7 @@ class HMMConfig:
     window: tuple[float, ...] = (0.25, 0.5, 0.15, 0.07, 0.03)
     edge_weight: float = 1.0
     prune_threshold: float = 1e-4
+    support_threshold: float = 1e-6
     restart_prob: float = 0.01
     new_place_prob: float = 0.01
     dist_scale: float | None = None
@@ -109,6 +121,7 @@ class HMMConfig:
         object.__setattr__(self, "window", window)
         _finite_range("edge_weight", self.edge_weight, 0.0, math.inf)
         _finite_range("prune_threshold", self.prune_threshold, 0.0, 1.0, hi_open=True)
+        _finite_range("support_threshold", self.support_threshold, 0.0, 1.0, hi_open=True)
         _finite_range("restart_prob", self.restart_prob, 0.0, 1.0)
         _finite_range("new_place_prob", self.new_place_prob, 0.0, 1.0)
         if self.restart_prob + self.new_place_prob >= 1:

@@ -72,12 +72,30 @@ class BeliefView:
     """One component's belief in slot layout (what the decision code reads).
 
     ``x[slot_first[s] + image]`` is the belief of image ``image`` of sequence ``s`` (in
-    ``graph.seq_ids`` order); other slots (gutters) hold 0.
+    ``graph.seq_ids`` order); other slots (gutters) hold 0. Only the *live* slots can hold
+    belief: ``idx`` (ascending) if given, else the slice ``x[a:b]`` (``b = None``: all of ``x``).
+    The posterior is ``x * scale`` (the filter normalises lazily).
     """
 
     graph: ComponentGraph
     slot_first: np.ndarray
     x: np.ndarray
+    idx: np.ndarray | None = None
+    a: int = 0
+    b: int | None = None
+    scale: float = 1.0
+
+    def live(self) -> tuple[np.ndarray, np.ndarray | int]:
+        """``(values, slots)`` of the live slots: ``slots`` is an index array or, for a slice,
+        the slot of ``values[0]``."""
+        if self.idx is not None:
+            return self.x[self.idx], self.idx
+        return self.x[self.a:self.b], self.a
+
+
+#: Places reaching more vertices than this are computed with numpy set operations; smaller ones
+#: (the common case) with Python sets, which cost far less per call at that size.
+_PY_PLACE = 256
 
 
 def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
@@ -96,8 +114,10 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
 
     Notes
     -----
-    O(r + h d log d) for the d vertices reached over h hops, a handful of numpy calls per hop;
-    never touches the rest of the component.
+    O(r + h d log d) for the d vertices reached over h hops; never touches the rest of the
+    component. A vertex without edges near it costs a few scalar reads; a small place (up to
+    ``_PY_PLACE`` vertices) is gathered with Python sets, a larger one with numpy set
+    operations (same result).
     """
     graph = view.graph
     slot_first = view.slot_first
@@ -106,18 +126,73 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
     image = slot - first
     lo = max(image - radius, 0)
     hi = min(image + radius, int(graph.seq_len[s]) - 1)
-    own = [(first + lo, first + hi + 1)]
+    own = (first + lo, first + hi + 1)
     if not graph.n_edges or hops < 1:
-        return own
+        return [own]
+    base = int(graph.local_first[s])
+    indptr = graph.adj_indptr
+    indices = graph.adj_indices
+    seed_lo, seed_hi = base + lo, base + hi + 1
+    p0, p1 = indptr.item(seed_lo), indptr.item(seed_hi)
+    if p0 == p1:
+        return [own]
+    if p1 - p0 > _PY_PLACE:
+        return _place_runs_np(view, s, lo, hi, radius, hops)
+    # Follow edges only (aligned frames), never temporal moves: the place does not drift
+    # along the road however many drives are chained together.
+    frontier = {v for v in indices[p0:p1].tolist() if not seed_lo <= v < seed_hi}
+    if not frontier:
+        return [own]
+    visited = set(frontier)  # the seeds are the range [seed_lo, seed_hi)
+    for _ in range(hops - 1):
+        reached: set[int] = set()
+        for v in frontier:
+            a, b = indptr.item(v), indptr.item(v + 1)
+            if a < b:
+                reached.update(indices[a:b].tolist())
+        reached = {v for v in reached if v not in visited and not seed_lo <= v < seed_hi}
+        if not reached:
+            break
+        visited |= reached
+        if len(visited) > _PY_PLACE:
+            return _place_runs_np(view, s, lo, hi, radius, hops)
+        frontier = reached
+    nb = np.fromiter(visited, dtype=np.int64, count=len(visited))
+    nb_seq = np.searchsorted(graph.local_first, nb, side="right") - 1
+    nb_image = (nb - graph.local_first[nb_seq]).tolist()
+    nb_first = slot_first[nb_seq].tolist()
+    nb_last = (graph.seq_len[nb_seq] - 1).tolist()
+    spans = [(f + max(i - radius, 0), f + min(i + radius, last) + 1)
+             for f, i, last in zip(nb_first, nb_image, nb_last, strict=True)]
+    spans.append(own)
+    spans.sort()
+    # A new run starts where an interval begins after everything before it has ended.
+    out = [list(spans[0])]
+    for start, stop in spans[1:]:
+        run = out[-1]
+        if start < run[1]:
+            if stop > run[1]:
+                run[1] = stop
+        else:
+            out.append([start, stop])
+    return [(a, b) for a, b in out]
+
+
+def _place_runs_np(view: BeliefView, s: int, lo: int, hi: int, radius: int, hops: int
+                   ) -> list[tuple[int, int]]:
+    """:func:`place_runs` with numpy set operations (large places): sequence ``s``, images
+    ``lo .. hi`` of the vertex's neighbourhood."""
+    graph = view.graph
+    slot_first = view.slot_first
+    first = int(slot_first[s])
+    own = (first + lo, first + hi + 1)
     base = int(graph.local_first[s])
     indptr = graph.adj_indptr
     indices = graph.adj_indices
     seeds = np.arange(base + lo, base + hi + 1, dtype=np.int64)
     frontier = np.setdiff1d(indices[indptr[base + lo]: indptr[base + hi + 1]], seeds)
     if frontier.size == 0:
-        return own
-    # Follow edges only (aligned frames), never temporal moves: the place does not drift
-    # along the road however many drives are chained together.
+        return [own]
     visited = np.union1d(seeds, frontier)
     for _ in range(hops - 1):
         reached = np.setdiff1d(_csr_gather(indptr, indices, frontier), visited)
@@ -130,12 +205,11 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
     nb_image = nb - graph.local_first[nb_seq]
     nb_lo = np.maximum(nb_image - radius, 0)
     nb_hi = np.minimum(nb_image + radius, graph.seq_len[nb_seq] - 1)
-    starts = np.append(slot_first[nb_seq] + nb_lo, own[0][0])
-    stops = np.append(slot_first[nb_seq] + nb_hi + 1, own[0][1])
+    starts = np.append(slot_first[nb_seq] + nb_lo, own[0])
+    stops = np.append(slot_first[nb_seq] + nb_hi + 1, own[1])
     order = np.argsort(starts, kind="stable")
     starts = starts[order]
     stops = np.maximum.accumulate(stops[order])
-    # A new run starts where an interval begins after everything before it has ended.
     new = np.empty(len(starts), dtype=bool)
     new[0] = True
     np.greater_equal(starts[1:], stops[:-1], out=new[1:])
@@ -161,15 +235,16 @@ def place_mass(view: BeliefView, slot: int, radius: int, hops: int = 1) -> float
     -----
     Like :func:`place_runs`; each vertex of the place counts once.
     """
-    return _runs_sum(view.x, place_runs(view, slot, radius, hops))
+    return _runs_sum(view.x, place_runs(view, slot, radius, hops)) * view.scale
 
 
 def _runs_sum(x: np.ndarray, runs: list[tuple[int, int]]) -> float:
+    # A place is a handful of short runs: Python sums of small lists beat numpy reductions.
+    if sum(b - a for a, b in runs) <= 64:
+        return math.fsum(v for a, b in runs for v in x[a:b].tolist())
     if len(runs) == 1:
         start, stop = runs[0]
-        # A handful of values: a Python sum of the list beats a numpy reduction call.
-        return math.fsum(x[start:stop].tolist()) if stop - start <= 32 else float(
-            x[start:stop].sum())
+        return float(x[start:stop].sum())
     # Gather the slots of all runs and add them up: the runs may lie far apart in the
     # component, so no prefix sum over the span between them.
     starts = np.array([r[0] for r in runs], dtype=np.int64)
@@ -203,7 +278,7 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
     best: tuple[float, int, list[tuple[int, int]]] | None = None
     for _, vi, slot in candidates:
         runs = place_runs(views[vi], slot, radius, hops)
-        mass = min(_runs_sum(views[vi].x, runs), 1.0)
+        mass = min(_runs_sum(views[vi].x, runs) * views[vi].scale, 1.0)
         if best is None or mass > best[0]:
             best = (mass, vi, runs)
     if best is None:
@@ -234,21 +309,25 @@ def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, in
 
     Notes
     -----
-    O(sum of view sizes): a max, a comparison and a ``nonzero`` per view, then an
+    O(live slots of the views): a max, a comparison and a ``nonzero`` per view, then an
     ``argpartition`` over the qualifying vertices only.
     """
-    peak = max((float(v.x.max()) for v in views if v.x.size), default=0.0)
+    lives = [v.live() for v in views]
+    peak = max((float(vals.max()) * v.scale for v, (vals, _) in zip(views, lives, strict=True)
+                if vals.size), default=0.0)
     if peak <= 0.0:
         return []
     floor = peak * CANDIDATE_FLOOR
     found: list[tuple[float, int, int]] = []
-    for vi, view in enumerate(views):
-        x = view.x
-        idx = (x >= floor).nonzero()[0]
-        if idx.size > m:
-            vals = x[idx]
-            idx = idx[np.argpartition(vals, vals.size - m)[vals.size - m:]]
-        for slot, p in zip(idx.tolist(), x[idx].tolist(), strict=True):
+    for vi, (vals, slots) in enumerate(lives):
+        scale = views[vi].scale
+        pos = (vals >= floor / scale).nonzero()[0]
+        if pos.size > m:
+            sel = vals[pos]
+            pos = pos[np.argpartition(sel, sel.size - m)[sel.size - m:]]
+        probs = (vals[pos] * scale).tolist()
+        where = (pos + slots).tolist() if isinstance(slots, int) else slots[pos].tolist()
+        for slot, p in zip(where, probs, strict=True):
             found.append((p, vi, slot))
     found.sort(key=lambda c: (-c[0], c[1], c[2]))
     return found[:m]

@@ -1,24 +1,35 @@
-"""SPRINT: the place-recognition HMM run only on the components that hold belief.
+"""SPRINT: the place-recognition HMM run only where the belief is.
 
-Per frame (``docs/architecture.md`` ("The HMM"), "Per-frame data flow"):
+Two levels of sparsity (``docs/architecture.md``, "The HMM"). The *active set* holds the
+components (connected by edges) that hold belief, as in the paper; inside each active component
+only the *live support* is propagated: windows of slots of its sequences
+(:mod:`sprint_map.hmm.support`). In a lifelong map every merge adds edges until most of the map
+is one component, so the second level is what keeps a step independent of the map.
+
+Per frame (``docs/architecture.md``, "Per-frame data flow"):
 
 1. observe: hits -> likelihood ratios (:mod:`sprint_map.hmm.observation`);
 2. locate every hit in the active set; activate the components of the others (graph source,
    through the LRU cache); a bad hit raises here, before the belief is touched;
-3. propagate every active component (window + edges; overflow -> sink), scale by
-   ``1 - eps - nu``; the sink keeps its mass and receives ``nu``;
+3. propagate the windows of every active component (window + edges leaving them; overflow ->
+   sink), scaled by ``1 - eps - nu``; windows grow by ``W - 1``, edge targets open windows;
+   the sink keeps its mass and receives ``nu``;
 4. inject ``eps / n_hits`` at every hit and multiply hits and sink by their likelihood ratios
-   (every other vertex has ratio 1: nothing to do);
-5. normalise; drop components whose share is below ``prune_threshold``; renormalise;
-6. (``decide``) score the most probable vertices by place mass; novelty rules.
+   (every other vertex has ratio 1: nothing to do); a hit outside the windows opens one;
+5. prune components whose share is below ``prune_threshold``; every ``TRIM_EVERY`` frames
+   trim window slots whose share is below ``support_threshold``; normalise (lazily: one global
+   factor, see :class:`SprintFilter`);
+6. (``decide``) score the most probable live vertices by place mass; novelty rules.
 
-Nothing in a step is sized by the map: the work is O(W n_active + nnz(U_active) + k log S_active)
-plus, for a newly active component, its load (cached) and an O(n_c + E_c) set-up.
+Nothing in a step is sized by the map or by a component: the work is O(W live + edges leaving
+the live windows + k log S_active), plus, for a newly active component, its load (cached) and an
+O(n_c + E_c log E_c) set-up.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Iterable
 
 import numpy as np
@@ -29,7 +40,16 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision, decide, top_candidates
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
+from sprint_map.hmm.support import TRIM_EVERY, runs
 from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, ComponentTransition
+
+#: Lazy normalisation: the raw belief is rescaled in place when its normaliser leaves
+#: [1 / RESCALE_AT, RESCALE_AT] (a frame's likelihood ratios are at most e**200 ~ 1e87, so raw
+#: values stay far from float64 overflow and underflow).
+RESCALE_AT = 1e60
+_add = np.add.reduce
+#: Transitions of recently active components kept for re-activation (their set-up is O(n_c)).
+TRANSITION_MEMO = 32
 
 
 class SprintFilter:
@@ -46,11 +66,26 @@ class SprintFilter:
         Shared LRU cache of components; by default a private one of
         ``config.cache_budget_bytes``.
 
+    Attributes
+    ----------
+    pruned_mass, trimmed_mass : float
+        Belief dropped so far by component pruning and by support trimming (each step's share
+        of its total, summed); ``last_pruned_mass`` and ``last_trimmed_mass`` are the last
+        step's.
+    frames : int
+        Frames filtered since the last reset.
+
     Notes
     -----
-    A step costs O(W n_active + nnz(U_active) + k log S_active) where ``n_active`` is the
-    number of vertices of the active components: never O(map). Memory is the active components'
-    belief vectors plus the cache budget. Not thread-safe (one filter per query stream).
+    A step costs O(W live + E_live + k log S_active), ``live`` = slots of the live windows,
+    ``E_live`` = edges leaving them: never O(map), and not O(component) either (only a newly
+    active component's load and set-up are). Memory is a slot vector per active component plus
+    the cache budget. Not thread-safe (one filter per query stream).
+
+    The belief is normalised lazily: the components' slot vectors and the sink hold a *raw*
+    belief, and the posterior is ``raw * z`` with one global factor ``z = 1 / raw total``, so a
+    step does not rescale every live slot (every read — decision, posterior — applies ``z``).
+    The raw values are rescaled in place only when ``z`` leaves ``[1e-60, 1e60]``.
 
     Examples
     --------
@@ -72,26 +107,28 @@ class SprintFilter:
         self.cache = cache if cache is not None else ComponentCache(config.cache_budget_bytes)
         self._obs = ObservationModel(config)
         self._active = ActiveSet()
+        self._transitions: OrderedDict[int, ComponentTransition] = OrderedDict()
         self._eps = config.restart_prob
         self._nu = config.new_place_prob
         self._scale = 1.0 - config.restart_prob - config.new_place_prob
         self._prune = config.prune_threshold
-        self._sink = 1.0
-        self._started = False
-        self.frames = 0
-        self.pruned_mass = 0.0
-        self.last_pruned_mass = 0.0
+        self._support = config.support_threshold
+        self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         """Forget the belief (start of a new query sequence). The cache is kept."""
         self._active.clear()
         self._obs.reset()
-        self._sink = 1.0
+        self._sink = 1.0  # raw
+        self._z = 1.0  # posterior = raw * z
         self._started = False
+        self._n_propagated = 0
         self.frames = 0
         self.pruned_mass = 0.0
         self.last_pruned_mass = 0.0
+        self.trimmed_mass = 0.0
+        self.last_trimmed_mass = 0.0
 
     @property
     def n_active_components(self) -> int:
@@ -100,7 +137,22 @@ class SprintFilter:
 
     @property
     def n_active_vertices(self) -> int:
-        """Number of vertices of the active components (the per-step state size)."""
+        """Vertices propagated by the last update (the per-step state size).
+
+        The live windows the step propagated (edge targets included), summed over the active
+        components; 0 after the first frame (nothing to propagate yet). Not the size of the
+        components: see :attr:`n_component_vertices`.
+        """
+        return self._n_propagated
+
+    @property
+    def n_live_vertices(self) -> int:
+        """Vertices in the live windows now (what the next step propagates, before growth)."""
+        return sum(c.n_live for c in self._active)
+
+    @property
+    def n_component_vertices(self) -> int:
+        """Vertices of the active components (what the paper's filter would propagate)."""
         return self._active.n_vertices
 
     @property
@@ -111,10 +163,15 @@ class SprintFilter:
     @property
     def sink_prob(self) -> float:
         """Posterior of the sink (1.0 before the first frame)."""
-        return self._sink
+        return self._sink * self._z
+
+    def component_probs(self) -> dict[int, float]:
+        """Posterior mass of each active component (O(active components))."""
+        z = self._z
+        return {cid: c.mass * z for cid, c in self._active.comps.items()}
 
     def posterior(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """The belief over the vertices of the active components.
+        """The belief over the vertices of the active components (live or not).
 
         Returns
         -------
@@ -126,19 +183,20 @@ class SprintFilter:
 
         Notes
         -----
-        O(n_active log n_active); for tests and diagnostics, not for the per-frame path.
+        O(n log n) for the n vertices of the active components; for tests and diagnostics, not
+        for the per-frame path.
         """
         vids: list[np.ndarray] = []
         probs: list[np.ndarray] = []
         for comp in self._active:
             vids.append(comp.graph.vertex_ids())
-            probs.append(comp.x[comp.trans.vertex_slots()])
+            probs.append(comp.x[comp.trans.vertex_slots()] * self._z)
         if not vids:
-            return np.empty(0, dtype=np.int64), np.empty(0), self._sink
+            return np.empty(0, dtype=np.int64), np.empty(0), self.sink_prob
         v = np.concatenate(vids)
         p = np.concatenate(probs)
         order = np.argsort(v, kind="stable")
-        return v[order], p[order], self._sink
+        return v[order], p[order], self.sink_prob
 
     # ------------------------------------------------------------------ per frame
     def step(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> Decision:
@@ -174,7 +232,7 @@ class SprintFilter:
         Same parameters and errors as :meth:`step`.
         """
         # This is the hot path of the whole system (and of tools/bench_fig4.py): plain Python
-        # over the k hits and the active components, one numpy call per component and stage.
+        # over the k hits and the active components, a few numpy calls per component and stage.
         vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
         n_hits = len(vids)
         comps = self._active.comps
@@ -184,52 +242,75 @@ class SprintFilter:
             located = [hit] if hit is not None else self._locate(vids)
         else:
             located = self._locate(vids) if n_hits else []
+        n_prop = 0
         if self._started:
+            # Everything below is in raw units (posterior = raw * z): the mass a step adds
+            # (nu, eps) is divided by z instead of multiplying every slot by the normaliser.
             scale = self._scale
-            sink = scale * self._sink + self._nu
-            exact = self.frames % FLUSH_EVERY == 0
+            zinv = 1.0 / self._z
+            sink = scale * self._sink + self._nu * zinv
+            flush_below = FLUSH_BELOW * zinv if self.frames % FLUSH_EVERY == 0 else 0.0
             for comp in comps.values():
-                if exact:
-                    np.putmask(comp.x, comp.x < FLUSH_BELOW, 0.0)
-                if comp.mass > 0.0:  # a just-activated component holds no belief yet
+                n_win = comp.n_windows
+                if n_win == 1:
                     trans = comp.trans
-                    if trans.simple:
-                        # One sequence, no edges (inlined ComponentTransition.propagate): the
-                        # W - 1 tail of the convolution is what ran past the sequence end.
-                        # Propagation keeps mass, so the component's new mass is known
-                        # without summing it (re-summed exactly every FLUSH_EVERY frames).
-                        y = np.correlate(comp.x, trans.krev, "full")
-                        n = trans.n_state
-                        spill = math.fsum(y[n:].tolist())
-                        comp.x = y[:n]
-                        comp.mass = scale * comp.mass - spill
-                        if exact or comp.mass < spill:
-                            comp.mass = float(comp.x.dot(trans.ones))
-                    else:
-                        comp.x, spill = trans.propagate(comp.x)
-                        comp.mass = float(comp.x.dot(trans.ones))
-                    sink += spill
+                    a, b = comp.a, comp.b
+                    if not trans.has_edges or not trans.has_edges_from(a, b):
+                        # One window and no edge leaving it (inlined; the common case): one
+                        # convolution; what it pushes past the sequence end goes to the sink.
+                        # Propagation keeps mass, so the new mass is known without summing
+                        # (re-summed exactly on flush frames).
+                        x = comp.x
+                        if flush_below:
+                            v = x[a:b]
+                            np.putmask(v, v < flush_below, 0.0)
+                        y = np.correlate(x[a:b], trans.krev, "full")
+                        nb = b + trans.gutter
+                        x[a:nb] = y
+                        spill = 0.0
+                        if nb > comp.end:
+                            end = comp.end
+                            spill = math.fsum(y[end - a:].tolist())
+                            x[end:nb] = 0.0
+                            nb = end
+                        comp.b = nb
+                        comp.live = None
+                        n_prop += b - a
+                        mass = scale * comp.mass - spill
+                        if flush_below or mass < spill:
+                            mass = float(_add(x[a:nb]))
+                        comp.mass = mass
+                        sink += spill
+                        continue
+                if n_win:  # (a just-activated component holds no belief yet)
+                    sink += comp.propagate(flush_below)
+                    n_prop += comp.n_propagated
             if n_hits:
-                inject = self._eps / n_hits
+                inject = self._eps * zinv / n_hits
             else:
-                sink += self._eps
+                sink += self._eps * zinv
                 inject = 0.0
         else:
             # Initialisation from the first frame's hits, not uniform over the map.
             self._started = True
+            self._z = 1.0
             if n_hits:
                 sink = self._nu
                 inject = (1.0 - self._nu) / n_hits
             else:
                 sink = 1.0
                 inject = 0.0
+        self._n_propagated = n_prop
         for (comp, slot), lik in zip(located, liks, strict=True):
             x = comp.x
             old = x.item(slot)
             new = (old + inject) * lik
             x[slot] = new
             comp.mass += new - old
-        self._normalise(sink * sink_lik)
+            # A hit outside the live windows opens one (a new hypothesis from the restart mass).
+            if comp.n_windows != 1 or not comp.a <= slot < comp.b:
+                comp.pending.append(slot)
+        self._finish(sink * sink_lik)
         self.frames += 1
 
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
@@ -247,8 +328,7 @@ class SprintFilter:
         try:
             for cid in dict.fromkeys(comp_ids.tolist()):
                 if cid not in active:
-                    graph = self.cache.get(int(cid), self.source.load_component)
-                    active.add(ComponentTransition(graph, self.config))
+                    active.add(self._transition(int(cid)))
                     added.append(int(cid))
             out: list[tuple[ActiveComponent, int]] = []
             for v, f in zip(vids, found, strict=True):
@@ -263,9 +343,29 @@ class SprintFilter:
             raise
         return out
 
-    def _normalise(self, sink: float) -> None:
-        """Normalise, prune components below ``prune_threshold``, renormalise."""
-        comps = self._active.comps
+    def _transition(self, component_id: int) -> ComponentTransition:
+        """The transition of a component (through the cache; set-up memoised per graph)."""
+        graph = self.cache.get(component_id, self.source.load_component)
+        memo = self._transitions
+        trans = memo.get(component_id)
+        if trans is not None and trans.graph is graph:
+            memo.move_to_end(component_id)
+            return trans
+        trans = memo[component_id] = ComponentTransition(graph, self.config)
+        if len(memo) > TRANSITION_MEMO:
+            memo.popitem(last=False)
+        return trans
+
+    def _finish(self, sink: float) -> None:
+        """Prune components, trim windows, normalise (raw belief in, lazy normaliser out).
+
+        Components below ``prune_threshold`` of the total are dropped first; then (every
+        ``TRIM_EVERY`` frames) slots below ``support_threshold`` of what is left are trimmed
+        from the windows. The normaliser ``z`` becomes one over what remains. Both dropped
+        masses are recorded as shares of the step's total.
+        """
+        active = self._active
+        comps = active.comps
         total = sink
         low = math.inf
         for comp in comps.values():
@@ -276,39 +376,68 @@ class SprintFilter:
         if not 0.0 < total < math.inf:
             # Numerical breakdown (all likelihoods underflowed): fall back to "off the map";
             # the restart mass brings the belief back on the next frames.
-            self._active.clear()
-            self._sink = 1.0
+            active.clear()
+            self._sink = self._z = 1.0
             return
         pruned = 0.0
         if low < self._prune * total:
             limit = self._prune * total
             for cid in [cid for cid, comp in comps.items() if comp.mass < limit]:
                 pruned += comps[cid].mass
-                self._active.remove(cid)
+                active.remove(cid)
             total = sink + sum(c.mass for c in comps.values())
-            pruned /= pruned + total
-        self.last_pruned_mass = pruned
-        self.pruned_mass += pruned
-        inv = 1.0 / total
-        for comp in comps.values():
-            x = comp.x
-            np.multiply(x, inv, out=x)
-            comp.mass *= inv
-        self._sink = sink * inv
+        # Trimming is relative to the belief left after pruning (sink included). Several
+        # windows are trimmed every frame (merging new slots alone saves nothing measurable,
+        # and untrimmed windows let belief leak further over edges); a lone window every
+        # TRIM_EVERY frames (its growth costs next to nothing).
+        trimmed = 0.0
+        limit = self._support * total
+        lone = self.frames % TRIM_EVERY == TRIM_EVERY - 1
+        empty: list[int] = []
+        for cid, comp in comps.items():
+            if comp.pending or comp.n_windows > 1 or (lone and comp.n_windows):
+                trimmed += comp.settle(limit, lone)
+                if not comp.n_windows:
+                    empty.append(cid)
+        for cid in empty:  # all its belief was negligible: it holds nothing any more
+            active.remove(cid)
+        if pruned or trimmed:
+            step_total = total + pruned
+            self.last_pruned_mass = pruned / step_total
+            self.pruned_mass += self.last_pruned_mass
+            self.last_trimmed_mass = trimmed / step_total
+            self.trimmed_mass += self.last_trimmed_mass
+            total -= trimmed
+        else:
+            self.last_pruned_mass = self.last_trimmed_mass = 0.0
+        self._sink = sink
+        self._z = z = 1.0 / total
+        if not 1.0 / RESCALE_AT < z < RESCALE_AT:
+            self._rescale()
+
+    def _rescale(self) -> None:
+        """Make the raw belief the posterior (``z = 1``); O(live)."""
+        z = self._z
+        for comp in self._active:
+            comp.rescale(z)
+        self._sink *= z
+        self._z = 1.0
 
     def decide(self) -> Decision:
         """The decision for the current belief (see :mod:`sprint_map.hmm.decision`).
 
         Notes
         -----
-        O(n_active) for the candidate search (a max, a comparison and a ``nonzero`` per active
-        component) plus O(m (r + h d log d)) for the place masses of the m candidates.
+        O(live) for the candidate search (a max, a comparison and a ``nonzero`` over the live
+        slots of each active component) plus O(m (r + h d log d)) for the place masses of the m
+        candidates.
         """
         cfg = self.config
-        views = [c.view() for c in self._active]
+        z = self._z
+        views = [c.view(z) for c in self._active]
         candidates = top_candidates(views, cfg.decision_candidates)
-        return decide(views, candidates, self._sink, cfg.place_radius, cfg.place_hops,
-                      cfg.min_confidence, len(self._active), self._active.n_vertices)
+        return decide(views, candidates, self._sink * z, cfg.place_radius, cfg.place_hops,
+                      cfg.min_confidence, len(self._active), self._n_propagated)
 
     # ------------------------------------------------------------------ map changes
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
@@ -320,26 +449,41 @@ class SprintFilter:
 
         Notes
         -----
-        O(n_active) plus the loads of the affected components.
+        O(live) plus the loads of the affected components.
         """
         if component_ids is None:
             self.cache.clear()
+            self._transitions.clear()
         else:
-            self.cache.invalidate(component_ids)
+            ids = [int(cid) for cid in component_ids]
+            self.cache.invalidate(ids)
+            for cid in ids:
+                self._transitions.pop(cid, None)
+        self._rescale()
         comps = list(self._active)
         if not comps:
             return
-        vids = np.concatenate([c.graph.vertex_ids() for c in comps])
-        probs = np.concatenate([c.x[c.trans.vertex_slots()] for c in comps])
-        keep = probs > 0.0
-        vids, probs = vids[keep], probs[keep]
+        vid_parts: list[np.ndarray] = []
+        prob_parts: list[np.ndarray] = []
+        for c in comps:
+            slots = c.live_slots()
+            vals = c.x[slots]
+            held = vals > 0.0
+            vid_parts.append(c.trans.vertex_of_slots(slots[held]))
+            prob_parts.append(vals[held])
+        vids = np.concatenate(vid_parts)
+        probs = np.concatenate(prob_parts)
         self._active.clear()
         if not vids.size:
             return
         comp_ids = np.asarray(self.source.components_of(vids))
         for cid in np.unique(comp_ids).tolist():
-            graph = self.cache.get(int(cid), self.source.load_component)
-            comp = self._active.add(ComponentTransition(graph, self.config))
+            comp = self._active.add(self._transition(int(cid)))
             sel = comp_ids == cid
-            comp.x[comp.trans.slots_of(vids[sel])] = probs[sel]
+            slots = comp.trans.slots_of(vids[sel])
+            order = np.argsort(slots, kind="stable")
+            slots = slots[order]
+            comp.x[slots] = probs[sel][order]
+            lo, hi, _, _ = runs(slots, comp.trans.gap)
+            comp.set_windows(lo, hi)
             comp.mass = float(probs[sel].sum())

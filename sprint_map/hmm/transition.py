@@ -2,32 +2,38 @@
 
 One transition model, two implementations that must agree to rounding:
 
-* :class:`ComponentTransition` applies it to one component's compact belief vector with
-  ``np.convolve`` over a "gutter" layout: every sequence is followed by ``W - 1`` zero slots, so
-  mass that a sequence's window pushes past its last image lands in the gutter instead of the next
-  sequence, and the gutter's total is the mass that goes to the sink. Only the ``W`` window
-  weights are stored; this is the paper's O(W n) product with the Toeplitz part ``D``.
+* :class:`ComponentTransition` applies it to one component's belief in a "gutter" slot layout:
+  every sequence is followed by ``W - 1`` zero slots, so mass that a sequence's window pushes past
+  its last image lands in the gutter instead of the next sequence, and the gutter's total is the
+  mass that goes to the sink. Only the ``W`` window weights are stored; this is the paper's
+  O(W n) product with the Toeplitz part ``D``. :meth:`ComponentTransition.propagate_windows`
+  applies it to the *live support* only (windows of slots, :mod:`sprint_map.hmm.support`) with
+  one ``np.correlate`` over the gathered windows; :meth:`ComponentTransition.propagate` to the
+  whole component (tests).
 * :func:`full_transition_matrix` builds the same operator for the whole map as one scipy sparse
   matrix (the naive baseline and the reference of the tests).
 
-The model (see ``docs/architecture.md`` ("The HMM")): a vertex ``u`` with out-edges ``u -> v_e`` of weight ``c_e``
-sends ``x_u / R_u`` into its own window and ``x_u * beta * c_e / R_u`` into the window of
-``v_e``, ``R_u = 1 + beta * sum_e c_e``; a window sends weight ``w[t]`` (normalised) ``t``
-images ahead, or to the sink past the sequence end. The sink keeps its mass. Rows sum to one, so
-propagation conserves mass. The filter then scales the propagated mass by
+The model (``docs/architecture.md``, "The HMM"): a vertex ``u`` with out-edges ``u -> v_e`` of
+weight ``c_e`` sends ``x_u / R_u`` into its own window and ``x_u * beta * c_e / R_u`` into the
+window of ``v_e``, ``R_u = 1 + beta * sum_e c_e``; a window sends weight ``w[t]`` (normalised)
+``t`` images ahead, or to the sink past the sequence end. The sink keeps its mass. Rows sum to
+one, so propagation conserves mass. The filter then scales the propagated mass by
 ``1 - restart_prob - new_place_prob``; that factor is folded into the window here.
 """
 
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
 
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import ComponentGraph
+from sprint_map.hmm.support import merge, merge_gap, ranges
 
 _I64 = np.int64
 
@@ -44,8 +50,18 @@ def window_kernel(config: HMMConfig) -> np.ndarray:
     return w * ((1.0 - config.restart_prob - config.new_place_prob) / w.sum())
 
 
+@lru_cache(maxsize=16)
+def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``window_kernel`` and its reverse, read-only, once per config (components share them)."""
+    kernel = window_kernel(config)
+    krev = np.ascontiguousarray(kernel[::-1])
+    kernel.setflags(write=False)
+    krev.setflags(write=False)
+    return kernel, krev
+
+
 class ComponentTransition:
-    """The transition operator of one component, over a compact gutter layout.
+    """The transition operator of one component, over a gutter slot layout.
 
     Parameters
     ----------
@@ -57,63 +73,77 @@ class ComponentTransition:
     Attributes
     ----------
     graph : ComponentGraph
+    gutter : int
+        ``g = W - 1``, the zero slots after every sequence.
     n_state : int
-        Length of the belief vector: vertices plus ``W - 1`` gutter slots after every sequence
-        but the last.
-    slot_first : ndarray of int64, shape (S,)
-        Slot of image 0 of each sequence (``seq_ids`` order).
+        Vertices plus ``g`` gutter slots after every sequence but the last (the layout of
+        :meth:`propagate`).
+    n_slots : int
+        ``n_state + g``: the length of a belief vector for :meth:`propagate_windows`, whose last
+        sequence has its gutter too (a window at its end spills there).
+    slot_first, seq_end : ndarray of int64, shape (S,)
+        Slot of image 0 of each sequence (``seq_ids`` order), and one past its last image.
+    gap : int
+        Smallest distance between two windows (:func:`sprint_map.hmm.support.merge_gap`).
     has_edges : bool
         Whether any edge carries mass (``beta > 0`` and a positive weight).
     simple : bool
-        One sequence (or ``W = 1``) and no live edge: propagation is one convolution.
+        One sequence (or ``W = 1``) and no live edge: :meth:`propagate` is one convolution.
     krev : ndarray of float64, shape (W,)
         The scaled window reversed (``np.correlate`` with it is the convolution).
-    ones : ndarray of float64, shape (n_state,)
-        Used to sum the belief with one ``dot``.
+    ranges : list of (int, int, int)
+        ``(first vertex id, length, first slot)`` of every sequence (the active set's index).
+    edge_src, edge_dst, edge_coef : ndarray
+        The live edges as slots, sorted by source slot, and the share ``beta c_e / R_u`` of the
+        source's mass each carries.
 
     Notes
     -----
-    Construction is O(n_vertices + S W + E). :meth:`propagate` is O(W n_state + E) with one
-    numpy call for a one-sequence component without edges, three with several sequences and
-    five more with edges.
+    Construction is O(S + E log E), plus O(n_vertices) for the reciprocal row sums (a dense
+    vector over the slots) when the component has edges.
+    :meth:`propagate_windows` is O(W live + edges leaving the windows), never O(n_vertices).
     """
 
-    __slots__ = ("_coef", "_dst", "_gsel", "_multi", "_rinv", "_src", "gutter", "graph",
-                 "has_edges", "kernel", "krev", "n_state", "ones", "simple", "slot_first")
+    __slots__ = ("_edge_src_list", "_first_list", "_multi", "_rinv", "edge_coef", "edge_dst",
+                 "edge_src", "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots",
+                 "n_state", "ranges", "seq_end", "simple", "slot_first")
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph
-        self.kernel = window_kernel(config)
         # np.correlate with the reversed kernel is np.convolve without its Python-level checks.
-        self.krev = np.ascontiguousarray(self.kernel[::-1])
+        self.kernel, self.krev = _kernels(config)
         g = self.gutter = len(self.kernel) - 1
+        self.gap = merge_gap(len(self.kernel))
         n_seq = graph.n_sequences
-        self.slot_first = graph.local_first + np.arange(n_seq, dtype=_I64) * g
-        self.n_state = graph.n_vertices + (n_seq - 1) * g
-        self._multi = n_seq > 1 and g > 0
-        # x.dot(ones) sums a belief vector about 2x faster than x.sum() at the sizes that matter.
-        self.ones = np.ones(self.n_state)
-        if self._multi:
-            ends = self.slot_first + graph.seq_len
-            self._gsel: slice | np.ndarray = (ends[:, None] + np.arange(g, dtype=_I64)).ravel()
+        if n_seq == 1:
+            self.slot_first = graph.local_first
         else:
-            self._gsel = slice(self.n_state, self.n_state + g)
+            self.slot_first = graph.local_first + np.arange(n_seq, dtype=_I64) * g
+        self.seq_end = self.slot_first + graph.seq_len
+        self._first_list: list[int] = self.slot_first.tolist()
+        self.ranges = list(zip(graph.seq_first.tolist(), graph.seq_len.tolist(),
+                               self._first_list, strict=True))
+        self.n_state = graph.n_vertices + (n_seq - 1) * g
+        self.n_slots = self.n_state + g
+        self._multi = n_seq > 1 and g > 0
         weights = graph.edge_weight * config.edge_weight
         live = weights > 0
-        self.has_edges = bool(live.any())
+        self.has_edges = bool(live.any()) if live.size else False
         if self.has_edges:
             src = self.slot_first[graph.edge_src_seq[live]] + (
                 graph.edge_src[live] - graph.seq_first[graph.edge_src_seq[live]])
             dst = self.slot_first[graph.edge_dst_seq[live]] + (
                 graph.edge_dst[live] - graph.seq_first[graph.edge_dst_seq[live]])
-            row = 1.0 + np.bincount(src, weights=weights[live], minlength=self.n_state)
+            row = 1.0 + np.bincount(src, weights=weights[live], minlength=self.n_slots)
             self._rinv = 1.0 / row
-            self._src = src
-            self._dst = dst
-            self._coef = weights[live] * self._rinv[src]
+            order = np.argsort(src, kind="stable")
+            self.edge_src = src[order]
+            self.edge_dst = dst[order]
+            self.edge_coef = weights[live][order] * self._rinv[self.edge_src]
         else:
-            self._rinv = self._coef = np.empty(0)
-            self._src = self._dst = np.empty(0, dtype=_I64)
+            self._rinv = self.edge_coef = np.empty(0)
+            self.edge_src = self.edge_dst = np.empty(0, dtype=_I64)
+        self._edge_src_list: list[int] = self.edge_src.tolist()
         # One sequence and no live edge: propagation is a single convolution (the filter inlines
         # it on its hot path).
         self.simple = not self._multi and not self.has_edges
@@ -132,8 +162,30 @@ class ComponentTransition:
         seq = np.searchsorted(self.graph.local_first, local, side="right") - 1
         return local + seq * self.gutter
 
+    def vertex_of_slots(self, slots: np.ndarray) -> np.ndarray:
+        """Global vertex id of each (vertex) slot (O(m log S))."""
+        sl = np.asarray(slots, dtype=_I64)
+        seq = np.searchsorted(self.slot_first, sl, side="right") - 1
+        return self.graph.seq_first[seq] + (sl - self.slot_first[seq])
+
+    def seq_end_of(self, slot: int) -> int:
+        """One past the last slot of the sequence holding ``slot`` (O(log S), pure Python)."""
+        s = bisect_right(self._first_list, slot) - 1
+        return self._first_list[s] + int(self.graph.seq_len[s])
+
+    def has_edges_from(self, lo: int, hi: int) -> bool:
+        """Whether a live edge leaves a slot of ``[lo, hi)`` (O(log E), pure Python)."""
+        src = self._edge_src_list
+        i = bisect_left(src, lo)
+        return i < len(src) and src[i] < hi
+
     def propagate(self, x: np.ndarray) -> tuple[np.ndarray, float]:
-        """Apply the (scaled) transition to belief ``x`` (length ``n_state``, zero gutters).
+        """Apply the (scaled) transition to a whole-component belief ``x`` (reference path).
+
+        Parameters
+        ----------
+        x : ndarray of float64, shape (n_state,)
+            Belief in slot layout, zero gutters.
 
         Returns
         -------
@@ -142,22 +194,109 @@ class ComponentTransition:
             ``1 - restart_prob - new_place_prob``.
         overflow : float
             Mass that ran past sequence ends (goes to the sink), scaled likewise.
+
+        Notes
+        -----
+        O(W n_state + E). The filter uses :meth:`propagate_windows`; this is the same operator
+        over every slot (tests compare both with :func:`full_transition_matrix`).
         """
+        n = self.n_state
         if self.has_edges:
-            z = x * self._rinv
-            z += np.bincount(self._dst, weights=x[self._src] * self._coef, minlength=self.n_state)
+            z = x * self._rinv[:n]
+            z += np.bincount(self.edge_dst, weights=x[self.edge_src] * self.edge_coef,
+                             minlength=n)
         else:
             z = x
         y = np.correlate(z, self.krev, "full")
-        n = self.n_state
         if self._multi:
-            gsel = self._gsel
+            gsel = (self.seq_end[:, None] + np.arange(self.gutter, dtype=_I64)).ravel()
             overflow = float(y[gsel].sum())
             y[gsel] = 0.0
         else:
             # Single sequence: the gutter is the W - 1 tail (empty for W = 1).
             overflow = math.fsum(y[n:].tolist())
         return y[:n], overflow
+
+    def propagate_windows(self, x: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, float, float, int]:
+        """Propagate the belief held in windows ``[lo, hi)`` of ``x``, in place.
+
+        Parameters
+        ----------
+        x : ndarray of float64, shape (n_slots,)
+            Belief in slot layout; every slot outside the windows holds 0.
+        lo, hi : ndarray of int64
+            Sorted windows, each inside one sequence, at least :attr:`gap` slots apart.
+
+        Returns
+        -------
+        lo, hi : ndarray of int64
+            The windows after the step: grown by ``W - 1`` (clipped at sequence ends) and
+            joined by one window per edge target outside them (merged where closer than
+            :attr:`gap`). ``x`` is zero outside them again.
+        overflow : float
+            Mass that ran past sequence ends (scaled like the belief; goes to the sink).
+        mass : float
+            Belief left in the windows.
+        n_propagated : int
+            Slots propagated: the input windows, edge targets included.
+
+        Notes
+        -----
+        O(W live + edges leaving the windows), about 25 numpy calls whatever the number of
+        windows: the windows are gathered into one compact vector, each followed by its own
+        ``W - 1`` zero slots (they are at least that far apart in ``x``, or followed by a
+        gutter), convolved once and scattered back. Edges leaving the windows are found by two
+        binary searches in the source-sorted edge list.
+        """
+        g = self.gutter
+        n_edges = 0
+        if self.has_edges:
+            e_lo = self.edge_src.searchsorted(lo)
+            counts = self.edge_src.searchsorted(hi) - e_lo
+            n_edges = int(counts.sum())
+            if n_edges:
+                eidx = ranges(e_lo, counts, n_edges)
+                dst = self.edge_dst[eidx]
+                moved = x[self.edge_src[eidx]] * self.edge_coef[eidx]
+                # Edge targets outside the windows open windows of their own.
+                pos = lo.searchsorted(dst, "right") - 1
+                if not np.all((pos >= 0) & (dst < hi[pos])):
+                    lo, hi = merge(np.concatenate((lo, dst)), np.concatenate((hi, dst + 1)),
+                                   self.gap)
+                    pos = lo.searchsorted(dst, "right") - 1
+        lens = hi - lo
+        n_prop = int(lens.sum())
+        seg = lens + g
+        total = n_prop + g * lo.size
+        out = ranges(lo, seg, total)
+        z = x[out]
+        if self.has_edges:
+            z *= self._rinv[out]
+            if n_edges:
+                start = seg.cumsum() - seg
+                z += np.bincount(start[pos] + (dst - lo[pos]), weights=moved, minlength=total)
+        # Each window's output lands in [lo, hi + g): its own slots and the g free slots after
+        # it (the next window is at least g away, or a gutter follows), never another window.
+        y = np.correlate(z, self.krev, "full")[:total]
+        x[out] = y
+        mass = float(y.sum())
+        overflow = 0.0
+        hi = hi + g
+        if g:
+            end = self.seq_end[self.slot_first.searchsorted(lo, "right") - 1]
+            over = (hi > end).nonzero()[0]
+            if over.size:
+                for j in over.tolist():
+                    e, h = int(end[j]), int(hi[j])
+                    overflow += math.fsum(x[e:h].tolist())
+                    x[e:h] = 0.0
+                hi = np.minimum(hi, end)
+                mass -= overflow
+        # Grown windows of one sequence may now be closer than the gap: merge them.
+        if lo.size > 1 and bool((lo[1:] < hi[:-1] + self.gap).any()):
+            lo, hi = merge(lo, hi, self.gap)
+        return lo, hi, overflow, mass, n_prop
 
 
 def full_transition_matrix(graphs: Sequence[ComponentGraph], config: HMMConfig,

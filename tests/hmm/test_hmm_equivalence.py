@@ -21,7 +21,7 @@ def maps(draw: st.DrawFn) -> tuple[list[int], list[tuple[int, int, float]]]:
 
 
 @st.composite
-def configs(draw: st.DrawFn, prune: float) -> HMMConfig:
+def configs(draw: st.DrawFn, prune: float, support: float = 0.0) -> HMMConfig:
     window = tuple(draw(st.lists(st.sampled_from([0.0, 0.1, 0.3, 0.5, 1.0]), min_size=1,
                                  max_size=6)))
     if sum(window) == 0:
@@ -30,6 +30,7 @@ def configs(draw: st.DrawFn, prune: float) -> HMMConfig:
         window=window,
         edge_weight=draw(st.sampled_from([0.0, 0.5, 1.0, 3.0])),
         prune_threshold=prune,
+        support_threshold=support,
         restart_prob=draw(st.sampled_from([0.0, 0.01, 0.2])),
         new_place_prob=draw(st.sampled_from([0.0, 0.01, 0.1])),
         dist_scale=draw(st.sampled_from([None, 0.05, 0.5])),
@@ -119,14 +120,14 @@ def test_pruned_step_differs_by_at_most_the_pruned_mass(data: st.DataObject) -> 
         assert diff <= 2 * sprint.last_pruned_mass + 1e-9
         assert probs.sum() + sink == pytest.approx(1.0, abs=1e-12)
         # Every component left active holds at least the threshold's share.
-        for comp in sprint._active:
-            assert comp.mass >= config.prune_threshold - 1e-12
+        for mass in sprint.component_probs().values():
+            assert mass >= config.prune_threshold - 1e-12
 
 
 def test_pruning_bound_is_exercised() -> None:
     """The bound above is not vacuous: pruning drops mass and the posteriors then differ."""
     source = MemoryGraphSource([20, 20, 20])
-    config = HMMConfig(prune_threshold=1e-2)
+    config = HMMConfig(prune_threshold=1e-2, support_threshold=0.0)
     sprint = SprintFilter(config, source)
     full = FullGraphFilter(config, source)
     rng = np.random.default_rng(7)

@@ -66,7 +66,10 @@ def test_initialisation_uses_the_first_frame_hits_only(four_roads: MemoryGraphSo
     vids, probs, sink = filt.posterior()
     assert set(vids[probs > 0].tolist()) == {5, 7}
     assert probs[vids == 5][0] > probs[vids == 7][0]
-    assert decision.n_active_vertices == 60
+    # Nothing propagated yet; the live support is the hits (5 and 7, one window: they are
+    # closer than W - 1); the component has 60 vertices.
+    assert decision.n_active_vertices == 0
+    assert filt.n_live_vertices == 3 and filt.n_component_vertices == 60
     assert probs.sum() + sink == pytest.approx(1.0)
 
 
@@ -312,7 +315,9 @@ def test_step_cost_follows_the_active_set_not_the_map() -> None:
         tracemalloc.stop()
     assert peak < 200_000  # bytes; one dense belief over the map would be 80 MB
     assert sorted(set(big.loaded)) == [5000, 30000]
-    assert filt.n_active_vertices == 200
+    # Only the live windows around the two tracks are propagated, not the two components.
+    assert 0 < filt.n_active_vertices <= 60
+    assert filt.n_component_vertices == 200
 
 
 def test_cache_avoids_reloading_components(four_roads: MemoryGraphSource) -> None:
@@ -335,7 +340,8 @@ def test_cache_avoids_reloading_components(four_roads: MemoryGraphSource) -> Non
 
 def test_invalidate_remaps_the_belief_after_a_merge() -> None:
     before = MemoryGraphSource([30, 30, 30])
-    filt = SprintFilter(HMMConfig(prune_threshold=0.0), before)
+    exact = HMMConfig(prune_threshold=0.0, support_threshold=0.0)
+    filt = SprintFilter(exact, before)
     drive(filt, list(range(0, 10)), [40] * 10)
     vids, probs, sink = filt.posterior()
     assert sorted(filt.active_component_ids) == [0, 1]
@@ -348,7 +354,7 @@ def test_invalidate_remaps_the_belief_after_a_merge() -> None:
     np.testing.assert_allclose(probs2[keep], probs)
     assert sink2 == sink
     # It then runs exactly like a filter that always knew the merged map.
-    fresh = FullGraphFilter(HMMConfig(prune_threshold=0.0), after)
+    fresh = FullGraphFilter(exact, after)
     fresh.set_posterior(vids2, probs2, sink2)
     fresh._obs._scale = filt._obs._scale
     for t in range(10, 15):

@@ -1,0 +1,40 @@
+"""Place runs: the small-place path (Python sets) and the large-place path (numpy) agree."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from sprint_map.hmm import HMMConfig, MemoryGraphSource
+from sprint_map.hmm.decision import BeliefView, _place_runs_np, place_mass, place_runs
+from sprint_map.hmm.transition import ComponentTransition
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_small_and_large_place_paths_give_the_same_runs(data: st.DataObject) -> None:
+    lengths = data.draw(st.lists(st.integers(1, 15), min_size=1, max_size=6))
+    n = sum(lengths)
+    edges = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1),
+                                         st.just(1.0)), max_size=25))
+    source = MemoryGraphSource(lengths, edges)
+    vertex = data.draw(st.integers(0, n - 1))
+    graph = source.load_component(int(source.components_of(np.array([vertex]))[0]))
+    trans = ComponentTransition(graph, HMMConfig())
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    x = np.zeros(trans.n_slots)
+    x[trans.vertex_slots()] = rng.random(graph.n_vertices)
+    view = BeliefView(graph, trans.slot_first, x)
+    slot = int(trans.slots_of(np.array([vertex]))[0])
+    radius = data.draw(st.integers(0, 3))
+    hops = data.draw(st.integers(1, 4))
+    runs = place_runs(view, slot, radius, hops)
+    s = int(graph.seq_index(np.array([vertex]))[0])
+    image = vertex - int(graph.seq_first[s])
+    lo, hi = max(image - radius, 0), min(image + radius, int(graph.seq_len[s]) - 1)
+    assert runs == _place_runs_np(view, s, lo, hi, radius, hops)
+    # Runs are sorted and disjoint, cover the vertex, and each vertex counts once.
+    flat = [v for a, b in runs for v in range(a, b)]
+    assert flat == sorted(set(flat)) and slot in flat
+    assert np.isclose(place_mass(view, slot, radius, hops), x[flat].sum(), rtol=1e-12)
