@@ -101,16 +101,28 @@ class ComponentGraph:
         if n_edges and (not np.all(np.isfinite(self.edge_weight)) or self.edge_weight.min() < 0):
             raise ValueError("edge weights must be finite and >= 0")
 
-        by_first = np.argsort(self.seq_first, kind="stable")
-        first_sorted = self.seq_first[by_first]
-        if n_seq > 1 and np.any(first_sorted[1:] < first_sorted[:-1] + self.seq_len[by_first][:-1]):
-            raise ValueError("sequence vertex ranges overlap")
+        if n_seq == 1:  # the common small component: skip the sorts (activation cost)
+            by_first = np.zeros(1, dtype=_I64)
+            first_sorted = self.seq_first
+        else:
+            by_first = np.argsort(self.seq_first, kind="stable")
+            first_sorted = self.seq_first[by_first]
+            if np.any(first_sorted[1:] < first_sorted[:-1] + self.seq_len[by_first][:-1]):
+                raise ValueError("sequence vertex ranges overlap")
         put(self, "_by_first", by_first)
         put(self, "_first_sorted", first_sorted)
         local_first = np.zeros(n_seq, dtype=_I64)
         np.cumsum(self.seq_len[:-1], out=local_first[1:])
         put(self, "local_first", local_first)
         put(self, "n_vertices", int(self.seq_len.sum()))
+        if not n_edges:
+            empty = np.zeros(0, dtype=_I64)
+            empty.setflags(write=False)
+            for name in ("edge_src_seq", "edge_dst_seq", "edge_src_local", "edge_dst_local",
+                         "adj_indices"):
+                put(self, name, empty)
+            put(self, "adj_indptr", np.zeros(self.n_vertices + 1, dtype=_I64))
+            return
 
         src_seq = self.seq_index(self.edge_src)
         dst_seq = self.seq_index(self.edge_dst)
