@@ -82,9 +82,11 @@ class SequenceWriter:
                 ) -> tuple[np.ndarray | None, list[ResolvedEdge]]:
         """Validate positions and edges for a sequence of ``frames`` frames (writes nothing)."""
         pos = validate_positions(positions, frames)
+        lengths: dict[int, tuple[int, int]] = {}  # one sequence read per distinct sequence
         with self.store.env.read() as txn:
             resolved = [
-                self.store._resolve_edge(e, self.seq_id, self.first, frames, txn) for e in edges
+                self.store._resolve_edge(e, self.seq_id, self.first, frames, txn, lengths)
+                for e in edges
             ]
         return pos, resolved
 

@@ -459,15 +459,27 @@ class MapStore:
         return SequenceWriter(self, name, source)
 
     def _resolve_edge(self, edge: EdgeSpec, new_seq: int, first: int, n: int,
-                      txn: lmdb.Transaction) -> ResolvedEdge:
+                      txn: lmdb.Transaction,
+                      seen: dict[int, tuple[int, int]] | None = None) -> ResolvedEdge:
+        """Global endpoints of ``edge``; ``seen`` caches ``seq_id -> (first vertex, length)``
+        across the edges of one commit (a drive's edges hit few sequences, many times)."""
         ends = []
         for seq, image in (edge.src, edge.dst):
             if seq is None or seq == new_seq:
                 if not 0 <= image < n:
                     raise InputError(f"edge endpoint image {image} outside the new sequence")
                 ends.append((new_seq, first + image))
-            else:
-                ends.append((seq, self.vertex_id(seq, image, txn)))
+                continue
+            span = seen.get(seq) if seen is not None else None
+            if span is None:
+                record = self.sequence(seq, txn)
+                span = (record.first_vertex, record.length)
+                if seen is not None:
+                    seen[seq] = span
+            if not 0 <= image < span[1]:
+                raise UnknownSequenceError(
+                    f"sequence {seq} has no image {image} (it has {span[1]})")
+            ends.append((seq, span[0] + image))
         (src_seq, src), (dst_seq, dst) = ends
         if src_seq == dst_seq:
             raise InputError(f"edge {edge.src} -> {edge.dst} does not join two sequences")
@@ -495,13 +507,19 @@ class MapStore:
         n_components = self.counter("n_components", txn) + 1
         added = 0
         now = time.time()
+        edges_db, rev_db = db("edges"), db("edges_rev")
+        joined: set[tuple[int, int]] = set()  # sequence pairs already united in this commit
         for src, dst, src_seq, dst_seq, spec in edges:
             key = EDGE_KEY.pack(src, dst)
             value = EdgeRecord(src, dst, spec.weight, record.seq_id, spec.frame, now).encode_value()
-            if txn.get(key, db=db("edges")) is None:
+            if txn.get(key, db=edges_db) is None:
                 added += 1
-            txn.put(key, value, db=db("edges"))  # a repeated edge keeps its newest provenance
-            txn.put(EDGE_KEY.pack(dst, src), b"", db=db("edges_rev"))
+            txn.put(key, value, db=edges_db)  # a repeated edge keeps its newest provenance
+            txn.put(EDGE_KEY.pack(dst, src), b"", db=rev_db)
+            pair = (src_seq, dst_seq) if src_seq < dst_seq else (dst_seq, src_seq)
+            if pair in joined:
+                continue
+            joined.add(pair)
             if self.uf.find(txn, src_seq) != self.uf.find(txn, dst_seq):
                 self.uf.union(txn, src_seq, dst_seq)
                 n_components -= 1
