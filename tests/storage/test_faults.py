@@ -57,21 +57,7 @@ ERRNOS = {"EIO": errno.EIO, "ENOSPC": errno.ENOSPC}
 def map_state(path: Path) -> dict[str, Any]:
     """Everything a user can read from the map, timestamps aside; asserts that check passes."""
     with MapStore.open(path, readonly=True) as store:
-        report = check_map(store)
-        assert report.ok, report.violations
-        seqs = []
-        for rec in store.sequences():
-            pos = store.positions(rec.seq_id)
-            seqs.append((rec.seq_id, rec.name, rec.length, rec.first_vertex, rec.source,
-                         store.descriptors(rec.seq_id).tobytes(),
-                         None if pos is None else pos.tobytes()))
-        return {
-            "stats": store.stats(),
-            "sequences": seqs,
-            "edges": sorted((e.src, e.dst, e.weight, e.query_seq, e.frame) for e in store.edges()),
-            "components": sorted((c.component, tuple(c.sequences), c.vertices)
-                                 for c in store.components()),
-        }
+        return map_state_of_open(store)
 
 
 def reopen_and_state(path: Path) -> dict[str, Any]:
@@ -497,7 +483,7 @@ def test_power_loss_at_every_file_call(template, tmp_path):
 
 
 def map_state_of_open(store: MapStore) -> dict[str, Any]:
-    """:func:`map_state` of a map this process holds open for writing (same contents)."""
+    """:func:`map_state` of a map this process holds open (for reading or writing)."""
     report = check_map(store)
     assert report.ok, report.violations
     seqs = []
