@@ -8,8 +8,8 @@ One transition model, two implementations that must agree to rounding:
   mass that goes to the sink. Only the ``W`` window weights are stored; this is the paper's
   O(W n) product with the Toeplitz part ``D``. :meth:`ComponentTransition.propagate_windows`
   applies it to the *live support* only (windows of slots, :mod:`sprint_map.hmm.support`) with
-  one ``np.correlate`` over the gathered windows; :meth:`ComponentTransition.propagate` to the
-  whole component (tests).
+  one ``np.correlate`` over the gathered windows (the whole component is the case where every
+  sequence is one window).
 * :func:`full_transition_matrix` builds the same operator for the whole map as one scipy sparse
   matrix (the naive baseline and the reference of the tests).
 
@@ -87,8 +87,6 @@ class ComponentTransition:
         Smallest distance between two windows (:func:`sprint_map.hmm.support.merge_gap`).
     has_edges : bool
         Whether any edge carries mass (``beta > 0`` and a positive weight).
-    simple : bool
-        One sequence (or ``W = 1``) and no live edge: :meth:`propagate` is one convolution.
     krev : ndarray of float64, shape (W,)
         The scaled window reversed (``np.correlate`` with it is the convolution).
     ranges : list of (int, int, int)
@@ -104,9 +102,9 @@ class ComponentTransition:
     :meth:`propagate_windows` is O(W live + edges leaving the windows), never O(n_vertices).
     """
 
-    __slots__ = ("_edge_src_list", "_first_list", "_multi", "_rinv", "edge_coef", "edge_dst",
-                 "edge_src", "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots",
-                 "n_state", "ranges", "seq_end", "simple", "slot_first")
+    __slots__ = ("_edge_src_list", "_first_list", "_rinv", "edge_coef", "edge_dst", "edge_src",
+                 "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots", "n_state",
+                 "ranges", "seq_end", "slot_first")
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph
@@ -125,7 +123,6 @@ class ComponentTransition:
                                self._first_list, strict=True))
         self.n_state = graph.n_vertices + (n_seq - 1) * g
         self.n_slots = self.n_state + g
-        self._multi = n_seq > 1 and g > 0
         weights = graph.edge_weight * config.edge_weight
         live = weights > 0
         self.has_edges = bool(live.any()) if live.size else False
@@ -144,9 +141,6 @@ class ComponentTransition:
             self._rinv = self.edge_coef = np.empty(0)
             self.edge_src = self.edge_dst = np.empty(0, dtype=_I64)
         self._edge_src_list: list[int] = self.edge_src.tolist()
-        # One sequence and no live edge: propagation is a single convolution (the filter inlines
-        # it on its hot path).
-        self.simple = not self._multi and not self.has_edges
 
     def slots_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Belief slot of each global vertex id of this component (O(m log S))."""
@@ -178,44 +172,6 @@ class ComponentTransition:
         src = self._edge_src_list
         i = bisect_left(src, lo)
         return i < len(src) and src[i] < hi
-
-    def propagate(self, x: np.ndarray) -> tuple[np.ndarray, float]:
-        """Apply the (scaled) transition to a whole-component belief ``x`` (reference path).
-
-        Parameters
-        ----------
-        x : ndarray of float64, shape (n_state,)
-            Belief in slot layout, zero gutters.
-
-        Returns
-        -------
-        y : ndarray of float64, shape (n_state,)
-            Propagated belief (a new array; gutters zero), already scaled by
-            ``1 - restart_prob - new_place_prob``.
-        overflow : float
-            Mass that ran past sequence ends (goes to the sink), scaled likewise.
-
-        Notes
-        -----
-        O(W n_state + E). The filter uses :meth:`propagate_windows`; this is the same operator
-        over every slot (tests compare both with :func:`full_transition_matrix`).
-        """
-        n = self.n_state
-        if self.has_edges:
-            z = x * self._rinv[:n]
-            z += np.bincount(self.edge_dst, weights=x[self.edge_src] * self.edge_coef,
-                             minlength=n)
-        else:
-            z = x
-        y = np.correlate(z, self.krev, "full")
-        if self._multi:
-            gsel = (self.seq_end[:, None] + np.arange(self.gutter, dtype=_I64)).ravel()
-            overflow = float(y[gsel].sum())
-            y[gsel] = 0.0
-        else:
-            # Single sequence: the gutter is the W - 1 tail (empty for W = 1).
-            overflow = math.fsum(y[n:].tolist())
-        return y[:n], overflow
 
     def propagate_windows(self, x: np.ndarray, lo: np.ndarray, hi: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray, float, float, int]:
@@ -315,7 +271,7 @@ def full_transition_matrix(graphs: Sequence[ComponentGraph], config: HMMConfig,
     -------
     scipy.sparse.csr_matrix, shape (n + 1, n + 1)
         ``A`` with ``A @ [x; s]`` the propagated belief (column = source state), scaled by
-        ``1 - restart_prob - new_place_prob`` like :meth:`ComponentTransition.propagate`.
+        ``1 - restart_prob - new_place_prob`` like :meth:`ComponentTransition.propagate_windows`.
 
     Notes
     -----

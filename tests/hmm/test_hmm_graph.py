@@ -11,6 +11,7 @@ import pytest
 
 from sprint_map.errors import ConfigError
 from sprint_map.hmm import ComponentCache, ComponentGraph, HMMConfig, MemoryGraphSource
+from sprint_map.hmm.support import merge
 from sprint_map.hmm.transition import ComponentTransition, full_transition_matrix
 
 # ---------------------------------------------------------------------------------- config
@@ -180,15 +181,18 @@ def test_component_transition_matches_the_sparse_matrix(window: tuple[float, ...
     matrix = full_transition_matrix([graph], config, [0])
     x = rng.random(graph.n_vertices)
     slots = trans.vertex_slots()
-    belief = np.zeros(trans.n_state)
-    belief[slots] = x
-    y, overflow = trans.propagate(belief)
+    y = np.zeros(trans.n_slots)
+    y[slots] = x
+    # Every sequence is live: one window per sequence (merged where the gap allows, W = 1).
+    lo, hi = merge(trans.slot_first.copy(), trans.seq_end.copy(), trans.gap)
+    lo, hi, overflow, mass, n_prop = trans.propagate_windows(y, lo, hi)
     expected = matrix @ np.append(x, 0.0)
     np.testing.assert_allclose(y[slots], expected[:-1], atol=1e-15)
     assert overflow == pytest.approx(expected[-1], abs=1e-15)
-    gutters = np.setdiff1d(np.arange(trans.n_state), slots)
+    gutters = np.setdiff1d(np.arange(trans.n_slots), slots)
     assert np.all(y[gutters] == 0.0)
+    assert n_prop == graph.n_vertices
     # Rows are stochastic: propagation keeps the mass (times 1 - eps - nu).
     scale = 1 - config.restart_prob - config.new_place_prob
-    assert y.sum() + overflow == pytest.approx(scale * x.sum())
+    assert mass == pytest.approx(y.sum()) and mass + overflow == pytest.approx(scale * x.sum())
     np.testing.assert_allclose(np.asarray(matrix.sum(axis=0)).ravel(), scale)
