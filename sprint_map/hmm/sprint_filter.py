@@ -265,7 +265,7 @@ class SprintFilter:
                             v = x[a:b]
                             np.putmask(v, v < flush_below, 0.0)
                         y = np.correlate(x[a:b], trans.krev, "full")
-                        nb = b + trans.gutter
+                        nb = b + trans.spread
                         x[a:nb] = y
                         spill = 0.0
                         if nb > comp.end:

@@ -83,8 +83,8 @@ def merge(lo: np.ndarray, hi: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndar
     Notes
     -----
     O(m log m) for m windows (one argsort), about ten numpy calls. Windows of different
-    sequences are never merged: sequences are separated by ``W - 1`` gutter slots in the slot
-    layout, which is exactly ``gap`` when ``W > 1``.
+    sequences are never merged: sequences are separated by ``gap`` gutter slots in the slot
+    layout (:class:`sprint_map.hmm.transition.ComponentTransition`).
     """
     if lo.size <= 1:
         return lo, hi

@@ -3,7 +3,7 @@
 One transition model, two implementations that must agree to rounding:
 
 * :class:`ComponentTransition` applies it to one component's belief in a "gutter" slot layout:
-  every sequence is followed by ``W - 1`` zero slots, so mass that a sequence's window pushes past
+  every sequence is followed by ``max(W - 1, 1)`` zero slots, so mass that a sequence's window pushes past
   its last image lands in the gutter instead of the next sequence, and the gutter's total is the
   mass that goes to the sink. Only the ``W`` window weights are stored; this is the paper's
   O(W n) product with the Toeplitz part ``D``. :meth:`ComponentTransition.propagate_windows`
@@ -74,7 +74,12 @@ class ComponentTransition:
     ----------
     graph : ComponentGraph
     gutter : int
-        ``g = W - 1``, the zero slots after every sequence.
+        ``g = max(W - 1, 1)``, the zero slots after every sequence: room for what a window at
+        the sequence end pushes past it, and at least :attr:`gap`, so that windows of two
+        sequences never touch (with ``W = 1`` and no gutter they would merge into one window
+        spanning both, and the end clip would send the second one's mass to the sink).
+    spread : int
+        ``W - 1``: how far one step moves mass (and grows a window).
     n_state : int
         Vertices plus ``g`` gutter slots after every sequence but the last (the layout of
         :meth:`propagate`).
@@ -104,14 +109,14 @@ class ComponentTransition:
 
     __slots__ = ("_edge_src_list", "_first_list", "_rinv", "edge_coef", "edge_dst", "edge_src",
                  "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots", "n_state",
-                 "ranges", "seq_end", "slot_first")
+                 "ranges", "seq_end", "slot_first", "spread")
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph
         # np.correlate with the reversed kernel is np.convolve without its Python-level checks.
         self.kernel, self.krev = _kernels(config)
-        g = self.gutter = len(self.kernel) - 1
-        self.gap = merge_gap(len(self.kernel))
+        self.spread = len(self.kernel) - 1
+        g = self.gutter = self.gap = merge_gap(len(self.kernel))
         n_seq = graph.n_sequences
         if n_seq == 1:
             self.slot_first = graph.local_first
@@ -205,7 +210,7 @@ class ComponentTransition:
         gutter), convolved once and scattered back. Edges leaving the windows are found by two
         binary searches in the source-sorted edge list.
         """
-        g = self.gutter
+        g = self.spread
         n_edges = 0
         if self.has_edges:
             e_lo = self.edge_src.searchsorted(lo)

@@ -188,3 +188,28 @@ def test_step_follows_the_live_support_not_the_component() -> None:
     large, _ = run_track(chain_map(200, 1000), 200)
     assert small > 0 and large <= 2 * small + 50
     assert large < 200_000 / 50  # a tiny share of the component
+
+
+@pytest.mark.parametrize("window", [(1.0,), (0.5, 0.5)])
+def test_a_window_at_the_end_of_one_sequence_never_leaks_into_the_next(
+        window: tuple[float, ...]) -> None:
+    """Belief at the last image of a sequence and at the next sequence's first stays apart.
+
+    With ``W = 1`` a layout without gutter put the two slots side by side; their windows merged
+    into one spanning both sequences and the end clip sent the second one's mass to the sink.
+    """
+    lengths = [8, 30, 13, 1]
+    source = MemoryGraphSource(lengths, [(8, 51, 1.0)])  # seqs 1 and 3 form one component
+    config = HMMConfig(window=window, edge_weight=0.0, prune_threshold=0.0,
+                       support_threshold=1e-6, restart_prob=0.0, new_place_prob=0.0)
+    sprint = SprintFilter(config, source)
+    full = FullGraphFilter(config, source)
+    hits = np.array([37, 51], dtype=np.int64)
+    sprint.update(hits, np.zeros(2))
+    full.update(hits, np.zeros(2))
+    for _ in range(3):
+        sprint.update(np.empty(0, dtype=np.int64), np.empty(0))
+        full.update(np.empty(0, dtype=np.int64), np.empty(0))
+        vids, probs, sink = sprint.posterior()
+        assert np.abs(dense(sum(lengths), vids, probs) - full.posterior()[1]).sum() < 1e-12
+        assert sink == pytest.approx(full.sink_prob, abs=1e-12)
