@@ -390,3 +390,40 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
     results, paths = run_demo(Path(out_dir), which, log=_log(quiet))
     click.echo(markdown_table(results))
     click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--host", help="Address to listen on (default 127.0.0.1); beyond loopback a "
+              "bearer token is required.")
+@click.option("--port", type=click.IntRange(0, 65535),
+              help="TCP port (default 8000; 0: a free one, printed at start).")
+@click.option("--token-file", type=click.Path(dir_okay=False),
+              help="File holding the bearer token (default: $SPRINT_MAP_TOKEN, if set).")
+@click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
+              help="JSON file of ServerConfig limits (see docs/architecture.md, Service).")
+def serve(map_path: str, host: str | None, port: int | None, token_file: str | None,
+          config_json: str | None) -> None:
+    """Serve MAP over HTTP: vehicles stream frames, get places, and commit their drives.
+
+    Stops gracefully on SIGTERM/Ctrl-C (open sessions discarded unless configured to commit).
+    API: POST /v1/sessions, /v1/sessions/ID/frames, /v1/sessions/ID/commit; see /docs.
+
+    \b
+    Examples:
+      sprint-map serve city.map --port 8000
+      SPRINT_MAP_TOKEN=s3cret sprint-map serve city.map --host 0.0.0.0
+    """
+    from sprint_map.server.config import ServerConfig
+    from sprint_map.server.run import serve_map
+
+    options: dict[str, Any] = {}
+    if config_json:
+        try:
+            with open(config_json) as fh:
+                options = json.load(fh)
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read config {config_json}: {exc}") from exc
+    given = {"host": host, "port": port, "token_file": token_file}
+    options.update({key: value for key, value in given.items() if value is not None})
+    serve_map(map_path, ServerConfig.from_dict(options))

@@ -100,3 +100,15 @@ class StorageIOError(SprintMapError):
     """An operating-system I/O error (EIO, ENOSPC, ...) aborted an operation."""
 
     exit_code = 16
+
+
+class UnsafeServeError(SprintMapError):
+    """``serve`` refused an unsafe setting (a non-loopback address without a bearer token)."""
+
+    exit_code = 18
+
+
+class ListenError(SprintMapError):
+    """``serve`` cannot listen on the address (in use, not an address of this host)."""
+
+    exit_code = 19

@@ -124,6 +124,20 @@ class Localizer:
         self.timing = Timing()
         self._frame = 0
 
+    def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
+        """Tell a long-lived localizer that the map changed (another drive was committed).
+
+        ``component_ids`` are the components the commit changed (all if None): the new one and
+        every one merged into it. The belief is kept and re-mapped by vertex id (see
+        :meth:`SprintFilter.invalidate`); a localizer started on an empty map starts searching.
+
+        Notes
+        -----
+        O(live) plus reloading the changed components that are active.
+        """
+        self._empty = self.map.stats()["vertices"] == 0
+        self.filter.invalidate(component_ids)
+
     def step(self, descriptor: np.ndarray) -> FrameDecision:
         """Localise one frame (a vehicle streaming its images)."""
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim)

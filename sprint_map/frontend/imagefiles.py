@@ -116,20 +116,29 @@ def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
+    return decode_image(data, str(path), grayscale)
+
+
+def decode_image(data: bytes, label: str = "image", grayscale: bool = True) -> np.ndarray:
+    """Decode encoded image bytes (PNG, JPEG, ...) as :func:`read_image` decodes a file.
+
+    ``label`` starts the error message (the file name, or what the bytes are). Raises
+    ``InputError`` for empty, truncated or undecodable bytes.
+    """
     if not data:
-        raise InputError(f"{path}: empty image file")
+        raise InputError(f"{label}: empty image file")
     if _is_truncated(data):
-        raise InputError(f"{path}: truncated image file")
+        raise InputError(f"{label}: truncated image file")
     buffer = np.frombuffer(data, dtype=np.uint8)
     flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
     try:
         image = cv2.imdecode(buffer, flags)
     except cv2.error as exc:  # some codecs raise instead of returning None
         raise InputError(
-            f"{path}: cannot decode image ({str(exc).strip().splitlines()[-1]})"
+            f"{label}: cannot decode image ({str(exc).strip().splitlines()[-1]})"
         ) from exc
     if image is None or image.size == 0:
-        raise InputError(f"{path}: cannot decode image (corrupt or not an image)")
+        raise InputError(f"{label}: cannot decode image (corrupt or not an image)")
     return image
 
 

@@ -1,0 +1,290 @@
+"""The HTTP API (FastAPI on uvicorn): routes, error answers, the request-size limit, auth.
+
+Paths (a contract): ``POST /v1/sessions``, ``POST /v1/sessions/{id}/frames``,
+``POST /v1/sessions/{id}/commit``, ``DELETE /v1/sessions/{id}``, ``GET /v1/map``,
+``GET /healthz``, ``GET /readyz``, ``GET /metrics``; the schema is at ``/openapi.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+import anyio
+from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from sprint_map.server.auth import token_matches
+from sprint_map.server.errors import ApiError
+from sprint_map.server.metrics import Metrics
+from sprint_map.server.service import LocalisationService
+
+
+# --- schemas (documentation of the contract) ---------------------------------------------------
+class Error(BaseModel):
+    error: str = Field(description="Stable machine-readable code, e.g. descriptor_shape.")
+    message: str
+
+
+class SessionCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str | None = Field(None, description="Sequence name for the commit (unique in the map).")
+
+
+class SessionCreated(BaseModel):
+    session_id: str
+
+
+class FrameDescriptor(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    descriptor: list[float] = Field(description="One descriptor of the map's dimension.")
+
+
+class FrameTiming(BaseModel):
+    retrieval_ms: float
+    hmm_ms: float
+    server_ms: float = Field(description="Admission to answer in the server, queueing included.")
+
+
+class FrameAnswer(BaseModel):
+    frame: int = Field(description="Index of the frame in its session (0, 1, ...).")
+    seq_id: int | None = Field(description="Matched sequence; null for no match.")
+    image_id: int | None = Field(description="Matched image of that sequence; null for no match.")
+    prob: float = Field(description="Posterior mass of the decided (or best) place.")
+    timing: FrameTiming
+
+
+class CommitAnswer(BaseModel):
+    seq_id: int
+    name: str
+    frames: int
+    edges_added: int
+    component: int
+
+
+class Discarded(BaseModel):
+    session_id: str
+    frames: int
+    discarded: bool
+
+
+class Status(BaseModel):
+    status: str
+
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": Error, "description": text} for code, text in (
+        (401, "Missing or wrong bearer token."),
+        (404, "Unknown session."),
+        (409, "Conflict with the session's state or the map (e.g. duplicate name, empty)."),
+        (413, "Request body too large."),
+        (415, "Unsupported content type."),
+        (422, "Invalid payload (dimension, NaN/Inf, undecodable image, bad field)."),
+        (429, "Too many frames of this session waiting."),
+        (503, "A bounded queue or limit is full, or the server is shutting down."),
+    )
+}
+
+FRAME_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": 'Either JSON {"descriptor": [floats]} or the encoded image (PNG, JPEG, '
+                       "...) with an image/* content type; images need a map of hog or "
+                       "patchnorm descriptors.",
+        "content": {
+            "application/json": {"schema": {"$ref": "#/components/schemas/FrameDescriptor"}},
+            "image/png": {"schema": {"type": "string", "format": "binary"}},
+            "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+        },
+    }
+}
+
+
+#: Documents the optional bearer token in the schema; the check itself is ``authorised``.
+BEARER = HTTPBearer(auto_error=False, description="Required when the server has a token.")
+
+
+class BodyLimit:
+    """ASGI middleware: refuse request bodies above ``limit`` bytes with 413 (JSON).
+
+    The body is buffered up to the limit before the app sees it, so no route reads more.
+    """
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope.get("headers") or [])
+        length = headers.get(b"content-length")
+        if length is not None and (not length.isdigit() or int(length) > self.limit):
+            await self._refuse(send)
+            return
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                break  # a disconnect: the app sees it below
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.limit:
+                await self._refuse(send)
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        sent = False
+
+        async def replay() -> Message:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _refuse(self, send: Send) -> None:
+        err = ApiError(413, "too_large", f"request body exceeds {self.limit} bytes")
+        response = JSONResponse(err.body(), status_code=413)
+        await response({"type": "http"}, _no_receive, send)
+
+
+class RequestMetrics:
+    """ASGI middleware: count requests by method, route template and status."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        status = 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = getattr(scope.get("route"), "path", "other")
+            self.metrics.requests.inc(method=scope.get("method", ""), route=route,
+                                      status=str(status))
+
+
+async def _no_receive() -> Message:
+    return {"type": "http.disconnect"}
+
+
+def create_app(service: LocalisationService, token: str | None = None) -> FastAPI:
+    """The FastAPI app over ``service``; its lifespan starts and shuts the service down."""
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        await service.start()
+        try:
+            yield
+        finally:
+            await service.shutdown()
+
+    app = FastAPI(
+        title="sprint-map localisation service",
+        version="1",
+        summary="Vehicles stream frames, the map answers with places and grows with each drive.",
+        lifespan=lifespan,
+    )
+    async def authorised(
+        request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]
+    ) -> None:
+        if token is not None and not token_matches(request.headers.get("authorization"), token):
+            raise ApiError(401, "unauthorised", "missing or wrong bearer token",
+                           {"WWW-Authenticate": "Bearer"})
+
+    guard = [Depends(authorised)]
+
+    @app.exception_handler(ApiError)
+    async def api_error(_: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        first = exc.errors()[0] if exc.errors() else {}
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        status = 400 if first.get("type") == "json_invalid" else 422
+        code = "bad_json" if status == 400 else "bad_payload"
+        return JSONResponse({"error": code, "message": f"{where}: {first.get('msg', 'invalid')}"},
+                            status_code=status)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        return JSONResponse({"error": code, "message": str(exc.detail)},
+                            status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+    @app.post("/v1/sessions", status_code=201, response_model=SessionCreated,
+              responses=_ERRORS, dependencies=guard, summary="Start a drive")
+    async def create_session(body: SessionCreate | None = None) -> dict[str, str]:
+        session = await service.create_session(body.name if body else None)
+        return {"session_id": session.id}
+
+    @app.post("/v1/sessions/{session_id}/frames", response_model=FrameAnswer,
+              responses=_ERRORS, dependencies=guard, openapi_extra=FRAME_BODY,
+              summary="Localise the next frame of a drive")
+    async def frame(session_id: str, request: Request) -> dict[str, Any]:
+        body = await request.body()
+        return await service.frame(session_id, request.headers.get("content-type"), body)
+
+    @app.post("/v1/sessions/{session_id}/commit", response_model=CommitAnswer,
+              responses=_ERRORS, dependencies=guard,
+              summary="Merge the drive into the map (answered once durable)")
+    async def commit(session_id: str) -> dict[str, Any]:
+        return await service.commit(session_id)
+
+    @app.delete("/v1/sessions/{session_id}", response_model=Discarded, responses=_ERRORS,
+                dependencies=guard, summary="Discard a drive")
+    async def discard(session_id: str) -> dict[str, Any]:
+        session = await service.discard(session_id)
+        return {"session_id": session.id, "frames": session.frames, "discarded": True}
+
+    @app.get("/v1/map", responses=_ERRORS, dependencies=guard,
+             summary="The map's summary (the fields of sprint-map info --json)")
+    async def map_info() -> dict[str, Any]:
+        return await service.map_info()
+
+    @app.get("/healthz", response_model=Status, summary="The process answers")
+    async def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/readyz", response_model=Status, responses={503: {"model": Error}},
+             summary="Ready to answer frames (map open, index loaded, writer running)")
+    async def readyz() -> Any:
+        if service.ready and service.writer.alive and not service.closing:
+            return {"status": "ready"}
+        return JSONResponse({"error": "not_ready", "message": "starting or shutting down"},
+                            status_code=503)
+
+    @app.get("/metrics", response_class=PlainTextResponse, dependencies=guard,
+             summary="Prometheus metrics (text format 0.0.4)")
+    async def metrics() -> PlainTextResponse:
+        text = await anyio.to_thread.run_sync(service.metrics.render)
+        return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
+
+    app.add_middleware(BodyLimit, limit=service.config.max_request_bytes)
+    app.add_middleware(RequestMetrics, metrics=service.metrics)
+    return app

@@ -1,0 +1,99 @@
+"""ServerConfig: the service's limits and settings (frozen, with defaults, JSON round-trip)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from sprint_map import dataclass_dict
+
+#: What graceful shutdown does with sessions still open: drop them, or commit those with frames.
+SHUTDOWN_MODES = ("discard", "commit")
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Settings of ``sprint-map serve``; every limit answers a clear 4xx/503, never grows memory.
+
+    Parameters
+    ----------
+    host, port : str, int
+        Where to listen; loopback by default. Port 0 picks a free port (printed at start).
+    token_env : str
+        Environment variable holding the bearer token.
+    token_file : str or None
+        File holding the bearer token (takes precedence over ``token_env``). Without a token
+        the server refuses to listen on a non-loopback address.
+    max_request_bytes : int
+        Largest request body (a frame's JSON or image bytes); larger: 413.
+    max_sessions : int
+        Open sessions at once; more: 503.
+    max_frames_per_session : int
+        Frames one session may stream before it must commit or be discarded; more: 409.
+    max_buffered_bytes : int
+        Descriptor bytes held by all open sessions together (they are committed at the end of
+        a drive, so they stay in memory until then); more: 503.
+    session_ttl_s : float
+        A session without a request for this long expires and is discarded.
+    frame_workers : int
+        Threads answering frames (retrieval and HMM; FAISS and OpenCV release the GIL).
+    max_pending_frames : int
+        Requests of one session waiting behind the frame in progress; more: 429.
+    max_queued_frames : int
+        Frame requests admitted over all sessions (waiting or in progress); more: 503.
+    commit_queue_size : int
+        Commits waiting for the single writer thread; more: 503.
+    on_shutdown : str
+        ``"discard"`` or ``"commit"`` the sessions still open at a graceful shutdown.
+    max_connections : int
+        Concurrent connections and requests uvicorn serves (``limit_concurrency``); more: 503.
+        With ``max_request_bytes`` it bounds the memory held by request bodies.
+    shutdown_grace_s : float
+        How long a graceful shutdown waits for requests in progress.
+    max_image_pixels : int
+        Largest decoded image (OpenCV's ``OPENCV_IO_MAX_IMAGE_PIXELS``; a decompression bomb
+        is refused, not decoded).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8000
+    token_env: str = "SPRINT_MAP_TOKEN"
+    token_file: str | None = None
+    max_request_bytes: int = 4 << 20
+    max_sessions: int = 256
+    max_frames_per_session: int = 100_000
+    max_buffered_bytes: int = 2 << 30
+    session_ttl_s: float = 600.0
+    frame_workers: int = 4
+    max_pending_frames: int = 8
+    max_queued_frames: int = 512
+    commit_queue_size: int = 16
+    on_shutdown: str = "discard"
+    max_connections: int = 512
+    shutdown_grace_s: float = 10.0
+    max_image_pixels: int = 1 << 26
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
+            raise ValueError("port must be in 0..65535")
+        for name in ("max_request_bytes", "max_sessions", "max_frames_per_session",
+                     "max_buffered_bytes", "frame_workers", "max_pending_frames",
+                     "max_queued_frames", "commit_queue_size", "max_connections",
+                     "max_image_pixels"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer")
+        for name in ("session_ttl_s", "shutdown_grace_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        if self.on_shutdown not in SHUTDOWN_MODES:
+            raise ValueError(f"on_shutdown must be one of {', '.join(SHUTDOWN_MODES)}")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ServerConfig:
+        """Build from a dict (e.g. a ``--config`` JSON file); unknown keys are refused."""
+        return dataclass_dict.from_dict(cls, data)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return a JSON-ready dict."""
+        return dataclass_dict.to_dict(self)

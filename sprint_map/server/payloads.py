@@ -1,0 +1,81 @@
+"""Frame payloads: a JSON descriptor or encoded image bytes, turned into one descriptor row.
+
+Every problem is an :class:`ApiError` 4xx naming what is wrong (bad JSON, not an object, not a
+list of numbers, wrong dimension, NaN/Inf, an image the map cannot describe or that does not
+decode), never a 500.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+
+from sprint_map.errors import SprintMapError
+from sprint_map.frontend.descriptors import DescriptorSpec
+from sprint_map.frontend.imagefiles import decode_image
+from sprint_map.server.errors import ApiError, from_library
+from sprint_map.storage.validation import validate_descriptors
+
+JSON_TYPES = ("application/json",)
+
+
+def media_type(content_type: str | None) -> str:
+    """The media type of a ``Content-Type`` header, lower case, without parameters."""
+    return (content_type or "").split(";", 1)[0].strip().lower()
+
+
+def parse_json(body: bytes) -> Any:
+    """Parse a JSON body, or a 400 ``bad_json``."""
+    try:
+        return json.loads(body)
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+        raise ApiError(400, "bad_json", f"the body is not valid JSON ({exc})") from None
+
+
+def descriptor_from_json(data: Any, dim: int) -> np.ndarray:
+    """The ``(1, dim)`` float32 row of ``{"descriptor": [numbers]}``."""
+    if not isinstance(data, dict) or "descriptor" not in data:
+        raise ApiError(422, "bad_payload", 'expected a JSON object {"descriptor": [numbers]}')
+    unknown = sorted(set(data) - {"descriptor"})
+    if unknown:
+        raise ApiError(422, "bad_payload", f"unknown field(s) {', '.join(map(str, unknown))}")
+    values = data["descriptor"]
+    if not isinstance(values, list):
+        raise ApiError(422, "bad_payload", "descriptor must be a list of numbers")
+    # bool is an int subclass, but true is not a number here.
+    if not all(type(v) is float or type(v) is int for v in values):
+        raise ApiError(422, "bad_payload", "descriptor must be a list of numbers")
+    if len(values) != dim:
+        raise ApiError(422, "descriptor_shape",
+                       f"descriptor has {len(values)} values, the map's dimension is {dim}")
+    try:
+        row = np.array([values], dtype=np.float64)
+    except OverflowError:  # an integer beyond float64
+        raise ApiError(422, "invalid_descriptor", "descriptor holds a number beyond float range"
+                       ) from None
+    return _validated(row, dim)
+
+
+def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int) -> np.ndarray:
+    """Decode image bytes and describe them as the map's own images are described."""
+    if spec is None:
+        raise ApiError(415, "images_not_supported",
+                       f"this map holds precomputed descriptors (dim {dim}): send "
+                       'application/json {"descriptor": [...]}, not an image')
+    try:
+        image = decode_image(body, "image")
+        row = spec.describe(image).reshape(1, -1)
+    except SprintMapError as exc:
+        raise ApiError(422, "bad_image", str(exc)) from None
+    except (ValueError, MemoryError) as exc:  # e.g. an image too large to decode
+        raise ApiError(422, "bad_image", f"image: cannot describe it ({exc})") from None
+    return _validated(row, dim)
+
+
+def _validated(row: np.ndarray, dim: int) -> np.ndarray:
+    try:
+        return validate_descriptors(row, dim)
+    except SprintMapError as exc:
+        raise from_library(exc) from None

@@ -1,0 +1,100 @@
+"""serve_map(): open the map for writing, bind, run uvicorn until SIGTERM/SIGINT, close.
+
+uvicorn handles SIGTERM and SIGINT gracefully: it stops accepting connections, lets requests in
+progress finish (up to ``shutdown_grace_s``), then runs the app's lifespan shutdown, which
+finishes or discards open sessions, stops the writer after its queue and closes the map
+(persisting the index). A SIGKILL loses nothing acknowledged: a commit is answered only after
+its LMDB transaction returned.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from sprint_map.errors import ListenError
+from sprint_map.map import SprintMap
+from sprint_map.server.auth import check_bind, load_token
+from sprint_map.server.config import ServerConfig
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on ``host:port`` (port 0: a free one).
+
+    Raises
+    ------
+    ListenError
+        The address is in use or not one of this host's.
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        family, kind, proto, _, address = infos[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise ListenError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(2048)
+    except OSError as exc:
+        sock.close()
+        raise ListenError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve_map(path: str | os.PathLike[str], config: ServerConfig,
+              announce: Callable[[str], None] | None = None) -> None:
+    """Serve the map at ``path`` until a shutdown signal.
+
+    ``announce`` receives one line once the socket listens (default: printed to stdout):
+    ``serving MAP on http://HOST:PORT``; with port 0 it names the port picked.
+
+    Raises
+    ------
+    UnsafeServeError
+        A non-loopback host without a token.
+    ListenError, NotAMapError, MapLockedError, ...
+        Before anything is served.
+    """
+    import uvicorn
+
+    from sprint_map.server.app import create_app
+    from sprint_map.server.service import LocalisationService
+
+    token = load_token(config)
+    check_bind(config.host, token)
+    # OpenCV reads its decoded-size limit once, at the first decode: set it before any.
+    os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(config.max_image_pixels))
+    smap = SprintMap.open(path)
+    try:
+        sock = bind(config.host, config.port)
+    except BaseException:
+        smap.close()
+        raise
+    service = LocalisationService(smap, config)
+    app = create_app(service, token)
+    server = uvicorn.Server(uvicorn.Config(
+        app, log_level="warning", access_log=False, lifespan="on",
+        limit_concurrency=config.max_connections,
+        timeout_graceful_shutdown=int(max(1, round(config.shutdown_grace_s))),
+        # Nothing of the map crosses the limit: a request's body is capped by BodyLimit.
+        h11_max_incomplete_event_size=64 * 1024,
+    ))
+    host, port = sock.getsockname()[:2]
+    shown = f"[{host}]" if ":" in host else host
+    line = f"serving {Path(path)} on http://{shown}:{port}"
+    (announce or (lambda text: print(text, flush=True)))(line)
+    try:
+        server.run(sockets=[sock])
+    finally:
+        sock.close()
+        if smap.store.env is not None:  # the lifespan did not run (start-up failed)
+            smap.close()
+        for warning in smap.warnings:
+            print(f"Warning: {warning}", file=sys.stderr)
+    if not server.started:
+        raise ListenError(f"the server did not start on {host}:{port} (see the log above)")

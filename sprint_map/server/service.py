@@ -1,0 +1,290 @@
+"""LocalisationService: sessions, frame workers and the commit writer over one open map.
+
+Threads: the event loop (uvicorn) admits requests and keeps per-session order; ``frame_workers``
+threads answer frames (decode, describe, k-NN retrieval, HMM step) under the map gate's shared
+side; one writer thread commits drives (:mod:`sprint_map.server.writer`). Every queue is
+bounded: a full one answers 429 (one session too far ahead) or 503 (the server), never grows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from concurrent.futures import Future
+from typing import Any
+
+import anyio
+import numpy as np
+
+from sprint_map.errors import SprintMapError
+from sprint_map.map import SprintMap
+from sprint_map.server.config import ServerConfig
+from sprint_map.server.errors import ApiError, busy, from_library
+from sprint_map.server.gate import MapGate
+from sprint_map.server.metrics import Metrics
+from sprint_map.server.payloads import (
+    JSON_TYPES,
+    descriptor_from_image,
+    descriptor_from_json,
+    media_type,
+    parse_json,
+)
+from sprint_map.server.sessions import COMMITTING, OPEN, Session, SessionRegistry
+from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
+from sprint_map.storage.validation import validate_name
+
+
+class LocalisationService:
+    """The service behind the HTTP routes (usable without HTTP, e.g. in tests).
+
+    Parameters
+    ----------
+    smap : SprintMap
+        A map open for writing; the service closes it on :meth:`shutdown` if ``owns_map``.
+    config : ServerConfig
+        Limits and settings.
+    """
+
+    def __init__(self, smap: SprintMap, config: ServerConfig, *, owns_map: bool = True) -> None:
+        self.map = smap
+        self.config = config
+        self.owns_map = owns_map
+        self.gate = MapGate()
+        self.metrics = Metrics()
+        self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
+                                        config.max_buffered_bytes)
+        self.writer = CommitWriter(smap, self.gate, self.registry.notify_changed,
+                                   config.commit_queue_size)
+        self.spec = smap.config.descriptor_spec()
+        self.dim = smap.config.dim
+        self.ready = False
+        self.closing = False
+        self._admitted = 0  # frame requests admitted, all sessions
+        self._limiter: anyio.CapacityLimiter | None = None
+        self._expiry: asyncio.Task[None] | None = None
+        m = self.metrics
+        m.gauge("sprint_map_sessions_active", "Open sessions.", lambda: len(self.registry))
+        m.gauge("sprint_map_frames_queued", "Frame requests admitted (waiting or running).",
+                lambda: self._admitted)
+        m.gauge("sprint_map_commit_queue_depth", "Commits waiting for the writer.",
+                lambda: self.writer.depth)
+        m.gauge("sprint_map_buffered_bytes", "Descriptor bytes held by open sessions.",
+                lambda: self.registry.buffered_bytes)
+        m.gauge("sprint_map_map_vertices", "Vertices in the map.",
+                lambda: self._stats().get("vertices", 0))
+        m.gauge("sprint_map_map_sequences", "Sequences in the map.",
+                lambda: self._stats().get("sequences", 0))
+
+    # --- lifecycle --------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Load the index (so no frame loads it concurrently), start the writer and expiry."""
+        self._limiter = anyio.CapacityLimiter(self.config.frame_workers)
+        await anyio.to_thread.run_sync(self._warm)
+        self.writer.start()
+        self._expiry = asyncio.create_task(self._expire_loop())
+        self.ready = True
+
+    def _warm(self) -> None:
+        # The index loads lazily on the first search; do it now, alone.
+        self.map.search(np.zeros((1, self.dim), np.float32), 1)
+
+    async def shutdown(self) -> None:
+        """Finish or discard open sessions (``config.on_shutdown``), stop the writer, close."""
+        self.ready = False
+        self.closing = True
+        if self._expiry is not None:
+            self._expiry.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._expiry
+        pending: list[Future[CommitOutcome]] = []
+        for session in self.registry.all():
+            if session.state != OPEN:
+                continue
+            if self.config.on_shutdown == "commit" and session.frames:
+                session.state = COMMITTING
+                pending.append(self.writer.submit(self._job(session)))
+            self.registry.remove(session)
+            self.metrics.sessions.inc(how="shutdown")
+        for future in pending:
+            with contextlib.suppress(Exception):  # a failed commit is logged by its error
+                outcome = await asyncio.wrap_future(future)
+                self.metrics.commits.inc(result="ok")
+                self.metrics.edges.inc(outcome.added.edges_added)
+        await anyio.to_thread.run_sync(self._close)
+
+    def _close(self) -> None:
+        self.writer.stop()
+        if self.owns_map:
+            with self.gate.exclusive():
+                self.map.close()  # persists the index
+
+    def _stats(self) -> dict[str, int]:
+        if self.map.store.env is None:
+            return {}
+        with self.gate.shared():
+            return self.map.stats()
+
+    # --- sessions ---------------------------------------------------------------------------
+    async def create_session(self, name: str | None) -> Session:
+        self._refuse_if_closing()
+        if name is not None:
+            try:
+                validate_name(name)
+            except SprintMapError as exc:
+                raise from_library(exc) from None
+        session = await anyio.to_thread.run_sync(self._new_session, name)
+        self.registry.add(session)
+        self.metrics.sessions.inc(how="created")
+        return session
+
+    def _new_session(self, name: str | None) -> Session:
+        with self.gate.shared():
+            if name is not None:
+                try:
+                    self.map.store.sequence_by_name(name)
+                except SprintMapError:
+                    pass
+                else:
+                    raise ApiError(409, "duplicate_name",
+                                   f"the map already has a sequence named {name!r}")
+            return Session(name, self.map.localizer(), self.dim)
+
+    async def discard(self, session_id: str) -> Session:
+        session = self.registry.get(session_id)
+        async with session.lock:  # after the frame in progress
+            if session.state == COMMITTING:
+                raise ApiError(409, "committing", "the session is being committed")
+            self.registry.remove(session)
+        self.metrics.sessions.inc(how="discarded")
+        return session
+
+    async def _expire_loop(self) -> None:
+        ttl = self.config.session_ttl_s
+        while True:
+            await asyncio.sleep(min(max(ttl / 4, 0.05), 5.0))
+            for session in self.registry.idle(ttl):
+                self.registry.remove(session)
+                self.metrics.sessions.inc(how="expired")
+
+    # --- frames -----------------------------------------------------------------------------
+    async def frame(self, session_id: str, content_type: str | None, body: bytes
+                    ) -> dict[str, Any]:
+        """Answer one frame of a session (in the session's order)."""
+        self._refuse_if_closing()
+        session = self.registry.get(session_id)
+        session.touch()
+        if session.waiting >= self.config.max_pending_frames:
+            self.metrics.rejected.inc(reason="session_pending")
+            raise ApiError(429, "too_many_pending", f"{session.waiting} frames of this session "
+                           "are already waiting; send the next frame after an answer",
+                           {"Retry-After": "1"})
+        if self._admitted >= self.config.max_queued_frames:
+            self.metrics.rejected.inc(reason="server_queue")
+            raise busy(f"{self._admitted} frames are waiting for a worker; retry later")
+        kind = media_type(content_type)
+        if kind in JSON_TYPES:
+            payload = "descriptor"
+        elif kind.startswith("image/"):
+            payload = "image"
+        else:
+            raise ApiError(415, "unsupported_media_type", "send application/json "
+                           '{"descriptor": [...]} or the encoded image with an image/* type')
+        data = parse_json(body) if payload == "descriptor" else None
+        start = time.perf_counter()
+        session.waiting += 1
+        self._admitted += 1
+        try:
+            async with session.lock:
+                if session.state != OPEN:
+                    raise ApiError(409, "committing", "the session is being committed")
+                self.registry.reserve_frame(session)
+                try:
+                    assert self._limiter is not None
+                    decision, timing = await anyio.to_thread.run_sync(
+                        self._step, session, data, body, limiter=self._limiter)
+                except BaseException:
+                    self.registry.release_frame(session)
+                    raise
+        finally:
+            session.waiting -= 1
+            self._admitted -= 1
+            session.touch()
+        elapsed = time.perf_counter() - start
+        m = self.metrics
+        m.frames.inc(result="match" if decision.is_match else "no_match")
+        m.frame_seconds.observe(elapsed, payload=payload)
+        m.retrieval_seconds.observe(timing[0] / 1e3)
+        m.hmm_seconds.observe(timing[1] / 1e3)
+        out = decision.to_dict()
+        out["timing"] = {"retrieval_ms": round(timing[0], 4), "hmm_ms": round(timing[1], 4),
+                         "server_ms": round(elapsed * 1e3, 4)}
+        return out
+
+    def _step(self, session: Session, data: Any, body: bytes) -> tuple[Any, tuple[float, float]]:
+        """Worker thread: payload -> row (outside the gate) -> filter step (shared gate)."""
+        if data is not None:
+            row = descriptor_from_json(data, self.dim)
+        else:
+            row = descriptor_from_image(body, self.spec, self.dim)
+        with self.gate.shared():
+            try:
+                decision = session.step(row)
+            except SprintMapError as exc:
+                raise from_library(exc) from None
+        timing = session.localizer.timing
+        return decision, (timing.retrieval_ms[-1], timing.hmm_ms[-1])
+
+    # --- commits ----------------------------------------------------------------------------
+    def _job(self, session: Session) -> CommitJob:
+        return CommitJob(session.name, session.descriptors(), list(session.decisions),
+                         source=f"sprint-map serve session {session.id}")
+
+    async def commit(self, session_id: str) -> dict[str, Any]:
+        """Commit a session's drive; returns once the commit is durable."""
+        self._refuse_if_closing()
+        session = self.registry.get(session_id)
+        session.touch()
+        start = time.perf_counter()
+        async with session.lock:  # after its frames in progress, in order
+            if session.state != OPEN:
+                raise ApiError(409, "committing", "the session is already being committed")
+            if not session.frames:
+                raise ApiError(409, "empty_session", "the session has no frames to commit")
+            future = self.writer.submit(self._job(session))
+            session.state = COMMITTING
+            # Settled in the writer thread, before the awaiting request resumes (and even if
+            # the client went away): a durable commit closes the session, a failed one reopens.
+            future.add_done_callback(lambda f: self._settle(session, f))
+            try:
+                outcome = await asyncio.wrap_future(future)
+            except SprintMapError as exc:
+                raise from_library(exc) from None
+        m = self.metrics
+        m.commit_seconds.observe(time.perf_counter() - start)
+        m.commit_exclusive_seconds.observe(outcome.exclusive_s)
+        m.edges.inc(outcome.added.edges_added)
+        seq = outcome.added.sequence
+        return {"seq_id": seq.seq_id, "name": seq.name, "frames": seq.length,
+                "edges_added": outcome.added.edges_added, "component": outcome.added.component}
+
+    def _settle(self, session: Session, future: Future[CommitOutcome]) -> None:
+        if future.exception() is None:
+            self.registry.remove(session)
+            self.metrics.commits.inc(result="ok")
+            self.metrics.sessions.inc(how="committed")
+        else:
+            session.state = OPEN
+            self.metrics.commits.inc(result="error")
+
+    # --- map --------------------------------------------------------------------------------
+    async def map_info(self) -> dict[str, Any]:
+        def info() -> dict[str, Any]:
+            with self.gate.shared():
+                return self.map.info()
+
+        return await anyio.to_thread.run_sync(info)
+
+    def _refuse_if_closing(self) -> None:
+        if self.closing:
+            raise ApiError(503, "shutting_down", "the server is shutting down")

@@ -1,0 +1,169 @@
+"""Sessions: one per drive, each with its own filter state, and the registry that bounds them.
+
+A session is a vehicle's drive in progress: its :class:`~sprint_map.localizer.Localizer` (the
+SPRINT filter's belief), the descriptors it streamed and the decisions it was answered, kept
+until the drive is committed (as ``ingest`` would commit it) or discarded. Frames of a session
+run one at a time, in arrival order (``lock``, FIFO); sessions run concurrently.
+
+Lifecycle: ``open`` -> (``committing`` -> ``closed`` | back to ``open`` if the commit failed)
+or -> ``closed`` (discarded, expired, shut down).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+import uuid
+from collections.abc import Iterable
+
+import numpy as np
+
+from sprint_map.localizer import FrameDecision, Localizer
+from sprint_map.server.errors import ApiError, busy, unknown_session
+
+OPEN, COMMITTING, CLOSED = "open", "committing", "closed"
+
+
+class Session:
+    """One drive in progress. Mutated only by its own frame (under ``lock``) and the writer.
+
+    ``changed`` is written by the commit writer while it holds the map gate exclusively and read
+    by this session's next frame under the shared gate: the gate orders the two.
+    """
+
+    def __init__(self, name: str | None, localizer: Localizer, dim: int) -> None:
+        self.id = uuid.uuid4().hex
+        self.name = name
+        self.localizer = localizer
+        self.dim = dim
+        self.rows: list[np.ndarray] = []
+        self.decisions: list[FrameDecision] = []
+        self.state = OPEN
+        self.lock = asyncio.Lock()
+        self.waiting = 0  # frame requests admitted for this session (queued or running)
+        self.created = time.time()
+        self.last_active = time.monotonic()
+        #: Components changed by commits since this session's last frame (None: no change).
+        self.changed: set[int] | None = None
+
+    @property
+    def frames(self) -> int:
+        return len(self.decisions)
+
+    @property
+    def nbytes(self) -> int:
+        """Descriptor bytes this session holds."""
+        return self.frames * self.dim * 4
+
+    def touch(self) -> None:
+        self.last_active = time.monotonic()
+
+    def notify_changed(self, component_ids: Iterable[int]) -> None:
+        """Record that a commit changed these components (called under the exclusive gate)."""
+        if self.changed is None:
+            self.changed = set()
+        self.changed.update(int(c) for c in component_ids)
+
+    def apply_changes(self) -> None:
+        """Tell the filter about commits since the last frame (called under the shared gate)."""
+        if self.changed is not None:
+            changed, self.changed = self.changed, None
+            self.localizer.invalidate(changed)
+
+    def step(self, row: np.ndarray) -> FrameDecision:
+        """Localise one frame and keep it for the commit (called under the shared gate)."""
+        self.apply_changes()
+        decision = self.localizer.step(row)
+        self.rows.append(row.reshape(-1))
+        self.decisions.append(decision)
+        return decision
+
+    def descriptors(self) -> np.ndarray:
+        """The drive's descriptors, ``(frames, dim)`` float32."""
+        return np.stack(self.rows) if self.rows else np.empty((0, self.dim), np.float32)
+
+    def to_dict(self) -> dict[str, object]:
+        return {"session_id": self.id, "name": self.name, "frames": self.frames,
+                "state": self.state, "created": self.created,
+                "idle_s": round(time.monotonic() - self.last_active, 3)}
+
+
+class SessionRegistry:
+    """The open sessions, with the limits on their number and on the bytes they hold.
+
+    Thread-safe: the event loop adds and removes sessions, the writer thread walks them.
+    """
+
+    def __init__(self, max_sessions: int, max_frames: int, max_buffered_bytes: int) -> None:
+        self.max_sessions = max_sessions
+        self.max_frames = max_frames
+        self.max_buffered_bytes = max_buffered_bytes
+        self._sessions: dict[str, Session] = {}
+        self._lock = threading.Lock()
+        self._buffered = 0
+
+    def __len__(self) -> int:
+        return len(self._sessions)
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Descriptor bytes held by all open sessions."""
+        return self._buffered
+
+    def add(self, session: Session) -> None:
+        with self._lock:
+            if len(self._sessions) >= self.max_sessions:
+                raise busy(f"too many open sessions ({self.max_sessions}); commit or discard "
+                           "some, or retry later")
+            if session.name is not None and any(
+                    s.name == session.name for s in self._sessions.values()):
+                raise ApiError(409, "duplicate_name",
+                               f"an open session is already named {session.name!r}")
+            self._sessions[session.id] = session
+
+    def get(self, session_id: str) -> Session:
+        session = self._sessions.get(session_id)
+        if session is None or session.state == CLOSED:
+            raise unknown_session(session_id)
+        return session
+
+    def all(self) -> list[Session]:
+        with self._lock:
+            return list(self._sessions.values())
+
+    def reserve_frame(self, session: Session) -> None:
+        """Admit one more frame of ``session`` against the frame and memory limits."""
+        if session.frames >= self.max_frames:
+            raise ApiError(409, "frame_limit", f"session has reached its limit of "
+                           f"{self.max_frames} frames; commit it or discard it")
+        row_bytes = session.dim * 4
+        with self._lock:
+            if self._buffered + row_bytes > self.max_buffered_bytes:
+                raise busy(f"the server holds {self._buffered} bytes of uncommitted frames "
+                           f"(limit {self.max_buffered_bytes}); retry later")
+            self._buffered += row_bytes
+
+    def release_frame(self, session: Session) -> None:
+        """Undo :meth:`reserve_frame` for a frame that was not kept."""
+        with self._lock:
+            self._buffered -= session.dim * 4
+
+    def remove(self, session: Session) -> None:
+        """Close ``session`` and free what it held (idempotent)."""
+        with self._lock:
+            if self._sessions.pop(session.id, None) is not None:
+                self._buffered -= session.nbytes
+            session.state = CLOSED
+
+    def notify_changed(self, component_ids: set[int]) -> None:
+        """Tell every open session that a commit changed ``component_ids``."""
+        for session in self.all():
+            session.notify_changed(component_ids)
+
+    def idle(self, ttl_s: float) -> list[Session]:
+        """Open sessions quiet for ``ttl_s`` with nothing in progress (to expire)."""
+        now = time.monotonic()
+        return [s for s in self.all()
+                if s.state == OPEN and not s.waiting and not s.lock.locked()
+                and now - s.last_active > ttl_s]

@@ -1,0 +1,140 @@
+"""CommitWriter: the single writer thread through which every commit goes, in order.
+
+A commit is what ``SprintMap.ingest`` does at the end of a drive: the drive's descriptors and
+its confident decisions as edges (:func:`~sprint_map.localizer.merge_edges`), in one LMDB
+transaction. It is acknowledged (its future resolves) only after that transaction returned,
+i.e. once durable (LMDB ``sync=True``). The slow part, writing and fsyncing the shard rows,
+runs beside the frames (the rows are invisible until the transaction); only the transaction and
+the index update hold the map gate exclusively.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+
+import numpy as np
+
+from sprint_map.localizer import FrameDecision, merge_edges
+from sprint_map.map import SprintMap
+from sprint_map.server.errors import busy
+from sprint_map.server.gate import MapGate
+from sprint_map.storage.store import AddResult
+
+
+@dataclass(frozen=True)
+class CommitJob:
+    """A drive to commit: its descriptors (in frame order) and the decisions it was answered."""
+
+    name: str | None
+    descriptors: np.ndarray
+    decisions: list[FrameDecision]
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class CommitOutcome:
+    """A durable commit: what the store committed and how long frames were held up."""
+
+    added: AddResult
+    changed: frozenset[int]
+    exclusive_s: float
+
+
+
+class CommitWriter:
+    """One thread committing :class:`CommitJob` s from a bounded queue.
+
+    Parameters
+    ----------
+    smap : SprintMap
+        The map, open for writing (shared with the frame workers).
+    gate : MapGate
+        Held exclusively around the commit's transaction.
+    on_commit : callable
+        Called with the changed component ids while the gate is still held exclusively (the
+        registry tells the live filters), so no frame sees the new map before its filter knows.
+    queue_size : int
+        Commits that may wait; :meth:`submit` answers 503 beyond.
+    """
+
+    def __init__(self, smap: SprintMap, gate: MapGate, on_commit: Callable[[set[int]], None],
+                 queue_size: int) -> None:
+        self.smap = smap
+        self.gate = gate
+        self.on_commit = on_commit
+        self._queue: queue.Queue[tuple[CommitJob, Future[CommitOutcome]] | None] = queue.Queue(
+            maxsize=queue_size)
+        self._thread = threading.Thread(target=self._run, name="sprint-map-writer", daemon=True)
+        self._accepting = True
+
+    @property
+    def depth(self) -> int:
+        """Commits waiting (not counting the one in progress)."""
+        return self._queue.qsize()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, job: CommitJob) -> Future[CommitOutcome]:
+        """Queue ``job``; the future resolves once the commit is durable (or failed).
+
+        Raises
+        ------
+        ApiError
+            503 if the queue is full or the writer is stopping.
+        """
+        future: Future[CommitOutcome] = Future()
+        if not self._accepting:
+            raise busy("the server is shutting down")
+        try:
+            self._queue.put_nowait((job, future))
+        except queue.Full:
+            raise busy(f"{self._queue.maxsize} commits are already waiting; retry later") from None
+        return future
+
+    def stop(self, timeout: float | None = None) -> None:
+        """Commit what is queued, then end the thread."""
+        self._accepting = False
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:  # stop
+                return
+            job, future = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(self.commit(job))
+            except BaseException as exc:  # the caller gets every failure, the thread goes on
+                future.set_exception(exc)
+
+    def commit(self, job: CommitJob) -> CommitOutcome:
+        """Commit one drive (in the writer thread; also usable directly when no thread runs)."""
+        smap = self.smap
+        config = smap.config
+        edges = merge_edges(job.decisions, config.merge_threshold, config.merge_both_ways)
+        touched = {seq for e in edges for seq, _ in (e.src, e.dst) if seq is not None}
+        # Only this thread changes the union-find, so these roots hold until the commit.
+        before = {smap.component_of(seq) for seq in touched}
+        with smap.store.begin_sequence(job.name, job.source) as writer:
+            writer.append(job.descriptors)  # shards written and fsynced; invisible to readers
+            with self.gate.exclusive():
+                start = time.perf_counter()
+                added = writer.commit(None, edges)  # the commit point (durable on return)
+                changed = before | {added.component}
+                self.on_commit(changed)
+                held = time.perf_counter() - start
+        return CommitOutcome(added, frozenset(changed), held)
