@@ -310,6 +310,54 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
     sys.exit(0 if report.ok else 1)
 
 
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.argument("seqs", metavar="SEQ...", nargs=-1, required=True)
+@click.option("--by-name", is_flag=True, help="Read every SEQ as a name, even all digits.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -> None:
+    """Forget the sequences SEQ... of MAP (ids, or names), in one atomic commit.
+
+    Their edges go and components split where nothing else joins them; their space is
+    reclaimed by `sprint-map compact`. A SEQ of digits is a sequence id, anything else a name.
+
+    \b
+    Examples:
+      sprint-map remove city.map 0 3            # sequences 0 and 3
+      sprint-map remove city.map monday-2019    # by name
+      sprint-map remove city.map 2024 --by-name # a sequence named "2024"
+    """
+    refs = [s if by_name or not s.isdigit() else int(s) for s in seqs]
+    with SprintMap.open(map_path) as m:
+        data = m.remove_sequences(refs).to_dict()
+    names = ", ".join(f"{r['seq_id']} ({r['name']})" for r in data["removed"])
+    _emit(data, as_json, f"removed {names}: {data['vertices_removed']} vertices, "
+                         f"{data['edges_removed']} edges; components {data['components_affected']}"
+                         f" -> {data['components_after']}; reclaim the space with compact")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def compact(map_path: str, as_json: bool) -> None:
+    """Reclaim the space of removed sequences: rewrite shards, index and LMDB compactly.
+
+    The new copy is built beside the old one and selected atomically: a kill at any point
+    leaves the old map or the new one. Vertex ids are renumbered; sequence ids stay.
+
+    \b
+    Example:
+      sprint-map remove city.map 0 1 && sprint-map compact city.map
+    """
+    with SprintMap.open(map_path) as m:
+        data = m.compact().to_dict()
+    kept = "" if data["old_generation_removed"] else (
+        "; the old copy is kept while a reader has it open (removed by the next writer)")
+    _emit(data, as_json, f"compacted into {data['generation']}: {data['vertices_before']} -> "
+                         f"{data['vertices_after']} vertices, {data['bytes_before']} -> "
+                         f"{data['bytes_after']} bytes on disk{kept}")
+
+
 def _log(quiet: bool) -> Any:
     return (lambda _msg: None) if quiet else (lambda msg: click.echo(msg, err=True))
 

@@ -10,7 +10,11 @@ from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
 
 #: On-disk schema version written into every map; maps of another version are refused.
-SCHEMA_VERSION = 1
+#: 2 added removed vertex ranges (``remove``) and generation directories (``compact``); a
+#: schema-1 map is read as it is and upgraded by the first writer's open.
+SCHEMA_VERSION = 2
+#: Versions this code opens.
+READABLE_SCHEMA_VERSIONS = (1, 2)
 
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
 DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm")

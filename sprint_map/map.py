@@ -21,13 +21,15 @@ from typing import Any
 import numpy as np
 
 from sprint_map import dataclass_dict
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import MapConfig
 from sprint_map.errors import DescriptorShapeError, InputError
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
 from sprint_map.storage.check import CheckReport, check_map
+from sprint_map.storage.compaction import CompactReport
 from sprint_map.storage.keys import SequenceRecord
+from sprint_map.storage.removal import RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
 
 
@@ -182,6 +184,31 @@ class SprintMap:
         return self.add_sequence(descriptors, name=name, positions=positions, edges=edges,
                                  source=source)
 
+    def remove_sequences(self, sequences: Iterable[int | str]) -> RemoveResult:
+        """Forget whole drives: each ``int`` is a sequence id, each ``str`` a sequence name.
+
+        One atomic commit removes the sequences, every edge to or from them and their
+        positions, and splits the components they held together where the remaining edges no
+        longer connect them. Their descriptors stay on disk (never returned by a search) until
+        :meth:`compact`. Nothing is removed if one of them does not exist.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No sequence with that id or name.
+        """
+        ids = [s if isinstance(s, int) else self.store.sequence_by_name(s).seq_id
+               for s in sequences]
+        return self.store.remove_sequences(ids)
+
+    def compact(self) -> CompactReport:
+        """Reclaim the space of removed sequences: shards, index and LMDB are rewritten into a
+        new generation (vertex ids renumbered densely, sequence ids kept) and selected
+        atomically. A kill at any point leaves the old or the new map. See
+        :func:`sprint_map.storage.compaction.compact_map`.
+        """
+        return self.store.compact()
+
     def localizer(self, hmm: HMMConfig | None = None, **overrides: Any) -> Localizer:
         """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
 
@@ -256,7 +283,7 @@ class SprintMap:
         stats = self.stats()
         index = self.store.index
         return {
-            "schema_version": SCHEMA_VERSION,
+            "schema_version": self.store.schema_version,
             "path": str(self.path),
             "sequences": stats["sequences"],
             "vertices": stats["vertices"],
@@ -273,5 +300,7 @@ class SprintMap:
                 else index.persisted_on_disk(),
             },
             "disk_bytes": self.store.disk_bytes(),
+            "removed_vertices": self.store.removed_vertices(),
+            "generation": self.store.data_path.name if self.store.data_path != self.path else "",
             "config": self.config.to_dict(),
         }

@@ -19,8 +19,10 @@ class MapGraphSource:
 
     Notes
     -----
-    ``components_of`` costs one LMDB cursor seek and one union-find walk per vertex:
-    O(k log n_sequences) per frame for k hits. ``load_component`` costs
+    ``components_of`` costs one LMDB cursor seek per vertex and one union-find walk and one
+    sequence read per distinct sequence: O(k log n_sequences) per frame for k hits. Removed
+    sequences are invisible: their records, edges and component memberships are gone, and the
+    store's search never returns their vertices. ``load_component`` costs
     O(S log n + E_c) for a component of S sequences and E_c edges.
     """
 
@@ -33,15 +35,18 @@ class MapGraphSource:
         out = np.empty(len(vertex_ids), dtype=np.int64)
         with store.env.read() as txn:
             cursor = txn.cursor(db=store.env.db("vrange"))
-            roots: dict[int, int] = {}
+            roots: dict[int, tuple[int, int]] = {}  # seq -> (root, first vertex)
             for i, vid in enumerate(np.asarray(vertex_ids, dtype=np.int64).tolist()):
                 if vid < 0 or not cursor.set_range(u64(vid)):
                     raise ValueError(f"vertex {vid} is not in the map")
                 seq = read_u32(cursor.value())
-                root = roots.get(seq)
-                if root is None:
-                    root = roots[seq] = store.uf.find(txn, seq)
-                out[i] = root
+                known = roots.get(seq)
+                if known is None:
+                    known = roots[seq] = (store.uf.find(txn, seq),
+                                          store.sequence(seq, txn).first_vertex)
+                if vid < known[1]:  # the floor seek passed a removed range: never a hit
+                    raise ValueError(f"vertex {vid} belonged to a removed sequence")
+                out[i] = known[0]
         return out
 
     def load_component(self, component_id: int) -> ComponentGraph:

@@ -14,7 +14,8 @@ Run as a script it is the child side (never imported by pytest as a test module)
     crash_worker.py zygote
         A fork server: imports everything once, then for each JSON line on stdin
         ``{"op": "spawn", "ack": FILE, ...}`` forks a child that runs ``write`` (the default)
-        or, with ``"mode": "repair"``, ``check --repair``, with ``SPRINT_MAP_CRASH_AT`` set to
+        or, with ``"mode": "repair"``, ``check --repair`` (``"remove"`` with ``"seqs"``:
+        ``remove``; ``"compact"``: ``compact``), with ``SPRINT_MAP_CRASH_AT`` set to
         ``"crash_at"`` if given; the child appends ``ready``, ``ack <i>``, ``done`` lines to FILE
         (``os.write``: in the kernel once it returns) and the zygote replies ``{"pid": ...}``;
         ``{"op": "wait", "pid": P}`` reaps it and replies ``{"signal": ..., "code": ...}``.
@@ -155,6 +156,48 @@ def repair(path: str, emit: Callable[[str], None]) -> None:
     emit("repaired " + json.dumps(repair_map(path).to_dict()))
 
 
+def remove(path: str, seqs: list[int], emit: Callable[[str], None]) -> None:
+    """Remove ``seqs`` from ``path``; emit ``removed`` once the commit returned."""
+    with MapStore.open(path) as store:
+        emit("ready")
+        store.remove_sequences(seqs)
+        emit("removed")
+    emit("done")
+
+
+def compact(path: str, emit: Callable[[str], None]) -> None:
+    """Compact ``path``; emit ``compacted <generation>`` once it returned."""
+    with MapStore.open(path) as store:
+        emit("ready")
+        emit(f"compacted {store.compact().generation}")
+    emit("done")
+
+
+def logical_state(store: MapStore) -> dict[str, Any]:
+    """What a map means, independent of its vertex numbering: every sequence (name, length,
+    source, descriptor and position bytes), every edge between ``(seq, image)`` endpoints with
+    its provenance, the components and the counters. Asserts that the components are those
+    recomputed from the edges (networkx). Equal before and after a compaction."""
+    seqs = {}
+    for rec in store.sequences():
+        pos = store.positions(rec.seq_id)
+        seqs[rec.seq_id] = (rec.name, rec.length, rec.source,
+                            np.asarray(store.descriptors(rec.seq_id)).tobytes(),
+                            None if pos is None else pos.tobytes())
+    records = store.edges()
+    ends = store.locate([v for e in records for v in (e.src, e.dst)])
+    edges = {(ends[2 * i], ends[2 * i + 1], e.weight, e.query_seq, e.frame, e.time)
+             for i, e in enumerate(records)}
+    graph = nx.Graph()
+    graph.add_nodes_from(seqs)
+    graph.add_edges_from((a[0], b[0]) for a, b, *_ in edges)
+    components = {frozenset(c.sequences) for c in store.components()}
+    assert components == {frozenset(c) for c in nx.connected_components(graph)}
+    return {"sequences": seqs, "edges": edges, "components": components,
+            "stats": {k: v for k, v in store.stats().items() if k != "vertices"},
+            "live_vertices": sum(r.length for r in store.sequences())}
+
+
 def _stdout_emit(line: str) -> None:
     print(line, flush=True)
 
@@ -171,8 +214,13 @@ def _child(request: dict[str, Any]) -> None:
         def emit(line: str, fd: int = fd) -> None:
             os.write(fd, f"{line}\n".encode())
 
-        if request.get("mode", "write") == "repair":
+        mode = request.get("mode", "write")
+        if mode == "repair":
             repair(request["map"], emit)
+        elif mode == "remove":
+            remove(request["map"], request["seqs"], emit)
+        elif mode == "compact":
+            compact(request["map"], emit)
         else:
             write(request["map"], request["seed"], request.get("count"), request.get("length"),
                   emit)

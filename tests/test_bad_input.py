@@ -37,7 +37,7 @@ from click.testing import CliRunner
 
 from sprint_map import errors
 from sprint_map.cli import main
-from sprint_map.config import MapConfig
+from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
     ConfigError,
     DescriptorShapeError,
@@ -52,6 +52,7 @@ from sprint_map.errors import (
     SchemaVersionError,
     SprintMapError,
     StorageIOError,
+    UnknownSequenceError,
 )
 from sprint_map.map import SprintMap
 from sprint_map.storage.lmdb_env import DB_NAMES, MAX_DBS
@@ -140,7 +141,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[str, Path]:
     """``npy``: precomputed map with sequence "first"; ``img``: HoG map with sequence "images";
-    ``newer``: a map of schema version 2."""
+    ``newer``: a map of a schema version newer than this code's."""
     root = tmp_path_factory.mktemp("templates")
     paths = {"npy": root / "npy.map", "img": root / "img.map", "newer": root / "newer.map"}
     with SprintMap.create(paths["npy"], MapConfig(dim=DIM)) as m:
@@ -154,7 +155,7 @@ def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[st
     env = lmdb.open(str(paths["newer"] / LMDB_DIR), max_dbs=MAX_DBS)
     meta = env.open_db(b"meta")  # before the write txn: open_db would wait for it
     with env.begin(write=True) as txn:
-        txn.put(b"schema_version", b"2", db=meta)
+        txn.put(b"schema_version", str(SCHEMA_VERSION + 1).encode(), db=meta)
     env.close()
     return paths
 
@@ -213,6 +214,10 @@ CASES: dict[str, Case] = {
     # One frame is a sequence; names are unique, printable.
     "one-frame": Case("ingest {map} {in}/one.npy", None),
     "one-frame-localize": Case("localize {map} {in}/one.npy", None),
+    # remove: an unknown id or name removes nothing (the one sequence "first" stays).
+    "remove-unknown-id": Case("remove {map} 0 7", UnknownSequenceError, "no sequence 7"),
+    "remove-unknown-name": Case("remove {map} first second", UnknownSequenceError,
+                                "no sequence named 'second'"),
     "duplicate-name": Case("ingest {map} {in}/good.npy --name first", DuplicateNameError,
                            "a sequence named 'first' already exists"),
     "duplicate-default-name": Case("ingest {map} {in}/images", DuplicateNameError,
@@ -263,7 +268,8 @@ CASES: dict[str, Case] = {
                          ("components", "missing"))},
     **{f"newer-schema-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/good.npy" if cmd in (
         "ingest", "localize") else ""), SchemaVersionError,
-        "map schema version 2 is not supported by this sprint-map (it reads version 1); "
+        f"map schema version {SCHEMA_VERSION + 1} is not supported by this sprint-map (it "
+        f"reads version {SCHEMA_VERSION} and older); "
         "upgrade sprint-map", map="newer")
        for cmd in ("ingest", "localize", "info", "check")},
     "init-existing": Case("init {map} --dim 4", MapExistsError, "non-empty path"),
@@ -340,9 +346,9 @@ def test_every_error_class_is_exercised():
     untested = {c.__name__ for c in vars(errors).values()
                 if isinstance(c, type) and issubclass(c, SprintMapError)} - {
         c.__name__ for c in tried if c is not None}
-    # Corruption is check's business (tests/storage/test_check.py); UnknownSequenceError has no
-    # CLI command taking a sequence; the base class is for API misuse only.
-    assert untested == {"MapCorruptError", "UnknownSequenceError", "SprintMapError"}
+    # Corruption is check's business (tests/storage/test_check.py); the base class is for API
+    # misuse only.
+    assert untested == {"MapCorruptError", "SprintMapError"}
 
 
 def test_a_bad_stride_is_a_usage_error_not_a_traceback(inputs, templates, tmp_path):

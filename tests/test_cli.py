@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli import main
+from sprint_map.config import SCHEMA_VERSION
 from sprint_map.errors import (
     DescriptorShapeError,
     DuplicateNameError,
@@ -61,7 +62,7 @@ def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
 
     info = json.loads(run("info", map_path, "--json").output)
     assert {k: info[k] for k in ("schema_version", "sequences", "vertices", "components", "dim")} \
-        == {"schema_version": 1, "sequences": 3, "vertices": 180, "components": 2, "dim": DIM}
+        == {"schema_version": SCHEMA_VERSION, "sequences": 3, "vertices": 180, "components": 2, "dim": DIM}
     assert info["edges"] == second["edges_added"]
     assert info["index"]["ntotal"] == 180 and info["index"]["type"]
     assert info["disk_bytes"] > 0

@@ -29,11 +29,14 @@ import pytest
 from sprint_map.storage.check import check_map
 from sprint_map.storage.crash import (
     ADD_POINTS,
+    COMPACT_POINTS,
     CRASH_POINTS,
     INDEX_POINTS,
     RECOVER_POINTS,
+    REMOVE_POINTS,
     REPAIR_POINTS,
 )
+from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.index_store import index_files
 from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
@@ -251,7 +254,105 @@ def test_every_crash_point_is_in_the_code_and_tested():
         names |= set(re.findall(r'crash_point\("([^"]+)"\)', source.read_text()))
     assert names == set(CRASH_POINTS)
     tested = set(ADD_POINTS + INDEX_POINTS) | set(RECOVER_POINTS) | set(REPAIR_POINTS)
+    tested |= set(REMOVE_POINTS) | set(COMPACT_POINTS)  # test_kill_at_each_{remove,compact}_point
     assert tested == set(CRASH_POINTS)
+
+
+# --- remove and compact -----------------------------------------------------------------------
+
+REMOVED = [1, 4]
+
+
+@pytest.fixture
+def six(tmp_path):
+    """Six acknowledged sequences of 40 rows (shards of 64 rows), the index persisted."""
+    path = tmp_path / "m"
+    create_map(path, dim=8, shard_rows=64)
+    with MapStore.open(path) as store:
+        for i in range(6):
+            worker.add_planned(store, SEED, i, LENGTH)
+    return path
+
+
+def state_of(path: Path) -> dict[str, Any]:
+    with MapStore.open(path, readonly=True) as store:
+        return worker.logical_state(store)
+
+
+def without(state: dict[str, Any], removed: list[int]) -> dict[str, Any]:
+    """``state`` with ``removed`` and every edge touching them gone (components: the
+    networkx components of what remains, checked by ``logical_state`` itself)."""
+    seqs = {k: v for k, v in state["sequences"].items() if k not in removed}
+    edges = {e for e in state["edges"] if e[0][0] not in removed and e[1][0] not in removed}
+    return {"sequences": seqs, "edges": edges}
+
+
+def strictly_ok(path: Path) -> None:
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+    assert report.ok and not [n for n in report.notes if "generation" in n], (
+        report.violations, report.notes)
+
+
+@pytest.mark.parametrize("point", REMOVE_POINTS)
+def test_kill_at_each_remove_point(six, zygote, point):
+    """Killed while removing: all of the removal or none of it, and check passes."""
+    path = six
+    before = state_of(path)
+    lines = run_child(zygote, path.parent / "ack", map=str(path), mode="remove", seqs=REMOVED,
+                      crash_at=point)
+    assert lines == ["ready"]
+    after = state_of(path)
+    if point == "remove.committed":
+        assert {k: after[k] for k in ("sequences", "edges")} == without(before, REMOVED)
+        assert after["stats"]["sequences"] == 4
+    else:
+        assert after == before
+    strictly_ok(path)
+    with MapStore.open(path) as store:  # the map goes on: a compaction completes
+        store.compact()
+    assert {k: state_of(path)[k] for k in ("sequences", "edges")} == (
+        without(before, REMOVED) if point == "remove.committed" else without(before, []))
+    strictly_ok(path)
+
+
+@pytest.mark.parametrize("point", COMPACT_POINTS)
+def test_kill_at_each_compact_point(six, zygote, point):
+    """Killed anywhere in ``compact``: the old map or the new one, each intact (every live
+    sequence bit for bit, the removed ones absent, the components of the edges, check passing
+    but for notes on the unselected generation); the next writer's open removes the other
+    generation and a compaction run again completes."""
+    path = six
+    with MapStore.open(path) as store:
+        store.remove_sequences(REMOVED)
+        total = store.stats()["vertices"]
+    expected = state_of(path)
+    lines = run_child(zygote, path.parent / "ack1", map=str(path), mode="compact",
+                      crash_at=point)
+    assert lines == ["ready"]
+    published = point in {"compact.published", "compact.old_partly_removed"}
+    assert (path / CURRENT_NAME).exists() == published
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+        vertices = store.stats()["vertices"]
+        removed_left = store.removed_vertices()
+    assert report.ok, report.violations
+    # new: renumbered densely, nothing removed left; old: the removed ranges still recorded
+    assert (vertices, removed_left) == ((4 * LENGTH, 0) if published else (total, 2 * LENGTH))
+    assert state_of(path) == expected
+    assert set(expected["sequences"]).isdisjoint(REMOVED)
+    assert any("not the live generation" in n for n in report.notes), report.notes
+
+    with MapStore.open(path) as store:  # the writer's open removes the other generation
+        assert any("no longer the live generation" in r for r in store.recovery)
+    strictly_ok(path)
+    lines = run_child(zygote, path.parent / "ack2", map=str(path), mode="compact")
+    assert lines[-1] == "done"
+    assert state_of(path) == expected
+    strictly_ok(path)
+    live = sorted(p.name for p in path.iterdir())
+    assert live == ["CURRENT", "LOCK", lines[1].split()[1]]
+    worker.assert_search_finds_everything(path)
 
 
 # --- (b) random kills -------------------------------------------------------------------------
@@ -321,3 +422,35 @@ def verify_snapshot_prefix(path: Path, seed: int) -> None:
                 plan.name, first, len(plan.descriptors))
             assert store.descriptors(i).tobytes() == plan.descriptors.tobytes()
             first += rec.length
+
+
+def test_random_kills_during_compaction(six, zygote):
+    """Compactions killed at random instants, 30 times: after every kill the old or the new
+    map, intact (``check`` passes, every live sequence bit for bit, the removed ones absent);
+    a writer's open (odd kills) cleans up to a strict ``check``; the last compaction completes.
+    """
+    path = six
+    with MapStore.open(path) as store:
+        store.remove_sequences(REMOVED)
+    expected = state_of(path)
+    rng = np.random.default_rng(13)
+    generations = set()
+    for kill in range(30):
+        acks = path.parent / f"ack{kill}"
+        pid = zygote.spawn(map=str(path), mode="compact", ack=str(acks))
+        worker.wait_for_line(acks, "ready")
+        time.sleep(rng.uniform(0, 0.06))
+        os.kill(pid, signal.SIGKILL)
+        zygote.wait(pid)
+        with MapStore.open(path, readonly=True) as store:
+            report = check_map(store)
+            generations.add(store.data_path.name)
+        assert report.ok, report.violations
+        assert state_of(path) == expected
+        if kill % 2:
+            MapStore.open(path).close()
+            strictly_ok(path)
+    lines = run_child(zygote, path.parent / "last", map=str(path), mode="compact")
+    assert lines[-1] == "done" and state_of(path) == expected
+    strictly_ok(path)
+    print(f"generations seen after a kill: {sorted(generations)}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -114,6 +115,12 @@ def unlink(path: Path) -> None:
     path.unlink(missing_ok=True)
 
 
+def remove_tree(path: Path) -> None:
+    """Remove the directory ``path`` and all it holds (durable once its parent is fsynced)."""
+    _announce("unlink", path)
+    shutil.rmtree(path)
+
+
 # --- whole files ------------------------------------------------------------------------------
 
 
@@ -146,6 +153,19 @@ def publish(path: Path, write: Callable[[Path], Any], expected_size: int | None 
         with contextlib.suppress(OSError):  # else the next writer's open removes it
             partial.unlink(missing_ok=True)
         raise StorageIOError(f"cannot write {path}: {exc.strerror or exc}") from exc
+
+
+def publish_bytes(path: Path, data: bytes) -> None:
+    """:func:`publish` a small file holding ``data``."""
+
+    def write(partial: Path) -> None:
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            os.write(fd, data)  # announced by publish() as one opaque whole-file write
+        finally:
+            os.close(fd)
+
+    publish(path, write, expected_size=len(data))
 
 
 def remove_partials(directory: Path) -> list[Path]:

@@ -24,14 +24,17 @@ import numpy as np
 
 from sprint_map.errors import StorageIOError
 from sprint_map.storage.atomic import PARTIAL_SUFFIX
+from sprint_map.storage.generation import CURRENT_NAME, stale_generations
 from sprint_map.storage.index_store import file_problem, index_files
 from sprint_map.storage.keys import (
     COMP_VAL,
     EDGE_KEY,
+    REMOVED_VAL,
     UF_VAL,
     SequenceRecord,
     read_u32,
     read_u64,
+    u64,
 )
 from sprint_map.storage.lock import writer_active
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
@@ -51,10 +54,12 @@ AREAS = {
     "components": "union-find, membership lists, totals and n_components",
     "index": "the persisted FAISS index",
     "temp": "leftover temp files",
+    "removed": "removed vertex ranges hold no positions; the removed_vertices counter",
 }
 #: Areas ``check --repair`` rebuilds: everything derivable from the sequence records, the edges
 #: and the shards. The others hold information that exists nowhere else.
-REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp"})
+REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp",
+                        "removed"})
 
 
 @dataclass
@@ -97,6 +102,11 @@ class MapRecords:
     uf: dict[int, tuple[int, int]]
     members: list[tuple[int, int]]
     comp: dict[int, tuple[int, int]]
+    #: removed vertex ranges ``(first, last, seq_id)`` (schema 2) and their counter
+    removed: list[tuple[int, int, int]] = field(default_factory=list)
+    removed_vertices: int = 0
+    #: removed ranges that still hold a position (``vertex_data`` key): one seek per range
+    stray_positions: list[tuple[int, int]] = field(default_factory=list)
 
     @classmethod
     def read(cls, store: MapStore, txn: lmdb.Transaction) -> MapRecords:
@@ -104,6 +114,10 @@ class MapRecords:
 
         def keys(name: str, key: struct.Struct) -> list[tuple[int, int]]:
             return [key.unpack(k) for k in txn.cursor(db=env.db(name)).iternext(values=False)]
+
+        removed = [(REMOVED_VAL.unpack(v)[0], read_u64(k), REMOVED_VAL.unpack(v)[1])
+                   for k, v in txn.cursor(db=env.db("removed"))] if env.has_db("removed") else []
+        positions = env.db("vertex_data")
 
         return cls(
             counters={name: store.counter(name, txn) for name in COUNTERS},
@@ -116,6 +130,9 @@ class MapRecords:
             uf={read_u32(k): UF_VAL.unpack(v) for k, v in txn.cursor(db=env.db("uf"))},
             members=keys("members", MEMBER_KEY),
             comp={read_u32(k): COMP_VAL.unpack(v) for k, v in txn.cursor(db=env.db("comp"))},
+            removed=removed,
+            removed_vertices=store.removed_vertices(txn),
+            stray_positions=[(a, b) for a, b, _ in removed if _any_key(txn, positions, a, b)],
         )
 
     @property
@@ -123,8 +140,16 @@ class MapRecords:
         return self.counters["next_vertex_id"]
 
 
+def _any_key(txn: lmdb.Transaction, db: Any, first: int, last: int) -> bool:
+    """Whether ``db`` (``>Q`` keys) has a key in ``first..last``. One seek."""
+    cursor = txn.cursor(db=db)
+    return bool(cursor.set_range(u64(first))) and read_u64(cursor.key()) <= last
+
+
 def vertex_owner(seqs: list[SequenceRecord], total: int) -> Callable[[int], int | None]:
     """``vertex -> seq_id`` by bisection over the sequences' first vertices (None if outside).
+
+    A vertex in a removed range (between live sequences) has no owner either.
 
     Notes
     -----
@@ -133,11 +158,13 @@ def vertex_owner(seqs: list[SequenceRecord], total: int) -> Callable[[int], int 
     ordered = sorted(seqs, key=lambda s: s.first_vertex)
     starts = np.array([s.first_vertex for s in ordered], dtype=np.int64)
     ids = [s.seq_id for s in ordered]
+    lasts = [s.last_vertex for s in ordered]
 
     def owner(vid: int) -> int | None:
         if not 0 <= vid < total or not len(starts):
             return None
-        return ids[int(np.searchsorted(starts, vid, side="right")) - 1]
+        at = int(np.searchsorted(starts, vid, side="right")) - 1
+        return ids[at] if at >= 0 and vid <= lasts[at] else None
 
     return owner
 
@@ -154,7 +181,12 @@ def sequence_edges(records: MapRecords, report: CheckReport | None = None
     for src, dst in records.edges:
         a, b = owner(src), owner(dst)
         if a is None or b is None:
-            if report is not None:
+            if report is None:
+                continue
+            if all(0 <= v < records.total for v in (src, dst)):
+                report.violation("edges", f"edge {src} -> {dst} has an endpoint in a removed "
+                                          "vertex range")
+            else:
                 report.violation("edges", f"edge {src} -> {dst} has an endpoint outside the "
                                           f"map's {records.total} vertices")
         elif a == b:
@@ -186,10 +218,18 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
     if live:
         report.notes.append("a writer holds the map's LOCK: index files in flight are notes")
     check_index(store, records.total, report, seed, live=live)
+    for stale in stale_generations(store.path, store.data_path):
+        name = "generation 0 (top level)" if stale == store.path else stale.name
+        report.notes.append(f"{name} is not the live generation (a reader may still have it "
+                            "open, or a compaction was interrupted): removed by the next "
+                            "writer's open")
     for entry in partial_files(store):
         message = f"leftover temp file {entry.relative_to(store.path)}"
         if live and entry.parent.name == INDEX_DIR:
             report.notes.append(f"{message} (being written by the live writer)")
+        elif entry.name == f"{CURRENT_NAME}{PARTIAL_SUFFIX}":  # never read: harmless
+            report.notes.append(f"{message} (a compaction killed before its switch; removed "
+                                "by the next writer's open)")
         else:
             report.violation("temp", message)
     return report
@@ -206,19 +246,32 @@ def check_sequences(store: MapStore) -> CheckReport:
 
 def _check_sequences(records: MapRecords, report: CheckReport) -> None:
     """Sequences, names and dense vertex ranges: (seq, image) <-> vertex is one-to-one exactly
-    when the ranges tile 0..total-1 with no gap or overlap."""
+    when the ranges of the live sequences and the removed ranges together tile 0..total-1 with
+    no gap or overlap."""
     counters, seqs = records.counters, records.seqs
     if counters["n_sequences"] != len(seqs):
         report.violation("lookup", f"meta says {counters['n_sequences']} sequences, "
                                    f"found {len(seqs)}")
+    live_ids = {s.seq_id for s in seqs}
+    for first, last, seq_id in records.removed:
+        if last < first:
+            report.violation("sequences", f"removed range {first}..{last} is empty")
+        if seq_id in live_ids:
+            report.violation("sequences", f"sequence {seq_id} is both live and removed")
+        elif seq_id >= counters["next_seq_id"]:
+            report.violation("lookup", f"removed sequence {seq_id} is beyond next_seq_id "
+                                       f"{counters['next_seq_id']}")
+    spans = sorted([(s.first_vertex, s.length, f"sequence {s.seq_id}") for s in seqs]
+                   + [(a, b - a + 1, f"removed range {a}..{b}") for a, b, _ in records.removed])
     expected = 0
+    for first, length, what in spans:
+        if first != expected:
+            report.violation("sequences", f"{what} starts at vertex {first}, expected "
+                                          f"{expected}")
+        expected = first + length
     for seq in sorted(seqs, key=lambda s: s.first_vertex):
         if seq.length < 1:
             report.violation("sequences", f"sequence {seq.seq_id} is empty")
-        if seq.first_vertex != expected:
-            report.violation("sequences", f"sequence {seq.seq_id} starts at vertex "
-                                          f"{seq.first_vertex}, expected {expected}")
-        expected = seq.first_vertex + seq.length
         if records.vrange.get(seq.last_vertex) != seq.seq_id:
             report.violation("lookup", f"vertex range index has no entry for sequence "
                                        f"{seq.seq_id}")
@@ -230,6 +283,12 @@ def _check_sequences(records: MapRecords, report: CheckReport) -> None:
     if expected != records.total:
         report.violation("sequences", f"sequences cover {expected} vertices but meta says "
                                       f"{records.total}")
+    removed = sum(b - a + 1 for a, b, _ in records.removed)
+    if records.removed_vertices != removed:
+        report.violation("removed", f"meta says {records.removed_vertices} removed vertices, "
+                                    f"the removed ranges hold {removed}")
+    for first, last in records.stray_positions:
+        report.violation("removed", f"removed vertex range {first}..{last} still has positions")
     if len(records.vrange) != len(seqs):
         report.violation("lookup", f"vertex range index has {len(records.vrange)} entries for "
                                    f"{len(seqs)} sequences")
@@ -344,7 +403,7 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     def bad(message: str) -> None:
         report.violation("index", message)
 
-    files = index_files(store.path / INDEX_DIR)
+    files = index_files(store.data_path / INDEX_DIR)
     for upto, path in files:
         if upto > total:
             message = f"index file {path.name} is {file_problem(path, upto, total, dim)}"
@@ -398,7 +457,10 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
 
 
 def partial_files(store: MapStore) -> list[Path]:
-    """Leftover ``*.partial`` files of interrupted publications (map, shards and index dirs)."""
-    return [entry for directory in (store.path, store.path / SHARDS_DIR, store.path / INDEX_DIR)
+    """Leftover ``*.partial`` files of interrupted publications (map, generation, shards and
+    index dirs)."""
+    dirs = dict.fromkeys((store.path, store.data_path, store.data_path / SHARDS_DIR,
+                          store.data_path / INDEX_DIR))
+    return [entry for directory in dirs
             if directory.is_dir() for entry in sorted(directory.iterdir())
             if entry.name.endswith(PARTIAL_SUFFIX)]

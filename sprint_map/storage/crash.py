@@ -35,8 +35,24 @@ REPAIR_POINTS = (
     "repair.committed",  # derived records committed, index not yet rebuilt
 )
 
+#: ``remove``: retiring sequences in one LMDB transaction.
+REMOVE_POINTS = (
+    "remove.before_commit",  # inside the LMDB transaction, everything written, not committed
+    "remove.committed",  # committed, not yet returned
+)
+#: ``compact``: a new generation built in a staging directory, then selected atomically.
+COMPACT_POINTS = (
+    "compact.staging_created",  # gen-N/ created, empty
+    "compact.shards_written",  # live rows copied into gen-N/shards, fsynced
+    "compact.lmdb_written",  # renumbered LMDB copied compacted into gen-N/map.lmdb, fsynced
+    "compact.before_publish",  # gen-N complete with its index, CURRENT not yet replaced
+    "compact.published",  # CURRENT names gen-N (the commit point), old generation still there
+    "compact.old_partly_removed",  # part of the old generation deleted, the rest not yet
+)
+
 #: Every crash point in the write paths.
-CRASH_POINTS = ADD_POINTS + INDEX_POINTS + RECOVER_POINTS + REPAIR_POINTS
+CRASH_POINTS = (ADD_POINTS + INDEX_POINTS + RECOVER_POINTS + REPAIR_POINTS + REMOVE_POINTS
+                + COMPACT_POINTS)
 
 
 def crash_point(name: str) -> None:

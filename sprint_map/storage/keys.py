@@ -25,6 +25,9 @@ COMP_VAL = struct.Struct(">QQ")
 #: optional per-vertex data: x, y, heading (deg, NaN if unknown), timestamp (NaN if unknown)
 VERTEX_VAL = struct.Struct(">dddd")
 
+#: removed vertex range, keyed by its last vertex: first vertex, seq id it belonged to
+REMOVED_VAL = struct.Struct(">QI")
+
 NO_QUERY = 0xFFFFFFFF  # provenance query id for edges given directly, not by a localisation
 
 #: What py-lmdb hands back for a key or value (memoryview when a txn uses ``buffers=True``).

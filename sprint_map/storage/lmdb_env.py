@@ -34,7 +34,11 @@ DB_NAMES = (
     "members",  # >I root >I member -> b""        component membership, no scan of uf
     "comp",  # >I root -> >QQ sequences, vertices per component
     "shards",  # >I shard number -> >Q committed rows
+    "removed",  # >Q last vertex of a removed sequence -> >QI first vertex, seq_id (schema 2)
 )
+#: Databases a map of an older schema may lack: a writer's open creates them (the migration),
+#: a reader reads such a map as if they were empty.
+OPTIONAL_DBS = frozenset({"removed"})
 MAX_DBS = 16
 
 
@@ -51,10 +55,14 @@ class LmdbEnv:
         Initial map size for a new environment; grows by doubling on ``MapFullError``.
     create : bool
         Create the environment and its databases (only at map creation).
+    map_root : Path, optional
+        The map directory holding ``LOCK`` (default: the parent of ``path``; a generation
+        directory's environment lives one level deeper).
     """
 
     def __init__(
-        self, path: Path, *, readonly: bool, map_size: int = 1 << 30, create: bool = False
+        self, path: Path, *, readonly: bool, map_size: int = 1 << 30, create: bool = False,
+        map_root: Path | None = None,
     ) -> None:
         if not create and not (path / "data.mdb").is_file():
             raise NotAMapError(f"not a sprint-map directory (no {path / 'data.mdb'})")
@@ -81,7 +89,7 @@ class LmdbEnv:
             raise StorageIOError(f"cannot open {path}: {exc}") from exc
         if lockless:
             try:
-                self._reader_lock = _lock_out_writers(path.parent)
+                self._reader_lock = _lock_out_writers(map_root or path.parent)
             except BaseException:
                 self.env.close()
                 raise
@@ -94,7 +102,11 @@ class LmdbEnv:
             # handles to the environment (handles opened in a caller's read txn are not).
             try:
                 for name in DB_NAMES:
-                    self._dbs[name] = self.env.open_db(name.encode(), create=False)
+                    try:
+                        self._dbs[name] = self.env.open_db(name.encode(), create=False)
+                    except lmdb.NotFoundError:
+                        if name not in OPTIONAL_DBS:
+                            raise
             except lmdb.NotFoundError as exc:
                 self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
@@ -106,8 +118,11 @@ class LmdbEnv:
             # environment that is not a map.
             try:
                 with self.env.begin(write=True) as txn:
-                    for name in DB_NAMES:
-                        self._dbs[name] = self.env.open_db(name.encode(), txn=txn, create=create)
+                    # Required ones first: an environment that is not a map fails before the
+                    # optional ones are created in it (the transaction is then aborted).
+                    for name in sorted(DB_NAMES, key=lambda n: n in OPTIONAL_DBS):
+                        self._dbs[name] = self.env.open_db(
+                            name.encode(), txn=txn, create=create or name in OPTIONAL_DBS)
             except lmdb.NotFoundError as exc:
                 self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
@@ -117,6 +132,10 @@ class LmdbEnv:
 
     def db(self, name: str) -> lmdb._Database:
         return self._dbs[name]
+
+    def has_db(self, name: str) -> bool:
+        """Whether the named database exists (an optional one may not, in an old map)."""
+        return name in self._dbs
 
     def _usable(self) -> None:
         if self._broken is not None:

@@ -41,11 +41,11 @@ from sprint_map.storage.check import (
     sequence_edges,
 )
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import EDGE_KEY, u32, u64
+from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.store import MapStore
 
 #: Areas rebuilt by the LMDB transaction of step 3.
-RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components")
+RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed")
 
 
 @dataclass
@@ -143,7 +143,8 @@ def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
                 txn.drop(db(name), delete=False)
             for seq in records.seqs:
                 store.put_lookups(txn, seq)
-            next_seq = max([records.counters["next_seq_id"]] + [s.seq_id + 1 for s in records.seqs])
+            next_seq = max([records.counters["next_seq_id"]] + [s.seq_id + 1 for s in records.seqs]
+                           + [seq + 1 for _, _, seq in records.removed])
             txn.put(b"next_seq_id", u64(next_seq), db=meta)
             txn.put(b"n_sequences", u64(len(records.seqs)), db=meta)
             actions.append(f"rebuilt the name and vertex-range indexes of {len(records.seqs)} "
@@ -166,6 +167,17 @@ def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
             txn.put(b"n_components", u64(n), db=meta)
             actions.append(f"rebuilt union-find and the member lists of {n} components from "
                            f"{len(joins)} edges")
+        if "removed" in todo:
+            cursor = txn.cursor(db=db("vertex_data"))
+            for first, last in records.stray_positions:
+                at = cursor.set_range(u64(first))
+                while at and read_u64(cursor.key()) <= last:
+                    cursor.delete()
+                    at = bool(cursor.key())
+            removed = sum(b - a + 1 for a, b, _ in records.removed)
+            txn.put(b"removed_vertices", u64(removed), db=meta)
+            actions.append(f"recounted {removed} removed vertices and dropped the positions of "
+                           f"{len(records.stray_positions)} removed ranges")
         crash_point("repair.before_commit")
         return actions
 

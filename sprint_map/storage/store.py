@@ -30,7 +30,7 @@ from typing import Any
 import lmdb
 import numpy as np
 
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
     InputError,
     MapCorruptError,
@@ -43,7 +43,15 @@ from sprint_map.errors import (
     UnknownSequenceError,
 )
 from sprint_map.storage.atomic import fsync_dir, remove_partials
+from sprint_map.storage.compaction import CompactReport, compact_map
 from sprint_map.storage.crash import crash_point
+from sprint_map.storage.generation import (
+    current_data,
+    pin_current,
+    remove_generation,
+    stale_generations,
+    unpin,
+)
 from sprint_map.storage.index_store import IndexStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
@@ -57,6 +65,7 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
+from sprint_map.storage.removal import RemovedRanges, RemoveResult, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.union_find import UnionFindStore
@@ -113,10 +122,14 @@ class MapStore:
     number of vertices, edges and shards. Nothing else is loaded until asked for.
     """
 
-    def __init__(self, path: Path, env: LmdbEnv, lock: WriterLock | None, readonly: bool) -> None:
+    def __init__(self, path: Path, env: LmdbEnv, lock: WriterLock | None, readonly: bool,
+                 data: Path | None = None) -> None:
         self.path = path
+        #: The live generation's directory (``path`` itself until the first compaction).
+        self.data_path = path if data is None else data
         self.env = env
         self._lock = lock
+        self._pin: int | None = None  # shared flock on the generation (see storage/generation)
         self.readonly = readonly
         with env.read() as txn:
             meta = env.db("meta")
@@ -124,19 +137,23 @@ class MapStore:
             if raw_version is None:
                 raise NotAMapError(f"not a sprint-map directory (no schema version): {path}")
             version = int(raw_version)
-            if version != SCHEMA_VERSION:
+            if version not in READABLE_SCHEMA_VERSIONS:
                 raise SchemaVersionError(
                     f"map schema version {version} is not supported by this sprint-map "
-                    f"(it reads version {SCHEMA_VERSION}){'; upgrade sprint-map' if version > SCHEMA_VERSION else ''}"
+                    f"(it reads version {SCHEMA_VERSION} and older)"
+                    f"{'; upgrade sprint-map' if version > SCHEMA_VERSION else ''}"
                 )
+            self.schema_version = version
             raw_config = txn.get(b"config", db=meta)
             if raw_config is None:
                 raise MapCorruptError(f"map has no config record: {path}")
             self.config = MapConfig.from_dict(json.loads(bytes(raw_config)))
             self.created = float(txn.get(b"created", db=meta) or 0)
         self.uf = UnionFindStore(env)
-        self.shards = ShardSet(path / SHARDS_DIR, self.config.dim, self.config.shard_rows)
-        self.index = IndexStore(path / INDEX_DIR, self.config.dim, writable=not readonly)
+        self.shards = ShardSet(self.data_path / SHARDS_DIR, self.config.dim,
+                               self.config.shard_rows)
+        self.index = self._new_index(self.data_path / INDEX_DIR, writable=not readonly)
+        self._removed: tuple[int, RemovedRanges] | None = None  # cache, by removed_vertices
         self.recovery: list[str] = []
         #: Problems that lost nothing and failed no operation (e.g. the index cache not saved).
         self.warnings: list[str] = []
@@ -171,7 +188,9 @@ class MapStore:
 
             env.write(body)
             fsync_dir(root)
-            return cls(root, env, lock, readonly=False)
+            store = cls(root, env, lock, readonly=False)
+            store._pin = pin_current(root)[1]
+            return store
         except BaseException:
             if env is not None:
                 env.close()
@@ -182,25 +201,34 @@ class MapStore:
     def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> MapStore:
         """Open an existing map. A writer takes the map's lock and recovers interrupted writes."""
         root = Path(path)
-        if not root.is_dir() or not (root / LMDB_DIR / "data.mdb").is_file():
+        if not root.is_dir() or not (current_data(root) / LMDB_DIR / "data.mdb").is_file():
             raise NotAMapError(f"not a sprint-map directory: {root}")
         lock = None
         if not readonly:
-            for part in (root, root / LMDB_DIR, root / LMDB_DIR / "data.mdb", root / SHARDS_DIR,
-                         root / INDEX_DIR):
+            data = current_data(root)
+            for part in (root, data, data / LMDB_DIR, data / LMDB_DIR / "data.mdb",
+                         data / SHARDS_DIR, data / INDEX_DIR):
                 if part.exists() and not os.access(part, os.W_OK):
                     raise ReadOnlyMapError(f"map is not writable ({part}); it can only be read")
             lock = WriterLock(root)
             lock.acquire()
         env = None
+        pin = None
         try:
-            env = LmdbEnv(root / LMDB_DIR, readonly=readonly)
-            store = cls(root, env, lock, readonly)
+            # Under the writer lock no compaction can switch generations; a reader's pin keeps
+            # the generation it opened in place for as long as it stays open.
+            data, pin = pin_current(root)
+            if pin is None:
+                raise NotAMapError(f"not a sprint-map directory: {root}")
+            env = LmdbEnv(data / LMDB_DIR, readonly=readonly, map_root=root)
+            store = cls(root, env, lock, readonly, data)
+            store._pin = pin
         except BaseException:
             # py-lmdb refuses a second open of an environment that is still open in this
             # process, so a refused open (e.g. SchemaVersionError) must not leave it open.
             if env is not None:
                 env.close()
+            unpin(pin)
             if lock is not None:
                 lock.release()
             raise
@@ -209,14 +237,65 @@ class MapStore:
                 store._recover()
             except BaseException:  # e.g. an I/O error: release the map, as a failed open must
                 env.close()
+                unpin(pin)
                 if lock is not None:
                     lock.release()
                 raise
         return store
 
+    def _new_index(self, directory: Path, *, writable: bool = True) -> IndexStore:
+        """The index of this map's config kept in ``directory`` (also a compaction's staging)."""
+        return IndexStore(directory, self.config.dim, writable=writable)
+
+    def _switch_generation(self, data: Path, index: IndexStore) -> None:
+        """Reopen this writer on the just-published generation ``data`` with its ``index``.
+
+        The old generation's environment is closed and its pin dropped first, so that the
+        caller can remove it. A failure leaves this store closed (the map itself is complete).
+        """
+        self.shards.close()
+        self.env.close()
+        unpin(self._pin)
+        self._pin = None
+        self.env = None  # type: ignore[assignment]
+        try:
+            pinned, pin = pin_current(self.path)
+            self._pin = pin
+            if pinned != data or pin is None:
+                raise MapCorruptError(f"the map's live generation is {pinned}, not {data}")
+            self.env = LmdbEnv(data / LMDB_DIR, readonly=False)
+        except BaseException:
+            unpin(self._pin)
+            self._pin = None
+            if self._lock is not None:
+                self._lock.release()
+            raise
+        self.data_path = data
+        self.uf = UnionFindStore(self.env)
+        self.shards = ShardSet(data / SHARDS_DIR, self.config.dim, self.config.shard_rows)
+        self.index = index
+        self._removed = None
+
     def _recover(self) -> None:
-        """Bring files back to the committed state (writer only). O(1) in the map size."""
-        for directory in (self.path, self.path / SHARDS_DIR, self.path / INDEX_DIR):
+        """Bring files back to the committed state (writer only). O(1) in the map size.
+
+        Also migrates a schema-1 map to schema 2 (the version record only: every schema-1 map
+        is a schema-2 map without removed ranges; the ``removed`` database was created by the
+        environment's open) and removes the generations a compaction left behind, unless a
+        reader still has one open.
+        """
+        if self.schema_version < SCHEMA_VERSION:
+            self.env.write(lambda txn: txn.put(b"schema_version", str(SCHEMA_VERSION).encode(),
+                                               db=self.env.db("meta")))
+            self.recovery.append(f"upgraded the map from schema version {self.schema_version} "
+                                 f"to {SCHEMA_VERSION}")
+            self.schema_version = SCHEMA_VERSION
+        for stale in stale_generations(self.path, self.data_path):
+            name = "generation 0 (top level)" if stale == self.path else stale.name
+            if remove_generation(self.path, stale):
+                self.recovery.append(f"removed {name}, no longer the live generation")
+        for directory in dict.fromkeys((self.path, self.data_path, self.data_path / SHARDS_DIR,
+                                        self.data_path / INDEX_DIR)):
             for removed in remove_partials(directory):
                 self.recovery.append(f"removed leftover temp file {removed.name}")
         crash_point("recover.partials_removed")
@@ -239,6 +318,8 @@ class MapStore:
             self.shards.close()
             self.env.close()
             self.env = None  # type: ignore[assignment]
+            unpin(self._pin)
+            self._pin = None
             if self._lock is not None:
                 self._lock.release()
 
@@ -254,7 +335,7 @@ class MapStore:
         try:
             self.index.persist()
         except OSError as exc:  # e.g. the directory fsync after removing older index files
-            raise StorageIOError(f"cannot save the index in {self.path / INDEX_DIR}: "
+            raise StorageIOError(f"cannot save the index in {self.data_path / INDEX_DIR}: "
                                  f"{exc.strerror or exc}") from exc
 
     def __enter__(self) -> MapStore:
@@ -331,9 +412,13 @@ class MapStore:
         out = []
         for vid in vertex_ids:
             vid = int(vid)
-            if not 0 <= vid < total or not cursor.set_range(u64(vid)):
+            if not 0 <= vid < total:
                 raise MapCorruptError(f"vertex {vid} is not in the map")
-            seq = self.sequence(read_u32(cursor.value()), txn)
+            # Past the last live sequence, or before the one found: a removed range.
+            seq = self.sequence(read_u32(cursor.value()), txn) if cursor.set_range(
+                u64(vid)) else None
+            if seq is None or vid < seq.first_vertex:
+                raise UnknownSequenceError(f"vertex {vid} belonged to a removed sequence")
             out.append((seq.seq_id, vid - seq.first_vertex))
         return out
 
@@ -412,11 +497,52 @@ class MapStore:
 
     # --- retrieval ---------------------------------------------------------------------------
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """k-NN over every committed descriptor: ``(squared L2 distances, vertex ids)``."""
+        """k-NN over every live descriptor: ``(squared L2 distances, vertex ids)``, -1 padded.
+
+        Hits in the vertex ranges of removed sequences (still in the shards and the index until
+        ``compact``) are filtered out; the index is asked for more candidates until each query
+        has ``k`` live hits or the index has no more (see :func:`removal.search_live`).
+        """
         queries = validate_descriptors(queries, self.config.dim)
-        total = self.counter("next_vertex_id")
+        with self.env.read() as txn:
+            total = self.counter("next_vertex_id", txn)
+            removed = self.removed_ranges(txn)
         self.index.load(total, self.shards)
-        return self.index.search(queries, k)
+        if not removed.count:
+            return self.index.search(queries, k)
+        return search_live(self.index.search, queries, k, removed, total)
+
+    # --- removal ----------------------------------------------------------------------------
+    def removed_vertices(self, txn: lmdb.Transaction | None = None) -> int:
+        """Vertices of removed sequences not yet reclaimed by ``compact``. O(1)."""
+        if txn is None:
+            with self.env.read() as txn:
+                return self.removed_vertices(txn)
+        raw = txn.get(b"removed_vertices", db=self.env.db("meta"))
+        return 0 if raw is None else read_u64(raw)
+
+    def removed_ranges(self, txn: lmdb.Transaction) -> RemovedRanges:
+        """The removed vertex ranges as of ``txn`` (cached until the next removal).
+
+        Notes
+        -----
+        O(1) when cached (one meta read), else O(removed sequences) to read them.
+        """
+        count = self.removed_vertices(txn)
+        if self._removed is None or self._removed[0] != count:
+            self._removed = (count, RemovedRanges.read(self.env, txn))
+        return self._removed[1]
+
+    def compact(self) -> CompactReport:
+        """Reclaim removed sequences' space: see :func:`compaction.compact_map`."""
+        return compact_map(self)
+
+    def remove_sequences(self, seq_ids: Iterable[int]) -> RemoveResult:
+        """Retire sequences in one LMDB transaction; see :func:`removal.remove_sequences`."""
+        self._require_writer()
+        if self._writing is not None:
+            raise SprintMapError("a sequence is being written: commit or abort it first")
+        return remove_sequences(self, seq_ids)
 
     # --- writing ----------------------------------------------------------------------------
     def add_sequence(
@@ -557,7 +683,11 @@ class MapStore:
 
 def is_map(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` looks like a map directory (cheap, no open)."""
-    return (Path(path) / LMDB_DIR / "data.mdb").is_file()
+    root = Path(path)
+    try:
+        return (current_data(root) / LMDB_DIR / "data.mdb").is_file()
+    except SprintMapError:
+        return False
 
 
 __all__ = [
