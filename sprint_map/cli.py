@@ -135,6 +135,20 @@ def _hmm_overrides(k: int | None, window: str | None, pairs: tuple[str, ...]) ->
     return out
 
 
+def _key_values(pairs: tuple[str, ...], option: str) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs as a dict, each value parsed as JSON (else kept as a string)."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise InputError(f"{option} expects KEY=VALUE, got {pair!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
 def _model_options(f: Any) -> Any:
     f = click.option("--hmm", "hmm_pairs", multiple=True, metavar="KEY=VALUE",
                      help="Override any HMM parameter for this call (repeatable).")(f)
@@ -358,6 +372,31 @@ def compact(map_path: str, as_json: bool) -> None:
                          f"{data['bytes_after']} bytes on disk{kept}")
 
 
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--rebuild", "action", flag_value="rebuild", help="Rebuild the index from the "
+              "shards (the approximate index keeps its kind, retrained on a fresh sample).")
+@click.option("--train", "action", flag_value="train", help="Retrain PCA and the quantizer on "
+              "a fresh sample of the map, then re-encode every vertex.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def index(map_path: str, action: str | None, as_json: bool) -> None:
+    """Rebuild or retrain the retrieval index of MAP (its kind is the map's index_type).
+
+    Readers keep searching the old index until the new one is published atomically; a kill
+    leaves one or the other. Without --rebuild/--train, show the index.
+
+    \b
+    Examples:
+      sprint-map index city.map --train      # retrain PCA + IVF on today's map
+      sprint-map index city.map --rebuild
+      sprint-map index city.map --json
+    """
+    with SprintMap.open(map_path, readonly=action is None) as m:
+        done = m.rebuild_index(train=action == "train") if action else []
+        data = {"done": done, "index": m.info()["index"]}
+    _emit(data, as_json, "\n".join(done + [f"index: {data['index']['type']}"]))
+
+
 def _log(quiet: bool) -> Any:
     return (lambda _msg: None) if quiet else (lambda msg: click.echo(msg, err=True))
 
@@ -379,11 +418,15 @@ def _log(quiet: bool) -> Any:
               help="Ground truth, if the data set has no dataset.json (Nordland: frame).")
 @click.option("--tolerance", type=int, help="Frame alignment: +/- frames counted correct.")
 @click.option("--radius", type=float, help="Position alignment: metres counted correct.")
+@click.option("--map-config", "map_pairs", multiple=True, metavar="KEY=VALUE",
+              help="Override a MapConfig field of the evaluation maps (repeatable, JSON "
+              "values), e.g. index_type=ivf-pq.")
 @_model_options
 def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None,
           query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
-          tolerance: int | None, radius: float | None, stride: int, quiet: bool,
-          k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+          tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
+          stride: int, quiet: bool, k: int | None, window: str | None,
+          hmm_pairs: tuple[str, ...]) -> None:
     """Evaluate k-NN and SPRINT on DATASET (one folder per traversal); write JSON, markdown, PNGs.
 
     \b
@@ -391,6 +434,9 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
       sprint-map eval data/city --out eval-city
       sprint-map eval ../shared/data/nordland --protocol pairs --database summer \\
           --query winter --both-directions --alignment frame --tolerance 1
+      sprint-map eval ../shared/data/nordland --protocol pairs --database summer \\
+          --query winter --alignment frame --tolerance 1 --map-config index_type=ivf-pq \\
+          --map-config index_nlist=64 --map-config index_segment_rows=256
     """
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
@@ -403,6 +449,8 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
             gt[key] = value
     data = Dataset.open(dataset, gt or None)
     config = config_for(data, descriptor)
+    if map_pairs:
+        config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
     overrides = _hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     options = EvalOptions(protocol=protocol, database=database, query=query,

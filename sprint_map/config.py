@@ -19,6 +19,9 @@ READABLE_SCHEMA_VERSIONS = (1, 2)
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
 DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm")
 
+#: Retrieval index kinds (``MapConfig.index_type``).
+INDEX_TYPES = ("flat", "ivf-pq", "ivf-sq8", "auto")
+
 
 @dataclass(frozen=True)
 class MapConfig:
@@ -36,7 +39,32 @@ class MapConfig:
     shard_rows : int
         Rows per descriptor shard file; a shard is sealed (never written again) once full.
     index_type : str
-        FAISS index kind (``"flat"``: exact L2 through ``IndexIDMap2(IndexFlatL2)``).
+        Retrieval index (see :mod:`sprint_map.storage.index_store`): ``"flat"`` (exact L2
+        through ``IndexIDMap2(IndexFlatL2)``), ``"ivf-pq"`` / ``"ivf-sq8"`` (segmented FAISS
+        IVF with PQ / 8-bit SQ codes, optionally after PCA, candidates re-ranked exactly from
+        the shards) or ``"auto"`` (flat while the map is small, ``ivf-pq`` from
+        ``index_auto_vertices``). Maps created before the approximate indexes say ``"flat"``.
+    index_nlist : int
+        IVF lists (coarse centroids) of the approximate indexes.
+    index_nprobe : int
+        IVF lists scanned per query (at most ``index_nlist``).
+    index_pq_m : int
+        PQ sub-quantizers (8 bits each; must divide the indexed dimension); 0 picks the
+        largest divisor with at least 8 dimensions per sub-quantizer (16 for 128).
+    index_pca_dim : int
+        Descriptors longer than this are reduced by a PCA trained with the quantizer
+        (0: never reduce).
+    index_rerank : int
+        Candidates re-ranked with exact distances from the shards per query (at least k).
+    index_segment_rows : int
+        Vertices per sealed index segment; newer vertices (the tail) are searched exactly.
+    index_merge_factor : int
+        This many sealed segments of one size are merged into one (tiered, like an LSM tree).
+    index_auto_vertices : int
+        ``auto`` switches to the approximate index once ``vertices * dim`` reaches this many
+        128-dimensional vertices' worth (200k at dim 128, ~14.5k at dim 1764).
+    index_train_sample : int
+        Vertices sampled (seeded, from the whole map) to train PCA and the quantizer.
     index_persist_every : int
         A writer persists the index once the vertices added since the last persisted file reach
         this many and ``index_persist_growth`` times that file's size; it also persists on close.
@@ -60,7 +88,16 @@ class MapConfig:
     descriptor: str = "precomputed"
     descriptor_params: dict[str, Any] = field(default_factory=dict)
     shard_rows: int = 65536
-    index_type: str = "flat"
+    index_type: str = "auto"
+    index_nlist: int = 1024
+    index_nprobe: int = 16
+    index_pq_m: int = 0
+    index_pca_dim: int = 128
+    index_rerank: int = 100
+    index_segment_rows: int = 32768
+    index_merge_factor: int = 8
+    index_auto_vertices: int = 200_000
+    index_train_sample: int = 65536
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
     initial_map_size: int = 1 << 30
@@ -78,8 +115,24 @@ class MapConfig:
             raise ValueError(f"{self.descriptor} descriptors have {spec.dim} dimensions, not {self.dim}")
         if self.shard_rows < 1:
             raise ValueError("shard_rows must be >= 1")
-        if self.index_type != "flat":
-            raise ValueError("index_type must be 'flat'")
+        if self.index_type not in INDEX_TYPES:
+            raise ValueError(f"index_type must be one of {', '.join(INDEX_TYPES)}")
+        for name in ("index_nlist", "index_nprobe", "index_rerank", "index_segment_rows"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name} must be a positive integer")
+        if self.index_nprobe > self.index_nlist:
+            raise ValueError("index_nprobe must be <= index_nlist")
+        if self.index_pca_dim < 0 or self.index_pq_m < 0:
+            raise ValueError("index_pca_dim and index_pq_m must be >= 0")
+        if self.index_pq_m and self.index_dim % self.index_pq_m:
+            raise ValueError(f"index_pq_m ({self.index_pq_m}) must divide the indexed "
+                             f"dimension ({self.index_dim})")
+        if self.index_merge_factor < 2:
+            raise ValueError("index_merge_factor must be >= 2")
+        if self.index_auto_vertices < 1:
+            raise ValueError("index_auto_vertices must be >= 1")
+        if self.index_train_sample < self.index_nlist:
+            raise ValueError("index_train_sample must be >= index_nlist")
         if self.index_persist_every < 1:
             raise ValueError("index_persist_every must be >= 1")
         if not self.index_persist_growth >= 0:
@@ -88,6 +141,20 @@ class MapConfig:
             raise ValueError("initial_map_size must be at least 1 MiB")
         if not 0 <= self.merge_threshold <= 1:
             raise ValueError("merge_threshold must be in [0, 1]")
+
+    @property
+    def index_dim(self) -> int:
+        """Dimension the approximate index quantizes: after PCA when ``dim > index_pca_dim``."""
+        return self.index_pca_dim if 0 < self.index_pca_dim < self.dim else self.dim
+
+    @property
+    def pq_m(self) -> int:
+        """PQ sub-quantizers: ``index_pq_m``, or the largest divisor of :attr:`index_dim` with
+        at least 8 dimensions each (1 if none)."""
+        if self.index_pq_m:
+            return self.index_pq_m
+        d = self.index_dim
+        return max([m for m in range(1, d // 8 + 1) if d % m == 0] or [1])
 
     def descriptor_spec(self) -> DescriptorSpec | None:
         """The front end's descriptor for images and video, or None for precomputed ones."""

@@ -209,6 +209,15 @@ class SprintMap:
         """
         return self.store.compact()
 
+    def rebuild_index(self, *, train: bool = False) -> list[str]:
+        """Rebuild the retrieval index from the shards; with ``train`` also retrain the
+        approximate index's PCA and quantizer on a fresh sample (``sprint-map index``).
+
+        Readers keep using the old index until the new one is published atomically. See
+        :meth:`sprint_map.storage.index_store.IndexStore.train`.
+        """
+        return self.store.rebuild_index(train=train)
+
     def localizer(self, hmm: HMMConfig | None = None, **overrides: Any) -> Localizer:
         """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
 
@@ -292,7 +301,7 @@ class SprintMap:
             "dim": self.config.dim,
             "descriptor": self.config.descriptor,
             "index": {
-                "type": "IndexIDMap2(IndexFlatL2)",
+                **index.describe(),
                 # The index is a cache that catches up from the shards when loaded, so a search
                 # always covers every committed vertex; "persisted" is what the file on disk holds.
                 "ntotal": index.covered if index.index is not None else stats["vertices"],

@@ -35,6 +35,7 @@ from sprint_map.storage.crash import (
     RECOVER_POINTS,
     REMOVE_POINTS,
     REPAIR_POINTS,
+    SEGMENT_POINTS,
 )
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.index_store import index_files
@@ -255,6 +256,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     assert names == set(CRASH_POINTS)
     tested = set(ADD_POINTS + INDEX_POINTS) | set(RECOVER_POINTS) | set(REPAIR_POINTS)
     tested |= set(REMOVE_POINTS) | set(COMPACT_POINTS)  # test_kill_at_each_{remove,compact}_point
+    tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
     assert tested == set(CRASH_POINTS)
 
 

@@ -37,6 +37,7 @@ from sprint_map.storage.keys import (
     u64,
 )
 from sprint_map.storage.lock import writer_active
+from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.union_find import MEMBER_KEY
 
@@ -403,6 +404,10 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     def bad(message: str) -> None:
         report.violation("index", message)
 
+    if has_segments(store.data_path / INDEX_DIR):
+        check_segments(store.data_path / INDEX_DIR, store.config, store.shards, total, bad,
+                       report.notes, report.checked, seed, live)
+        return
     files = index_files(store.data_path / INDEX_DIR)
     for upto, path in files:
         if upto > total:

@@ -23,6 +23,12 @@ INDEX_POINTS = (
     "index.partial_written",  # index file written to *.partial, not yet renamed
     "index.published",  # new index file renamed into place, older ones not yet removed
 )
+#: The segmented index (training, sealing and merging segments; ``index --train``).
+SEGMENT_POINTS = (
+    "index.model_trained",  # model (and PCA) files published, no segment and no manifest yet
+    "index.segment_written",  # a segment file published, the manifest naming it not yet
+    "index.manifest_published",  # new manifest in place, files it no longer names not deleted
+)
 #: A writer's open bringing the files back to the committed state.
 RECOVER_POINTS = (
     "recover.partials_removed",  # temp files removed, shard tail not yet truncated
@@ -51,8 +57,8 @@ COMPACT_POINTS = (
 )
 
 #: Every crash point in the write paths.
-CRASH_POINTS = (ADD_POINTS + INDEX_POINTS + RECOVER_POINTS + REPAIR_POINTS + REMOVE_POINTS
-                + COMPACT_POINTS)
+CRASH_POINTS = (ADD_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
+                + REMOVE_POINTS + COMPACT_POINTS)
 
 
 def crash_point(name: str) -> None:

@@ -1,78 +1,58 @@
-"""The FAISS index of a map: a cache of the shards, persisted atomically and stamped.
+"""The retrieval index of a map: exact flat while small, segmented and approximate when large.
 
-The index file is ``index/flat.<upto>.faiss`` where ``upto`` is the number of vertices it covers
-(vertex ids ``0..upto-1``; FAISS id = vertex id). Because LMDB is the source of truth, the index
-may lag it (the missing tail is re-added from the shards when the index is loaded) but never
-lead it: a file stamped beyond the committed vertex count (LMDB lost or never made the commit) is
-discarded and the index rebuilt from the shards. So is a file whose size is not the size its
-stamp implies (cut short, or garbage appended): one ``stat``, no read.
+Which index a map uses follows ``MapConfig.index_type``:
 
-Loading is lazy: opening a map does not read the index; the first search does.
+* ``"flat"``: :class:`~sprint_map.storage.flat_index.FlatIndex`, exact, one file
+  ``flat.<upto>.faiss`` rewritten geometrically (every map created before the approximate
+  indexes);
+* ``"ivf-pq"`` / ``"ivf-sq8"``: :class:`~sprint_map.storage.segment_index.SegmentedIndex`,
+  trained as soon as the map holds ``MIN_TRAIN`` vertices (flat until then);
+* ``"auto"`` (the default): flat until ``vertices * dim`` reaches ``index_auto_vertices``
+  128-dimensional vertices' worth, then ``ivf-pq``, trained by the writer when the map
+  crosses that size.
+
+Both are caches of the shards (LMDB is the truth): files ahead of the map or torn are dropped
+by the writer's open, the in-memory index is caught up from the shards when loaded. A writer
+switching to the segmented index publishes its manifest first and only then removes the flat
+files, so readers keep searching the old index until the new one is complete.
 """
 
 from __future__ import annotations
 
-import errno
-import re
-from functools import cache
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
-import faiss
 import numpy as np
 
-from sprint_map.storage.atomic import fsync_dir, publish
-from sprint_map.storage.crash import crash_point
+from sprint_map.config import MapConfig
+from sprint_map.storage import atomic
+from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
+from sprint_map.storage.segment_index import (
+    SegmentedIndex,
+    manifest_problems,
+    publish_manifest,
+    read_manifest,
+    remove_unlisted,
+)
+from sprint_map.storage.segment_model import MIN_TRAIN
 from sprint_map.storage.shards import ShardSet
 
-INDEX_RE = re.compile(r"^flat\.(\d{12})\.faiss$")
-#: Rows read from the shards per batch when rebuilding or catching up.
-REBUILD_CHUNK = 65536
+__all__ = ["IndexStore", "file_bytes", "file_problem", "index_files"]
 
 
-def index_files(directory: Path) -> list[tuple[int, Path]]:
-    """Persisted index files as ``(upto, path)``, ascending."""
-    found = []
-    if directory.is_dir():
-        for entry in directory.iterdir():
-            match = INDEX_RE.match(entry.name)
-            if match:
-                found.append((int(match.group(1)), entry))
-    return sorted(found)
-
-
-@cache
-def _header_bytes(dim: int) -> int:
-    return len(faiss.serialize_index(faiss.IndexIDMap2(faiss.IndexFlatL2(dim))))
-
-
-def file_bytes(dim: int, upto: int) -> int:
-    """Size of the file :meth:`IndexStore.persist` writes for ``upto`` vectors of ``dim``.
-
-    A flat index stores each vector (``4 * dim`` bytes) and its id (8 bytes) after a header
-    of fixed size, so the size is exact and checking it catches a torn or padded file.
-    """
-    return _header_bytes(dim) + upto * (4 * dim + 8)
-
-
-def file_problem(path: Path, upto: int, committed: int, dim: int) -> str | None:
-    """Why the index file ``path`` stamped ``upto`` cannot be trusted, or None. One ``stat``.
-
-    The reason reads after "is": ``f"{path.name} is {reason}"``.
-    """
-    if upto > committed:
-        return f"ahead of the map ({committed} vertices)"
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        return "gone (removed meanwhile)"
-    want = file_bytes(dim, upto)
-    if size != want:
-        return f"torn: {size} bytes, {upto} vectors of dim {dim} take {want}"
-    return None
+def approximate_kind(config: MapConfig, committed: int) -> str | None:
+    """The approximate index kind a map of ``committed`` vertices should use, or None (flat)."""
+    if committed < MIN_TRAIN or config.index_type == "flat":
+        return None
+    if config.index_type == "auto":
+        big = committed * config.dim >= config.index_auto_vertices * 128
+        return "ivf-pq" if big else None
+    return config.index_type
 
 
 class IndexStore:
-    """Exact L2 retrieval over all committed descriptors, as ``IndexIDMap2(IndexFlatL2)``.
+    """The map's index: a :class:`FlatIndex` or a :class:`SegmentedIndex`, chosen on load.
 
     Parameters
     ----------
@@ -81,164 +61,252 @@ class IndexStore:
     dim : int
         Descriptor dimension.
     writable : bool
-        Whether this process may write files (only the writer persists or deletes files).
+        Whether this process may write files (only the writer persists, trains or deletes).
+    config : MapConfig, optional
+        The map's config (default: a flat index of ``dim``).
     """
 
-    def __init__(self, directory: Path, dim: int, *, writable: bool) -> None:
+    def __init__(self, directory: Path, dim: int, *, writable: bool,
+                 config: MapConfig | None = None) -> None:
         self.directory = directory
         self.dim = dim
         self.writable = writable
-        self.index: faiss.IndexIDMap2 | None = None
-        self.persisted = 0  # vertices covered by the newest file on disk that we trust
-        self.events: list[str] = []  # what loading had to do (for check/info reports)
+        self.config = config if config is not None else MapConfig(dim=dim, index_type="flat")
+        self.flat = FlatIndex(directory, dim, writable=writable)
+        self.segmented: SegmentedIndex | None = None
+        self.events = self.flat.events  # what loading had to do (for check/info reports)
+        self._shards: ShardSet | None = None
+        self._committed = 0
+
+    # --- state ------------------------------------------------------------------------------
+    @property
+    def index(self) -> Any:
+        """The loaded index (None until the first search)."""
+        return self.segmented if self.segmented is not None else self.flat.index
 
     @property
     def covered(self) -> int:
         """Vertices covered by the in-memory index (0 if not loaded)."""
-        return 0 if self.index is None else int(self.index.ntotal)
+        return self.segmented.covered if self.segmented is not None else self.flat.covered
+
+    @property
+    def persisted(self) -> int:
+        """Vertices the trusted files on disk cover (sealed segments, or the flat file)."""
+        if self.segmented is not None:
+            return self.segmented.manifest.sealed
+        return self.flat.persisted
+
+    @persisted.setter
+    def persisted(self, value: int) -> None:
+        self.flat.persisted = value
 
     def persisted_on_disk(self) -> int:
-        """Vertices covered by the newest index file on disk (without loading it)."""
-        files = index_files(self.directory)
-        return files[-1][0] if files else 0
+        """Vertices covered by the index files on disk (without loading them)."""
+        try:
+            manifest = read_manifest(self.directory)
+        except ValueError:
+            manifest = None
+        if manifest is not None:
+            return manifest.sealed
+        return self.flat.persisted_on_disk()
 
+    def has_files(self) -> bool:
+        """Whether an index is persisted at all (a flat file, or a segment manifest)."""
+        return (self.directory / "segments.json").exists() or bool(index_files(self.directory))
+
+    def describe(self) -> dict[str, Any]:
+        """What ``info`` reports about the index (loaded or not)."""
+        if self.segmented is not None:
+            return self.segmented.describe()
+        try:
+            manifest = read_manifest(self.directory)
+        except ValueError:
+            manifest = None
+        if manifest is not None:
+            return {"type": f"segmented {manifest.kind} (IVF{manifest.nlist})",
+                    "generation": manifest.generation, "segments": len(manifest.segments),
+                    "sealed": manifest.sealed}
+        return {"type": "IndexIDMap2(IndexFlatL2)"}
+
+    # --- opening ------------------------------------------------------------------------------
     def discard_untrusted(self, committed: int) -> list[str]:
-        """Delete index files ahead of ``committed`` vertices or torn (writer, at open).
-
-        A file ahead saw commits LMDB no longer has; left in place, it would be trusted again
-        as soon as new, different commits bring the vertex count up to its stamp. A torn file
-        (its size is not what its stamp implies) would only fail to load later.
+        """Drop index files ahead of ``committed`` vertices, torn, or not named (writer, open).
 
         Notes
         -----
-        One ``stat`` per index file (normally one file): O(1) in the map size.
+        One ``stat`` per index file: O(segments), O(log map size) with tiered merging.
         """
-        actions = []
-        for upto, path in index_files(self.directory):
-            problem = file_problem(path, upto, committed, self.dim)
-            if problem is not None:
-                path.unlink(missing_ok=True)
-                actions.append(f"removed index {path.name}: {problem}")
-        if actions:
-            fsync_dir(self.directory)
+        actions = self.flat.discard_untrusted(committed)
+        try:
+            manifest = read_manifest(self.directory)
+        except ValueError as exc:
+            actions.append(f"removed the index manifest: {exc}")
+            manifest = None
+        if manifest is not None:
+            model_problem, good, problems = manifest_problems(self.directory, manifest,
+                                                              committed)
+            actions.extend(f"index {problem}: dropped" for problem in problems)
+            if model_problem:
+                manifest = None
+            elif good < len(manifest.segments):
+                manifest = replace(manifest, segments=manifest.segments[:good])
+                publish_manifest(self.directory, manifest)
+        actions.extend(f"removed index {name}: not in the manifest"
+                       for name in remove_unlisted(self.directory, manifest))
+        if manifest is not None and index_files(self.directory):
+            for _, path in index_files(self.directory):  # superseded by the segments
+                atomic.unlink(path)
+                actions.append(f"removed index {path.name}: superseded by the segments")
+            atomic.fsync_dir(self.directory)
         return actions
 
-    def _empty(self) -> faiss.IndexIDMap2:
-        return faiss.IndexIDMap2(faiss.IndexFlatL2(self.dim))
+    def load(self, committed: int, shards: ShardSet) -> Any:
+        """Load the trusted index and bring it up to ``committed`` vertices.
 
-    def load(self, committed: int, shards: ShardSet) -> faiss.IndexIDMap2:
-        """Load the newest trustworthy file and bring it up to ``committed`` vertices.
-
-        Notes
-        -----
-        O(file size) to read plus O((committed - upto) * dim) to catch up from the shards.
+        A writer whose map should use the approximate index but has none trains it here.
         """
-        if self.index is not None:
+        self._shards, self._committed = shards, committed
+        if self.segmented is not None:
             self.catch_up(committed, shards)
-            return self.index
-        index = None
-        for upto, path in reversed(index_files(self.directory)):
-            problem = file_problem(path, upto, committed, self.dim)
-            if problem is not None:
-                self.events.append(f"index {path.name} is {problem}; discarded")
-                if self.writable:
-                    path.unlink(missing_ok=True)
-                continue
-            try:
-                candidate = faiss.read_index(str(path))
-            except RuntimeError as exc:
-                self.events.append(f"index {path.name} unreadable ({exc}); discarded")
-                if self.writable:
-                    path.unlink(missing_ok=True)
-                continue
-            if candidate.ntotal != upto or candidate.d != self.dim:
-                self.events.append(f"index {path.name} does not match its stamp; discarded")
-                if self.writable:
-                    path.unlink(missing_ok=True)
-                continue
-            index = faiss.IndexIDMap2(candidate) if not isinstance(
-                candidate, faiss.IndexIDMap2
-            ) else candidate
-            self.persisted = upto
-            break
-        self.index = index if index is not None else self._empty()
-        if index is None and committed:
-            self.events.append(f"index rebuilt from the shards ({committed} vertices)")
-        self.catch_up(committed, shards)
-        return self.index
+            return self.segmented
+        wants = approximate_kind(self.config, committed)
+        if self.config.index_type != "flat" and (
+                self.flat.index is None or (self.writable and wants is not None)):
+            opened = SegmentedIndex.open(self.directory, self.config, committed, self.events)
+            if opened is not None:
+                self.segmented = opened
+                self.flat.reset()
+                opened.catch_up(committed, shards)
+                return opened
+            if wants is not None and self.writable:
+                self.train(committed, shards)
+                return self.segmented
+        return self.flat.load(committed, shards)
 
     def catch_up(self, committed: int, shards: ShardSet) -> None:
         """Add shard rows ``covered..committed-1`` to the in-memory index."""
-        assert self.index is not None
-        start = self.covered
-        while start < committed:
-            stop = min(committed, start + REBUILD_CHUNK)
-            self.add(start, shards.rows(start, stop, committed))
-            start = stop
-
-    def add(self, start: int, rows: np.ndarray) -> None:
-        """Add ``rows`` as vertex ids ``start..`` (must continue the covered range)."""
-        if self.index is None:
-            return  # not loaded: the next load catches up from the shards
-        if start != self.covered:
-            raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
-        ids = np.arange(start, start + len(rows), dtype=np.int64)
-        self.index.add_with_ids(np.ascontiguousarray(rows, dtype=np.float32), ids)
+        self._shards, self._committed = shards, committed
+        if self.segmented is not None:
+            if not self.writable and self.segmented.tail_len > 2 * self.config.index_segment_rows:
+                self.reset()  # a reader far behind the writer's segments: reopen them
+                self.load(committed, shards)
+                return
+            self.segmented.catch_up(committed, shards)
+        else:
+            self.flat.catch_up(committed, shards)
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded."""
-        assert self.index is not None, "load() first"
-        queries = np.ascontiguousarray(queries, dtype=np.float32)
-        # One query is latency-bound: threads only add overhead. Batches use the cores.
-        faiss.omp_set_num_threads(1 if len(queries) < 8 else faiss.omp_get_max_threads())
-        distances, ids = self.index.search(queries, k)
-        return distances, ids
+        """k nearest vertices of each query row: ``(squared L2 distances, vertex_ids)``.
+
+        Distances are exact for both kinds (the segmented index re-ranks from the shards);
+        rows are -1 padded. Asking for a larger ``k`` (e.g. to filter removed vertices) costs
+        ``max(k, index_rerank)`` candidates, not another search.
+        """
+        if self.segmented is not None:
+            assert self._shards is not None
+            return self.segmented.search(queries, k, self._shards, self._committed)
+        return self.flat.search(queries, k)
+
+    # --- writing ------------------------------------------------------------------------------
+    def after_commit(self, committed: int, shards: ShardSet, first: int) -> bool:
+        """Update the index after a commit of vertices ``first..committed-1``; True if the
+        caller should persist (flat: on the geometric schedule; segmented: a tail to seal)."""
+        if self.index is not None:
+            if self.covered == first:
+                # The rows are in the page cache: read them back from the shards' memory map.
+                self.catch_up(committed, shards)
+            else:  # cannot happen with one writer; reload rather than guess
+                self.reset()
+        self._shards, self._committed = shards, committed
+        kind = approximate_kind(self.config, committed)
+        if self.segmented is not None:
+            return self.segmented.tail_len >= self.config.index_segment_rows
+        if kind is not None:
+            return True  # train (crossing the auto threshold, or the first MIN_TRAIN vertices)
+        on_disk = self.flat.persisted if self.flat.index is not None else (
+            self.flat.persisted_on_disk())
+        # A flat index file is rewritten whole on every persist, so the interval grows with the
+        # file (geometric): total bytes written stay O(final size), not O(size^2 / interval).
+        cfg = self.config
+        due = committed - on_disk >= max(cfg.index_persist_every,
+                                         cfg.index_persist_growth * on_disk)
+        if due and self.flat.index is None:
+            self.flat.load(committed, shards)
+        return due
 
     def persist(self) -> bool:
-        """Publish the in-memory index atomically if it covers more than the file on disk."""
-        index = self.index
-        if not self.writable or index is None or self.covered <= self.persisted:
+        """Make the files cover what they should: seal full tail blocks (segmented), train
+        (a map that crossed the approximate threshold) or publish the flat index."""
+        if not self.writable:
             return False
-        upto = self.covered
-        path = self.directory / f"flat.{upto:012d}.faiss"
+        shards, committed = self._shards, self._committed
+        if shards is None:
+            return False  # nothing added or searched since the open: nothing to persist
+        if approximate_kind(self.config, committed) is not None:
+            if self.segmented is None:
+                self.load(committed, shards)  # opens the published segments, or trains
+            if self.segmented is not None:
+                return self.segmented.seal_ready(shards, committed)
+        return self.flat.persist()
 
-        def write(partial: Path) -> None:
-            try:
-                faiss.write_index(index, str(partial))
-            except RuntimeError as exc:
-                # FAISS reports I/O failures (ENOSPC, EIO) as RuntimeError; as an OSError,
-                # publish() removes the partial file and raises StorageIOError.
-                raise OSError(errno.EIO, str(exc)) from exc
-            crash_point("index.partial_written")
+    def train(self, committed: int, shards: ShardSet) -> list[str]:
+        """Train a new model on a fresh sample and re-encode every vertex (``index --train``).
 
-        # FAISS reports a failed write only on stderr: the size tells (see atomic.publish).
-        publish(path, write, expected_size=file_bytes(self.dim, upto))
-        crash_point("index.published")
-        for older, old_path in index_files(self.directory):
-            if older != upto:
-                old_path.unlink(missing_ok=True)
-        fsync_dir(self.directory)
-        self.persisted = upto
-        return True
+        The new generation's files are published under new names and the manifest replaced
+        last: readers keep the old index until then; a kill leaves the old one (its files
+        named by the old manifest) or the new one. Falls back to a flat rebuild when the map
+        is too small for the approximate index its config asks for.
+
+        Notes
+        -----
+        Training plus O(committed * dim) to re-encode.
+        """
+        assert self.writable
+        kind = approximate_kind(self.config, committed)
+        if kind is None:
+            self.rebuild(committed, shards)
+            return [f"rebuilt the flat index ({committed} vertices)"]
+        self._shards, self._committed = shards, committed
+        generation = 1 + max([int(p.name.split(".")[1]) for p in
+                              self.directory.glob("model.*.faiss")] + [0])
+        self.segmented = SegmentedIndex.train(self.directory, self.config, kind, committed,
+                                              shards, generation)
+        self.flat.index = None
+        self.flat.persisted = 0
+        remove_unlisted(self.directory, self.segmented.manifest)
+        for _, path in index_files(self.directory):
+            atomic.unlink(path)
+        atomic.fsync_dir(self.directory)
+        desc = self.segmented.describe()
+        self.events.append(f"index trained: {desc['type']}, {desc['segments']} segments")
+        return [f"trained {desc['type']} on {committed} vertices: {desc['segments']} "
+                f"segments, {desc['tail']} tail vertices searched exactly"]
 
     def rebuild(self, committed: int, shards: ShardSet) -> None:
         """Rebuild the index from the shards and publish it in place of every index file.
 
-        Notes
-        -----
-        O(committed * dim) to read the shards and write the file, published atomically
-        (:meth:`persist`): a kill leaves the old files or the new one, never a torn one.
+        The segmented index is retrained (a new generation); the flat one rewritten.
         """
         assert self.writable
-        self.index = self._empty()
-        self.persisted = 0
-        self.catch_up(committed, shards)
-        if not self.persist():  # an empty map: no file at all
-            for _, path in index_files(self.directory):
-                path.unlink(missing_ok=True)
-            fsync_dir(self.directory)
+        if approximate_kind(self.config, committed) is not None:
+            self.train(committed, shards)
+            return
+        self.segmented = None
+        self.flat.rebuild(committed, shards)
+        remove_unlisted(self.directory, None)
+
+    def merge_segments(self) -> bool:
+        """Merge every sealed segment into one (``compact``); False if nothing to merge.
+
+        Published like a seal (segment file, then manifest): a kill leaves the old segments
+        or the merged one. O(sealed codes) read and written.
+        """
+        assert self.writable
+        if self.segmented is None:
+            return False
+        return self.segmented.merge_all()
 
     def reset(self) -> None:
         """Forget the in-memory index (it is reloaded on the next search)."""
-        self.index = None
-        self.persisted = 0
+        self.flat.reset()
+        self.segmented = None

@@ -188,7 +188,7 @@ def _repair_index(store: MapStore, total: int, areas: set[str], skipped: list[st
                   ) -> list[str]:
     """Rebuild an unsound index (steps 2 and 3 change neither it nor any committed row), or
     write a missing one (none persisted yet, or the writer's open discarded a torn one)."""
-    missing = "index" not in areas and total > 0 and not store.index.persisted_on_disk()
+    missing = "index" not in areas and total > 0 and not store.index.has_files()
     if "index" not in areas and not missing:
         return []
     if "shard_files" in areas:

@@ -1,0 +1,244 @@
+"""The exact flat FAISS index of a map: a cache of the shards, persisted atomically and stamped.
+
+The index file is ``index/flat.<upto>.faiss`` where ``upto`` is the number of vertices it covers
+(vertex ids ``0..upto-1``; FAISS id = vertex id). Because LMDB is the source of truth, the index
+may lag it (the missing tail is re-added from the shards when the index is loaded) but never
+lead it: a file stamped beyond the committed vertex count (LMDB lost or never made the commit) is
+discarded and the index rebuilt from the shards. So is a file whose size is not the size its
+stamp implies (cut short, or garbage appended): one ``stat``, no read.
+
+Loading is lazy: opening a map does not read the index; the first search does.
+"""
+
+from __future__ import annotations
+
+import errno
+import re
+from functools import cache
+from pathlib import Path
+
+import faiss
+import numpy as np
+
+from sprint_map.storage.atomic import fsync_dir, publish
+from sprint_map.storage.crash import crash_point
+from sprint_map.storage.segment_model import use_threads
+from sprint_map.storage.shards import ShardSet
+
+INDEX_RE = re.compile(r"^flat\.(\d{12})\.faiss$")
+#: Rows read from the shards per batch when rebuilding or catching up.
+REBUILD_CHUNK = 65536
+
+
+def index_files(directory: Path) -> list[tuple[int, Path]]:
+    """Persisted index files as ``(upto, path)``, ascending."""
+    found = []
+    if directory.is_dir():
+        for entry in directory.iterdir():
+            match = INDEX_RE.match(entry.name)
+            if match:
+                found.append((int(match.group(1)), entry))
+    return sorted(found)
+
+
+@cache
+def _header_bytes(dim: int) -> int:
+    return len(faiss.serialize_index(faiss.IndexIDMap2(faiss.IndexFlatL2(dim))))
+
+
+def file_bytes(dim: int, upto: int) -> int:
+    """Size of the file :meth:`IndexStore.persist` writes for ``upto`` vectors of ``dim``.
+
+    A flat index stores each vector (``4 * dim`` bytes) and its id (8 bytes) after a header
+    of fixed size, so the size is exact and checking it catches a torn or padded file.
+    """
+    return _header_bytes(dim) + upto * (4 * dim + 8)
+
+
+def file_problem(path: Path, upto: int, committed: int, dim: int) -> str | None:
+    """Why the index file ``path`` stamped ``upto`` cannot be trusted, or None. One ``stat``.
+
+    The reason reads after "is": ``f"{path.name} is {reason}"``.
+    """
+    if upto > committed:
+        return f"ahead of the map ({committed} vertices)"
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return "gone (removed meanwhile)"
+    want = file_bytes(dim, upto)
+    if size != want:
+        return f"torn: {size} bytes, {upto} vectors of dim {dim} take {want}"
+    return None
+
+
+class FlatIndex:
+    """Exact L2 retrieval over all committed descriptors, as ``IndexIDMap2(IndexFlatL2)``.
+
+    Parameters
+    ----------
+    directory : Path
+        The ``index/`` directory.
+    dim : int
+        Descriptor dimension.
+    writable : bool
+        Whether this process may write files (only the writer persists or deletes files).
+    """
+
+    def __init__(self, directory: Path, dim: int, *, writable: bool) -> None:
+        self.directory = directory
+        self.dim = dim
+        self.writable = writable
+        self.index: faiss.IndexIDMap2 | None = None
+        self.persisted = 0  # vertices covered by the newest file on disk that we trust
+        self.events: list[str] = []  # what loading had to do (for check/info reports)
+
+    @property
+    def covered(self) -> int:
+        """Vertices covered by the in-memory index (0 if not loaded)."""
+        return 0 if self.index is None else int(self.index.ntotal)
+
+    def persisted_on_disk(self) -> int:
+        """Vertices covered by the newest index file on disk (without loading it)."""
+        files = index_files(self.directory)
+        return files[-1][0] if files else 0
+
+    def discard_untrusted(self, committed: int) -> list[str]:
+        """Delete index files ahead of ``committed`` vertices or torn (writer, at open).
+
+        A file ahead saw commits LMDB no longer has; left in place, it would be trusted again
+        as soon as new, different commits bring the vertex count up to its stamp. A torn file
+        (its size is not what its stamp implies) would only fail to load later.
+
+        Notes
+        -----
+        One ``stat`` per index file (normally one file): O(1) in the map size.
+        """
+        actions = []
+        for upto, path in index_files(self.directory):
+            problem = file_problem(path, upto, committed, self.dim)
+            if problem is not None:
+                path.unlink(missing_ok=True)
+                actions.append(f"removed index {path.name}: {problem}")
+        if actions:
+            fsync_dir(self.directory)
+        return actions
+
+    def _empty(self) -> faiss.IndexIDMap2:
+        return faiss.IndexIDMap2(faiss.IndexFlatL2(self.dim))
+
+    def load(self, committed: int, shards: ShardSet) -> faiss.IndexIDMap2:
+        """Load the newest trustworthy file and bring it up to ``committed`` vertices.
+
+        Notes
+        -----
+        O(file size) to read plus O((committed - upto) * dim) to catch up from the shards.
+        """
+        if self.index is not None:
+            self.catch_up(committed, shards)
+            return self.index
+        index = None
+        for upto, path in reversed(index_files(self.directory)):
+            problem = file_problem(path, upto, committed, self.dim)
+            if problem is not None:
+                self.events.append(f"index {path.name} is {problem}; discarded")
+                if self.writable:
+                    path.unlink(missing_ok=True)
+                continue
+            try:
+                candidate = faiss.read_index(str(path))
+            except RuntimeError as exc:
+                self.events.append(f"index {path.name} unreadable ({exc}); discarded")
+                if self.writable:
+                    path.unlink(missing_ok=True)
+                continue
+            if candidate.ntotal != upto or candidate.d != self.dim:
+                self.events.append(f"index {path.name} does not match its stamp; discarded")
+                if self.writable:
+                    path.unlink(missing_ok=True)
+                continue
+            index = faiss.IndexIDMap2(candidate) if not isinstance(
+                candidate, faiss.IndexIDMap2
+            ) else candidate
+            self.persisted = upto
+            break
+        self.index = index if index is not None else self._empty()
+        if index is None and committed:
+            self.events.append(f"index rebuilt from the shards ({committed} vertices)")
+        self.catch_up(committed, shards)
+        return self.index
+
+    def catch_up(self, committed: int, shards: ShardSet) -> None:
+        """Add shard rows ``covered..committed-1`` to the in-memory index."""
+        assert self.index is not None
+        start = self.covered
+        while start < committed:
+            stop = min(committed, start + REBUILD_CHUNK)
+            self.add(start, shards.rows(start, stop, committed))
+            start = stop
+
+    def add(self, start: int, rows: np.ndarray) -> None:
+        """Add ``rows`` as vertex ids ``start..`` (must continue the covered range)."""
+        if self.index is None:
+            return  # not loaded: the next load catches up from the shards
+        if start != self.covered:
+            raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
+        ids = np.arange(start, start + len(rows), dtype=np.int64)
+        self.index.add_with_ids(np.ascontiguousarray(rows, dtype=np.float32), ids)
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded."""
+        assert self.index is not None, "load() first"
+        queries = np.ascontiguousarray(queries, dtype=np.float32)
+        use_threads(len(queries))
+        distances, ids = self.index.search(queries, k)
+        return distances, ids
+
+    def persist(self) -> bool:
+        """Publish the in-memory index atomically if it covers more than the file on disk."""
+        index = self.index
+        if not self.writable or index is None or self.covered <= self.persisted:
+            return False
+        upto = self.covered
+        path = self.directory / f"flat.{upto:012d}.faiss"
+
+        def write(partial: Path) -> None:
+            try:
+                faiss.write_index(index, str(partial))
+            except RuntimeError as exc:
+                # FAISS reports I/O failures (ENOSPC, EIO) as RuntimeError; as an OSError,
+                # publish() removes the partial file and raises StorageIOError.
+                raise OSError(errno.EIO, str(exc)) from exc
+            crash_point("index.partial_written")
+
+        # FAISS reports a failed write only on stderr: the size tells (see atomic.publish).
+        publish(path, write, expected_size=file_bytes(self.dim, upto))
+        crash_point("index.published")
+        for older, old_path in index_files(self.directory):
+            if older != upto:
+                old_path.unlink(missing_ok=True)
+        fsync_dir(self.directory)
+        self.persisted = upto
+        return True
+
+    def rebuild(self, committed: int, shards: ShardSet) -> None:
+        """Rebuild the index from the shards and publish it in place of every index file.
+
+        Notes
+        -----
+        O(committed * dim) to read the shards and write the file, published atomically
+        (:meth:`persist`): a kill leaves the old files or the new one, never a torn one.
+        """
+        assert self.writable
+        self.index = self._empty()
+        self.persisted = 0
+        self.catch_up(committed, shards)
+        if not self.persist():  # an empty map: no file at all
+            for _, path in index_files(self.directory):
+                path.unlink(missing_ok=True)
+            fsync_dir(self.directory)
+
+    def reset(self) -> None:
+        """Forget the in-memory index (it is reloaded on the next search)."""
+        self.index = None
+        self.persisted = 0

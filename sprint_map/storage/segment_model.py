@@ -1,0 +1,188 @@
+"""The trained part of the approximate index: optional PCA and an empty IVF quantizer.
+
+A model is trained once on a seeded sample of the map's descriptors and reused by every index
+segment of its generation, so a segment can be encoded without touching the others and segments
+of one generation can be searched (and merged) as one IVF index.
+
+Files (in ``index/``, each published atomically, named by generation ``GGGGGG``):
+
+* ``model.GGGGGG.faiss``: the trained, empty ``IndexIVFPQ`` or ``IndexIVFScalarQuantizer``;
+* ``pca.GGGGGG.faiss``: the ``PCAMatrix`` (only when ``dim > index_pca_dim``).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+
+from sprint_map.config import MapConfig
+from sprint_map.storage.atomic import publish
+from sprint_map.storage.shards import ShardSet
+
+#: Fewest vertices an approximate index is trained on (8-bit PQ codebooks have 256 centroids).
+MIN_TRAIN = 256
+#: Training vectors per IVF list the coarse k-means wants at least (FAISS warns below 39).
+POINTS_PER_LIST = 39
+#: Vectors the PCA is trained on at most (its covariance costs dim^2 per vector).
+PCA_SAMPLE = 20000
+#: k-means iterations for the coarse quantizer and the PQ codebooks.
+KMEANS_ITER = 10
+#: Seed of the training sample (with the generation): retraining the same map is reproducible.
+SAMPLE_SEED = 20200601
+
+APPROX_KINDS = ("ivf-pq", "ivf-sq8")
+#: Threads for training and encoding (searches of one query use one: see ``use_threads``).
+CORES = os.cpu_count() or 1
+
+
+def use_threads(n_queries: int) -> None:
+    """One OpenMP thread for a few queries (latency-bound; threads only add overhead), every
+    core for batches, training and encoding."""
+    faiss.omp_set_num_threads(1 if n_queries < 8 else CORES)
+
+
+def model_name(generation: int) -> str:
+    return f"model.{generation:06d}.faiss"
+
+
+def pca_name(generation: int) -> str:
+    return f"pca.{generation:06d}.faiss"
+
+
+def gather_rows(shards: ShardSet, ids: np.ndarray, committed: int) -> np.ndarray:
+    """Shard rows of ``ids`` (any order, no -1), copied; one memory-map view per shard touched.
+
+    Notes
+    -----
+    O(len(ids) * dim) copies plus O(shards touched) view look-ups.
+    """
+    ids = np.asarray(ids, dtype=np.int64)
+    out = np.empty((len(ids), shards.dim), dtype=np.float32)
+    if not len(ids):
+        return out
+    shard_of = ids // shards.shard_rows
+    for shard in np.unique(shard_of):
+        first = int(shard) * shards.shard_rows
+        rows = shards.rows(first, min(first + shards.shard_rows, committed), committed)
+        sel = np.flatnonzero(shard_of == shard)
+        out[sel] = rows[ids[sel] - first]
+    return out
+
+
+def sample_ids(committed: int, size: int, generation: int) -> np.ndarray:
+    """A seeded sample of ``min(size, committed)`` distinct vertex ids, sorted."""
+    rng = np.random.default_rng([SAMPLE_SEED, generation])
+    if size >= committed:
+        return np.arange(committed, dtype=np.int64)
+    return np.sort(rng.choice(committed, size=size, replace=False)).astype(np.int64)
+
+
+def serialize(index: faiss.Index | faiss.VectorTransform) -> bytes:
+    """The FAISS file bytes of ``index`` (so we write and fsync them ourselves)."""
+    if isinstance(index, faiss.VectorTransform):
+        writer = faiss.VectorIOWriter()
+        faiss.write_VectorTransform(index, writer)  # type: ignore[arg-type]
+        return faiss.vector_to_array(writer.data).tobytes()
+    return faiss.serialize_index(index).tobytes()
+
+
+def publish_bytes(path: Path, data: bytes) -> int:
+    """Publish ``data`` as ``path`` atomically (see :func:`atomic.publish`); return its size."""
+
+    def write(partial: Path) -> None:
+        with open(partial, "wb") as out:
+            out.write(data)
+
+    publish(path, write, expected_size=len(data))
+    return len(data)
+
+
+def read_faiss(path: Path, mmap: bool = False) -> Any:
+    """Read an index file; FAISS's RuntimeError (torn, garbled) becomes an OSError."""
+    try:
+        return faiss.read_index(str(path), faiss.IO_FLAG_MMAP if mmap else 0)
+    except RuntimeError as exc:
+        raise OSError(errno.EIO, f"{path.name}: {exc}") from exc
+
+
+@dataclass
+class Model:
+    """PCA (or None) and the trained, empty IVF index of one generation."""
+
+    kind: str
+    pca: faiss.VectorTransform | None
+    ivf: Any
+
+    @property
+    def nlist(self) -> int:
+        return int(self.ivf.nlist)
+
+    def transform(self, rows: np.ndarray) -> np.ndarray:
+        """Rows in the indexed space (PCA applied if any), C-contiguous float32."""
+        rows = np.ascontiguousarray(rows, dtype=np.float32)
+        return rows if self.pca is None else self.pca.apply(rows)
+
+    def publish(self, directory: Path, generation: int) -> tuple[int, int]:
+        """Write the model files of ``generation``; return ``(model bytes, pca bytes)``."""
+        pca_bytes = 0
+        if self.pca is not None:
+            pca_bytes = publish_bytes(directory / pca_name(generation), serialize(self.pca))
+        return publish_bytes(directory / model_name(generation), serialize(self.ivf)), pca_bytes
+
+    @classmethod
+    def read(cls, directory: Path, generation: int, kind: str, with_pca: bool) -> Model:
+        ivf = read_faiss(directory / model_name(generation))
+        pca = None
+        if with_pca:
+            try:
+                pca = faiss.read_VectorTransform(str(directory / pca_name(generation)))
+            except RuntimeError as exc:
+                raise OSError(errno.EIO, f"{pca_name(generation)}: {exc}") from exc
+        return cls(kind, pca, ivf)
+
+
+def train_model(config: MapConfig, kind: str, sample: np.ndarray) -> Model:
+    """Train PCA (when ``dim > index_pca_dim``) and the IVF quantizer on ``sample`` rows.
+
+    The number of lists is ``index_nlist`` but at most ``len(sample) / 39`` (FAISS's minimum
+    training points per list), so a small map trains a smaller quantizer.
+
+    Notes
+    -----
+    O(n_sample * nlist * d * KMEANS_ITER) for the coarse k-means, plus the PQ codebooks
+    (O(n_sample * 256 * d * KMEANS_ITER)) and for PCA O(PCA_SAMPLE * dim^2 + dim^3).
+    """
+    if kind not in APPROX_KINDS:
+        raise ValueError(f"no approximate index kind {kind!r}")
+    sample = np.ascontiguousarray(sample, dtype=np.float32)
+    d = config.index_dim
+    pca = None
+    if d < config.dim:
+        # A random rotation after the PCA spreads the variance evenly over the PQ sub-vectors.
+        pca = faiss.PCAMatrix(config.dim, d, 0, kind == "ivf-pq")
+        pca.train(sample[:: max(1, len(sample) // PCA_SAMPLE)])
+        sample = pca.apply(sample)
+    nlist = max(1, min(config.index_nlist, len(sample) // POINTS_PER_LIST))
+    quantizer = faiss.IndexFlatL2(d)
+    ivf: Any
+    if kind == "ivf-pq":
+        ivf = faiss.IndexIVFPQ(quantizer, d, nlist, config.pq_m, 8)
+        ivf.do_polysemous_training = False
+        ivf.pq.cp.niter = KMEANS_ITER
+        ivf.pq.cp.min_points_per_centroid = 1  # a small map: no warning, fewer points is fine
+    else:
+        ivf = faiss.IndexIVFScalarQuantizer(quantizer, d, nlist, faiss.ScalarQuantizer.QT_8bit,
+                                            faiss.METRIC_L2, True)
+    ivf.own_fields = True
+    quantizer.this.disown()  # type: ignore[attr-defined]
+    ivf.cp.niter = KMEANS_ITER
+    ivf.cp.min_points_per_centroid = 1
+    use_threads(len(sample))
+    ivf.train(sample)
+    return Model(kind, pca, ivf)

@@ -1,0 +1,313 @@
+"""The segmented approximate index: recall, exact re-ranked distances, sealed memory-mapped
+segments, tiered merges, the auto switch, crash recovery and untrusted files."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import faiss
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sprint_map.cli import main
+from sprint_map.config import MapConfig
+from sprint_map.errors import ConfigError
+from sprint_map.storage.check import check_map
+from sprint_map.storage.crash import CRASH_ENV, SEGMENT_POINTS
+from sprint_map.storage.index_store import index_files
+from sprint_map.storage.segment_index import MANIFEST, read_manifest, tier_plan
+from sprint_map.storage.store import INDEX_DIR, MapStore
+
+DIM = 32
+#: Small segments, a small quantizer: every mechanism fires on a map of a few thousand rows.
+SEGMENTED = {"dim": DIM, "index_type": "ivf-pq", "index_nlist": 16, "index_nprobe": 8,
+             "index_segment_rows": 256, "index_merge_factor": 3, "index_train_sample": 2000,
+             "index_rerank": 50}
+
+
+def clustered(rng: np.random.Generator, n: int, centres: np.ndarray) -> np.ndarray:
+    """Points around ``centres`` (real descriptors cluster; random ones would not)."""
+    return (centres[rng.integers(len(centres), size=n)]
+            + 0.15 * rng.standard_normal((n, centres.shape[1]))).astype(np.float32)
+
+
+def exact(rows: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    d = ((queries[:, None, :] - rows[None, :, :]) ** 2).sum(-1)
+    ids = np.argsort(d, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(d, ids, axis=1), ids
+
+
+@pytest.fixture
+def centres(rng):
+    return rng.standard_normal((300, DIM)).astype(np.float32)
+
+
+def build(path: Path, rng, centres, lengths, **config) -> np.ndarray:
+    rows = []
+    with MapStore.create(path, MapConfig(**{**SEGMENTED, **config})) as store:
+        for n in lengths:
+            rows.append(clustered(rng, n, centres))
+            store.add_sequence(rows[-1])
+    return np.concatenate(rows)
+
+
+def search_all(path: Path, queries: np.ndarray, k: int):
+    with MapStore.open(path, readonly=True) as store:
+        return store.search(queries, k)
+
+
+# --- configuration ---------------------------------------------------------------------------
+
+
+def test_config_defaults_validation_and_old_maps():
+    assert MapConfig(dim=128).index_type == "auto"
+    assert MapConfig(dim=1764).index_dim == 128 and MapConfig(dim=64).index_dim == 64
+    assert MapConfig(dim=128).pq_m == 16 and MapConfig(dim=12).pq_m == 1
+    old = MapConfig.from_dict({"dim": 8, "index_type": "flat", "shard_rows": 64})
+    assert old.index_type == "flat" and old.index_nlist == 1024
+    for bad in ({"index_type": "hnsw"}, {"index_nprobe": 2000}, {"index_nlist": 0},
+                {"index_pq_m": 7}, {"index_merge_factor": 1}, {"index_train_sample": 10}):
+        with pytest.raises(ConfigError):
+            MapConfig.from_dict({"dim": 128, **bad})
+
+
+def test_tier_plan_is_what_sealing_and_merging_leave():
+    assert tier_plan(10 * 256 + 17, 256, 3) == [(0, 2304), (2304, 2560)]
+    assert tier_plan(100, 256, 3) == []
+    plan = tier_plan(26 * 100, 100, 3)
+    assert [b - a for a, b in plan] == [900, 900, 300, 300, 100, 100]
+
+
+# --- retrieval --------------------------------------------------------------------------------
+
+
+def test_recall_and_exact_distances(tmp_path, rng, centres):
+    rows = build(tmp_path / "m", rng, centres, [1500, 1500, 700])
+    queries = clustered(rng, 60, centres)
+    dist, ids = search_all(tmp_path / "m", queries, 10)
+    _, want = exact(rows, queries, 10)
+    recall = np.mean([len(set(a) & set(b)) for a, b in zip(ids.tolist(), want.tolist(),
+                                                           strict=True)]) / 10
+    assert recall >= 0.9
+    # Re-ranked from the shards: the distances of the returned ids are exact, ascending.
+    true = ((queries[:, None, :] - rows[ids]) ** 2).sum(-1)
+    np.testing.assert_allclose(dist, true, rtol=1e-5)
+    assert np.all(np.diff(dist, axis=1) >= 0)
+    # Every stored row finds itself (in a segment or in the tail).
+    _, self_ids = search_all(tmp_path / "m", rows[::37], 1)
+    np.testing.assert_array_equal(self_ids[:, 0], np.arange(len(rows))[::37])
+
+
+def test_over_fetching_and_padding(tmp_path, rng, centres):
+    rows = build(tmp_path / "m", rng, centres, [600])
+    dist, ids = search_all(tmp_path / "m", rows[:3], 200)  # k above index_rerank
+    assert ids.shape == (3, 200) and (ids >= 0).all() and len(set(ids[0])) == 200
+    far, few = search_all(tmp_path / "m", rows[:1], 1000)  # more than the map holds
+    found = int((few[0] >= 0).sum())  # what the probed lists hold: at most the map
+    assert 200 <= found <= 600 and len(set(few[0, :found])) == found
+    assert (few[0, found:] == -1).all() and (far[0, found:] == np.finfo(np.float32).max).all()
+
+
+def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres):
+    rows = build(tmp_path / "m", rng, centres, [300] * 10 + [100])  # 3100 rows
+    manifest = read_manifest(tmp_path / "m" / INDEX_DIR)
+    # 12 blocks of 256 sealed one at a time, tiers of 3 merged: 2304 + 768 + 0 ... + tail.
+    assert [(s.start, s.stop) for s in manifest.segments] == tier_plan(3100, 256, 3)
+    assert manifest.sealed == 3072 and manifest.kind == "ivf-pq"
+    files = sorted(p.name for p in (tmp_path / "m" / INDEX_DIR).iterdir())
+    assert files == sorted([MANIFEST, f"model.{manifest.generation:06d}.faiss"]
+                           + [s.file for s in manifest.segments])
+    with MapStore.open(tmp_path / "m", readonly=True) as store:
+        store.search(rows[:1], 5)
+        seg = store.index.segmented
+        assert seg is not None and seg.tail_len == 28
+        for index in seg._segments:
+            lists = faiss.downcast_InvertedLists(index.invlists)
+            assert isinstance(lists, faiss.OnDiskInvertedLists)  # IO_FLAG_MMAP: not copied
+        report = check_map(store)
+    assert report.ok, report.violations
+    assert report.checked["index_segments"] == 2 and report.checked["index_codes_compared"] > 0
+
+
+def test_merge_segments_keeps_results(tmp_path, rng, centres):
+    rows = build(tmp_path / "m", rng, centres, [1400])
+    queries = clustered(rng, 20, centres)
+    before = search_all(tmp_path / "m", queries, 10)
+    with MapStore.open(tmp_path / "m") as store:
+        store.search(queries[:1], 1)
+        assert store.index.merge_segments()
+        assert len(read_manifest(tmp_path / "m" / INDEX_DIR).segments) == 1
+    after = search_all(tmp_path / "m", queries, 10)
+    np.testing.assert_array_equal(before[1], after[1])
+    assert len(rows) == 1400
+
+
+def test_auto_switches_from_flat_when_the_map_grows(tmp_path, rng, centres):
+    # auto at dim 32 switches once vertices * 32 >= 1000 * 128, i.e. at 4000 vertices.
+    path = tmp_path / "m"
+    config = {"index_type": "auto", "index_auto_vertices": 1000, "index_persist_every": 500}
+    rows = build(path, rng, centres, [1500, 1500], **config)
+    assert index_files(path / INDEX_DIR) and not (path / INDEX_DIR / MANIFEST).exists()
+    with MapStore.open(path) as store:
+        rows = np.concatenate([rows, clustered(rng, 1200, centres)])
+        store.add_sequence(rows[3000:])
+        assert store.index.segmented is not None
+        assert any("index trained" in e for e in store.index.events)
+    assert not index_files(path / INDEX_DIR)  # the flat file went once the segments were named
+    assert read_manifest(path / INDEX_DIR).trained_on == 4200
+    _, ids = search_all(path, rows[::50], 1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(rows), 50))
+
+
+# --- untrusted files --------------------------------------------------------------------------
+
+
+def test_torn_and_ahead_segments_are_dropped(tmp_path, rng, centres):
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [1000])
+    shutil.copytree(path, tmp_path / "older")  # the map as it was: 1000 vertices
+    with MapStore.open(path) as store:
+        more = clustered(rng, 2000, centres)
+        store.add_sequence(more)
+    # The older map's LMDB with the newer index: segments past its 1000 vertices are ahead.
+    shutil.rmtree(tmp_path / "older" / INDEX_DIR)
+    shutil.copytree(path / INDEX_DIR, tmp_path / "older" / INDEX_DIR)
+    with MapStore.open(tmp_path / "older", readonly=True) as store:
+        assert any("ahead of the map" in v for v in check_map(store).violations)
+    with MapStore.open(tmp_path / "older") as store:
+        assert any("ahead of the map (1000 vertices): dropped" in r for r in store.recovery)
+    manifest = read_manifest(tmp_path / "older" / INDEX_DIR)
+    assert manifest.sealed <= 1000
+    _, ids = search_all(tmp_path / "older", rows[::25], 1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, 1000, 25))
+
+    # A torn segment (cut short): it and every segment after it are dropped, the tail takes
+    # over their range, and the next seal puts them back.
+    first = read_manifest(path / INDEX_DIR).segments[0]
+    with open(path / INDEX_DIR / first.file, "r+b") as f:
+        f.truncate(first.bytes // 2)
+    with MapStore.open(path, readonly=True) as store:
+        assert any("is torn" in v for v in check_map(store).violations)
+        _, ids = store.search(more[:5], 1)  # a reader leaves it out, searches the tail
+        np.testing.assert_array_equal(ids[:, 0], np.arange(1000, 1005))
+    with MapStore.open(path) as store:
+        assert any("is torn" in r for r in store.recovery)
+        assert read_manifest(path / INDEX_DIR).segments == ()
+        store.search(more[:1], 1)
+        store.flush()  # seals the tail again
+    with MapStore.open(path, readonly=True) as store:
+        assert check_map(store).ok
+        assert read_manifest(path / INDEX_DIR).sealed == 2816
+
+
+def test_garbled_manifest_is_retrained(tmp_path, rng, centres):
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [800])
+    (path / INDEX_DIR / MANIFEST).write_text("{not json")
+    with MapStore.open(path) as store:
+        assert any("manifest" in r for r in store.recovery)
+        assert not (path / INDEX_DIR / MANIFEST).exists()
+        _, ids = store.search(rows[:4], 1)  # the writer trains a new index on first use
+    np.testing.assert_array_equal(ids[:, 0], np.arange(4))
+    assert read_manifest(path / INDEX_DIR) is not None
+
+
+# --- crashes (real processes killed at each named point) -------------------------------------
+
+CHILD = """
+import sys, numpy as np
+from sprint_map.storage.store import MapStore
+path, mode, DIM = sys.argv[1], sys.argv[2], int(sys.argv[3])
+with MapStore.open(path) as store:
+    if mode == "add":
+        rng = np.random.default_rng(5)
+        store.add_sequence(rng.standard_normal((700, DIM)).astype(np.float32) * 3)
+    else:
+        store.rebuild_index(train=True)
+"""
+
+
+def run_child(path: Path, mode: str, point: str | None) -> int:
+    env = {**os.environ, CRASH_ENV: point} if point else dict(os.environ)
+    return subprocess.run([sys.executable, "-c", CHILD, str(path), mode, str(DIM)], env=env,
+                          capture_output=True, timeout=120).returncode
+
+
+@pytest.mark.parametrize("mode", ["add", "train"])
+@pytest.mark.parametrize("point", SEGMENT_POINTS)
+def test_kill_at_each_segment_point(tmp_path, rng, centres, point, mode):
+    """Killed while training, sealing or publishing: the map is intact, a writer's open
+    removes the leftovers, the index (old or new) finds every vertex, check passes."""
+    path = tmp_path / "m"
+    # 200 vertices: flat (below MIN_TRAIN); "train" mode starts from a trained index.
+    rows = build(path, rng, centres, [200] if mode == "add" else [200, 700])
+    before = read_manifest(path / INDEX_DIR)
+    assert run_child(path, mode, point) == -9
+    with MapStore.open(path, readonly=True) as store:
+        total = store.stats()["vertices"]
+        report = check_map(store)
+        assert report.ok, report.violations  # leftovers are notes, never violations
+        all_rows = store.shards.rows(0, total, total).copy()
+    assert total == 900 and (mode == "add" or np.array_equal(all_rows, rows))
+    if mode == "train":  # readers still have the old generation whole
+        assert read_manifest(path / INDEX_DIR).generation == before.generation + (
+            point == "index.manifest_published")
+    with MapStore.open(path) as store:
+        named = {n for n, _ in read_manifest(path / INDEX_DIR).files()} if (
+            path / INDEX_DIR / MANIFEST).exists() else set()
+        leftovers = {p.name for p in (path / INDEX_DIR).iterdir()} - named - {MANIFEST}
+        assert not leftovers - {p.name for _, p in index_files(path / INDEX_DIR)}
+        _, ids = store.search(all_rows, 1)
+        np.testing.assert_array_equal(ids[:, 0], np.arange(total))
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+        assert report.ok and not [n for n in report.notes if "not in the manifest" in n]
+    assert run_child(path, mode, None) == 0  # and the writer carries on
+
+
+# --- the index command -----------------------------------------------------------------------
+
+
+def run_cli(*args: object):
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def test_cli_index_train_rebuild_and_show(tmp_path, rng, centres):
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [900])
+    with MapStore.open(path, readonly=True) as reader:  # a reader with the old index loaded
+        _, before = reader.search(rows[:5], 3)
+        # Another process retrains (LMDB allows one environment per process).
+        result = subprocess.run([sys.executable, "-c", "from sprint_map.cli import main; main()",
+                                 "index", str(path), "--train", "--json"],
+                                capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        data = json.loads(result.stdout)
+        assert data["index"]["generation"] == 2 and "trained" in data["done"][0]
+        # The old generation's files are gone, but the reader's mapped copies still answer.
+        _, still = reader.search(rows[:5], 3)
+        np.testing.assert_array_equal(before, still)
+    assert {p.name for p in (path / INDEX_DIR).iterdir()} >= {"model.000002.faiss", MANIFEST}
+    assert not (path / INDEX_DIR / "model.000001.faiss").exists()
+    result = run_cli("index", path, "--rebuild")
+    assert result.exit_code == 0 and "segmented ivf-pq" in result.output
+    shown = run_cli("index", path)
+    assert shown.exit_code == 0 and "generation" not in shown.output
+    assert "index: segmented ivf-pq (IVF16)" in shown.output
+    assert run_cli("check", path).exit_code == 0
+    missing = run_cli("index", tmp_path / "nothing", "--train")
+    assert missing.exit_code == 3 and missing.output.startswith("Error: ")
+
+
+def test_cli_index_on_a_flat_map(tmp_path, rng, centres):
+    path = tmp_path / "flat"
+    build(path, rng, centres, [300], index_type="flat")
+    result = run_cli("index", path, "--train")
+    assert result.exit_code == 0 and "flat" in result.output
+    assert index_files(path / INDEX_DIR) and not (path / INDEX_DIR / MANIFEST).exists()
