@@ -147,7 +147,7 @@ def compact_map(store: MapStore) -> CompactReport:
     root, old = store.path, store.data_path
     bytes_before, parts_before = store.disk_bytes(), part_bytes(old)
     for stale in stale_generations(root, old):  # leftovers of an interrupted compaction
-        remove_generation(root, stale)
+        _remove_old(store, stale)
     new = root / gen_name(gen_number(root, old) + 1)
     try:
         if new.exists():  # a staging area a reader pinned? never: readers pin live ones only
@@ -171,17 +171,17 @@ def compact_map(store: MapStore) -> CompactReport:
     crash_point("compact.lmdb_written")
 
     index = store._new_index(new / "index")
-    index.rebuild(renumber.total, shards)
     try:
+        index.rebuild(renumber.total, shards)
         atomic.fsync_dir(new)
-    except OSError as exc:
-        raise StorageIOError(f"cannot sync {new}: {exc.strerror or exc}") from exc
+    except OSError as exc:  # e.g. the directory fsync after removing older index files
+        raise StorageIOError(f"cannot write the index of {new}: {exc.strerror or exc}") from exc
     crash_point("compact.before_publish")
 
     publish_current(root, new)  # the commit point
     crash_point("compact.published")
     store._switch_generation(new, index)
-    removed = remove_generation(root, old)
+    removed = _remove_old(store, old)
     return CompactReport(
         generation=new.name,
         sequences=len(live),
@@ -194,6 +194,17 @@ def compact_map(store: MapStore) -> CompactReport:
         old_generation_removed=removed,
         seconds=round(time.monotonic() - started, 3),
     )
+
+
+def _remove_old(store: MapStore, data: Path) -> bool:
+    """Delete a generation that is not live; an I/O error fails nothing (the next writer's
+    open tries again): it goes to ``store.warnings``."""
+    try:
+        return remove_generation(store.path, data)
+    except OSError as exc:
+        store.warnings.append(f"could not remove {data.name or data}: {exc.strerror or exc}; "
+                              "the next writer's open tries again")
+        return False
 
 
 def _copy_rows(store: MapStore, shards: ShardSet, renumber: Renumbering, total: int) -> None:

@@ -195,3 +195,49 @@ def test_cli_remove_and_compact(make_map, tmp_path):
     assert run("check", built.path).exit_code == 0
     sequences = json.loads(run("sequences", built.path, "--json").output)
     assert [(s["seq_id"], s["frames"]) for s in sequences] == [(1, 30)]
+
+
+def test_an_io_error_at_any_file_call_of_a_compaction_leaves_a_whole_map(make_map, tmp_path):
+    """EIO on each file call of ``compact`` in turn (``storage/faults.py``): before the switch
+    the compaction fails with a one-line ``StorageIOError`` and the old map stays; after it
+    (removing the old generation) it succeeds with a warning. Either way the map means the
+    same, and after the next writer's open ``check`` is strict."""
+    import errno
+    import shutil
+
+    from sprint_map.errors import StorageIOError
+    from sprint_map.storage.faults import CallRecorder, FaultInjector, installed
+
+    built = make_map((12, 20, 9), dim=8, shard_rows=16, edges=2)
+    with MapStore.open(built.path) as store:
+        store.remove_sequences([1])
+        store.search(built.all_descriptors()[:1], 1)
+        state = logical_state(store)
+    template = tmp_path / "template"
+    shutil.copytree(built.path, template)
+    recorder = CallRecorder()
+    with MapStore.open(built.path) as store, installed(recorder):
+        store.compact()
+    assert {op for op, _ in recorder.calls} >= {"write", "fsync", "fsync_dir", "replace",
+                                                "unlink"}
+    outcomes = set()
+    for n in range(1, len(recorder.calls) + 1):
+        path = tmp_path / f"case-{n}"
+        shutil.copytree(template, path)
+        store = MapStore.open(path)
+        try:
+            with installed(FaultInjector(n, errno.EIO, seed=n)):
+                store.compact()
+            outcomes.add("compacted, " + ("warned" if store.warnings else "clean"))
+        except StorageIOError as exc:
+            assert "\n" not in str(exc) and "(injected)" in str(exc), (n, exc)
+            outcomes.add("failed")
+        finally:
+            store.close()
+        with MapStore.open(path, readonly=True) as reader:
+            assert logical_state(reader) == state, n
+            assert check_map(reader).ok, n
+        MapStore.open(path).close()  # removes the generation left behind, if any
+        strict_check(path)
+        shutil.rmtree(path)
+    assert outcomes == {"failed", "compacted, warned"}
