@@ -245,7 +245,7 @@ class MapStore:
 
     def _new_index(self, directory: Path, *, writable: bool = True) -> IndexStore:
         """The index of this map's config kept in ``directory`` (also a compaction's staging)."""
-        return IndexStore(directory, self.config.dim, writable=writable)
+        return IndexStore(directory, self.config.dim, writable=writable, config=self.config)
 
     def _switch_generation(self, data: Path, index: IndexStore) -> None:
         """Reopen this writer on the just-published generation ``data`` with its ``index``.
@@ -516,6 +516,21 @@ class MapStore:
             return self.index.search(queries, k)
         return search_live(self.index.search, queries, k, removed, total)
 
+    def rebuild_index(self, *, train: bool = False) -> list[str]:
+        """Rebuild (flat) or retrain and re-encode (approximate) the index; publish it
+        atomically. O(vertices * dim) plus training."""
+        self._require_writer()
+        total = self.counter("next_vertex_id")
+        try:
+            if train:
+                return self.index.train(total, self.shards)
+            self.index.rebuild(total, self.shards)
+        except OSError as exc:
+            raise StorageIOError(f"cannot write the index in {self.data_path / INDEX_DIR}: "
+                                 f"{exc.strerror or exc}") from exc
+        return [f"rebuilt the index from the shards ({total} vertices): "
+                f"{self.index.describe()['type']}"]
+
     # --- removal ----------------------------------------------------------------------------
     def removed_vertices(self, txn: lmdb.Transaction | None = None) -> int:
         """Vertices of removed sequences not yet reclaimed by ``compact``. O(1)."""
@@ -667,21 +682,9 @@ class MapStore:
         txn.put(u64(record.last_vertex), u32(record.seq_id), db=self.env.db("vrange"))
 
     def _after_commit(self, first: int, frames: int) -> None:
-        if self.index.index is not None:
-            if self.index.covered == first:
-                # The rows are in the page cache: read them back from the shards' memory map.
-                self.index.catch_up(first + frames, self.shards)
-            else:  # cannot happen with one writer; reload rather than guess
-                self.index.reset()
-        total = first + frames
-        on_disk = self.index.persisted if self.index.index is not None else (
-            self.index.persisted_on_disk())
-        # A flat index file is rewritten whole on every persist, so the interval grows with the
-        # file (geometric): total bytes written stay O(final size), not O(size^2 / interval).
-        cfg = self.config
-        if total - on_disk >= max(cfg.index_persist_every, cfg.index_persist_growth * on_disk):
-            if self.index.index is None:
-                self.index.load(total, self.shards)
+        # The index catches up from the shards (page cache) and says when its files are due:
+        # the flat file on a geometric schedule, a full tail block of the segmented index.
+        if self.index.after_commit(first + frames, self.shards, first):
             self.flush()
 
 
