@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from sprint_map.errors import ConfigError, InputError
+from sprint_map.evaluation.demo import find_nordland
 from sprint_map.frontend import Dataset, DescriptorSpec, GroundTruth, GroundTruthSpec
 
-NORDLAND = Path("/work/shared/data/nordland")
+NORDLAND = find_nordland() or Path("/nonexistent/nordland")  # ../shared/data/nordland in CI
 
 
 def make_images(folder: Path, count: int, seed: int = 0) -> None:
