@@ -10,10 +10,12 @@ its LMDB transaction returned.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from types import FrameType
 
 from sprint_map.errors import ListenError
 from sprint_map.map import SprintMap
@@ -88,9 +90,15 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
     shown = f"[{host}]" if ":" in host else host
     line = f"serving {Path(path)} on http://{shown}:{port}"
     (announce or (lambda text: print(text, flush=True)))(line)
+    # uvicorn re-raises the signal that stopped it once it has shut down gracefully, to the
+    # handlers that were installed before it ran: make those no-ops, so that a graceful stop
+    # ends with exit status 0 (not "killed by SIGTERM", nor a KeyboardInterrupt traceback).
+    previous = {sig: signal.signal(sig, _ignore) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         server.run(sockets=[sock])
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         sock.close()
         if smap.store.env is not None:  # the lifespan did not run (start-up failed)
             smap.close()
@@ -98,3 +106,7 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
             print(f"Warning: {warning}", file=sys.stderr)
     if not server.started:
         raise ListenError(f"the server did not start on {host}:{port} (see the log above)")
+
+
+def _ignore(sig: int, frame: FrameType | None) -> None:
+    """A signal handler that does nothing (see :func:`serve_map`)."""
