@@ -12,7 +12,8 @@ ranges (sequence ids are stable; only vertex ids change):
 3. every live record is written, renumbered, into a fresh LMDB environment ``gen-N/build.lmdb``
    in one transaction, which is then copied with ``env.copy(compact=True)`` into
    ``gen-N/map.lmdb`` (fsynced) and deleted;
-4. the index is rebuilt from the new shards into ``gen-N/index/`` (published atomically);
+4. the index is rebuilt from the new shards into ``gen-N/index/`` (published atomically; an
+   approximate index is retrained on the renumbered vertices and its segments merged);
 5. **commit point**: ``MAP/CURRENT`` is published atomically, naming ``gen-N``;
 6. the writer switches to the new generation and deletes the old one, unless a reader still
    has it open (then the next writer's open deletes it, after that reader has closed).
@@ -173,6 +174,7 @@ def compact_map(store: MapStore) -> CompactReport:
     index = store._new_index(new / "index")
     try:
         index.rebuild(renumber.total, shards)
+        index.merge_segments()  # an approximate index: its segments into one (else a no-op)
         atomic.fsync_dir(new)
     except OSError as exc:  # e.g. the directory fsync after removing older index files
         raise StorageIOError(f"cannot write the index of {new}: {exc.strerror or exc}") from exc

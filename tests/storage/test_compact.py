@@ -241,3 +241,31 @@ def test_an_io_error_at_any_file_call_of_a_compaction_leaves_a_whole_map(make_ma
         strict_check(path)
         shutil.rmtree(path)
     assert outcomes == {"failed", "compacted, warned"}
+
+
+def test_remove_and_compact_with_the_approximate_index(tmp_path, rng):
+    """Six drives of one road in a segmented IVF-SQ8 index: after removing three, searches hit
+    only the others; compaction retrains the index over the renumbered vertices and merges its
+    segments into one."""
+    from sprint_map.config import MapConfig
+
+    place = rng.standard_normal((1000, 32)).astype(np.float32)
+    config = MapConfig(dim=32, index_type="ivf-sq8", index_nlist=16, index_segment_rows=500)
+    with MapStore.create(tmp_path / "m", config) as store:
+        for _ in range(6):
+            store.add_sequence(place + 0.3 * rng.standard_normal((1000, 32)).astype(np.float32))
+        store.remove_sequences([0, 2, 4])
+        _, ids = store.search(place[:100], 10)
+        assert (ids >= 0).all()
+        assert {s for s, _ in store.locate(ids.ravel())} <= {1, 3, 5}
+        state = logical_state(store)
+        assert store.index.describe()["segments"] > 1
+        store.compact()
+        described = store.index.describe()
+        assert described["type"].startswith("segmented ivf-sq8")
+        assert (described["segments"], described["sealed"]) == (1, 3000)  # merged into one
+        _, ids = store.search(place[:100], 10)
+        assert (ids >= 0).all() and ids.max() < 3000
+        assert logical_state(store) == state
+    with MapStore.open(tmp_path / "m", readonly=True) as store:
+        assert check_map(store).ok
