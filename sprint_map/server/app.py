@@ -41,11 +41,6 @@ class SessionCreated(BaseModel):
     session_id: str
 
 
-class FrameDescriptor(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    descriptor: list[float] = Field(description="One descriptor of the map's dimension.")
-
-
 class FrameTiming(BaseModel):
     retrieval_ms: float
     hmm_ms: float
@@ -80,6 +75,7 @@ class Status(BaseModel):
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": Error, "description": text} for code, text in (
+        (400, "The body is not valid JSON."),
         (401, "Missing or wrong bearer token."),
         (404, "Unknown session."),
         (409, "Conflict with the session's state or the map (e.g. duplicate name, empty)."),
@@ -91,19 +87,24 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     )
 }
 
-FRAME_BODY = {
-    "requestBody": {
-        "required": True,
-        "description": 'Either JSON {"descriptor": [floats]} or the encoded image (PNG, JPEG, '
-                       "...) with an image/* content type; images need a map of hog or "
-                       "patchnorm descriptors.",
-        "content": {
-            "application/json": {"schema": {"$ref": "#/components/schemas/FrameDescriptor"}},
-            "image/png": {"schema": {"type": "string", "format": "binary"}},
-            "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
-        },
+def frame_body(dim: int) -> dict[str, Any]:
+    """The frame route's request body in the schema (two media types; ``dim`` values)."""
+    descriptor = {"type": "object", "additionalProperties": False, "required": ["descriptor"],
+                  "properties": {"descriptor": {"type": "array",
+                                                "items": {"type": "number", "minimum": -3e38,
+                                                          "maximum": 3e38},
+                                                "minItems": dim, "maxItems": dim}}}
+    binary = {"schema": {"type": "string", "format": "binary"}}
+    return {
+        "requestBody": {
+            "required": True,
+            "description": f'Either JSON {{"descriptor": [{dim} floats]}} or the encoded image '
+                           "(PNG, JPEG, ...) with an image/* content type; images need a map of "
+                           "hog or patchnorm descriptors.",
+            "content": {"application/json": {"schema": descriptor},
+                        "image/png": binary, "image/jpeg": binary},
+        }
     }
-}
 
 
 #: Documents the optional bearer token in the schema; the check itself is ``authorised``.
@@ -244,7 +245,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         return {"session_id": session.id}
 
     @app.post("/v1/sessions/{session_id}/frames", response_model=FrameAnswer,
-              responses=_ERRORS, dependencies=guard, openapi_extra=FRAME_BODY,
+              responses=_ERRORS, dependencies=guard, openapi_extra=frame_body(service.dim),
               summary="Localise the next frame of a drive")
     async def frame(session_id: str, request: Request) -> dict[str, Any]:
         body = await request.body()
