@@ -94,7 +94,7 @@ class MapConfig:
     index_pq_m: int = 0
     index_pca_dim: int = 128
     index_rerank: int = 100
-    index_segment_rows: int = 32768
+    index_segment_rows: int = 16384
     index_merge_factor: int = 8
     index_auto_vertices: int = 200_000
     index_train_sample: int = 65536

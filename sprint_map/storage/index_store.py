@@ -19,6 +19,7 @@ files, so readers keep searching the old index until the new one is complete.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from sprint_map.config import MapConfig
+from sprint_map.errors import StorageIOError
 from sprint_map.storage import atomic
 from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
 from sprint_map.storage.segment_index import (
@@ -75,6 +77,8 @@ class IndexStore:
         self.flat = FlatIndex(directory, dim, writable=writable)
         self.segmented: SegmentedIndex | None = None
         self.events = self.flat.events  # what loading had to do (for check/info reports)
+        #: Seconds spent training (and encoding the map with) new models in this process.
+        self.train_s = 0.0
         self._shards: ShardSet | None = None
         self._committed = 0
 
@@ -219,10 +223,15 @@ class IndexStore:
                 self.reset()
         self._shards, self._committed = shards, committed
         kind = approximate_kind(self.config, committed)
+        if kind is not None and self.segmented is None:
+            self.load(committed, shards)  # the published segments, or train them now
         if self.segmented is not None:
-            return self.segmented.tail_len >= self.config.index_segment_rows
-        if kind is not None:
-            return True  # train (crossing the auto threshold, or the first MIN_TRAIN vertices)
+            try:  # sealing runs in a worker thread: the commit path does not wait for it
+                self.segmented.seal_ready(shards, committed, background=True)
+            except OSError as exc:
+                raise StorageIOError(f"cannot seal an index segment in {self.directory}: "
+                                     f"{exc.strerror or exc}") from exc
+            return False
         on_disk = self.flat.persisted if self.flat.index is not None else (
             self.flat.persisted_on_disk())
         # A flat index file is rewritten whole on every persist, so the interval grows with the
@@ -246,6 +255,7 @@ class IndexStore:
             if self.segmented is None:
                 self.load(committed, shards)  # opens the published segments, or trains
             if self.segmented is not None:
+                self.segmented.wait()  # the worker's block first, then every full one
                 return self.segmented.seal_ready(shards, committed)
         return self.flat.persist()
 
@@ -262,6 +272,8 @@ class IndexStore:
         Training plus O(committed * dim) to re-encode.
         """
         assert self.writable
+        if self.segmented is not None:
+            self.segmented.wait()
         kind = approximate_kind(self.config, committed)
         if kind is None:
             self.rebuild(committed, shards)
@@ -269,8 +281,10 @@ class IndexStore:
         self._shards, self._committed = shards, committed
         generation = 1 + max([int(p.name.split(".")[1]) for p in
                               self.directory.glob("model.*.faiss")] + [0])
+        started = time.perf_counter()
         self.segmented = SegmentedIndex.train(self.directory, self.config, kind, committed,
                                               shards, generation)
+        self.train_s += time.perf_counter() - started
         self.flat.index = None
         self.flat.persisted = 0
         remove_unlisted(self.directory, self.segmented.manifest)
@@ -291,6 +305,8 @@ class IndexStore:
         if approximate_kind(self.config, committed) is not None:
             self.train(committed, shards)
             return
+        if self.segmented is not None:
+            self.segmented.wait()
         self.segmented = None
         self.flat.rebuild(committed, shards)
         remove_unlisted(self.directory, None)
@@ -306,7 +322,14 @@ class IndexStore:
             return False
         return self.segmented.merge_all()
 
+    def close(self) -> None:
+        """Finish a sealing in flight (its result is published, or its error raised)."""
+        if self.segmented is not None:
+            self.segmented.wait()
+
     def reset(self) -> None:
         """Forget the in-memory index (it is reloaded on the next search)."""
+        if self.segmented is not None:
+            self.segmented.wait()
         self.flat.reset()
         self.segmented = None

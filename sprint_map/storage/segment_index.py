@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import re
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -220,6 +221,9 @@ class SegmentedIndex:
         self.manifest = manifest
         self.model = model
         self._segments: list[Any] = []
+        self._opened: dict[str, Any] = {}  # segment file -> its memory-mapped index
+        self._job: Future[tuple[SegmentEntry, ...]] | None = None  # the sealing worker's
+        self._pool: ThreadPoolExecutor | None = None
         self._stacked: Any | None = None
         self._stack_refs: list[Any] = []
         self.tail_start = manifest.sealed
@@ -258,7 +262,12 @@ class SegmentedIndex:
 
     def _open_segments(self) -> None:
         segments = []
+        opened: dict[str, Any] = {}
         for seg in self.manifest.segments:
+            if seg.file in self._opened:  # unchanged since the last manifest
+                segments.append(self._opened[seg.file])
+                opened[seg.file] = segments[-1]
+                continue
             index: Any = read_faiss(self.directory / seg.file, mmap=True)
             if index.ntotal != seg.stop - seg.start or index.nlist != self.model.nlist:
                 raise OSError(f"{seg.file} holds {index.ntotal} vectors in {index.nlist} lists, "
@@ -267,7 +276,9 @@ class SegmentedIndex:
             if isinstance(lists, faiss.OnDiskInvertedLists):
                 lists.prefetch_nthread = 0  # prefetch threads cost 10x a small search
             segments.append(index)
+            opened[seg.file] = index
         self._segments = segments
+        self._opened = opened
         self._stacked = None
         self._stack_refs = []
         if segments:
@@ -325,24 +336,20 @@ class SegmentedIndex:
         use_threads(nq)
         n_cand = max(self.config.index_rerank, k)
         reduced = self.model.transform(queries)
-        dists, ids = [], []
+        ids = []
         if self._stacked is not None:
             self._stacked.nprobe = min(self.config.index_nprobe, self._stacked.nlist)
-            d, i = self._stacked.search(reduced, n_cand)
-            dists.append(d)
-            ids.append(i)
+            ids.append(self._stacked.search(reduced, n_cand)[1])
         if self.tail_len:
-            d, i = faiss.knn(reduced, self._tail[: self.tail_len], min(n_cand, self.tail_len))
-            dists.append(d)
+            i = faiss.knn(reduced, self._tail[: self.tail_len], min(n_cand, self.tail_len))[1]
             ids.append(np.where(i >= 0, i + self.tail_start, -1))
         out_d = np.full((nq, k), PAD_DISTANCE, dtype=np.float32)
         out_i = np.full((nq, k), -1, dtype=np.int64)
         if not ids:
             return out_d, out_i
-        cand_d, cand = np.concatenate(dists, axis=1), np.concatenate(ids, axis=1)
-        if cand.shape[1] > n_cand:  # the approximate best n_cand of segments and tail
-            top = np.argpartition(np.where(cand >= 0, cand_d, np.inf), n_cand - 1, axis=1)
-            cand = np.take_along_axis(cand, top[:, :n_cand], axis=1)
+        # Every candidate of the segments and of the tail is re-ranked: their approximate
+        # distances (PQ codes, PCA space) are not comparable enough to cut between them.
+        cand = np.concatenate(ids, axis=1)
         valid = cand[cand >= 0]
         unique = np.unique(valid)
         rows = gather_rows(shards, unique, committed)
@@ -358,28 +365,93 @@ class SegmentedIndex:
         return out_d, out_i
 
     # --- writing (the writer only) ------------------------------------------------------------
-    def seal_ready(self, shards: ShardSet, committed: int) -> bool:
-        """Seal every full ``index_segment_rows`` block of the tail, then merge tiers.
+    def seal_ready(self, shards: ShardSet, committed: int, *, background: bool = False
+                   ) -> bool:
+        """Seal full ``index_segment_rows`` blocks of the tail, merging tiers after each.
 
-        Each segment file is published before the manifest that names it, so a kill leaves
-        the old manifest (and an unlisted file, removed by the next writer's open) or the new.
+        In the ``background`` (after a commit) one block at a time is encoded and written by a
+        worker thread (FAISS releases the GIL: the commit path does not wait for it) and the
+        result installed by a later call; otherwise every full block is sealed now (flush,
+        close). Only the calling thread publishes the manifest. Each segment file is
+        published before the manifest that names it, so a kill leaves the old manifest (and
+        an unlisted file, removed by the next writer's open) or the new one.
+
+        Returns whether a new manifest was published.
 
         Notes
         -----
-        O(segment_rows * (nlist + codebook) * d) to encode each new segment; merges copy codes.
+        O(segment_rows * nlist * d) to encode a block (the coarse assignment dominates);
+        merges copy codes: O(log N) rewrites per vertex.
         """
+        done = self._collect(wait=not background)
         rows = self.config.index_segment_rows
-        sealed_any = False
+        if background:
+            if self._job is None and self.tail_len >= rows:
+                # Every full block there is now, in one job: a job behind the writer takes
+                # more blocks the next time, so the tail stays O(segment_rows * backlog).
+                start = self.tail_start
+                blocks = [shards.rows(a, a + rows, committed)
+                          for a in range(start, start + self.tail_len - rows + 1, rows)]
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(1, thread_name_prefix="sprint-map-seal")
+                self._job = self._pool.submit(self._seal, self.manifest.segments, blocks,
+                                              start, True)
+            return done
         while self.tail_len >= rows:
             start = self.tail_start
-            entry = self._publish_segment(self._encode(shards, start, start + rows, committed),
-                                          start, start + rows)
+            self._install(self._seal(self.manifest.segments,
+                                     [shards.rows(start, start + rows, committed)], start))
+            done = True
+        return done
+
+    def _seal(self, segments: tuple[SegmentEntry, ...], blocks: list[np.ndarray], start: int,
+              worker: bool = False) -> tuple[SegmentEntry, ...]:
+        """Encode and publish each of ``blocks`` (ids from ``start`` on) as a segment, merging
+        full tiers after each (their files published, not yet named): the segments the next
+        manifest names. Touches no state of ``self``."""
+        if worker:
+            use_threads(1)  # this thread's OpenMP pool: leave the other core to the writer
+        factor = self.config.index_merge_factor
+        for block in blocks:
+            segment = faiss.clone_index(self.model.ivf)
+            segment.add_with_ids(self.model.transform(block),
+                                 np.arange(start, start + len(block), dtype=np.int64))
+            segments = segments + (self._publish_segment(segment, start, start + len(block)),)
             crash_point("index.segment_written")
-            self._publish(replace(self.manifest, segments=self.manifest.segments + (entry,)))
-            self._drop_tail_head(rows)
-            self._merge_tiers()  # after each seal: tiers stay non-increasing, < factor each
-            sealed_any = True
-        return sealed_any
+            start += len(block)
+            while len(segments) >= factor and len(
+                    {s.stop - s.start for s in segments[-factor:]}) == 1:
+                segments = segments[:-factor] + (self._merge_files(segments[-factor:]),)
+        return segments
+
+    def _install(self, segments: tuple[SegmentEntry, ...]) -> None:
+        sealed = segments[-1].stop
+        self._publish(replace(self.manifest, segments=segments))
+        self._drop_tail_head(sealed - self.tail_start)
+
+    def _collect(self, wait: bool) -> bool:
+        """Install the worker's segments if it is done (or wait for it); True if installed.
+
+        Raises
+        ------
+        OSError
+            The worker's error (its segment file is unnamed; the block is sealed again later).
+        """
+        job = self._job
+        if job is None or not (wait or job.done()):
+            return False
+        self._job = None
+        self._install(job.result())
+        return True
+
+    def wait(self) -> None:
+        """Finish the worker's job, if any (before training, merging or closing)."""
+        try:
+            self._collect(wait=True)
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown()
+                self._pool = None
 
     def _publish_segment(self, segment: Any, start: int, stop: int) -> SegmentEntry:
         name = segment_name(self.manifest.generation, start, stop)
@@ -387,39 +459,29 @@ class SegmentedIndex:
         return SegmentEntry(start, stop, name, size)
 
     def _publish(self, manifest: Manifest) -> None:
-        """Publish ``manifest``, reopen its segments, delete the files it no longer names."""
+        """Publish ``manifest``, open its new segments, delete the files it no longer names."""
         publish_manifest(self.directory, manifest)
         self.manifest = manifest
         self._open_segments()
         remove_unlisted(self.directory, manifest)
 
-    def _merge_tiers(self) -> None:
-        """Merge the last ``index_merge_factor`` segments while they are of one size."""
-        factor = self.config.index_merge_factor
-        while True:
-            segs = self.manifest.segments
-            last = segs[-factor:]
-            size = last[-1].stop - last[-1].start if last else 0
-            if len(last) < factor or any(s.stop - s.start != size for s in last):
-                return
-            self._merge(len(segs) - factor, len(segs))
+    def _merge_files(self, segments: tuple[SegmentEntry, ...]) -> SegmentEntry:
+        merged = faiss.clone_index(self.model.ivf)
+        for seg in segments:
+            # Read into memory: merge_from empties its source, a read-only map cannot be.
+            merged.merge_from(read_faiss(self.directory / seg.file), 0)
+        entry = self._publish_segment(merged, segments[0].start, segments[-1].stop)
+        crash_point("index.segment_written")
+        return entry
 
     def merge_all(self) -> bool:
         """Merge every sealed segment into one (``compact``). O(sealed codes)."""
+        self.wait()
         if len(self.manifest.segments) < 2:
             return False
-        self._merge(0, len(self.manifest.segments))
+        self._publish(replace(self.manifest,
+                              segments=(self._merge_files(self.manifest.segments),)))
         return True
-
-    def _merge(self, lo: int, hi: int) -> None:
-        segs = self.manifest.segments
-        merged = faiss.clone_index(self.model.ivf)
-        for seg in segs[lo:hi]:
-            # Read into memory: merge_from empties its source, a read-only map cannot be.
-            merged.merge_from(read_faiss(self.directory / seg.file), 0)
-        entry = self._publish_segment(merged, segs[lo].start, segs[hi - 1].stop)
-        crash_point("index.segment_written")
-        self._publish(replace(self.manifest, segments=segs[:lo] + (entry,) + segs[hi:]))
 
     # --- building -----------------------------------------------------------------------------
     @classmethod
