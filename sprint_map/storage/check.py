@@ -24,7 +24,7 @@ import numpy as np
 
 from sprint_map.errors import StorageIOError
 from sprint_map.storage.atomic import PARTIAL_SUFFIX
-from sprint_map.storage.generation import CURRENT_NAME, stale_generations
+from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index_store import file_problem, index_files
 from sprint_map.storage.keys import (
     COMP_VAL,
@@ -219,7 +219,11 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
     if live:
         report.notes.append("a writer holds the map's LOCK: index files in flight are notes")
     check_index(store, records.total, report, seed, live=live)
-    for stale in stale_generations(store.path, store.data_path):
+    live_data = current_data(store.path)
+    if live_data != store.data_path:  # this store was opened before a compaction
+        report.notes.append(f"checked the generation this process opened ({store.data_path.name}"
+                            f"); the map was compacted since into {live_data.name}")
+    for stale in stale_generations(store.path, live_data):
         name = "generation 0 (top level)" if stale == store.path else stale.name
         report.notes.append(f"{name} is not the live generation (a reader may still have it "
                             "open, or a compaction was interrupted): removed by the next "

@@ -119,6 +119,10 @@ sys.stdin.readline()  # the parent compacts meanwhile
 rows = np.concatenate([store.descriptors(r.seq_id) for r in store.sequences()])
 _, ids = store.search(rows, 1)
 print(len(rows), int((ids[:, 0] == np.arange(len(rows))).all()), rows.sum().item(), flush=True)
+from sprint_map.storage.check import check_map
+report = check_map(store)
+print(int(report.ok), int(any("compacted since into gen-000001" in n for n in report.notes)),
+      flush=True)
 store.close()
 """
 
@@ -146,6 +150,7 @@ def test_a_reader_open_across_a_compaction_keeps_its_generation(make_map):
         # the old view, whole: its own vertex ids (with the removed range), its own rows
         assert (int(n), int(self_hits)) == (total, 0)
         assert float(checksum) == pytest.approx(want)
+        assert reader.stdout.readline().split() == ["1", "1"]  # its check: ok, and says so
     finally:
         reader.kill()
         reader.wait()
