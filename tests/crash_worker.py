@@ -520,6 +520,119 @@ def _one_map(path: Path, zygote: Zygote, kills: int, seed: int, rng: np.random.G
         acks.unlink(missing_ok=True)
 
 
+@dataclass
+class CompactKillStats:
+    """What :func:`compact_kill_loop` did; ``violations`` must stay empty."""
+
+    kills: int = 0
+    maps: int = 0
+    old_map_after_kill: int = 0  # killed before the switch: the old generation selected
+    new_map_after_kill: int = 0  # killed after it: the new generation selected
+    sequences_verified: int = 0  # live sequences compared bit for bit, over all kills
+    seconds: float = 0.0
+    violations: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def strictly_ok(path: Path) -> None:
+    """``check`` passes and no generation is left behind (after a writer's open)."""
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+    assert report.ok and not [n for n in report.notes if "generation" in n], (
+        report.violations, report.notes)
+
+
+def compact_kill_loop(root: Path, zygote: Zygote, kills: int, seed: int, *,
+                      kills_per_map: int = 30, max_wait: float | None = None,
+                      keep_going: bool = False,
+                      progress: Callable[[CompactKillStats], None] | None = None
+                      ) -> CompactKillStats:
+    """SIGKILL compactions at random instants, ``kills`` times; verify after every kill.
+
+    Each map holds six sequences of the worker stream with two removed; a ``compact`` child
+    is killed a random delay (up to ``max_wait`` s; default 1.2 times a compaction of the same
+    map run to completion on a copy, so kills land on both sides of the switch) after it is
+    ready. After each kill the map
+    read-only must pass ``check`` and mean exactly what it meant before (:func:`logical_state`:
+    every live sequence bit for bit, the removed ones absent, the components of the edges),
+    whichever generation is selected; every other kill a writer's open then leaves it strictly
+    clean. Every ``kills_per_map`` kills a compaction runs to completion and a new map starts.
+    """
+    stats = CompactKillStats()
+    started = time.monotonic()
+    rng = np.random.default_rng(seed)
+    while stats.kills < kills:
+        stats.maps += 1
+        path = root / f"compact-map-{stats.maps}"
+        try:
+            _one_compacted_map(path, zygote, min(kills_per_map, kills - stats.kills),
+                               seed * 1_000_003 + stats.maps, rng, max_wait, stats)
+        except AssertionError as exc:
+            if not keep_going:
+                raise
+            stats.violations.append(f"map {stats.maps}: {exc}")
+        shutil.rmtree(path, ignore_errors=True)
+        stats.seconds = round(time.monotonic() - started, 2)
+        if progress is not None:
+            progress(stats)
+    return stats
+
+
+def _one_compacted_map(path: Path, zygote: Zygote, kills: int, seed: int,
+                       rng: np.random.Generator, max_wait: float | None,
+                       stats: CompactKillStats) -> None:
+    create_map(path, dim=8, shard_rows=64)
+    with MapStore.open(path) as store:
+        for i in range(6):
+            add_planned(store, seed, i, 40)
+        store.remove_sequences([1, 4])
+    with MapStore.open(path, readonly=True) as store:
+        expected = logical_state(store)
+        generation = store.data_path
+    acks = path.parent / f"{path.name}.acks"
+    if max_wait is None:  # calibrate: how long a whole compaction of this map takes here
+        copy = path.parent / f"{path.name}.copy"
+        shutil.copytree(path, copy)
+        pid = zygote.spawn(map=str(copy), mode="compact", ack=str(acks))
+        wait_for_line(acks, "ready")
+        begun = time.monotonic()
+        wait_for_line(acks, "done")
+        max_wait = 1.2 * (time.monotonic() - begun)
+        zygote.wait(pid)
+        shutil.rmtree(copy)
+    for kill in range(kills):
+        acks.unlink(missing_ok=True)
+        pid = zygote.spawn(map=str(path), mode="compact", ack=str(acks))
+        wait_for_line(acks, "ready")
+        time.sleep(rng.uniform(0, max_wait))
+        os.kill(pid, signal.SIGKILL)
+        status = zygote.wait(pid)
+        stats.kills += 1
+        if status["signal"] != signal.SIGKILL:  # it finished first: a compaction completed
+            assert status == {"signal": None, "code": 0}, zygote.log.read_text()
+        with MapStore.open(path, readonly=True) as store:
+            report = check_map(store)
+            assert report.ok, report.violations
+            assert logical_state(store) == expected
+            switched = store.data_path != generation
+            generation = store.data_path
+        stats.new_map_after_kill += switched
+        stats.old_map_after_kill += not switched
+        stats.sequences_verified += len(expected["sequences"])
+        if kill % 2:
+            MapStore.open(path).close()
+            strictly_ok(path)
+    acks.unlink(missing_ok=True)
+    status = zygote.run(map=str(path), mode="compact", ack=str(acks))
+    assert status == {"signal": None, "code": 0}, zygote.log.read_text()
+    with MapStore.open(path, readonly=True) as store:
+        assert logical_state(store) == expected
+    strictly_ok(path)
+    acks.unlink(missing_ok=True)
+
+
 def read_lines(path: Path) -> list[str]:
     """The lines a child acknowledged in ``path`` so far."""
     return path.read_text().split("\n")[:-1] if path.exists() else []

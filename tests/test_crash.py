@@ -289,11 +289,7 @@ def without(state: dict[str, Any], removed: list[int]) -> dict[str, Any]:
     return {"sequences": seqs, "edges": edges}
 
 
-def strictly_ok(path: Path) -> None:
-    with MapStore.open(path, readonly=True) as store:
-        report = check_map(store)
-    assert report.ok and not [n for n in report.notes if "generation" in n], (
-        report.violations, report.notes)
+strictly_ok = worker.strictly_ok
 
 
 @pytest.mark.parametrize("point", REMOVE_POINTS)
@@ -426,33 +422,11 @@ def verify_snapshot_prefix(path: Path, seed: int) -> None:
             first += rec.length
 
 
-def test_random_kills_during_compaction(six, zygote):
-    """Compactions killed at random instants, 30 times: after every kill the old or the new
-    map, intact (``check`` passes, every live sequence bit for bit, the removed ones absent);
-    a writer's open (odd kills) cleans up to a strict ``check``; the last compaction completes.
-    """
-    path = six
-    with MapStore.open(path) as store:
-        store.remove_sequences(REMOVED)
-    expected = state_of(path)
-    rng = np.random.default_rng(13)
-    generations = set()
-    for kill in range(30):
-        acks = path.parent / f"ack{kill}"
-        pid = zygote.spawn(map=str(path), mode="compact", ack=str(acks))
-        worker.wait_for_line(acks, "ready")
-        time.sleep(rng.uniform(0, 0.06))
-        os.kill(pid, signal.SIGKILL)
-        zygote.wait(pid)
-        with MapStore.open(path, readonly=True) as store:
-            report = check_map(store)
-            generations.add(store.data_path.name)
-        assert report.ok, report.violations
-        assert state_of(path) == expected
-        if kill % 2:
-            MapStore.open(path).close()
-            strictly_ok(path)
-    lines = run_child(zygote, path.parent / "last", map=str(path), mode="compact")
-    assert lines[-1] == "done" and state_of(path) == expected
-    strictly_ok(path)
-    print(f"generations seen after a kill: {sorted(generations)}")
+def test_random_kills_during_compaction(tmp_path, zygote):
+    """Compactions killed at random instants, 30 times (``compact_kill_loop``; soak size:
+    ``tools/compact_soak.py``): after every kill the old or the new map, meaning exactly what it
+    meant (every live sequence bit for bit, the removed ones absent, the components of the
+    edges), ``check`` passing; a writer's open cleans up to a strict ``check``."""
+    stats = worker.compact_kill_loop(tmp_path, zygote, kills=30, seed=13, kills_per_map=15)
+    print(stats.to_dict())
+    assert stats.kills == 30 and not stats.violations
