@@ -176,7 +176,12 @@ class IndexStore:
         wants = approximate_kind(self.config, committed)
         if self.config.index_type != "flat" and (
                 self.flat.index is None or (self.writable and wants is not None)):
-            opened = SegmentedIndex.open(self.directory, self.config, committed, self.events)
+            opened = None
+            for attempt in range(3):  # a reader may race the writer replacing merged segments
+                opened = SegmentedIndex.open(self.directory, self.config, committed, self.events,
+                                             strict=not self.writable and attempt < 2)
+                if opened is not None or not (self.directory / "segments.json").exists():
+                    break
             if opened is not None:
                 self.segmented = opened
                 self.flat.reset()

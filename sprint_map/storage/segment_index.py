@@ -233,12 +233,14 @@ class SegmentedIndex:
 
     # --- opening ----------------------------------------------------------------------------
     @classmethod
-    def open(cls, directory: Path, config: MapConfig, committed: int, events: list[str]
-             ) -> SegmentedIndex | None:
+    def open(cls, directory: Path, config: MapConfig, committed: int, events: list[str], *,
+             strict: bool = False) -> SegmentedIndex | None:
         """Open the published index, trusting only what the manifest and the map vouch for.
 
         Segments ahead of ``committed`` or torn are left out (with every segment after them:
         their range joins the tail); None if there is no manifest or its model is unusable.
+        ``strict`` (a reader, which may have read a manifest the writer has just replaced):
+        None on any problem, so that the caller reads the manifest again.
         """
         try:
             manifest = read_manifest(directory)
@@ -248,6 +250,8 @@ class SegmentedIndex:
         if manifest is None:
             return None
         model_problem, good, problems = manifest_problems(directory, manifest, committed)
+        if strict and problems:
+            return None
         events.extend(f"index {p}; left out" for p in problems)
         if model_problem:
             return None
@@ -257,7 +261,8 @@ class SegmentedIndex:
                                bool(manifest.pca_bytes))
             return cls(directory, config, manifest, model)
         except OSError as exc:
-            events.append(f"index unreadable ({exc}); discarded")
+            if not strict:
+                events.append(f"index unreadable ({exc}); discarded")
             return None
 
     def _open_segments(self) -> None:

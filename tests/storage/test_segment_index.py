@@ -21,6 +21,7 @@ from sprint_map.errors import ConfigError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.crash import CRASH_ENV, SEGMENT_POINTS
 from sprint_map.storage.index_store import index_files
+from sprint_map.storage.repair import repair_map
 from sprint_map.storage.segment_index import MANIFEST, read_manifest, tier_plan
 from sprint_map.storage.store import INDEX_DIR, MapStore
 
@@ -311,3 +312,17 @@ def test_cli_index_on_a_flat_map(tmp_path, rng, centres):
     result = run_cli("index", path, "--train")
     assert result.exit_code == 0 and "flat" in result.output
     assert index_files(path / INDEX_DIR) and not (path / INDEX_DIR / MANIFEST).exists()
+
+
+def test_check_repair_restores_a_torn_segment_index(tmp_path, rng, centres):
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [1200])
+    last = read_manifest(path / INDEX_DIR).segments[-1]
+    with open(path / INDEX_DIR / last.file, "ab") as f:
+        f.write(b"garbage")  # padded: its size is no longer the recorded one
+    report = repair_map(path)
+    assert any(f"{last.file} is torn" in r for r in report.found + report.repaired)
+    assert report.ok, report.after.violations
+    assert report.after.checked["index_segments"] >= 1
+    _, ids = search_all(path, rows[::40], 1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, 1200, 40))
