@@ -13,6 +13,7 @@ Usage::
     python tools/load_test.py --vehicles 1 4 16 --frames 200 --json load.json
     python tools/load_test.py --data city              # the synthetic city (2 traversals)
     python tools/load_test.py --images                 # send PNG bytes; the server describes
+    python tools/load_test.py --binary                 # raw float32 bodies, no JSON
     python tools/load_test.py --map city.map --queries drive.npy
 
 Bounded: at most ``--frames`` per vehicle and ``--duration`` seconds per run.
@@ -123,8 +124,8 @@ def start_server(map_path: Path, workers: int, log: Path) -> tuple[subprocess.Po
     raise SystemExit(f"server not ready: {log.read_text()}")
 
 
-def make_vehicles(n: int, frames: int, rows: np.ndarray, images: list[Path], use_images: bool
-                  ) -> list[Vehicle]:
+def make_vehicles(n: int, frames: int, rows: np.ndarray, images: list[Path], use_images: bool,
+                  binary: bool = False) -> list[Vehicle]:
     """Vehicle i drives ``frames`` frames from offset ``i * (len - frames) / n``."""
     frames = min(frames, len(rows))
     span = max(len(rows) - frames, 0)
@@ -135,6 +136,9 @@ def make_vehicles(n: int, frames: int, rows: np.ndarray, images: list[Path], use
         if use_images:
             bodies = [images[offset + j].read_bytes() for j in range(len(mine))]
             kind = "image/png"
+        elif binary:
+            bodies = [r.astype("<f4").tobytes() for r in mine]
+            kind = "application/octet-stream"
         else:
             bodies = [json.dumps({"descriptor": r.tolist()}).encode() for r in mine]
             kind = "application/json"
@@ -206,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=120.0, help="Seconds per run (bound).")
     parser.add_argument("--workers", type=int, default=4, help="Server frame workers.")
     parser.add_argument("--images", action="store_true", help="Send PNG bytes, not descriptors.")
+    parser.add_argument("--binary", action="store_true",
+                        help="Send descriptors as raw float32 (application/octet-stream), not JSON.")
     parser.add_argument("--city-frames", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="Write the results here.")
@@ -228,14 +234,16 @@ def main(argv: list[str] | None = None) -> int:
         proc, url = start_server(map_path, args.workers, work / "server.log")
         try:
             for n in args.vehicles:
-                vehicles = make_vehicles(n, frames, rows, images, args.images)
+                vehicles = make_vehicles(n, frames, rows, images, args.images, args.binary)
                 seconds = run_load(url, vehicles, args.duration)
                 errors = [v.error for v in vehicles if v.error]
                 if errors:
                     print(f"errors ({len(errors)} vehicles): {errors[0]}", file=sys.stderr)
                 lat = [x for v in vehicles for x in v.latency_ms]
                 served = sum(len(v.answers) for v in vehicles)
-                mode = f"serve, {'PNG images' if args.images else 'JSON descriptors'}"
+                kind = ("PNG images" if args.images else "float32 descriptors" if args.binary
+                        else "JSON descriptors")
+                mode = f"serve, {kind}"
                 rows_out.append(row(mode, n, served, seconds, lat, base_fps))
                 server_ms = [a["timing"]["server_ms"] for v in vehicles for a in v.answers]
                 rows_out[-1]["server_p50_ms"] = round(float(np.percentile(server_ms, 50)), 3)

@@ -98,10 +98,15 @@ def frame_body(dim: int) -> dict[str, Any]:
     return {
         "requestBody": {
             "required": True,
-            "description": f'Either JSON {{"descriptor": [{dim} floats]}} or the encoded image '
-                           "(PNG, JPEG, ...) with an image/* content type; images need a map of "
-                           "hog or patchnorm descriptors.",
+            "description": f'JSON {{"descriptor": [{dim} floats]}}, or the same as {4 * dim} '
+                           "bytes of little-endian float32 (application/octet-stream, no JSON "
+                           "parsing), or the encoded image (PNG, JPEG, ...) with an image/* "
+                           "content type; images need a map of hog or patchnorm descriptors.",
             "content": {"application/json": {"schema": descriptor},
+                        "application/octet-stream": {"schema": {
+                            "type": "string", "format": "binary", "minLength": 4 * dim,
+                            "maxLength": 4 * dim,
+                            "description": f"{dim} little-endian float32 values"}},
                         "image/png": binary, "image/jpeg": binary},
         }
     }

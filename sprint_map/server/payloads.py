@@ -19,6 +19,8 @@ from sprint_map.server.errors import ApiError, from_library
 from sprint_map.storage.validation import validate_descriptors
 
 JSON_TYPES = ("application/json",)
+#: Raw little-endian float32 values, ``4 * dim`` bytes: no JSON parsing (~1 ms per HoG frame).
+RAW_TYPE = "application/octet-stream"
 
 
 def media_type(content_type: str | None) -> str:
@@ -56,6 +58,14 @@ def descriptor_from_json(data: Any, dim: int) -> np.ndarray:
         raise ApiError(422, "invalid_descriptor", "descriptor holds a number beyond float range"
                        ) from None
     return _validated(row, dim)
+
+
+def descriptor_from_raw(body: bytes, dim: int) -> np.ndarray:
+    """The ``(1, dim)`` row of ``4 * dim`` bytes of little-endian float32."""
+    if len(body) != 4 * dim:
+        raise ApiError(422, "descriptor_shape", f"expected {4 * dim} bytes ({dim} little-endian "
+                       f"float32), got {len(body)}")
+    return _validated(np.frombuffer(body, dtype="<f4").reshape(1, dim), dim)
 
 
 def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int) -> np.ndarray:

@@ -25,8 +25,10 @@ from sprint_map.server.gate import MapGate
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.payloads import (
     JSON_TYPES,
+    RAW_TYPE,
     descriptor_from_image,
     descriptor_from_json,
+    descriptor_from_raw,
     media_type,
     parse_json,
 )
@@ -185,12 +187,14 @@ class LocalisationService:
         kind = media_type(content_type)
         if kind in JSON_TYPES:
             payload = "descriptor"
+        elif kind == RAW_TYPE:
+            payload = "raw"
         elif kind.startswith("image/"):
             payload = "image"
         else:
             raise ApiError(415, "unsupported_media_type", "send application/json "
-                           '{"descriptor": [...]} or the encoded image with an image/* type')
-        data = parse_json(body) if payload == "descriptor" else None
+                           '{"descriptor": [...]}, application/octet-stream float32 or the '
+                           "encoded image with an image/* type")
         start = time.perf_counter()
         session.waiting += 1
         self._admitted += 1
@@ -202,7 +206,7 @@ class LocalisationService:
                 try:
                     assert self._limiter is not None
                     decision, timing = await anyio.to_thread.run_sync(
-                        self._step, session, data, body, limiter=self._limiter)
+                        self._step, session, payload, body, limiter=self._limiter)
                 except BaseException:
                     self.registry.release_frame(session)
                     raise
@@ -221,10 +225,13 @@ class LocalisationService:
                          "server_ms": round(elapsed * 1e3, 4)}
         return out
 
-    def _step(self, session: Session, data: Any, body: bytes) -> tuple[Any, tuple[float, float]]:
-        """Worker thread: payload -> row (outside the gate) -> filter step (shared gate)."""
-        if data is not None:
-            row = descriptor_from_json(data, self.dim)
+    def _step(self, session: Session, payload: str, body: bytes
+              ) -> tuple[Any, tuple[float, float]]:
+        """Worker thread: body -> row (outside the gate) -> filter step (shared gate)."""
+        if payload == "descriptor":
+            row = descriptor_from_json(parse_json(body), self.dim)
+        elif payload == "raw":
+            row = descriptor_from_raw(body, self.dim)
         else:
             row = descriptor_from_image(body, self.spec, self.dim)
         with self.gate.shared():

@@ -93,6 +93,30 @@ def test_live_filters_follow_a_commit_that_merges_their_component(tmp_path, rng,
     run_service(path, body)
 
 
+def test_raw_float32_frames_answer_as_json_frames(one_drive_map, places, rng):
+    rows = drive(places, rng)[:30]
+    raw = {"content-type": "application/octet-stream"}
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        a, b = [(await client.post("/v1/sessions")).json()["session_id"] for _ in range(2)]
+        as_json = await frames(client, a, rows)
+        as_raw = []
+        for row in rows:
+            response = await client.post(f"/v1/sessions/{b}/frames",
+                                         content=row.astype("<f4").tobytes(), headers=raw)
+            assert response.status_code == 200, response.text
+            as_raw.append(response.json())
+        strip = [{k: v for k, v in x.items() if k != "timing"} for x in as_json]
+        assert strip == [{k: v for k, v in x.items() if k != "timing"} for x in as_raw]
+        for data in (b"\0" * (4 * DIM - 4), np.full(DIM, np.nan, "<f4").tobytes()):
+            bad = await client.post(f"/v1/sessions/{b}/frames", content=data, headers=raw)
+            assert bad.status_code == 422 and bad.json()["error"] in (
+                "descriptor_shape", "invalid_descriptor")
+        assert service.metrics.frame_seconds.count(payload="raw") == len(rows)
+
+    run_service(one_drive_map, body)
+
+
 def test_bounded_queues_answer_429_and_503(one_drive_map, places, rng):
     rows = drive(places, rng)
 
