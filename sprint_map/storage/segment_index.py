@@ -39,6 +39,7 @@ from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.segment_model import (
     Model,
+    RowReader,
     gather_rows,
     model_name,
     pca_name,
@@ -222,6 +223,7 @@ class SegmentedIndex:
         self.model = model
         self._segments: list[Any] = []
         self._opened: dict[str, Any] = {}  # segment file -> its memory-mapped index
+        self._reader = RowReader()  # re-ranking reads rows with pread, not the memory maps
         self._job: Future[tuple[SegmentEntry, ...]] | None = None  # the sealing worker's
         self._pool: ThreadPoolExecutor | None = None
         self._stacked: Any | None = None
@@ -357,7 +359,7 @@ class SegmentedIndex:
         cand = np.concatenate(ids, axis=1)
         valid = cand[cand >= 0]
         unique = np.unique(valid)
-        rows = gather_rows(shards, unique, committed)
+        rows = self._reader.rows(shards, unique, committed)
         for q in range(nq):
             mine = cand[q][cand[q] >= 0]
             if not len(mine):
