@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from concurrent.futures import Future
 from typing import Any
@@ -35,6 +36,8 @@ from sprint_map.server.payloads import (
 from sprint_map.server.sessions import COMMITTING, OPEN, Session, SessionRegistry
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
 from sprint_map.storage.validation import validate_name
+
+log = logging.getLogger("sprint_map.server")
 
 
 class LocalisationService:
@@ -104,15 +107,20 @@ class LocalisationService:
             if session.state != OPEN:
                 continue
             if self.config.on_shutdown == "commit" and session.frames:
-                session.state = COMMITTING
-                pending.append(self.writer.submit(self._job(session)))
+                try:
+                    pending.append(self.writer.submit(self._job(session)))
+                except ApiError:  # the commit queue is full: this one is discarded
+                    log.warning("shutdown: commit queue full, session %s discarded", session.id)
             self.registry.remove(session)
             self.metrics.sessions.inc(how="shutdown")
         for future in pending:
-            with contextlib.suppress(Exception):  # a failed commit is logged by its error
+            try:
                 outcome = await asyncio.wrap_future(future)
-                self.metrics.commits.inc(result="ok")
-                self.metrics.edges.inc(outcome.added.edges_added)
+            except Exception as exc:  # nothing of it was committed
+                log.warning("shutdown: a session's commit failed: %s", exc)
+                continue
+            self.metrics.commits.inc(result="ok")
+            self.metrics.edges.inc(outcome.added.edges_added)
         await anyio.to_thread.run_sync(self._close)
 
     def _close(self) -> None:
