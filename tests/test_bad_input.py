@@ -45,6 +45,7 @@ from sprint_map.errors import (
     EmptySequenceError,
     InputError,
     InvalidDescriptorError,
+    ListenError,
     MapExistsError,
     MapLockedError,
     NotAMapError,
@@ -53,6 +54,7 @@ from sprint_map.errors import (
     SprintMapError,
     StorageIOError,
     UnknownSequenceError,
+    UnsafeServeError,
 )
 from sprint_map.map import SprintMap
 from sprint_map.storage.lmdb_env import DB_NAMES, MAX_DBS
@@ -260,6 +262,11 @@ CASES: dict[str, Case] = {
                               InputError, "absent.csv: cannot read positions", map="img"),
     "positions-for-npy": Case("ingest {map} {in}/good.npy --name x --positions {in}/pos_ok.csv",
                               InputError, "3 position rows for 40 frames"),
+    # serve: refused before anything is served (a token file is any non-empty text file).
+    "serve-public-no-token": Case("serve {map} --host 0.0.0.0", UnsafeServeError,
+                                  "refusing to listen on 0.0.0.0 without a bearer token"),
+    "serve-foreign-address": Case("serve {map} --host 192.0.2.1 --token-file {in}/pos_ok.csv",
+                                  ListenError, "cannot listen on 192.0.2.1:8000"),
     # Paths that are not maps, maps we cannot read.
     **{f"not-a-map-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/good.npy" if cmd in (
         "ingest", "localize") else ""), NotAMapError, "not a sprint-map directory", map=kind)

@@ -71,11 +71,11 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
     check_bind(config.host, token)
     # OpenCV reads its decoded-size limit once, at the first decode: set it before any.
     os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(config.max_image_pixels))
-    smap = SprintMap.open(path)
+    sock = bind(config.host, config.port)  # first: an address in use leaves the map untouched
     try:
-        sock = bind(config.host, config.port)
+        smap = SprintMap.open(path)
     except BaseException:
-        smap.close()
+        sock.close()
         raise
     service = LocalisationService(smap, config)
     app = create_app(service, token)
