@@ -100,6 +100,9 @@ class Localizer:
         The map (read-only is enough); its state is read through LMDB snapshots.
     hmm : HMMConfig, optional
         Model parameters; default the map's own (``smap.config.hmm``).
+    cache : ComponentCache, optional
+        Where loaded components are kept; default a private one of
+        ``config.cache_budget_bytes``.
 
     Notes
     -----
@@ -108,11 +111,13 @@ class Localizer:
     components only, plus loading components that join the active set (LRU-cached).
     """
 
-    def __init__(self, smap: SprintMap, hmm: HMMConfig | None = None) -> None:
+    def __init__(self, smap: SprintMap, hmm: HMMConfig | None = None,
+                 cache: ComponentCache | None = None) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
         self.source = MapGraphSource(smap.store)
-        self.cache = ComponentCache(self.config.cache_budget_bytes)
+        # A cache may be shared by localizers over the same map (the server's sessions).
+        self.cache = cache if cache is not None else ComponentCache(self.config.cache_budget_bytes)
         self.filter = SprintFilter(self.config, self.source, self.cache)
         self.timing = Timing()
         self._empty = smap.stats()["vertices"] == 0

@@ -19,6 +19,7 @@ import anyio
 import numpy as np
 
 from sprint_map.errors import SprintMapError
+from sprint_map.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.config import ServerConfig
 from sprint_map.server.errors import ApiError, busy, from_library
@@ -33,7 +34,13 @@ from sprint_map.server.payloads import (
     media_type,
     parse_json,
 )
-from sprint_map.server.sessions import COMMITTING, OPEN, Session, SessionRegistry
+from sprint_map.server.sessions import (
+    COMMITTING,
+    OPEN,
+    Session,
+    SessionRegistry,
+    SharedComponentCache,
+)
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
 from sprint_map.storage.validation import validate_name
 
@@ -59,8 +66,8 @@ class LocalisationService:
         self.metrics = Metrics()
         self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
                                         config.max_buffered_bytes)
-        self.writer = CommitWriter(smap, self.gate, self.registry.notify_changed,
-                                   config.commit_queue_size)
+        self.cache = SharedComponentCache(smap.config.hmm.cache_budget_bytes)
+        self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size)
         self.spec = smap.config.descriptor_spec()
         self.dim = smap.config.dim
         self.ready = False
@@ -76,6 +83,8 @@ class LocalisationService:
                 lambda: self.writer.depth)
         m.gauge("sprint_map_buffered_bytes", "Descriptor bytes held by open sessions.",
                 lambda: self.registry.buffered_bytes)
+        m.gauge("sprint_map_component_cache_bytes", "Bytes of components in the shared cache.",
+                lambda: self.cache.nbytes)
         m.gauge("sprint_map_map_vertices", "Vertices in the map.",
                 lambda: self._stats().get("vertices", 0))
         m.gauge("sprint_map_map_sequences", "Sequences in the map.",
@@ -129,6 +138,11 @@ class LocalisationService:
             with self.gate.exclusive():
                 self.map.close()  # persists the index
 
+    def _changed(self, component_ids: set[int]) -> None:
+        """A commit changed these components (writer thread, gate held exclusively)."""
+        self.cache.invalidate(component_ids)
+        self.registry.notify_changed(component_ids)
+
     def _stats(self) -> dict[str, int]:
         if self.map.store.env is None:
             return {}
@@ -158,7 +172,7 @@ class LocalisationService:
                 else:
                     raise ApiError(409, "duplicate_name",
                                    f"the map already has a sequence named {name!r}")
-            return Session(name, self.map.localizer(), self.dim)
+            return Session(name, Localizer(self.map, cache=self.cache), self.dim)
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)

@@ -82,6 +82,10 @@ def test_live_filters_follow_a_commit_that_merges_their_component(tmp_path, rng,
         done = (await client.post(f"/v1/sessions/{sid}/commit")).json()
         comps = {c.component for c in service.map.components()}
         assert len(comps) == 1 and done["component"] in comps  # all three joined
+        # A session started now gets the merged component (not a stale one from the cache).
+        fresh = (await client.post("/v1/sessions")).json()["session_id"]
+        newer = await frames(client, fresh, watcher_rows[20:])
+        assert sum(a["image_id"] == 20 + i for i, a in enumerate(newer)) >= 0.8 * len(newer)
         # The watcher's next frames also hit the new drive's vertices (same places).
         after = await frames(client, watcher, watcher_rows[20:])
         live = service.registry.get(watcher).localizer.filter
@@ -113,6 +117,9 @@ def test_raw_float32_frames_answer_as_json_frames(one_drive_map, places, rng):
             assert bad.status_code == 422 and bad.json()["error"] in (
                 "descriptor_shape", "invalid_descriptor")
         assert service.metrics.frame_seconds.count(payload="raw") == len(rows)
+        # Both sessions localise in the one component: loaded once, into the shared cache.
+        assert (service.cache.misses, len(service.cache)) == (1, 1)
+        assert service.registry.get(a).localizer.cache is service.cache
 
     run_service(one_drive_map, body)
 
