@@ -22,7 +22,7 @@ from sprint_map.errors import SprintMapError
 from sprint_map.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.config import ServerConfig
-from sprint_map.server.errors import ApiError, busy, from_library
+from sprint_map.server.errors import ApiError, busy, from_library, unknown_session
 from sprint_map.server.gate import MapGate
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.payloads import (
@@ -35,6 +35,7 @@ from sprint_map.server.payloads import (
     parse_json,
 )
 from sprint_map.server.sessions import (
+    CLOSED,
     COMMITTING,
     OPEN,
     Session,
@@ -222,6 +223,8 @@ class LocalisationService:
         self._admitted += 1
         try:
             async with session.lock:
+                if session.state == CLOSED:  # committed or discarded while this one waited
+                    raise unknown_session(session_id)
                 if session.state != OPEN:
                     raise ApiError(409, "committing", "the session is being committed")
                 self.registry.reserve_frame(session)
