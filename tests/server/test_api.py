@@ -13,7 +13,7 @@ import signal
 import threading
 
 import numpy as np
-from conftest import DIM, decisions, drive, post_frame, stream
+from serve_helpers import DIM, decisions, drive, post_frame, stream
 
 from sprint_map.map import SprintMap
 

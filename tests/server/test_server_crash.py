@@ -18,7 +18,7 @@ from typing import Any
 
 import httpx
 import numpy as np
-from conftest import DIM, drive
+from serve_helpers import DIM, drive
 
 from sprint_map.config import MapConfig
 from sprint_map.localizer import FrameDecision, merge_edges

@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import DIM, drive
+from serve_helpers import DIM, drive
 
 from sprint_map.cli import main
 from sprint_map.config import MapConfig
