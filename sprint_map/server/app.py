@@ -93,7 +93,12 @@ def frame_body(dim: int) -> dict[str, Any]:
                   "properties": {"descriptor": {"type": "array",
                                                 "items": {"type": "number", "minimum": -3e38,
                                                           "maximum": 3e38},
-                                                "minItems": dim, "maxItems": dim}}}
+                                                "minItems": dim, "maxItems": dim},
+                                 "position": {"type": "array", "minItems": 2, "maxItems": 3,
+                                              "items": {"type": "number", "minimum": -1e12,
+                                                        "maximum": 1e12},
+                                              "description": "Optional [x, y(, heading_deg)] "
+                                              "of the frame: for every frame or none."}}}
     binary = {"schema": {"type": "string", "format": "binary"}}
     return {
         "requestBody": {

@@ -8,6 +8,7 @@ decode), never a 500.
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import numpy as np
@@ -36,11 +37,28 @@ def parse_json(body: bytes) -> Any:
         raise ApiError(400, "bad_json", f"the body is not valid JSON ({exc})") from None
 
 
+def position_from_json(data: Any) -> tuple[float, ...] | None:
+    """The optional ``"position": [x, y(, heading_deg)]`` of a JSON frame (finite numbers)."""
+    if not isinstance(data, dict) or data.get("position") is None:
+        return None
+    value = data["position"]
+    if (not isinstance(value, list) or not 2 <= len(value) <= 3
+            or not all(type(v) is float or type(v) is int for v in value)):
+        raise ApiError(422, "bad_payload", "position must be [x, y] or [x, y, heading_deg]")
+    try:
+        out = tuple(float(v) for v in value)
+    except OverflowError:
+        out = (math.inf,)
+    if not all(math.isfinite(v) for v in out):
+        raise ApiError(422, "bad_payload", "position must hold finite numbers")
+    return out
+
+
 def descriptor_from_json(data: Any, dim: int) -> np.ndarray:
     """The ``(1, dim)`` float32 row of ``{"descriptor": [numbers]}``."""
     if not isinstance(data, dict) or "descriptor" not in data:
         raise ApiError(422, "bad_payload", 'expected a JSON object {"descriptor": [numbers]}')
-    unknown = sorted(set(data) - {"descriptor"})
+    unknown = sorted(set(data) - {"descriptor", "position"})
     if unknown:
         raise ApiError(422, "bad_payload", f"unknown field(s) {', '.join(map(str, unknown))}")
     values = data["descriptor"]

@@ -33,6 +33,7 @@ from sprint_map.server.payloads import (
     descriptor_from_raw,
     media_type,
     parse_json,
+    position_from_json,
 )
 from sprint_map.server.sessions import (
     CLOSED,
@@ -253,15 +254,18 @@ class LocalisationService:
     def _step(self, session: Session, payload: str, body: bytes
               ) -> tuple[Any, tuple[float, float]]:
         """Worker thread: body -> row (outside the gate) -> filter step (shared gate)."""
+        position = None
         if payload == "descriptor":
-            row = descriptor_from_json(parse_json(body), self.dim)
+            data = parse_json(body)
+            row = descriptor_from_json(data, self.dim)
+            position = position_from_json(data)
         elif payload == "raw":
             row = descriptor_from_raw(body, self.dim)
         else:
             row = descriptor_from_image(body, self.spec, self.dim)
         with self.gate.shared():
             try:
-                decision = session.step(row)
+                decision = session.step(row, position)
             except SprintMapError as exc:
                 raise from_library(exc) from None
         timing = session.localizer.timing
@@ -270,7 +274,8 @@ class LocalisationService:
     # --- commits ----------------------------------------------------------------------------
     def _job(self, session: Session) -> CommitJob:
         return CommitJob(session.name, session.descriptors(), list(session.decisions),
-                         source=f"sprint-map serve session {session.id}")
+                         source=f"sprint-map serve session {session.id}",
+                         positions=session.position_array())
 
     async def commit(self, session_id: str) -> dict[str, Any]:
         """Commit a session's drive; returns once the commit is durable."""

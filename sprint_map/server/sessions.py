@@ -67,6 +67,8 @@ class Session:
         self.localizer = localizer
         self.dim = dim
         self.rows: list[np.ndarray] = []
+        #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
+        self.positions: list[tuple[float, ...]] = []
         self.decisions: list[FrameDecision] = []
         self.state = OPEN
         self.lock = asyncio.Lock()
@@ -100,13 +102,32 @@ class Session:
             changed, self.changed = self.changed, None
             self.localizer.invalidate(changed)
 
-    def step(self, row: np.ndarray) -> FrameDecision:
+    def check_position(self, position: tuple[float, ...] | None) -> None:
+        """Refuse a frame that breaks "positions for every frame or for none"."""
+        if self.frames and (position is not None) != bool(self.positions):
+            given = "gave" if self.positions else "did not give"
+            raise ApiError(422, "bad_payload", f"the session's earlier frames {given} a "
+                           "position: give one for every frame or for none")
+
+    def step(self, row: np.ndarray, position: tuple[float, ...] | None = None) -> FrameDecision:
         """Localise one frame and keep it for the commit (called under the shared gate)."""
+        self.check_position(position)
         self.apply_changes()
         decision = self.localizer.step(row)
         self.rows.append(row.reshape(-1))
+        if position is not None:
+            self.positions.append(position)
         self.decisions.append(decision)
         return decision
+
+    def position_array(self) -> np.ndarray | None:
+        """``(frames, 3)`` x, y, heading (NaN if not given), or None without positions."""
+        if not self.positions:
+            return None
+        out = np.full((len(self.positions), 3), np.nan)
+        for i, pos in enumerate(self.positions):
+            out[i, : len(pos)] = pos
+        return out
 
     def descriptors(self) -> np.ndarray:
         """The drive's descriptors, ``(frames, dim)`` float32."""

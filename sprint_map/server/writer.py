@@ -34,6 +34,7 @@ class CommitJob:
     descriptors: np.ndarray
     decisions: list[FrameDecision]
     source: str = ""
+    positions: np.ndarray | None = None  # (frames, 2..4) as ``ingest`` takes them
 
 
 @dataclass(frozen=True)
@@ -133,7 +134,8 @@ class CommitWriter:
             writer.append(job.descriptors)  # shards written and fsynced; invisible to readers
             with self.gate.exclusive():
                 start = time.perf_counter()
-                added = writer.commit(None, edges)  # the commit point (durable on return)
+                # The commit point (durable on return).
+                added = writer.commit(job.positions, edges)
                 changed = before | {added.component}
                 self.on_commit(changed)
                 held = time.perf_counter() - start

@@ -27,7 +27,9 @@ def _offline(map_path, rows):
 def _stored(map_path):
     """Sequences (name, descriptors), edges and components of a map, for comparison."""
     with SprintMap.open(map_path, readonly=True) as m:
-        seqs = [(s.name, m.descriptors(s.seq_id).tobytes()) for s in m.sequences()]
+        seqs = [(s.name, m.descriptors(s.seq_id).tobytes(),
+                 None if m.positions(s.seq_id) is None else m.positions(s.seq_id)[:, :3].tolist())
+                for s in m.sequences()]
         edges = sorted((e.src, e.dst, e.weight, e.query_seq, e.frame) for e in m.store.edges())
         comps = sorted((c.component, tuple(c.sequences)) for c in m.components())
         report = m.check()
@@ -44,7 +46,14 @@ def test_drives_end_to_end_equal_offline_localize_and_ingest(one_drive_map, plac
     server = start_server(one_drive_map)
     c = server.client
     sid = c.post("/v1/sessions", json={"name": "second"}).json()["session_id"]
-    answers = stream(c, sid, second)
+    where = np.column_stack([np.arange(len(second)) * 1.5, np.arange(len(second)) * -0.5,
+                             np.full(len(second), 90.0)])
+    answers = []
+    for row, pos in zip(second, where, strict=True):  # with positions, as `ingest` takes them
+        response = c.post(f"/v1/sessions/{sid}/frames",
+                          json={"descriptor": row.tolist(), "position": pos.tolist()})
+        assert response.status_code == 200, response.text
+        answers.append(response.json())
     assert [a["frame"] for a in answers] == list(range(len(second)))
     # No commit ran meanwhile: the streamed answers are the offline ones, frame by frame.
     assert decisions(answers) == want
@@ -68,10 +77,11 @@ def test_drives_end_to_end_equal_offline_localize_and_ingest(one_drive_map, plac
 
     # The commits are exactly what `ingest` commits for the same drives.
     with SprintMap.open(reference) as m:
-        m.ingest(second, name="second")
+        m.ingest(second, name="second", positions=where)
         m.ingest(third, name="third")
     got, expected = _stored(one_drive_map), _stored(reference)
-    assert got[0] == expected[0]  # names and descriptors, bit for bit
+    assert got[0] == expected[0]  # names, descriptors (bit for bit) and positions
+    assert got[0][1][2] is not None and got[0][2][2] is None
     assert [e[:3] + e[4:] for e in got[1]] == [e[:3] + e[4:] for e in expected[1]]
     assert got[2] == expected[2]
     assert got[3].ok, got[3].violations
@@ -178,8 +188,17 @@ def test_bad_input_answers_clear_4xx(one_drive_map, start_server):
         assert (response.status_code, response.json().get("error")) == (status, code), (
             i, response.text)
         assert response.json()["message"]
-    # Nothing bad was kept: the session still has no frame; the frame limit then holds.
-    for _ in range(3):
+    good = [0.1] * DIM
+    first = c.post(frames, json={"descriptor": good})  # no position: then none, ever
+    assert first.status_code == 200 and first.json()["frame"] == 0
+    for body in ({"descriptor": good, "position": [1.0, 2.0]},
+                 {"descriptor": good, "position": [1.0]},
+                 {"descriptor": good, "position": [1.0, "a"]},
+                 {"descriptor": good, "position": [1.0, 10**400]}):
+        refused = c.post(frames, json=body)
+        assert (refused.status_code, refused.json()["error"]) == (422, "bad_payload"), body
+    # Nothing bad was kept: the session has its one good frame; the frame limit then holds.
+    for _ in range(2):
         assert post_frame(c, sid, np.full(DIM, 0.1, np.float32)).status_code == 200
     limited = post_frame(c, sid, np.full(DIM, 0.1, np.float32))
     assert (limited.status_code, limited.json()["error"]) == (409, "frame_limit")
