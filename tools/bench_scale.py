@@ -8,21 +8,32 @@ map becomes one large component, as a lifelong map does. Then a *fresh process* 
 read-only and localises a new drive frame by frame (``Localizer.step``), measuring:
 
 * ``ingest_per_s``: vertices committed per second (descriptors, LMDB records, edges, index
-  updates on the store's schedule; the final index persist at close is ``close_s``);
+  updates on the store's schedule), training of the approximate index apart (``train_s``;
+  with it: ``ingest_with_training_per_s``); the final index persist at close is ``close_s``;
+  ``bulk_ingest_per_s``: afterwards, one drive of ``--bulk`` precomputed descriptors streamed
+  into the map (the store's rate without per-drive fsyncs and edges);
 * ``bytes_per_vertex``: disk use of the map directory over N;
 * ``open_s``: ``SprintMap.open(readonly=True)`` in the fresh process;
 * ``retrieval_p50_ms``, ``hmm_p50_ms``, ``frame_p99_ms``: per-frame latency percentiles (the
   first search, which loads or builds the index, is reported apart as ``first_search_s``);
 * ``rss_mb``: resident memory of the localising process after the drive (``VmRSS``; ``VmHWM``
-  as ``peak_rss_mb``);
+  as ``peak_rss_mb``; ``RssAnon`` / ``RssFile`` apart: heap vs mapped files);
 * ``ann_recall_at_10``: mean overlap of the map's k-NN (k = 10) with exact brute force over the
-  shards, on the query frames (1.0 for the exact flat index).
+  shards, on the query frames (1.0 for the exact flat index); ``ann_recall_at_1``: how often
+  the first hit is the exact nearest.
+
+The city's drives see it under their own condition (a random linear change of
+``--condition`` relative strength, 0.2, plus noise). The exact-index baseline of
+``docs/architecture.md`` drew 0.2 per matrix entry, a change 2.3x the appearance itself
+(``--condition 2.26`` at dim 128): its 10th neighbour was barely nearer than the 1000th, a
+world no index can search approximately.
 
 Writes ``--json OUT`` as ``{"rows": [...]}`` and a PNG of each measure against N::
 
     python tools/bench_scale.py --vertices 100000 1000000 --dim 128 --json scale.json --png scale.png
     python tools/bench_scale.py --vertices 20000 --quick            # smoke run
     python tools/bench_scale.py --vertices 1000000 --set index_type=flat
+    python tools/bench_scale.py --vertices 1000000 --set index_type=ivf-sq8 --set index_nprobe=32
 
 Maps are built under ``--workdir`` (default: a temporary directory, removed afterwards; a
 10M x 128 map needs about 10 GB of disk plus its index).
