@@ -328,9 +328,13 @@ class IndexStore:
         return self.segmented.merge_all()
 
     def close(self) -> None:
-        """Finish a sealing in flight (its result is published, or its error raised)."""
+        """Finish a sealing in flight before this index is dropped (e.g. its generation's
+        directory removed by ``compact``); its error, if any, only loses that seal."""
         if self.segmented is not None:
-            self.segmented.wait()
+            try:
+                self.segmented.wait()
+            except OSError as exc:
+                self.events.append(f"segment sealing in flight failed ({exc}); sealed later")
 
     def reset(self) -> None:
         """Forget the in-memory index (it is reloaded on the next search)."""

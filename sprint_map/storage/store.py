@@ -253,6 +253,7 @@ class MapStore:
         The old generation's environment is closed and its pin dropped first, so that the
         caller can remove it. A failure leaves this store closed (the map itself is complete).
         """
+        self.index.close()  # a segment sealing in flight writes into the old generation
         self.shards.close()
         self.env.close()
         unpin(self._pin)

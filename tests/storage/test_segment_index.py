@@ -326,3 +326,22 @@ def test_check_repair_restores_a_torn_segment_index(tmp_path, rng, centres):
     assert report.after.checked["index_segments"] >= 1
     _, ids = search_all(path, rows[::40], 1)
     np.testing.assert_array_equal(ids[:, 0], np.arange(0, 1200, 40))
+
+
+def test_compact_retrains_and_merges_a_segmented_index(tmp_path, rng, centres):
+    """The removal interface: removed vertices never come back, compact rebuilds the index
+    (retrained on the renumbered vertices) and merges it into one segment."""
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [600, 600, 600])
+    with MapStore.open(path) as store:
+        store.search(rows[:1], 1)
+        store.remove_sequences([1])
+        _, ids = store.search(rows[600:1200:50], 10)
+        assert not ((ids >= 600) & (ids < 1200)).any()
+        store.compact()
+        manifest = read_manifest(store.data_path / INDEX_DIR)
+        assert len(manifest.segments) == 1 and manifest.trained_on == 1200
+        kept = np.concatenate([rows[:600], rows[1200:]])
+        _, ids = store.search(kept[::30], 1)
+        np.testing.assert_array_equal(ids[:, 0], np.arange(0, 1200, 30))
+        assert check_map(store).ok
