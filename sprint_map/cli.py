@@ -77,13 +77,7 @@ def init(map_path: str, dim: int | None, descriptor: str | None, config_json: st
       sprint-map init city.map --descriptor hog      # images and video, the paper's HoG
       sprint-map init city.map --dim 256             # precomputed .npy descriptors
     """
-    options: dict[str, Any] = {}
-    if config_json:
-        try:
-            with open(config_json) as fh:
-                options = json.load(fh)
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(f"cannot read config {config_json}: {exc}") from exc
+    options = _read_json_config(config_json)
     kind = descriptor or options.pop("descriptor", None) or (
         "precomputed" if dim is not None else "hog")
     if kind == "precomputed":
@@ -98,6 +92,21 @@ def init(map_path: str, dim: int | None, descriptor: str | None, config_json: st
             raise InputError(f"{kind} descriptors have {config.dim} dimensions, not {dim}")
     with SprintMap.create(map_path, config) as m:
         click.echo(f"created {m.path} ({config.descriptor}, dim {config.dim})")
+
+
+def _read_json_config(path: str | None) -> dict[str, Any]:
+    """The options in the JSON file ``path`` (``{}`` without one); an unreadable file is an
+    InputError."""
+    if not path:
+        return {}
+    try:
+        with open(path) as fh:
+            options = json.load(fh)
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"cannot read config {path}: {exc}") from exc
+    if not isinstance(options, dict):
+        raise InputError(f"config {path} must hold a JSON object")
+    return options
 
 
 def _progress(quiet: bool, label: str) -> ProgressCallback | None:
@@ -513,13 +522,7 @@ def serve(map_path: str, host: str | None, port: int | None, token_file: str | N
     from sprint_map.server.config import ServerConfig
     from sprint_map.server.run import serve_map
 
-    options: dict[str, Any] = {}
-    if config_json:
-        try:
-            with open(config_json) as fh:
-                options = json.load(fh)
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(f"cannot read config {config_json}: {exc}") from exc
+    options = _read_json_config(config_json)
     given = {"host": host, "port": port, "token_file": token_file}
     options.update({key: value for key, value in given.items() if value is not None})
     serve_map(map_path, ServerConfig.from_dict(options))
