@@ -9,6 +9,7 @@ from __future__ import annotations
 import bisect
 import math
 import threading
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from typing import TypeVar
 
@@ -38,7 +39,9 @@ def _num(value: float) -> str:
     return repr(float(value)) if not float(value).is_integer() else str(int(value))
 
 
-class _Metric:
+class _Metric(ABC):
+    """One metric family: its name, help text and the lines it renders."""
+
     kind = ""
 
     def __init__(self, name: str, help_text: str) -> None:
@@ -49,8 +52,9 @@ class _Metric:
     def header(self) -> list[str]:
         return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} {self.kind}"]
 
+    @abstractmethod
     def render(self) -> list[str]:
-        raise NotImplementedError
+        """The family's sample lines, without the header."""
 
 
 class Counter(_Metric):
