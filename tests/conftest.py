@@ -7,7 +7,9 @@ fixture).
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,6 +25,26 @@ from sprint_map.config import MapConfig
 from sprint_map.storage.store import EdgeSpec, MapStore
 
 SEED = 20200531
+
+
+def _load_crash_worker() -> None:
+    """Load ``tests/crash_worker.py`` (the crash harness) as module ``crash_worker``.
+
+    By path, so that it works whatever pytest's import mode puts on ``sys.path``; registered in
+    ``sys.modules`` (its dataclasses resolve their module by name), so test modules anywhere
+    under ``tests/`` just ``import crash_worker``.
+    """
+    if "crash_worker" in sys.modules:
+        return
+    spec = importlib.util.spec_from_file_location(
+        "crash_worker", Path(__file__).with_name("crash_worker.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["crash_worker"] = module
+    spec.loader.exec_module(module)
+
+
+_load_crash_worker()
 
 # CI replays the same hypothesis examples every run (a red CI is reproducible by rerunning it);
 # local runs keep exploring new ones, which is how the W = 1 gutter bug was found.

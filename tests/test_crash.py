@@ -10,18 +10,16 @@ all, and have the components of its edges. Writers add the deterministic stream 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
 import shutil
 import signal
-import sys
 import time
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
+import crash_worker  # the crash harness, loaded by tests/conftest.py
 import faiss
 import numpy as np
 import pytest
@@ -42,20 +40,7 @@ from sprint_map.storage.index_store import index_files
 from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
-WORKER_PATH = Path(__file__).with_name("crash_worker.py")
-
-
-def _load_worker() -> ModuleType:
-    # By path, so this works whatever pytest's import mode puts on sys.path.
-    spec = importlib.util.spec_from_file_location("crash_worker", WORKER_PATH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["crash_worker"] = module  # dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
-
-
-worker = _load_worker()
+worker = crash_worker
 verify = worker.verify
 create_map = worker.create_map
 

@@ -19,21 +19,13 @@ violation.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import shutil
 import sys
 import tempfile
 from pathlib import Path
-from types import ModuleType
 
-TESTS_DIR = Path(__file__).resolve().parents[1] / "tests"
-
-
-def load_worker() -> ModuleType:
-    """The crash harness (it lives with the tests it serves)."""
-    sys.path.insert(0, str(TESTS_DIR))
-    return importlib.import_module("crash_worker")
+from crash_soak import load_worker  # the sibling script: how tools reach the crash harness
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,13 +4,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 
+import crash_worker  # the crash harness, loaded by tests/conftest.py
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -21,18 +20,7 @@ from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.store import SHARDS_DIR, EdgeSpec, MapStore
 
-
-def _load_worker() -> ModuleType:
-    path = Path(__file__).parents[1] / "crash_worker.py"
-    spec = importlib.util.spec_from_file_location("crash_worker", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("crash_worker", module)
-    spec.loader.exec_module(module)
-    return module
-
-
-logical_state = _load_worker().logical_state
+logical_state = crash_worker.logical_state
 
 
 def strict_check(path: Path) -> None:

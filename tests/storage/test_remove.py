@@ -3,12 +3,10 @@ searches that never return a removed vertex, and check/repair of the removed ran
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
+import crash_worker  # the crash harness, loaded by tests/conftest.py
 import lmdb
 import networkx as nx
 import numpy as np
@@ -24,18 +22,7 @@ from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.repair import repair_map
 from sprint_map.storage.store import LMDB_DIR, EdgeSpec, MapStore
 
-
-def _load_worker() -> ModuleType:
-    path = Path(__file__).parents[1] / "crash_worker.py"
-    spec = importlib.util.spec_from_file_location("crash_worker", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("crash_worker", module)
-    spec.loader.exec_module(module)
-    return module
-
-
-logical_state = _load_worker().logical_state
+logical_state = crash_worker.logical_state
 
 
 def random_descriptors(rng: np.random.Generator, n: int, dim: int) -> np.ndarray:
