@@ -20,9 +20,9 @@ frame's initialisation and the activation of every sequence the query enters. Bo
   :class:`~sprint_map.hmm.MemoryGraphSource` with its LRU component cache.
 
 The timed call is ``update`` (the inference step the paper times); ``*_step_ms`` columns also
-time ``step`` (update + decision) over a quarter of the frames. Each filter runs its runs in a
-block; rows give the mean over runs (as the paper) and the median (robust to load from other
-processes). The garbage collector is off while timing (as
+time ``step`` (update + decision) over a quarter of the frames. The two filters alternate run
+by run, so that drift in the machine's speed does not enter the ratio; rows give the mean over
+runs (as the paper) and the median (robust to load from other processes). The garbage collector is off while timing (as
 ``timeit`` does); both filters are single-threaded. Prints a table; ``--json`` writes ``{"rows": [{"nodes",
 "seq_len", "full_ms", "sprint_ms", ...}]}``; ``--png`` a log-log plot. ``--quick`` runs 3 runs
 of 50 frames up to 100k nodes.
@@ -78,8 +78,8 @@ def bench(nodes: tuple[int, ...], seq_lens: tuple[int, ...], runs: int, steps: i
           seed: int = 0) -> list[dict[str, Any]]:
     """Run every (nodes, seq_len) configuration; return the result rows.
 
-    Each filter runs all its runs in a block (its steady state); each row reports the mean
-    over runs (as the paper) and the median (robust to load from other processes).
+    The two filters alternate run by run (both see the same machine); each row reports the
+    mean over runs (as the paper) and the median (robust to load from other processes).
     """
     rng = np.random.default_rng(seed)
     config = HMMConfig()
@@ -96,16 +96,17 @@ def bench(nodes: tuple[int, ...], seq_lens: tuple[int, ...], runs: int, steps: i
             times: dict[str, list[float]] = {"full": [], "sprint": [], "full_step": [],
                                              "sprint_step": []}
             active: list[int] = []
-            # One filter at a time: at 1M nodes the full graph streams ~100 MB per frame through
-            # the CPU caches, which would otherwise slow the next SPRINT frames ~1.7x.
+            # The two filters alternate run by run, so that both see the same machine: on a
+            # shared machine the speed drifts by up to 2x within minutes, and blocks of runs
+            # would turn that drift into the ratio. (Each run's untimed warm-up frames re-warm
+            # the CPU caches after the other filter's run: at 1M nodes the full graph streams
+            # ~100 MB per frame through them.)
             for start in starts:
                 times["sprint"].append(time_run(sprint, start, steps, n, decide=False))
                 active.append(sprint.n_active_vertices)
-            for start in starts:
                 times["full"].append(time_run(full, start, steps, n, decide=False))
             for start in starts:
                 times["sprint_step"].append(time_run(sprint, start, step_frames, n, decide=True))
-            for start in starts:
                 times["full_step"].append(time_run(full, start, step_frames, n, decide=True))
             ms = {k: 1e3 * statistics.mean(v) for k, v in times.items()}
             med = {k: 1e3 * statistics.median(v) for k, v in times.items()}

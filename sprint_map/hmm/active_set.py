@@ -12,10 +12,12 @@ import numpy as np
 from sprint_map.hmm import support
 from sprint_map.hmm.decision import BeliefView
 from sprint_map.hmm.graph import ComponentGraph
-from sprint_map.hmm.transition import ComponentTransition
+from sprint_map.hmm.transition import ComponentTransition, correlate
 
 _I64 = np.int64
 _EMPTY = np.empty(0, dtype=_I64)
+_add = np.add.reduce
+_CANCEL = 1e-3
 
 
 class ActiveComponent:
@@ -35,10 +37,11 @@ class ActiveComponent:
     lo, hi : ndarray of int64
         The windows ``[lo, hi)`` (sorted, disjoint, at least ``trans.gap`` apart) when
         ``n_windows != 1``.
-    a, b, end : int
-        The window ``[a, b)`` and the end slot of its sequence when ``n_windows == 1`` (the
-        common case of a vehicle on one mapped road: its step is a few slice operations, inlined
-        in :meth:`SprintFilter.update <sprint_map.hmm.sprint_filter.SprintFilter.update>`).
+    a, b, end, shift : int
+        The window ``[a, b)``, the end slot of its sequence and the slot of global vertex 0 of
+        that sequence's layout (slot = vertex id + shift) when ``n_windows == 1`` (the common
+        case of a vehicle on one mapped road: its step is a few slice operations, inlined in
+        :meth:`propagate`, and a hit in its sequence is placed without a search).
     n_propagated : int
         Slots propagated by the last update (the input windows, edge targets included).
     pending : list of int
@@ -47,7 +50,7 @@ class ActiveComponent:
     """
 
     __slots__ = ("a", "b", "component_id", "end", "hi", "live", "lo", "mass", "n_propagated",
-                 "n_windows", "pending", "trans", "x")
+                 "n_windows", "pending", "shift", "trans", "x")
 
     def __init__(self, trans: ComponentTransition) -> None:
         self.component_id = trans.graph.component_id
@@ -55,7 +58,7 @@ class ActiveComponent:
         self.x = np.zeros(trans.n_slots)
         self.mass = 0.0
         self.lo = self.hi = _EMPTY
-        self.a = self.b = self.end = 0
+        self.a = self.b = self.end = self.shift = 0
         self.n_windows = 0
         self.n_propagated = 0
         self.pending: list[int] = []
@@ -85,7 +88,7 @@ class ActiveComponent:
         self.n_windows = n = lo.size
         if n == 1:
             self.a, self.b = int(lo[0]), int(hi[0])
-            self.end = self.trans.seq_end_of(self.a)
+            self.end, self.shift = self.trans.seq_span_of(self.a)
         self.live = None
 
     def live_slots(self) -> np.ndarray:
@@ -95,7 +98,7 @@ class ActiveComponent:
             self.live = support.ranges(lo, hi - lo)
         return self.live
 
-    def propagate(self, flush_below: float) -> float:
+    def propagate(self, flush_below: float, scale: float) -> float:
         """One propagation step of the windows; return the overflow (mass for the sink).
 
         Parameters
@@ -103,20 +106,57 @@ class ActiveComponent:
         flush_below : float
             Zero beliefs below this first (0: no flush; see
             :data:`~sprint_map.hmm.transition.FLUSH_BELOW`).
+        scale : float
+            ``1 - restart_prob - new_place_prob``, the factor folded into the window (the
+            one-window case uses it to know the new mass without summing).
 
         Notes
         -----
-        :meth:`ComponentTransition.propagate_windows`, O(W live + edges leaving the windows).
-        (The filter inlines the one-window case without edges.)
+        One window with no edge leaving it (a vehicle on one mapped road; the common case) is
+        one convolution and two slice writes, inlined here: per-call overhead is the whole cost
+        of a step at this size. Otherwise :meth:`ComponentTransition.propagate_windows`,
+        O(W live + edges leaving the windows).
         """
         x = self.x
+        trans = self.trans
+        if self.n_windows == 1:
+            a, b = self.a, self.b
+            if not trans.has_edges or not trans.has_edges_from(a, b):
+                if flush_below:
+                    v = x[a:b]
+                    np.putmask(v, v < flush_below, 0.0)
+                y = correlate(x[a:b], trans.krev, "full")
+                nb = b + trans.spread
+                self.live = None
+                self.n_propagated = b - a
+                end = self.end
+                if nb <= end:
+                    x[a:nb] = y
+                    self.b = nb
+                    # Propagation keeps mass (times scale): the new mass is known without
+                    # summing (re-summed exactly on flush frames).
+                    self.mass = float(_add(y)) if flush_below else scale * self.mass
+                    return 0.0
+                # What the window pushes past the sequence end goes to the sink (the gutter
+                # slots from ``end`` on are never written: they stay 0).
+                keep = end - a
+                x[a:end] = y[:keep]
+                spill = math.fsum(y[keep:].tolist())
+                self.b = end
+                mass = scale * self.mass - spill
+                # The difference loses about log10(spill / mass) digits: sum what is left
+                # when that could be more than three (and on flush frames).
+                if flush_below or mass < _CANCEL * spill:
+                    mass = float(_add(y[:keep]))
+                self.mass = mass
+                return spill
         lo, hi = self.windows()
         if flush_below:
             idx = self.live_slots()
             v = x[idx]
             np.putmask(v, v < flush_below, 0.0)
             x[idx] = v
-        lo, hi, spill, mass, n_prop = self.trans.propagate_windows(x, lo, hi)
+        lo, hi, spill, mass, n_prop = trans.propagate_windows(x, lo, hi)
         self.set_windows(lo, hi)
         self.mass = mass
         self.n_propagated = n_prop
@@ -155,7 +195,7 @@ class ActiveComponent:
             if not self.n_windows:
                 self.pending = []
                 self.a, self.b, self.n_windows = slot, slot + 1, 1
-                self.end = self.trans.seq_end_of(slot)
+                self.end, self.shift = self.trans.seq_span_of(slot)
                 self.live = None
                 pending = self.pending
             elif self.a - gap <= slot < self.b + gap and self.trans.seq_end_of(slot) == self.end:

@@ -9,6 +9,7 @@ used by tests and benchmarks; the map facade implements the protocol over LMDB.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -18,8 +19,28 @@ import numpy as np
 _I64 = np.int64
 
 
-def _as_array(name: str, value: object, dtype: type) -> np.ndarray:
-    arr: np.ndarray = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+def _read_only(arr: np.ndarray) -> np.ndarray:
+    arr.setflags(write=False)
+    return arr
+
+
+#: Shared by every single-sequence component without edges (the arrays are read-only).
+_ZERO1 = _read_only(np.zeros(1, dtype=_I64))
+_EMPTY = _read_only(np.zeros(0, dtype=_I64))
+_EMPTY_F = _read_only(np.zeros(0))
+
+
+_I64_DTYPE = np.dtype(_I64)
+_F64_DTYPE = np.dtype(np.float64)
+
+
+def _as_array(name: str, value: object, dtype: np.dtype) -> np.ndarray:
+    arr: np.ndarray
+    # (``is``: the native dtypes are singletons; anything else takes the converting branch.)
+    if type(value) is np.ndarray and value.dtype is dtype and value.flags.c_contiguous:
+        arr = value  # (what sources pass: skip two conversions on the activation path)
+    else:
+        arr = np.ascontiguousarray(np.asarray(value, dtype=dtype))
     if arr.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional")
     arr.setflags(write=False)
@@ -84,21 +105,40 @@ class ComponentGraph:
         put = object.__setattr__
         put(self, "component_id", int(self.component_id))
         for name in ("seq_ids", "seq_first", "seq_len", "edge_src", "edge_dst"):
-            put(self, name, _as_array(name, getattr(self, name), _I64))
-        put(self, "edge_weight", _as_array("edge_weight", self.edge_weight, np.float64))
+            put(self, name, _as_array(name, getattr(self, name), _I64_DTYPE))
+        put(self, "edge_weight", _as_array("edge_weight", self.edge_weight, _F64_DTYPE))
         n_seq = len(self.seq_ids)
         if n_seq == 0:
             raise ValueError("a component has at least one sequence")
         if len(self.seq_first) != n_seq or len(self.seq_len) != n_seq:
             raise ValueError("seq_ids, seq_first and seq_len must have the same length")
-        if n_seq > 1 and not np.all(np.diff(self.seq_ids) > 0):
+        # (Array methods, not np.all / np.any: their Python wrappers cost several µs each, and
+        # a component is built on every activation of a component that is not cached.)
+        if n_seq > 1 and not (self.seq_ids[1:] > self.seq_ids[:-1]).all():
             raise ValueError("seq_ids must be sorted and unique")
-        if np.any(self.seq_len < 1) or np.any(self.seq_first < 0):
-            raise ValueError("sequences must have length >= 1 and non-negative first vertex ids")
         n_edges = len(self.edge_src)
         if len(self.edge_dst) != n_edges or len(self.edge_weight) != n_edges:
             raise ValueError("edge_src, edge_dst and edge_weight must have the same length")
-        if n_edges and (not np.all(np.isfinite(self.edge_weight)) or self.edge_weight.min() < 0):
+        if n_seq == 1 and not n_edges:
+            # One sequence, no edges: the component of a drive no other drive matched (every
+            # component of Fig. 4). Built on each activation that misses the cache, so in
+            # Python scalars and shared empty arrays rather than a dozen numpy calls.
+            length = self.seq_len.item()
+            if length < 1 or self.seq_first.item() < 0:
+                raise ValueError(
+                    "sequences must have length >= 1 and non-negative first vertex ids")
+            put(self, "_by_first", _ZERO1)
+            put(self, "_first_sorted", self.seq_first)
+            put(self, "local_first", _ZERO1)
+            put(self, "n_vertices", length)
+            for name in ("edge_src_seq", "edge_dst_seq", "edge_src_local", "edge_dst_local",
+                         "adj_indices"):
+                put(self, name, _EMPTY)
+            put(self, "adj_indptr", _read_only(np.zeros(length + 1, dtype=_I64)))
+            return
+        if (self.seq_len < 1).any() or (self.seq_first < 0).any():
+            raise ValueError("sequences must have length >= 1 and non-negative first vertex ids")
+        if n_edges and (not np.isfinite(self.edge_weight).all() or self.edge_weight.min() < 0):
             raise ValueError("edge weights must be finite and >= 0")
 
         if n_seq == 1:  # the common small component: skip the sorts (activation cost)
@@ -107,7 +147,7 @@ class ComponentGraph:
         else:
             by_first = np.argsort(self.seq_first, kind="stable")
             first_sorted = self.seq_first[by_first]
-            if np.any(first_sorted[1:] < first_sorted[:-1] + self.seq_len[by_first][:-1]):
+            if (first_sorted[1:] < first_sorted[:-1] + self.seq_len[by_first][:-1]).any():
                 raise ValueError("sequence vertex ranges overlap")
         put(self, "_by_first", by_first)
         put(self, "_first_sorted", first_sorted)
@@ -289,6 +329,7 @@ class MemoryGraphSource:
         self.seq_len = lengths
         self.seq_first = np.zeros(len(lengths), dtype=_I64)
         np.cumsum(lengths[:-1], out=self.seq_first[1:])
+        self._first_list: list[int] = self.seq_first.tolist()
         self.n_vertices = int(lengths.sum())
         edge_list = list(edges)
         src = np.array([e[0] for e in edge_list], dtype=_I64)
@@ -309,6 +350,7 @@ class MemoryGraphSource:
         comp_min = np.full(len(lengths), np.iinfo(np.int64).max, dtype=_I64)
         np.minimum.at(comp_min, roots, np.arange(len(lengths), dtype=_I64))
         self.seq_comp = comp_min[roots]
+        self.seq_comp.setflags(write=False)  # (components_of may return a view of it)
         self._members: dict[int, np.ndarray] = {}
         order = np.argsort(self.seq_comp, kind="stable")
         comps, starts = np.unique(self.seq_comp[order], return_index=True)
@@ -336,6 +378,12 @@ class MemoryGraphSource:
     def components_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Component id of each global vertex id (ValueError on an unknown id)."""
         vids = np.asarray(vertex_ids, dtype=_I64)
+        if vids.shape == (1,):  # (the filter asks for one new hit at a time, mostly)
+            v = vids.item()
+            if not 0 <= v < self.n_vertices:
+                raise ValueError("vertex id not in the map")
+            s = bisect_right(self._first_list, v) - 1
+            return self.seq_comp[s:s + 1]
         if vids.size and (vids.min() < 0 or vids.max() >= self.n_vertices):
             raise ValueError("vertex id not in the map")
         return self.seq_comp[self._seq_of(vids)]
@@ -346,12 +394,14 @@ class MemoryGraphSource:
         if members is None:
             raise ValueError(f"no component {component_id}")
         self.load_count += 1
-        empty_i = np.empty(0, dtype=_I64)
-        src, dst, weight = self._edges.get(int(component_id),
-                                           (empty_i, empty_i, np.empty(0, dtype=np.float64)))
-        return ComponentGraph(component_id=int(component_id), seq_ids=members,
-                              seq_first=self.seq_first[members], seq_len=self.seq_len[members],
-                              edge_src=src, edge_dst=dst, edge_weight=weight)
+        src, dst, weight = self._edges.get(int(component_id), (_EMPTY, _EMPTY, _EMPTY_F))
+        if members.size == 1:  # (slices, not fancy indexing: most components are one drive)
+            m = members.item()
+            first, length = self.seq_first[m:m + 1], self.seq_len[m:m + 1]
+        else:
+            first, length = self.seq_first[members], self.seq_len[members]
+        return ComponentGraph(component_id=int(component_id), seq_ids=members, seq_first=first,
+                              seq_len=length, edge_src=src, edge_dst=dst, edge_weight=weight)
 
     def all_components(self) -> list[ComponentGraph]:
         """Every component (for :class:`FullGraphFilter`); O(n_vertices + E)."""

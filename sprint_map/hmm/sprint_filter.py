@@ -234,14 +234,17 @@ class SprintFilter:
         # This is the hot path of the whole system (and of tools/bench_fig4.py): plain Python
         # over the k hits and the active components, a few numpy calls per component and stage.
         vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
-        n_hits = len(vids)
-        comps = self._active.comps
-        # Locate (and activate) before touching the belief: a bad hit leaves the state intact.
-        if n_hits == 1:
-            hit = self._active.locate(vids[0])
-            located = [hit] if hit is not None else self._locate(vids)
+        if len(vids) == 1 and self._started:
+            self._update_one(vids, liks[0], sink_lik)
         else:
-            located = self._locate(vids) if n_hits else []
+            self._update_any(vids, liks, sink_lik)
+
+    def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
+        """:meth:`update` for any frame (the general path; see :meth:`_update_one`)."""
+        n_hits = len(vids)
+        # Locate (and activate) before touching the belief: a bad hit leaves the state intact.
+        located = self._locate(vids) if n_hits else []
+        comps = self._active.comps
         n_prop = 0
         if self._started:
             # Everything below is in raw units (posterior = raw * z): the mass a step adds
@@ -251,39 +254,8 @@ class SprintFilter:
             sink = scale * self._sink + self._nu * zinv
             flush_below = FLUSH_BELOW * zinv if self.frames % FLUSH_EVERY == 0 else 0.0
             for comp in comps.values():
-                n_win = comp.n_windows
-                if n_win == 1:
-                    trans = comp.trans
-                    a, b = comp.a, comp.b
-                    if not trans.has_edges or not trans.has_edges_from(a, b):
-                        # One window and no edge leaving it (inlined; the common case): one
-                        # convolution; what it pushes past the sequence end goes to the sink.
-                        # Propagation keeps mass, so the new mass is known without summing
-                        # (re-summed exactly on flush frames).
-                        x = comp.x
-                        if flush_below:
-                            v = x[a:b]
-                            np.putmask(v, v < flush_below, 0.0)
-                        y = np.correlate(x[a:b], trans.krev, "full")
-                        nb = b + trans.spread
-                        x[a:nb] = y
-                        spill = 0.0
-                        if nb > comp.end:
-                            end = comp.end
-                            spill = math.fsum(y[end - a:].tolist())
-                            x[end:nb] = 0.0
-                            nb = end
-                        comp.b = nb
-                        comp.live = None
-                        n_prop += b - a
-                        mass = scale * comp.mass - spill
-                        if flush_below or mass < spill:
-                            mass = float(_add(x[a:nb]))
-                        comp.mass = mass
-                        sink += spill
-                        continue
-                if n_win:  # (a just-activated component holds no belief yet)
-                    sink += comp.propagate(flush_below)
+                if comp.n_windows:  # (a just-activated component holds no belief yet)
+                    sink += comp.propagate(flush_below, scale)
                     n_prop += comp.n_propagated
             if n_hits:
                 inject = self._eps * zinv / n_hits
@@ -311,6 +283,62 @@ class SprintFilter:
             if comp.n_windows != 1 or not comp.a <= slot < comp.b:
                 comp.pending.append(slot)
         self._finish(sink * sink_lik)
+        self.frames += 1
+
+    def _update_one(self, vids: list[int], lik: float, sink_lik: float) -> None:
+        """:meth:`update` for a frame with one hit (after the first frame): the usual frame.
+
+        The same arithmetic as the general path (:meth:`_update_any`), in the same order (the
+        same floats: ``tests/hmm/test_hmm_fast_path.py`` checks it), without its loops over the
+        hits. Per-call overhead is
+        the whole cost of a step at this size, so the common case (one active component, the
+        hit in or just ahead of its single window: a vehicle on one mapped road, or in a
+        lifelong map whose drives merged into one giant component) is inline, and only a frame
+        that prunes, trims or opens a window runs :meth:`_finish`.
+        """
+        comps = self._active.comps
+        comp: ActiveComponent | None = None
+        if len(comps) == 1:
+            (comp,) = comps.values()
+            slot = vids[0] + comp.shift  # (valid only inside the window's sequence)
+            if comp.n_windows != 1 or not comp.a <= slot < comp.end:
+                comp = None
+        if comp is None:
+            # Locate (and activate) before touching the belief: a bad hit leaves it intact.
+            comp, slot = self._locate(vids)[0]
+        single = len(comps) == 1
+        scale = self._scale
+        zinv = 1.0 / self._z
+        flush_below = FLUSH_BELOW * zinv if self.frames % FLUSH_EVERY == 0 else 0.0
+        sink = scale * self._sink + self._nu * zinv
+        if single and comp.n_windows:
+            sink += comp.propagate(flush_below, scale)
+            self._n_propagated = comp.n_propagated
+        else:
+            n_prop = 0
+            for c in comps.values():
+                if c.n_windows:  # (a just-activated component holds no belief yet)
+                    sink += c.propagate(flush_below, scale)
+                    n_prop += c.n_propagated
+            self._n_propagated = n_prop
+        x = comp.x
+        old = x.item(slot)
+        new = (old + self._eps * zinv) * lik
+        x[slot] = new
+        comp.mass = mass = comp.mass + (new - old)
+        sink *= sink_lik
+        if comp.n_windows != 1 or not comp.a <= slot < comp.b:
+            comp.pending.append(slot)  # a new hypothesis: it opens a window
+            self._finish(sink)
+        elif (not single or mass < self._prune * (sink + mass)
+              or not 0.0 < sink + mass < math.inf or self.frames % TRIM_EVERY == TRIM_EVERY - 1):
+            self._finish(sink)
+        else:  # what _finish does for one component when there is nothing to prune or trim
+            self.last_pruned_mass = self.last_trimmed_mass = 0.0
+            self._sink = sink
+            self._z = z = 1.0 / (sink + mass)
+            if not 1.0 / RESCALE_AT < z < RESCALE_AT:
+                self._rescale()
         self.frames += 1
 
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:

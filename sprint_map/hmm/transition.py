@@ -23,10 +23,12 @@ one, so propagation conserves mass. The filter then scales the propagated mass b
 
 from __future__ import annotations
 
+import importlib
 import math
 from bisect import bisect_left, bisect_right
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import lru_cache
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,6 +39,33 @@ from sprint_map.hmm.support import merge, merge_gap, ranges
 
 _I64 = np.int64
 
+
+def _compiled_correlate() -> Callable[[np.ndarray, np.ndarray, str], np.ndarray]:
+    """The compiled core of ``np.correlate`` (``numpy._core.multiarray.correlate2``), if any."""
+    for name in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy 2, numpy 1.26
+        try:
+            module = importlib.import_module(name)
+        except ImportError:  # pragma: no cover - depends on the numpy version
+            continue
+        function = getattr(module, "correlate2", None)
+        if function is not None:
+            return cast(Callable[[np.ndarray, np.ndarray, str], np.ndarray], function)
+    return cast(Callable[[np.ndarray, np.ndarray, str], np.ndarray],
+                np.correlate)  # pragma: no cover
+
+
+#: ``correlate(a, v, "full")`` is ``np.correlate(a, v, "full")``. ``np.correlate`` is a thin
+#: wrapper around the compiled ``correlate2`` whose ``__array_function__`` dispatch costs about
+#: 1 µs per call: as much as the convolution of a live window, and a tenth of a filter step.
+#: The compiled function is called directly when numpy has it (tests check both agree).
+correlate = _compiled_correlate()
+
+#: The (read-only) edge arrays of every component without live edges.
+_NO_EDGES = np.empty(0, dtype=_I64)
+_NO_EDGES.setflags(write=False)
+_NO_COEF = np.empty(0)
+_NO_COEF.setflags(write=False)
+
 #: Every FLUSH_EVERY frames both filters set beliefs below FLUSH_BELOW to 0. Beliefs far behind
 #: the vehicle decay geometrically and would otherwise reach subnormal floats, on which every
 #: arithmetic operation is about 100x slower; the mass lost is below 1e-140.
@@ -46,14 +75,21 @@ FLUSH_BELOW = 1e-150
 
 def window_kernel(config: HMMConfig) -> np.ndarray:
     """The normalised window ``w`` times ``1 - restart_prob - new_place_prob`` (float64, (W,))."""
-    w = np.asarray(config.window, dtype=np.float64)
-    return w * ((1.0 - config.restart_prob - config.new_place_prob) / w.sum())
+    return _kernels(config)[0].copy()
+
+
+def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``window_kernel`` and its reverse, read-only, once per config (components share them)."""
+    # Keyed by the three fields it reads: hashing the whole frozen config costs more than the
+    # rest of a component's set-up.
+    return _kernels_of(config.window, config.restart_prob, config.new_place_prob)
 
 
 @lru_cache(maxsize=16)
-def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray]:
-    """``window_kernel`` and its reverse, read-only, once per config (components share them)."""
-    kernel = window_kernel(config)
+def _kernels_of(window: tuple[float, ...], restart_prob: float, new_place_prob: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    w = np.asarray(window, dtype=np.float64)
+    kernel = w * ((1.0 - restart_prob - new_place_prob) / w.sum())
     krev = np.ascontiguousarray(kernel[::-1])
     kernel.setflags(write=False)
     krev.setflags(write=False)
@@ -113,7 +149,7 @@ class ComponentTransition:
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph
-        # np.correlate with the reversed kernel is np.convolve without its Python-level checks.
+        # Correlating with the reversed kernel is np.convolve without its Python-level checks.
         self.kernel, self.krev = _kernels(config)
         self.spread = len(self.kernel) - 1
         g = self.gutter = self.gap = merge_gap(len(self.kernel))
@@ -122,15 +158,24 @@ class ComponentTransition:
             self.slot_first = graph.local_first
         else:
             self.slot_first = graph.local_first + np.arange(n_seq, dtype=_I64) * g
-        self.seq_end = self.slot_first + graph.seq_len
-        self._first_list: list[int] = self.slot_first.tolist()
-        self.ranges = list(zip(graph.seq_first.tolist(), graph.seq_len.tolist(),
-                               self._first_list, strict=True))
+        if n_seq == 1:
+            length = graph.n_vertices
+            self.seq_end = np.array([length], dtype=_I64)
+            self._first_list: list[int] = [0]
+            self.ranges = [(graph.seq_first.item(), length, 0)]
+        else:
+            self.seq_end = self.slot_first + graph.seq_len
+            self._first_list = self.slot_first.tolist()
+            self.ranges = list(zip(graph.seq_first.tolist(), graph.seq_len.tolist(),
+                                   self._first_list, strict=True))
         self.n_state = graph.n_vertices + (n_seq - 1) * g
         self.n_slots = self.n_state + g
-        weights = graph.edge_weight * config.edge_weight
-        live = weights > 0
-        self.has_edges = bool(live.any()) if live.size else False
+        if graph.n_edges:
+            weights = graph.edge_weight * config.edge_weight
+            live = weights > 0
+            self.has_edges = bool(live.any())
+        else:  # (most components: skip three numpy calls on every activation)
+            self.has_edges = False
         if self.has_edges:
             src = self.slot_first[graph.edge_src_seq[live]] + (
                 graph.edge_src[live] - graph.seq_first[graph.edge_src_seq[live]])
@@ -142,10 +187,11 @@ class ComponentTransition:
             self.edge_src = src[order]
             self.edge_dst = dst[order]
             self.edge_coef = weights[live][order] * self._rinv[self.edge_src]
+            self._edge_src_list: list[int] = self.edge_src.tolist()
         else:
-            self._rinv = self.edge_coef = np.empty(0)
-            self.edge_src = self.edge_dst = np.empty(0, dtype=_I64)
-        self._edge_src_list: list[int] = self.edge_src.tolist()
+            self._rinv = self.edge_coef = _NO_COEF
+            self.edge_src = self.edge_dst = _NO_EDGES
+            self._edge_src_list = []
 
     def slots_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Belief slot of each global vertex id of this component (O(m log S))."""
@@ -169,8 +215,15 @@ class ComponentTransition:
 
     def seq_end_of(self, slot: int) -> int:
         """One past the last slot of the sequence holding ``slot`` (O(log S), pure Python)."""
-        s = bisect_right(self._first_list, slot) - 1
-        return self._first_list[s] + int(self.graph.seq_len[s])
+        return self.seq_span_of(slot)[0]
+
+    def seq_span_of(self, slot: int) -> tuple[int, int]:
+        """``(end, shift)`` of the sequence holding ``slot`` (O(log S), pure Python).
+
+        ``end`` is one past its last slot; ``shift`` is slot minus global vertex id in it.
+        """
+        first_vertex, length, first_slot = self.ranges[bisect_right(self._first_list, slot) - 1]
+        return first_slot + length, first_slot - first_vertex
 
     def has_edges_from(self, lo: int, hi: int) -> bool:
         """Whether a live edge leaves a slot of ``[lo, hi)`` (O(log E), pure Python)."""
@@ -239,7 +292,7 @@ class ComponentTransition:
                 z += np.bincount(start[pos] + (dst - lo[pos]), weights=moved, minlength=total)
         # Each window's output lands in [lo, hi + g): its own slots and the g free slots after
         # it (the next window is at least g away, or a gutter follows), never another window.
-        y = np.correlate(z, self.krev, "full")[:total]
+        y = correlate(z, self.krev, "full")[:total]
         x[out] = y
         mass = float(y.sum())
         overflow = 0.0

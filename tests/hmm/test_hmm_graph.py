@@ -12,7 +12,7 @@ import pytest
 from sprint_map.errors import ConfigError
 from sprint_map.hmm import ComponentCache, ComponentGraph, HMMConfig, MemoryGraphSource
 from sprint_map.hmm.support import merge
-from sprint_map.hmm.transition import ComponentTransition, full_transition_matrix
+from sprint_map.hmm.transition import ComponentTransition, correlate, full_transition_matrix
 
 # ---------------------------------------------------------------------------------- config
 
@@ -73,6 +73,8 @@ def test_component_graph_indexing() -> None:
     {"seq_ids": [2, 1], "seq_first": [0, 5], "seq_len": [5, 5]},
     {"seq_ids": [1, 2], "seq_first": [0, 4], "seq_len": [5, 5]},       # overlapping ranges
     {"seq_ids": [1], "seq_first": [0], "seq_len": [0]},
+    {"seq_ids": [1], "seq_first": [-1], "seq_len": [3]},
+    {"seq_ids": [1], "seq_first": [[0]], "seq_len": [[3]]},            # not one-dimensional
     {"seq_ids": [1], "seq_first": [0, 1], "seq_len": [3]},
     {"edge_src": [0], "edge_dst": [99], "edge_weight": [1.0]},            # end outside
     {"edge_src": [0], "edge_dst": [1], "edge_weight": [-1.0]},
@@ -109,8 +111,12 @@ def test_memory_source_components_match_networkx(seed: int) -> None:
         np.testing.assert_array_equal(np.sort(graph.vertex_ids()), np.flatnonzero(comps == cid))
         np.testing.assert_array_equal(graph.seq_first, first[graph.seq_ids])
         assert len(graph.edge_src) == sum(1 for a, _, _ in edges if comps[a] == cid)
-    with pytest.raises(ValueError):
-        source.components_of(np.array([n]))
+    # One id at a time (the filter's usual call) agrees with the vectorised lookup.
+    assert [source.components_of(np.array([v])).tolist() for v in range(n)] == \
+        [[c] for c in comps.tolist()]
+    for bad in ([n], [-1], [0, n]):
+        with pytest.raises(ValueError):
+            source.components_of(np.array(bad))
     with pytest.raises(ValueError):
         source.load_component(10_000)
 
@@ -196,3 +202,11 @@ def test_component_transition_matches_the_sparse_matrix(window: tuple[float, ...
     scale = 1 - config.restart_prob - config.new_place_prob
     assert mass == pytest.approx(y.sum()) and mass + overflow == pytest.approx(scale * x.sum())
     np.testing.assert_allclose(np.asarray(matrix.sum(axis=0)).ravel(), scale)
+
+
+@pytest.mark.parametrize(("n", "w"), [(1, 1), (1, 5), (7, 3), (50, 5), (3, 8)])
+def test_correlate_is_numpy_correlate(n: int, w: int) -> None:
+    """The direct compiled call the filter uses agrees with ``np.correlate`` bit for bit."""
+    rng = np.random.default_rng(n * 10 + w)
+    a, v = rng.random(n), rng.random(w)
+    np.testing.assert_array_equal(correlate(a, v, "full"), np.correlate(a, v, "full"))

@@ -1,0 +1,77 @@
+"""The one-hit fast path of ``SprintFilter.update`` against its general path, float for float."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from sprint_map.hmm import HMMConfig, MemoryGraphSource, SprintFilter
+from tests.hmm.test_hmm_equivalence import configs, maps
+
+
+class GeneralOnly(SprintFilter):
+    """A filter whose every frame takes the general path (the reference)."""
+
+    def _update_one(self, vids: list[int], lik: float, sink_lik: float) -> None:
+        self._update_any(vids, [lik], sink_lik)
+
+
+@st.composite
+def drives(draw: st.DrawFn, n_vertices: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Mostly one hit moving forward (the fast path), with jumps, misses and multi-hit frames."""
+    out = []
+    v = draw(st.integers(0, n_vertices - 1))
+    for _ in range(draw(st.integers(1, 60))):
+        kind = draw(st.sampled_from(["next", "next", "next", "stay", "jump", "none", "many"]))
+        if kind == "next":
+            v = (v + 1) % n_vertices
+        elif kind == "jump":
+            v = draw(st.integers(0, n_vertices - 1))
+        if kind == "none":
+            out.append((np.zeros(0, dtype=np.int64), np.zeros(0)))
+        elif kind == "many":
+            ids = [v, draw(st.integers(0, n_vertices - 1))]
+            out.append((np.array(ids, dtype=np.int64), np.array([0.1, 0.4])))
+        else:
+            out.append((np.array([v], dtype=np.int64),
+                        np.array([draw(st.sampled_from([0.0, 0.2, 1.5]))])))
+    return out
+
+
+def state(f: SprintFilter) -> tuple[object, ...]:
+    vids, probs, sink = f.posterior()
+    return (vids.tolist(), probs.tolist(), sink, f.n_active_vertices, f.active_component_ids,
+            f.pruned_mass, f.trimmed_mass, f.last_pruned_mass, f.last_trimmed_mass)
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+def test_fast_path_gives_the_same_floats_as_the_general_path(data: st.DataObject) -> None:
+    lengths, edges = data.draw(maps())
+    prune = data.draw(st.sampled_from([0.0, 1e-4, 0.05]))
+    support = data.draw(st.sampled_from([0.0, 1e-9, 1e-3]))
+    config = data.draw(configs(prune, support))
+    source = MemoryGraphSource(lengths, edges)
+    fast, general = SprintFilter(config, source), GeneralOnly(config, source)
+    for ids, dists in data.draw(drives(sum(lengths))):
+        fast.update(ids, dists)
+        general.update(ids, dists)
+        assert state(fast) == state(general)
+
+
+def test_fast_path_is_taken_on_a_long_drive() -> None:
+    """The usual frame (one hit on the road) never reaches the general path."""
+    calls = []
+
+    class Counting(SprintFilter):
+        def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
+            calls.append(len(vids))
+            super()._update_any(vids, liks, sink_lik)
+
+    f = Counting(HMMConfig(), MemoryGraphSource([500, 500]))
+    for v in range(400):
+        f.update(np.array([v]), np.array([0.0]))
+    assert calls == [1]  # the first frame (initialisation) only
+    assert f.step(np.array([400]), np.array([0.0])).vertex_id == 400
