@@ -121,21 +121,40 @@ class ObservationModel:
         """
         return Observation(*self.evaluate(hit_ids, hit_dists))
 
+    def single_hit(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> int:
+        """The vertex id of a frame that is one plain hit, else -1 (then use :meth:`evaluate`).
+
+        A plain hit: arrays of shape ``(1,)``, an integer id ``>= 0``, a finite distance
+        ``>= 0``, and no ``novelty_dist``. Its likelihood ratio is :attr:`one_hit_lik` and the
+        sink's is :attr:`sink_lik_const`, whatever the distance (a lone hit is its own
+        farthest hit). This is the filters' k = 1 path (a vehicle's best match; the Fig. 4
+        benchmark's): at a few µs per filter step, every operation of :meth:`evaluate` shows.
+        """
+        if (type(hit_ids) is _NDARRAY and type(hit_dists) is _NDARRAY and hit_ids.size == 1
+                and hit_ids.ndim == 1 and hit_dists.shape == _ONE and self._plain):
+            v = hit_ids.item()
+            d = hit_dists.item()
+            # (An integer array's item() is an int: that is the dtype check.)
+            if type(v) is int and v >= 0 and 0.0 <= d < math.inf:
+                return v
+        return -1
+
+    @property
+    def one_hit_lik(self) -> float:
+        """Likelihood ratio of the hit of a one-hit frame (``exp(miss_margin)``)."""
+        return self._one_hit
+
+    @property
+    def sink_lik_const(self) -> float:
+        """Likelihood ratio of the sink when ``novelty_dist`` is None (``exp(novelty_margin)``)."""
+        return self._sink_const
+
     def evaluate(self, hit_ids: np.ndarray, hit_dists: np.ndarray
                  ) -> tuple[list[int], list[float], list[float], float, float]:
         """:meth:`observe` as a plain tuple ``(vertex_ids, distances, lik, sink_lik, scale)``.
 
         The filters' per-frame path uses this form: it skips building the dataclass.
         """
-        if (type(hit_ids) is _NDARRAY and type(hit_dists) is _NDARRAY and hit_ids.size == 1
-                and hit_ids.ndim == 1 and hit_dists.shape == _ONE and self._plain):
-            # The k = 1 case (a vehicle's best match; the Fig. 4 benchmark's) in as few
-            # operations as possible: a whole filter step at k = 1 costs a few µs. (An integer
-            # array's item() is an int: that is the dtype check.)
-            v = hit_ids.item()
-            d = hit_dists.item()
-            if type(v) is int and v >= 0 and 0.0 <= d < math.inf:
-                return [v], [d], [self._one_hit], self._sink_const, self._t
         ids = hit_ids if type(hit_ids) is _NDARRAY else np.asarray(hit_ids)
         dists = hit_dists if type(hit_dists) is _NDARRAY else np.asarray(hit_dists)
         shape = ids.shape

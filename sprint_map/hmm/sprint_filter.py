@@ -106,6 +106,8 @@ class SprintFilter:
         self.source = source
         self.cache = cache if cache is not None else ComponentCache(config.cache_budget_bytes)
         self._obs = ObservationModel(config)
+        self._one_hit_lik = self._obs.one_hit_lik
+        self._sink_lik_const = self._obs.sink_lik_const
         self._active = ActiveSet()
         self._transitions: OrderedDict[int, ComponentTransition] = OrderedDict()
         self._eps = config.restart_prob
@@ -233,9 +235,14 @@ class SprintFilter:
         """
         # This is the hot path of the whole system (and of tools/bench_fig4.py): plain Python
         # over the k hits and the active components, a few numpy calls per component and stage.
+        if self._started:
+            v = self._obs.single_hit(hit_ids, hit_dists)
+            if v >= 0:
+                self._update_one(v, self._one_hit_lik, self._sink_lik_const)
+                return
         vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
         if len(vids) == 1 and self._started:
-            self._update_one(vids, liks[0], sink_lik)
+            self._update_one(vids[0], liks[0], sink_lik)
         else:
             self._update_any(vids, liks, sink_lik)
 
@@ -285,7 +292,7 @@ class SprintFilter:
         self._finish(sink * sink_lik)
         self.frames += 1
 
-    def _update_one(self, vids: list[int], lik: float, sink_lik: float) -> None:
+    def _update_one(self, vid: int, lik: float, sink_lik: float) -> None:
         """:meth:`update` for a frame with one hit (after the first frame): the usual frame.
 
         The same arithmetic as the general path (:meth:`_update_any`), in the same order (the
@@ -300,12 +307,12 @@ class SprintFilter:
         comp: ActiveComponent | None = None
         if len(comps) == 1:
             (comp,) = comps.values()
-            slot = vids[0] + comp.shift  # (valid only inside the window's sequence)
+            slot = vid + comp.shift  # (valid only inside the window's sequence)
             if comp.n_windows != 1 or not comp.a <= slot < comp.end:
                 comp = None
         if comp is None:
             # Locate (and activate) before touching the belief: a bad hit leaves it intact.
-            comp, slot = self._locate(vids)[0]
+            comp, slot = self._locate([vid])[0]
         single = len(comps) == 1
         scale = self._scale
         zinv = 1.0 / self._z

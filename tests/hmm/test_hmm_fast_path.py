@@ -13,8 +13,8 @@ from tests.hmm.test_hmm_equivalence import configs, maps
 class GeneralOnly(SprintFilter):
     """A filter whose every frame takes the general path (the reference)."""
 
-    def _update_one(self, vids: list[int], lik: float, sink_lik: float) -> None:
-        self._update_any(vids, [lik], sink_lik)
+    def _update_one(self, vid: int, lik: float, sink_lik: float) -> None:
+        self._update_any([vid], [lik], sink_lik)
 
 
 @st.composite

@@ -58,3 +58,32 @@ def test_adaptive_filter_is_invariant_to_the_distance_scale(factor: float) -> No
     da, db = a.decide(), b.decide()
     assert da.candidate_id == db.candidate_id and da.vertex_id == db.vertex_id
     assert da.prob == pytest.approx(db.prob, abs=1e-10)
+
+
+@pytest.mark.parametrize(("ids", "dists", "expected"), [
+    (np.array([7]), np.array([0.3]), 7),
+    (np.array([7], dtype=np.uint32), np.array([0.0], dtype=np.float32), 7),
+    (np.array([0]), np.array([2.5]), 0),
+    ([7], [0.3], -1),                                   # not arrays
+    (np.array([[7]]), np.array([[0.3]]), -1),           # (1, 1)
+    (np.array([7]), np.array([[0.3]]), -1),             # shapes differ
+    (np.array([7, 8]), np.array([0.3, 0.4]), -1),       # two hits
+    (np.array([], dtype=np.int64), np.array([]), -1),
+    (np.array([-1]), np.array([0.3]), -1),              # padding only
+    (np.array([7.0]), np.array([0.3]), -1),             # float ids
+    (np.array([True]), np.array([0.3]), -1),
+    (np.array([7]), np.array([np.nan]), -1),
+    (np.array([7]), np.array([-1e-7]), -1),             # clipped by evaluate
+])
+def test_single_hit_accepts_exactly_the_plain_frames(ids: object, dists: object,
+                                                     expected: int) -> None:
+    model = ObservationModel(HMMConfig())
+    assert model.single_hit(ids, dists) == expected  # type: ignore[arg-type]
+    if expected >= 0:  # its constants are what evaluate computes for the frame
+        vids, _, lik, sink_lik, _ = model.evaluate(ids, dists)  # type: ignore[arg-type]
+        assert (vids, lik, sink_lik) == ([expected], [model.one_hit_lik], model.sink_lik_const)
+
+
+def test_single_hit_is_off_with_novelty_dist() -> None:
+    model = ObservationModel(HMMConfig(novelty_dist=0.5))
+    assert model.single_hit(np.array([3]), np.array([0.1])) == -1
