@@ -233,21 +233,66 @@ class SprintFilter:
         This is the HMM inference step proper (what the paper and ``tools/bench_fig4.py`` time).
         Same parameters and errors as :meth:`step`.
         """
-        # This is the hot path of the whole system (and of tools/bench_fig4.py): plain Python
-        # over the k hits and the active components, a few numpy calls per component and stage.
-        if self._started:
-            v = self._obs.single_hit(hit_ids, hit_dists)
-            if v >= 0:
-                self._update_one(v, self._one_hit_lik, self._sink_lik_const)
-                return
-        vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
-        if len(vids) == 1 and self._started:
-            self._update_one(vids[0], liks[0], sink_lik)
-        else:
+        # This is the hot path of the whole system (and of tools/bench_fig4.py). A frame with
+        # one plain hit after the first frame (k = 1: a vehicle's best match) takes the path
+        # below: the same arithmetic as the general path (_update_any), in the same order (the
+        # same floats: tests/hmm/test_hmm_fast_path.py checks it), without its loops over the
+        # hits. Per-call overhead is the whole cost of a step at this size, so the common case
+        # (one active component, the hit in or just ahead of its single window: a vehicle on
+        # one mapped road, or in a lifelong map whose drives merged into one giant component)
+        # is inline, and only a frame that prunes, trims or opens a window runs _finish.
+        vid = self._obs.single_hit(hit_ids, hit_dists) if self._started else -1
+        if vid < 0:
+            vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
             self._update_any(vids, liks, sink_lik)
+            return
+        comps = self._active.comps
+        comp: ActiveComponent | None = None
+        if len(comps) == 1:
+            (comp,) = comps.values()
+            slot = vid + comp.shift  # (valid only inside the window's sequence)
+            if comp.n_windows != 1 or not comp.a <= slot < comp.end:
+                comp = None
+        if comp is None:
+            # Locate (and activate) before touching the belief: a bad hit leaves it intact.
+            comp, slot = self._locate([vid])[0]
+        single = len(comps) == 1
+        scale = self._scale
+        zinv = 1.0 / self._z
+        flush_below = FLUSH_BELOW * zinv if self.frames % FLUSH_EVERY == 0 else 0.0
+        sink = scale * self._sink + self._nu * zinv
+        if single and comp.n_windows:
+            sink += comp.propagate(flush_below, scale)
+            self._n_propagated = comp.n_propagated
+        else:
+            n_prop = 0
+            for c in comps.values():
+                if c.n_windows:  # (a just-activated component holds no belief yet)
+                    sink += c.propagate(flush_below, scale)
+                    n_prop += c.n_propagated
+            self._n_propagated = n_prop
+        x = comp.x
+        old = x.item(slot)
+        new = (old + self._eps * zinv) * self._one_hit_lik
+        x[slot] = new
+        comp.mass = mass = comp.mass + (new - old)
+        sink *= self._sink_lik_const
+        if comp.n_windows != 1 or not comp.a <= slot < comp.b:
+            comp.pending.append(slot)  # a new hypothesis: it opens a window
+            self._finish(sink)
+        elif (not single or mass < self._prune * (sink + mass)
+              or not 0.0 < sink + mass < math.inf or self.frames % TRIM_EVERY == TRIM_EVERY - 1):
+            self._finish(sink)
+        else:  # what _finish does for one component when there is nothing to prune or trim
+            self.last_pruned_mass = self.last_trimmed_mass = 0.0
+            self._sink = sink
+            self._z = z = 1.0 / (sink + mass)
+            if not 1.0 / RESCALE_AT < z < RESCALE_AT:
+                self._rescale()
+        self.frames += 1
 
     def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
-        """:meth:`update` for any frame (the general path; see :meth:`_update_one`)."""
+        """:meth:`update` for any frame: the general path (the one-hit path is inline there)."""
         n_hits = len(vids)
         # Locate (and activate) before touching the belief: a bad hit leaves the state intact.
         located = self._locate(vids) if n_hits else []
@@ -290,62 +335,6 @@ class SprintFilter:
             if comp.n_windows != 1 or not comp.a <= slot < comp.b:
                 comp.pending.append(slot)
         self._finish(sink * sink_lik)
-        self.frames += 1
-
-    def _update_one(self, vid: int, lik: float, sink_lik: float) -> None:
-        """:meth:`update` for a frame with one hit (after the first frame): the usual frame.
-
-        The same arithmetic as the general path (:meth:`_update_any`), in the same order (the
-        same floats: ``tests/hmm/test_hmm_fast_path.py`` checks it), without its loops over the
-        hits. Per-call overhead is
-        the whole cost of a step at this size, so the common case (one active component, the
-        hit in or just ahead of its single window: a vehicle on one mapped road, or in a
-        lifelong map whose drives merged into one giant component) is inline, and only a frame
-        that prunes, trims or opens a window runs :meth:`_finish`.
-        """
-        comps = self._active.comps
-        comp: ActiveComponent | None = None
-        if len(comps) == 1:
-            (comp,) = comps.values()
-            slot = vid + comp.shift  # (valid only inside the window's sequence)
-            if comp.n_windows != 1 or not comp.a <= slot < comp.end:
-                comp = None
-        if comp is None:
-            # Locate (and activate) before touching the belief: a bad hit leaves it intact.
-            comp, slot = self._locate([vid])[0]
-        single = len(comps) == 1
-        scale = self._scale
-        zinv = 1.0 / self._z
-        flush_below = FLUSH_BELOW * zinv if self.frames % FLUSH_EVERY == 0 else 0.0
-        sink = scale * self._sink + self._nu * zinv
-        if single and comp.n_windows:
-            sink += comp.propagate(flush_below, scale)
-            self._n_propagated = comp.n_propagated
-        else:
-            n_prop = 0
-            for c in comps.values():
-                if c.n_windows:  # (a just-activated component holds no belief yet)
-                    sink += c.propagate(flush_below, scale)
-                    n_prop += c.n_propagated
-            self._n_propagated = n_prop
-        x = comp.x
-        old = x.item(slot)
-        new = (old + self._eps * zinv) * lik
-        x[slot] = new
-        comp.mass = mass = comp.mass + (new - old)
-        sink *= sink_lik
-        if comp.n_windows != 1 or not comp.a <= slot < comp.b:
-            comp.pending.append(slot)  # a new hypothesis: it opens a window
-            self._finish(sink)
-        elif (not single or mass < self._prune * (sink + mass)
-              or not 0.0 < sink + mass < math.inf or self.frames % TRIM_EVERY == TRIM_EVERY - 1):
-            self._finish(sink)
-        else:  # what _finish does for one component when there is nothing to prune or trim
-            self.last_pruned_mass = self.last_trimmed_mass = 0.0
-            self._sink = sink
-            self._z = z = 1.0 / (sink + mass)
-            if not 1.0 / RESCALE_AT < z < RESCALE_AT:
-                self._rescale()
         self.frames += 1
 
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:

@@ -13,8 +13,9 @@ from tests.hmm.test_hmm_equivalence import configs, maps
 class GeneralOnly(SprintFilter):
     """A filter whose every frame takes the general path (the reference)."""
 
-    def _update_one(self, vid: int, lik: float, sink_lik: float) -> None:
-        self._update_any([vid], [lik], sink_lik)
+    def update(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> None:
+        vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
+        self._update_any(vids, liks, sink_lik)
 
 
 @st.composite
