@@ -24,10 +24,11 @@ def _read_only(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
-#: Shared by every single-sequence component without edges (the arrays are read-only).
+#: Shared read-only arrays: the zero first index of every single-sequence component, and the
+#: edge arrays of every component without edges (``transition`` uses them too).
 _ZERO1 = _read_only(np.zeros(1, dtype=_I64))
-_EMPTY = _read_only(np.zeros(0, dtype=_I64))
-_EMPTY_F = _read_only(np.zeros(0))
+EMPTY_IDS = _read_only(np.zeros(0, dtype=_I64))
+EMPTY_WEIGHTS = _read_only(np.zeros(0))
 
 
 _I64_DTYPE = np.dtype(_I64)
@@ -133,7 +134,7 @@ class ComponentGraph:
             put(self, "n_vertices", length)
             for name in ("edge_src_seq", "edge_dst_seq", "edge_src_local", "edge_dst_local",
                          "adj_indices"):
-                put(self, name, _EMPTY)
+                put(self, name, EMPTY_IDS)
             put(self, "adj_indptr", _read_only(np.zeros(length + 1, dtype=_I64)))
             return
         if (self.seq_len < 1).any() or (self.seq_first < 0).any():
@@ -394,7 +395,7 @@ class MemoryGraphSource:
         if members is None:
             raise ValueError(f"no component {component_id}")
         self.load_count += 1
-        src, dst, weight = self._edges.get(int(component_id), (_EMPTY, _EMPTY, _EMPTY_F))
+        src, dst, weight = self._edges.get(int(component_id), (EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS))
         if members.size == 1:  # (slices, not fancy indexing: most components are one drive)
             m = members.item()
             first, length = self.seq_first[m:m + 1], self.seq_len[m:m + 1]

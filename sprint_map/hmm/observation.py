@@ -75,7 +75,7 @@ class ObservationModel:
     """
 
     __slots__ = ("_ema", "_factor", "_fixed", "_margin", "_novelty_dist", "_novelty_margin",
-                 "_one_hit", "_plain", "_scale", "_sink_const", "_t")
+                 "_one_hit", "_plain", "_scale", "_sink_const")
 
     def __init__(self, config: HMMConfig) -> None:
         self._fixed = config.dist_scale
@@ -86,7 +86,6 @@ class ObservationModel:
         self._novelty_dist = config.novelty_dist
         self._plain = config.novelty_dist is None  # the sink's ratio is a constant
         self._scale: float | None = None
-        self._t = self._scale_now()  # T now (kept in step with _scale)
         self._one_hit = math.exp(min(config.miss_margin, _CLIP))
         self._sink_const = math.exp(max(min(config.novelty_margin, _CLIP), -_CLIP))
 
@@ -100,7 +99,6 @@ class ObservationModel:
     def reset(self) -> None:
         """Forget the adaptive scale (start of a new query sequence)."""
         self._scale = None
-        self._t = self._scale_now()
 
     def observe(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> Observation:
         """Validate one frame's hits and compute their likelihood ratios.
@@ -175,8 +173,9 @@ class ObservationModel:
                 if d < 0.0:
                     d = 0.0
                 if self._novelty_dist is None:
-                    return [v], [d], [self._one_hit], self._sink_const, self._t
-                return [v], [d], [self._one_hit], self._sink_lik(d, d, self._t), self._t
+                    return [v], [d], [self._one_hit], self._sink_const, self._scale_now()
+                scale = self._scale_now()
+                return [v], [d], [self._one_hit], self._sink_lik(d, d, scale), scale
         best: dict[int, float] = {}
         for v, d in zip(id_list, d_list, strict=True):
             if v < 0:
@@ -200,8 +199,7 @@ class ObservationModel:
             gap = d_far - d_near
             self._scale = gap if self._scale is None else (
                 self._scale + self._ema * (gap - self._scale))
-            self._t = self._scale_now()
-        scale = self._t
+        scale = self._scale_now()
         margin = self._margin
         lik = [math.exp(min((d_far - d) / scale + margin, _CLIP)) for d in ds]
         return vids, ds, lik, self._sink_lik(d_near, d_far, scale), scale

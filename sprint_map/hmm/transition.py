@@ -34,7 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.graph import ComponentGraph
+from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
 from sprint_map.hmm.support import merge, merge_gap, ranges
 
 _I64 = np.int64
@@ -59,12 +59,6 @@ def _compiled_correlate() -> Callable[[np.ndarray, np.ndarray, str], np.ndarray]
 #: 1 µs per call: as much as the convolution of a live window, and a tenth of a filter step.
 #: The compiled function is called directly when numpy has it (tests check both agree).
 correlate = _compiled_correlate()
-
-#: The (read-only) edge arrays of every component without live edges.
-_NO_EDGES = np.empty(0, dtype=_I64)
-_NO_EDGES.setflags(write=False)
-_NO_COEF = np.empty(0)
-_NO_COEF.setflags(write=False)
 
 #: Every FLUSH_EVERY frames both filters set beliefs below FLUSH_BELOW to 0. Beliefs far behind
 #: the vehicle decay geometrically and would otherwise reach subnormal floats, on which every
@@ -189,8 +183,8 @@ class ComponentTransition:
             self.edge_coef = weights[live][order] * self._rinv[self.edge_src]
             self._edge_src_list: list[int] = self.edge_src.tolist()
         else:
-            self._rinv = self.edge_coef = _NO_COEF
-            self.edge_src = self.edge_dst = _NO_EDGES
+            self._rinv = self.edge_coef = EMPTY_WEIGHTS
+            self.edge_src = self.edge_dst = EMPTY_IDS
             self._edge_src_list = []
 
     def slots_of(self, vertex_ids: np.ndarray) -> np.ndarray:
