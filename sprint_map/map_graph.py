@@ -3,14 +3,25 @@
 :class:`MapGraphSource` implements the :class:`sprint_map.hmm.graph.GraphSource` protocol over
 LMDB, so the HMM (which knows nothing of storage) can ask for the component of a retrieved
 vertex and for a component's sequences and edges. Nothing else of the map is touched.
+
+It is also the localiser's one view of the map: :meth:`MapGraphSource.pinned` holds one
+:class:`~sprint_map.storage.snapshot.MapSnapshot` for a whole ``localize`` (or one ``step``), and
+the search, the component look-ups and loads and ``locate`` all read that snapshot, so a writer
+committing meanwhile (a merge, a ``remove``) is never half seen.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import lmdb
 import numpy as np
 
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.storage.keys import read_u32, u64
+from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
 
 
@@ -24,16 +35,80 @@ class MapGraphSource:
     sequences are invisible: their records, edges and component memberships are gone, and the
     store's search never returns their vertices. ``load_component`` costs
     O(S log n + E_c) for a component of S sequences and E_c edges.
+
+    Outside :meth:`pinned` every call reads its own snapshot (fine for a map nobody writes);
+    inside it, every call reads the pinned one.
     """
 
     def __init__(self, store: MapStore) -> None:
         self.store = store
+        self._snapshot: MapSnapshot | None = None
+        #: Version (:attr:`MapSnapshot.version`) of the map the caller's state reflects.
+        self._seen: int | None = None
 
+    # --- the pinned snapshot ----------------------------------------------------------------
+    @contextmanager
+    def pinned(self) -> Iterator[bool]:
+        """Pin one snapshot of the map for the calls made in the ``with`` block.
+
+        Yields whether the map changed since the previous pin (never on the first): the
+        caller's state built from earlier snapshots (its component cache, the belief's
+        components) is then stale and must be re-read (``SprintFilter.invalidate``).
+        Re-entrant: a nested pin keeps the outer snapshot (and yields False).
+        """
+        if self._snapshot is not None:
+            yield False
+            return
+        snap = MapSnapshot(self.store)
+        changed = self._seen is not None and snap.version != self._seen
+        self._seen = snap.version
+        self._snapshot = snap
+        try:
+            yield changed
+        finally:
+            self._snapshot = None
+            snap.close()
+
+    def mark_current(self) -> None:
+        """The caller has brought its state up to date with the map as of now (or with the
+        pinned snapshot): the next pin reports changes after that only."""
+        if self._snapshot is not None:
+            self._seen = self._snapshot.version
+        else:
+            self._seen = None
+
+    @property
+    def vertices(self) -> int:
+        """Vertex ids of the map (pinned snapshot, else now): ``next_vertex_id``."""
+        if self._snapshot is not None:
+            return self._snapshot.vertices
+        return self.store.counter("next_vertex_id")
+
+    @contextmanager
+    def _txn(self) -> Iterator[lmdb.Transaction]:
+        if self._snapshot is not None:
+            yield self._snapshot.txn
+        else:
+            with self.store.env.read() as txn:
+                yield txn
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k nearest live vertices of each query (pinned snapshot, else now), -1 padded."""
+        if self._snapshot is not None:
+            return self._snapshot.search(queries, k)
+        return self.store.search(queries, k)
+
+    def locate(self, vertex_ids: Any) -> list[tuple[int, int]]:
+        """``(seq_id, image_id)`` of each vertex id (pinned snapshot, else now)."""
+        with self._txn() as txn:
+            return self.store.locate(vertex_ids, txn)
+
+    # --- GraphSource ------------------------------------------------------------------------
     def components_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Component id (union-find root sequence) of each global vertex id."""
         store = self.store
         out = np.empty(len(vertex_ids), dtype=np.int64)
-        with store.env.read() as txn:
+        with self._txn() as txn:
             cursor = txn.cursor(db=store.env.db("vrange"))
             roots: dict[int, tuple[int, int]] = {}  # seq -> (root, first vertex)
             for i, vid in enumerate(np.asarray(vertex_ids, dtype=np.int64).tolist()):
@@ -52,7 +127,7 @@ class MapGraphSource:
     def load_component(self, component_id: int) -> ComponentGraph:
         """The sequences and inter-sequence edges of one component, as compact arrays."""
         store = self.store
-        with store.env.read() as txn:
+        with self._txn() as txn:
             seqs = store.component_sequences(component_id, txn)
             src: list[int] = []
             dst: list[int] = []

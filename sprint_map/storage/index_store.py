@@ -213,7 +213,10 @@ class IndexStore:
         """
         if self.segmented is not None:
             assert self._shards is not None
-            return self.segmented.search(queries, k, self._shards, self._committed)
+            # Every covered row was committed, even when the last load() was an older
+            # snapshot's (storage/snapshot.py): its re-ranking may read them all.
+            committed = max(self._committed, self.covered)
+            return self.segmented.search(queries, k, self._shards, committed)
         return self.flat.search(queries, k)
 
     # --- writing ------------------------------------------------------------------------------
