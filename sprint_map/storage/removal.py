@@ -136,8 +136,11 @@ class RemoveResult:
         }
 
 
-def _edge_keys(txn: lmdb.Transaction, db: Any, first: int, last: int) -> list[tuple[int, int]]:
-    """Keys ``(a, b)`` of ``db`` (edges or edges_rev) with ``first <= a <= last``."""
+def edge_keys(txn: lmdb.Transaction, db: Any, first: int, last: int) -> list[tuple[int, int]]:
+    """Keys ``(a, b)`` of ``db`` (edges or edges_rev) with ``first <= a <= last``.
+
+    O(log E + keys returned): one seek, then a range scan.
+    """
     out = []
     cursor = txn.cursor(db=db)
     if cursor.set_range(EDGE_KEY.pack(first, 0)):
@@ -175,9 +178,9 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
         # 1. every edge from or to a removed sequence, with its reverse entry
         doomed: set[tuple[int, int]] = set()
         for rec in records:
-            doomed.update(_edge_keys(txn, db("edges"), rec.first_vertex, rec.last_vertex))
+            doomed.update(edge_keys(txn, db("edges"), rec.first_vertex, rec.last_vertex))
             doomed.update((src, dst) for dst, src in
-                          _edge_keys(txn, db("edges_rev"), rec.first_vertex, rec.last_vertex))
+                          edge_keys(txn, db("edges_rev"), rec.first_vertex, rec.last_vertex))
         edges_removed = 0
         for src, dst in sorted(doomed):
             edges_removed += bool(txn.delete(EDGE_KEY.pack(src, dst), db=db("edges")))
@@ -195,15 +198,7 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
             txn.put(u64(rec.last_vertex), REMOVED_VAL.pack(rec.first_vertex, rec.seq_id),
                     db=db("removed"))
         # 3. the affected components, regrouped by the edges that remain
-        after: list[int] = []
-        for root in roots:
-            remaining = [store.sequence(m, txn) for m in members[root] if m not in gone]
-            for member in members[root]:
-                txn.delete(u32(member), db=db("uf"))
-                txn.delete(MEMBER_KEY.pack(root, member), db=db("members"))
-            txn.delete(u32(root), db=db("comp"))
-            for group in regroup(store, txn, remaining):
-                after.append(write_component(txn, env, group, prefer=root))
+        after = rebuild_components(store, txn, members, gone)
         meta = db("meta")
         counters = {name: store.counter(name, txn) for name in
                     ("n_sequences", "n_edges", "n_components")}
@@ -219,6 +214,36 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
     result = env.write(body)
     crash_point("remove.committed")
     return result
+
+
+def rebuild_components(store: MapStore, txn: lmdb.Transaction, members: dict[int, list[int]],
+                       gone: set[int] | frozenset[int] = frozenset()) -> list[int]:
+    """Rebuild the components ``members`` (root -> its member sequences, read before any
+    change) from the edges that remain in ``txn``; return the roots of the parts, ascending.
+
+    A union-find cannot split a set, so each component is dissolved (its ``uf``, ``members``
+    and ``comp`` records deleted) and its members but ``gone`` (sequences being removed)
+    regrouped by the edges among them (:func:`regroup`). The part holding the old root keeps
+    the old id, the other parts take their smallest sequence id. Used by ``remove`` (``gone``:
+    the removed sequences) and ``unmerge`` (nothing gone, edges revoked). The caller updates
+    ``n_components`` (``- len(members) + len(result)``).
+
+    Notes
+    -----
+    O(S_c log S_c + E_c) LMDB operations for the S_c sequences and E_c edges of the given
+    components; nothing else of the map is read.
+    """
+    env = store.env
+    after: list[int] = []
+    for root, seqs in members.items():
+        remaining = [store.sequence(m, txn) for m in seqs if m not in gone]
+        for member in seqs:
+            txn.delete(u32(member), db=env.db("uf"))
+            txn.delete(MEMBER_KEY.pack(root, member), db=env.db("members"))
+        txn.delete(u32(root), db=env.db("comp"))
+        for group in regroup(store, txn, remaining):
+            after.append(write_component(txn, env, group, prefer=root))
+    return sorted(after)
 
 
 def regroup(store: MapStore, txn: lmdb.Transaction, seqs: list[SequenceRecord]
@@ -240,7 +265,7 @@ def regroup(store: MapStore, txn: lmdb.Transaction, seqs: list[SequenceRecord]
         return i
 
     for i, seq in enumerate(ordered):
-        for _, dst in _edge_keys(txn, store.env.db("edges"), seq.first_vertex, seq.last_vertex):
+        for _, dst in edge_keys(txn, store.env.db("edges"), seq.first_vertex, seq.last_vertex):
             j = bisect.bisect_right(starts, dst) - 1
             if j < 0 or dst > ordered[j].last_vertex:
                 raise MapCorruptError(f"edge {seq.first_vertex}.. -> {dst} leaves the component "
@@ -271,4 +296,5 @@ def write_component(txn: lmdb.Transaction, env: LmdbEnv, group: list[SequenceRec
     return root
 
 
-__all__ = ["RemoveResult", "RemovedRanges", "remove_sequences", "search_live"]
+__all__ = ["RemoveResult", "RemovedRanges", "edge_keys", "rebuild_components", "regroup",
+           "remove_sequences", "search_live", "write_component"]
