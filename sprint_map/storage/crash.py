@@ -46,6 +46,11 @@ REMOVE_POINTS = (
     "remove.before_commit",  # inside the LMDB transaction, everything written, not committed
     "remove.committed",  # committed, not yet returned
 )
+#: ``unmerge``: revoking one drive's edges in one LMDB transaction.
+UNMERGE_POINTS = (
+    "unmerge.before_commit",  # inside the LMDB transaction, edges revoked, components rebuilt
+    "unmerge.committed",  # committed, not yet returned
+)
 #: ``compact``: a new generation built in a staging directory, then selected atomically.
 COMPACT_POINTS = (
     "compact.staging_created",  # gen-N/ created, empty
@@ -58,7 +63,7 @@ COMPACT_POINTS = (
 
 #: Every crash point in the write paths.
 CRASH_POINTS = (ADD_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
-                + REMOVE_POINTS + COMPACT_POINTS)
+                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS)
 
 
 def crash_point(name: str) -> None:
