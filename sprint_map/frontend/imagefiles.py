@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from sprint_map.errors import InputError
+from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS, check_pixels
 
 #: File extensions read as images (compared case-insensitively).
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"})
@@ -84,7 +85,8 @@ def list_images(directory: Path) -> list[Path]:
     return [directory / name for name in names]
 
 
-def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
+def read_image(path: Path, grayscale: bool = True, max_pixels: int = MAX_IMAGE_PIXELS
+               ) -> np.ndarray:
     """Read and decode one image file.
 
     Parameters
@@ -94,6 +96,9 @@ def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
     grayscale : bool
         Decode straight to 8-bit gray (``cv2.IMREAD_GRAYSCALE``: for JPEG, libjpeg skips the
         colour conversion, which is measurably faster than decoding BGR and converting).
+    max_pixels : int
+        Largest image decoded; its size is read from the header first (see
+        :func:`decode_image`).
 
     Returns
     -------
@@ -104,7 +109,8 @@ def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
     ------
     InputError
         If the file cannot be read, or cannot be decoded completely (a truncated JPEG or PNG is
-        an error, not a silently grey-padded image); the message names the file.
+        an error, not a silently grey-padded image), or is larger than ``max_pixels``; the
+        message names the file.
 
     Notes
     -----
@@ -116,17 +122,23 @@ def read_image(path: Path, grayscale: bool = True) -> np.ndarray:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
-    return decode_image(data, str(path), grayscale)
+    return decode_image(data, str(path), grayscale, max_pixels)
 
 
-def decode_image(data: bytes, label: str = "image", grayscale: bool = True) -> np.ndarray:
-    """Decode encoded image bytes (PNG, JPEG, ...) as :func:`read_image` decodes a file.
+def decode_image(data: bytes, label: str = "image", grayscale: bool = True,
+                 max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Decode encoded image bytes (PNG, JPEG, BMP, WebP, TIFF) as :func:`read_image` does.
 
     ``label`` starts the error message (the file name, or what the bytes are). Raises
-    ``InputError`` for empty, truncated or undecodable bytes.
+    ``InputError`` for empty, truncated or undecodable bytes, and, before any decoding, for
+    an image whose header declares more than ``max_pixels`` pixels (a decompression bomb) or
+    whose size cannot be read from its header
+    (:func:`~sprint_map.frontend.imageheader.check_pixels`). Every image the service or
+    ``ingest``/``localize`` decodes goes through here.
     """
     if not data:
         raise InputError(f"{label}: empty image file")
+    check_pixels(data, label, max_pixels)
     if _is_truncated(data):
         raise InputError(f"{label}: truncated image file")
     buffer = np.frombuffer(data, dtype=np.uint8)

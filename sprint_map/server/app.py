@@ -7,6 +7,7 @@ Paths (a contract): ``POST /v1/sessions``, ``POST /v1/sessions/{id}/frames``,
 
 from __future__ import annotations
 
+import json
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -168,7 +169,7 @@ class BodyLimit:
 
     async def _refuse(self, send: Send) -> None:
         err = ApiError(413, "too_large", f"request body exceeds {self.limit} bytes")
-        response = JSONResponse(err.body(), status_code=413)
+        response = SafeJSONResponse(err.body(), status_code=413)
         await response({"type": "http"}, _no_receive, send)
 
 
@@ -199,6 +200,15 @@ class RequestMetrics:
                                       status=str(status))
 
 
+class SafeJSONResponse(JSONResponse):
+    """JSON whose text is always UTF-8: a lone surrogate (valid in a JSON string, not text)
+    echoed from a request is written as its ``\\uXXXX`` escape, not a 500."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=False, allow_nan=False, indent=None,
+                          separators=(",", ":")).encode("utf-8", "backslashreplace")
+
+
 async def _no_receive() -> Message:
     return {"type": "http.disconnect"}
 
@@ -219,6 +229,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         version="1",
         summary="Vehicles stream frames, the map answers with places and grows with each drive.",
         lifespan=lifespan,
+        default_response_class=SafeJSONResponse,
     )
     async def authorised(
         request: Request, creds: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]
@@ -231,7 +242,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
 
     @app.exception_handler(ApiError)
     async def api_error(_: Request, exc: ApiError) -> JSONResponse:
-        return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
+        return SafeJSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
@@ -239,13 +250,13 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         where = ".".join(str(p) for p in first.get("loc", ()))
         status = 400 if first.get("type") == "json_invalid" else 422
         code = "bad_json" if status == 400 else "bad_payload"
-        return JSONResponse({"error": code, "message": f"{where}: {first.get('msg', 'invalid')}"},
+        return SafeJSONResponse({"error": code, "message": f"{where}: {first.get('msg', 'invalid')}"},
                             status_code=status)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
-        return JSONResponse({"error": code, "message": str(exc.detail)},
+        return SafeJSONResponse({"error": code, "message": str(exc.detail)},
                             status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
     @app.post("/v1/sessions", status_code=201, response_model=SessionCreated,
@@ -287,7 +298,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
     async def readyz() -> Any:
         if service.ready and service.writer.alive and not service.closing:
             return {"status": "ready"}
-        return JSONResponse({"error": "not_ready", "message": "starting or shutting down"},
+        return SafeJSONResponse({"error": "not_ready", "message": "starting or shutting down"},
                             status_code=503)
 
     @app.get("/metrics", response_class=PlainTextResponse, dependencies=guard,

@@ -51,8 +51,9 @@ class ServerConfig:
     shutdown_grace_s : float
         How long a graceful shutdown waits for requests in progress.
     max_image_pixels : int
-        Largest decoded image (OpenCV's ``OPENCV_IO_MAX_IMAGE_PIXELS``; a decompression bomb
-        is refused, not decoded).
+        Largest image frame, read from the image's header before it is decoded
+        (:func:`sprint_map.frontend.imageheader.check_pixels`): a decompression bomb is
+        refused (422), never decoded.
     """
 
     host: str = "127.0.0.1"

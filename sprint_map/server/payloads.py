@@ -16,8 +16,9 @@ import numpy as np
 from sprint_map.errors import SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import decode_image
+from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
-from sprint_map.storage.validation import validate_descriptors
+from sprint_map.storage.validation import validate_descriptors, validate_name
 
 JSON_TYPES = ("application/json",)
 #: Raw little-endian float32 values, ``4 * dim`` bytes: no JSON parsing (~1 ms per HoG frame).
@@ -86,20 +87,46 @@ def descriptor_from_raw(body: bytes, dim: int) -> np.ndarray:
     return _validated(np.frombuffer(body, dtype="<f4").reshape(1, dim), dim)
 
 
-def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int) -> np.ndarray:
-    """Decode image bytes and describe them as the map's own images are described."""
+def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int,
+                          max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Decode image bytes and describe them as the map's own images are described.
+
+    An image whose header declares more than ``max_pixels`` pixels is refused (422
+    ``bad_image``) before it is decoded.
+    """
     if spec is None:
         raise ApiError(415, "images_not_supported",
                        f"this map holds precomputed descriptors (dim {dim}): send "
                        'application/json {"descriptor": [...]}, not an image')
     try:
-        image = decode_image(body, "image")
+        image = decode_image(body, "image", max_pixels=max_pixels)
         row = spec.describe(image).reshape(1, -1)
     except SprintMapError as exc:
         raise ApiError(422, "bad_image", str(exc)) from None
     except (ValueError, MemoryError) as exc:  # e.g. an image too large to decode
         raise ApiError(422, "bad_image", f"image: cannot describe it ({exc})") from None
     return _validated(row, dim)
+
+
+def session_name(name: str | None) -> str | None:
+    """A session's sequence name, checked as the store checks it, or a 422 ``bad_input``.
+
+    JSON can carry a lone surrogate (``"\\udcff"``), which is a Python ``str`` but not text:
+    it cannot be stored (names are UTF-8) nor printed, so it is refused here, before the
+    store's own :func:`~sprint_map.storage.validation.validate_name`.
+    """
+    if name is None:
+        return None
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ApiError(422, "bad_input", "sequence name must be valid UTF-8 text (it holds a "
+                       "lone surrogate escape such as \\udcff)") from None
+    try:
+        validate_name(name)
+    except SprintMapError as exc:
+        raise from_library(exc) from None
+    return name
 
 
 def _validated(row: np.ndarray, dim: int) -> np.ndarray:

@@ -69,8 +69,6 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
 
     token = load_token(config)
     check_bind(config.host, token)
-    # OpenCV reads its decoded-size limit once, at the first decode: set it before any.
-    os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(config.max_image_pixels))
     sock = bind(config.host, config.port)  # first: an address in use leaves the map untouched
     try:
         smap = SprintMap.open(path)

@@ -34,6 +34,7 @@ from sprint_map.server.payloads import (
     media_type,
     parse_json,
     position_from_json,
+    session_name,
 )
 from sprint_map.server.sessions import (
     CLOSED,
@@ -44,7 +45,6 @@ from sprint_map.server.sessions import (
     SharedComponentCache,
 )
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
-from sprint_map.storage.validation import validate_name
 
 log = logging.getLogger("sprint_map.server")
 
@@ -154,11 +154,7 @@ class LocalisationService:
     # --- sessions ---------------------------------------------------------------------------
     async def create_session(self, name: str | None) -> Session:
         self._refuse_if_closing()
-        if name is not None:
-            try:
-                validate_name(name)
-            except SprintMapError as exc:
-                raise from_library(exc) from None
+        name = session_name(name)
         session = await anyio.to_thread.run_sync(self._new_session, name)
         self.registry.add(session)
         self.metrics.sessions.inc(how="created")
@@ -262,7 +258,7 @@ class LocalisationService:
         elif payload == "raw":
             row = descriptor_from_raw(body, self.dim)
         else:
-            row = descriptor_from_image(body, self.spec, self.dim)
+            row = descriptor_from_image(body, self.spec, self.dim, self.config.max_image_pixels)
         with self.gate.shared():
             try:
                 decision = session.step(row, position)

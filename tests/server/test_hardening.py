@@ -1,0 +1,98 @@
+"""Regressions of the hardening issue (14) on the service, in process (httpx over ASGI).
+
+A name that is not UTF-8 text is a 4xx (item 9), a decompression bomb is refused from its header
+(item 6) and the bearer token is checked before a body is read (item 5; the socket-level limits
+are in ``test_starvation.py``). Default names: ``test_session_names.py`` (item 2).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+from serve_helpers import DIM
+
+from sprint_map.map import SprintMap
+from sprint_map.server.app import create_app
+from sprint_map.server.config import ServerConfig
+from sprint_map.server.service import LocalisationService
+
+JSON = {"content-type": "application/json"}
+
+
+def run(map_path: Path, body: Any, token: str | None = None, **config: Any) -> Any:
+    async def main() -> Any:
+        service = LocalisationService(SprintMap.open(map_path), ServerConfig(**config))
+        app = create_app(service, token)
+        await service.start()
+        try:
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                         base_url="http://service", timeout=60) as client:
+                return await body(service, client)
+        finally:
+            await service.shutdown()
+
+    return asyncio.run(main())
+
+
+def test_names_that_are_not_utf8_text_are_a_4xx(one_drive_map):
+    """Item 9: a lone surrogate (valid JSON, not UTF-8 text) in a name was a 500."""
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        for raw in (b'{"name": "a\\udcffb"}', b'{"name": "\\ud800"}',
+                    b'{"name": "x", "\\udcff": 1}', b'{"\\udcff": "x"}'):
+            response = await client.post("/v1/sessions", content=raw, headers=JSON)
+            assert 400 <= response.status_code < 500, (raw, response.status_code, response.text)
+            assert response.json()["error"] in ("bad_input", "bad_payload"), response.text
+            assert response.json()["message"]
+        sid = (await client.post("/v1/sessions")).json()["session_id"]
+        row = ", ".join(["0.5"] * DIM)
+        response = await client.post(f"/v1/sessions/{sid}/frames", headers=JSON,
+                                     content=f'{{"descriptor": [{row}], "\\udcff": 1}}'.encode())
+        assert (response.status_code, response.json()["error"]) == (422, "bad_payload")
+        # A good non-ASCII name still works, and is committed as given.
+        named = (await client.post("/v1/sessions", json={"name": "vélo-東"})).json()
+        rows = np.full((3, DIM), 0.5, np.float32)
+        for r in rows:
+            await client.post(f"/v1/sessions/{named['session_id']}/frames",
+                              json={"descriptor": r.tolist()})
+        done = await client.post(f"/v1/sessions/{named['session_id']}/commit")
+        assert done.status_code == 200 and done.json()["name"] == "vélo-東"
+
+    run(one_drive_map, body)
+
+
+def test_image_frames_above_the_pixel_limit_are_refused_before_decoding(tmp_path, rng):
+    """Item 6: the service's limit (``max_image_pixels``) is read from the image's header."""
+    import cv2
+
+    from sprint_map.config import MapConfig
+
+    path = tmp_path / "hog.map"
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (48, 64)).astype(np.float32), (0, 0), 2)
+    with SprintMap.create(path, MapConfig.for_descriptor("hog")) as m:
+        spec = m.config.descriptor_spec()
+        assert spec is not None
+        m.add_sequence(np.stack([spec.describe(texture.astype(np.uint8))] * 3), name="first")
+    wide = cv2.imencode(".png", np.zeros((1000, 2000), np.uint8))[1].tobytes()  # 2 Mpx, 8 KB
+    small = cv2.imencode(".jpg", texture.astype(np.uint8))[1].tobytes()
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        sid = (await client.post("/v1/sessions")).json()["session_id"]
+        refused = await client.post(f"/v1/sessions/{sid}/frames", content=wide,
+                                    headers={"content-type": "image/png"})
+        assert (refused.status_code, refused.json()["error"]) == (422, "bad_image")
+        assert refused.json()["message"] == ("image: PNG image of 2000 x 1000 pixels is larger "
+                                             "than the limit of 1000000 pixels (refused before "
+                                             "decoding)")
+        ok = await client.post(f"/v1/sessions/{sid}/frames", content=small,
+                               headers={"content-type": "image/jpeg"})
+        assert ok.status_code == 200, ok.text
+        gif = await client.post(f"/v1/sessions/{sid}/frames", content=b"GIF89a\x20\x4e\x20\x4e",
+                                headers={"content-type": "image/gif"})
+        assert (gif.status_code, gif.json()["error"]) == (422, "bad_image")
+
+    run(path, body, max_image_pixels=1_000_000)
