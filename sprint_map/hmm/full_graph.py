@@ -140,6 +140,8 @@ class FullGraphFilter:
         if n_hits:
             x[idx] *= np.asarray(obs.lik)
         x[-1] *= obs.sink_lik
+        self._obs_last = (np.asarray(idx if n_hits else [], dtype=_I64),
+                          np.asarray(obs.lik, dtype=float), float(obs.sink_lik))
         total = x.sum()
         if not np.isfinite(total) or total <= 0.0:
             x[:] = 0.0
@@ -148,6 +150,55 @@ class FullGraphFilter:
             x *= 1.0 / total
         self.x = x
         self.frames += 1
+
+    def smooth(self, hits: Iterable[tuple[np.ndarray, np.ndarray]]
+               ) -> list[tuple[np.ndarray, float]]:
+        """Forward-backward over the whole map: the smoothed posterior of every frame.
+
+        The reference of :mod:`sprint_map.hmm.smoother` (same model, dense, never pruned).
+        Resets the filter first and leaves it after the last frame.
+
+        Returns
+        -------
+        list of (probs, sink_prob)
+            Per frame, the smoothed posterior over the states in this filter's state order
+            (:meth:`state_index`) and the sink's.
+
+        Notes
+        -----
+        O(N nnz(A)) time and O(N n) memory for N frames: for tests, not for maps.
+        """
+        self.reset()
+        alphas: list[np.ndarray] = []
+        obs_list: list[tuple[np.ndarray, np.ndarray, float]] = []
+        for ids, dists in hits:
+            self.update(ids, dists)
+            alphas.append(self.x.copy())
+            o = self._obs_last
+            obs_list.append(o)
+        out: list[tuple[np.ndarray, float]] = []
+        if not alphas:
+            return out
+        eps, nu = self._eps, self._nu
+        beta = np.ones(self.n_vertices + 1)
+        matrix_t = self.matrix.T.tocsr()
+        for t in range(len(alphas) - 1, -1, -1):
+            if t < len(alphas) - 1:
+                idx, lik, sink_lik = obs_list[t + 1]
+                m = beta.copy()
+                m[idx] *= lik
+                m[-1] *= sink_lik
+                if idx.size:
+                    const = eps * float(m[idx].sum()) / idx.size + nu * m[-1]
+                else:
+                    const = (eps + nu) * m[-1]
+                beta = matrix_t @ m + const
+                beta /= beta.max()
+            gamma = alphas[t] * beta
+            gamma /= gamma.sum()
+            out.append((gamma[:-1], float(gamma[-1])))
+        out.reverse()
+        return out
 
     def decide(self) -> Decision:
         """The decision for the current belief (same rules as ``SprintFilter.decide``)."""

@@ -200,6 +200,24 @@ class SprintFilter:
         order = np.argsort(v, kind="stable")
         return v[order], p[order], self.sink_prob
 
+    def live_belief(self) -> tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
+                                   float]:
+        """The belief held now: per active component its transition, the slots of its live
+        windows that hold belief (ascending) and their posterior; and the sink's posterior.
+
+        Notes
+        -----
+        O(live): what the smoother (:mod:`sprint_map.hmm.smoother`) keeps of each frame.
+        """
+        z = self._z
+        out = []
+        for comp in self._active:
+            slots = comp.live_slots()
+            vals = comp.x[slots]
+            held = vals > 0.0
+            out.append((comp.trans, slots[held], vals[held] * z))
+        return out, self._sink * z
+
     # ------------------------------------------------------------------ per frame
     def step(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> Decision:
         """Filter one query frame and decide where it is.

@@ -307,6 +307,52 @@ class ComponentTransition:
         return lo, hi, overflow, mass, n_prop
 
 
+    def pull(self, slots: np.ndarray, m_slots: np.ndarray, m_vals: np.ndarray, m_sink: float
+             ) -> np.ndarray:
+        """The adjoint of the propagation (the backward step of the smoother).
+
+        For every source slot ``u`` of ``slots`` return ``sum_j A(u, j) m(j)``: the expected
+        value of ``m`` one step after ``u`` under the same scaled transition that
+        :meth:`propagate_windows` applies (own window, edges, overflow to the sink), where ``m``
+        is ``m_vals`` at the sorted slots ``m_slots``, 0 at every other vertex slot, and
+        ``m_sink`` at the sink.
+
+        Notes
+        -----
+        O((|slots| + E_out) W log |m_slots|) for the ``E_out`` edges leaving ``slots``:
+        binary searches in ``m_slots``, never a pass over the component.
+        """
+        slots = np.asarray(slots, dtype=_I64)
+        kernel = self.kernel
+        steps = np.arange(len(kernel), dtype=_I64)
+        n_m = len(m_slots)
+
+        def ahead(origin: np.ndarray) -> np.ndarray:
+            # m over the window of each origin, weighted by the kernel (sink past the end).
+            end = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1]
+            tgt = origin[:, None] + steps
+            if n_m:
+                pos = np.minimum(m_slots.searchsorted(tgt), n_m - 1)
+                vals = np.where(m_slots[pos] == tgt, m_vals[pos], 0.0)
+            else:
+                vals = np.zeros(tgt.shape)
+            vals = np.where(tgt < end[:, None], vals, m_sink)
+            return np.asarray(vals @ kernel)
+
+        out = ahead(slots)
+        if self.has_edges and slots.size:
+            out *= self._rinv[slots]
+            e_lo = self.edge_src.searchsorted(slots)
+            counts = self.edge_src.searchsorted(slots, "right") - e_lo
+            n_edges = int(counts.sum())
+            if n_edges:
+                eidx = ranges(e_lo, counts, n_edges)
+                owner = np.repeat(np.arange(slots.size, dtype=_I64), counts)
+                moved = ahead(self.edge_dst[eidx]) * self.edge_coef[eidx]
+                out += np.bincount(owner, weights=moved, minlength=slots.size)
+        return out
+
+
 def full_transition_matrix(graphs: Sequence[ComponentGraph], config: HMMConfig,
                            offsets: Sequence[int]) -> sp.csr_matrix:
     """The scaled transition of the whole map as a CSR matrix acting on ``[x; sink]``.

@@ -1,0 +1,90 @@
+"""The forward-backward smoother over the sparse active set against the full-graph one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from test_hmm_equivalence import SETTINGS, configs, dense, frames, maps
+
+from sprint_map.hmm import FullGraphFilter, HMMConfig, MemoryGraphSource, SprintFilter
+from sprint_map.hmm.smoother import ForwardBackward, smooth
+
+
+def sparse_posteriors(fb: ForwardBackward, n: int) -> list[tuple[np.ndarray, float]]:
+    out = []
+    for parts, sink in fb.posteriors():
+        p = np.zeros(n)
+        for trans, slots, gamma in parts:
+            p[trans.vertex_of_slots(slots)] = gamma
+        out.append((p, sink))
+    return out
+
+
+@SETTINGS
+@given(data=st.data())
+def test_unpruned_smoother_equals_full_graph_forward_backward(data: st.DataObject) -> None:
+    lengths, edges = data.draw(maps())
+    config = data.draw(configs(prune=0.0))
+    source = MemoryGraphSource(lengths, edges)
+    n = source.n_vertices
+    hits = frames(data.draw, n, data.draw(st.integers(1, 15)))
+    full = FullGraphFilter(config, source)
+    expected = full.smooth(hits)
+    fb = ForwardBackward(config, source)
+    for ids, dists in hits:
+        fb.forward(ids, dists)
+    got = sparse_posteriors(fb, n)
+    assert len(got) == len(expected)
+    state = full.state_index(np.arange(n))
+    for (p, sink), (fp, fsink) in zip(got, expected, strict=True):
+        np.testing.assert_allclose(p, dense(n, np.arange(n), fp[state]), rtol=0, atol=1e-10)
+        assert sink == pytest.approx(fsink, abs=1e-10)
+        assert p.sum() + sink == pytest.approx(1.0, abs=1e-9)
+
+
+def test_last_frame_smoothed_equals_filtered() -> None:
+    source = MemoryGraphSource([30, 30])
+    config = HMMConfig()
+    fb = ForwardBackward(config, source)
+    rng = np.random.default_rng(3)
+    for t in range(12):
+        fb.forward(np.array([t, 30 + int(rng.integers(30))]), np.array([0.1, 0.4]))
+    filtered_parts, filtered_sink = fb.filter.live_belief()
+    parts, sink = fb.posteriors()[-1]
+    assert sink == pytest.approx(filtered_sink, abs=1e-12)
+    for (_, s1, a), (_, s2, g) in zip(filtered_parts, parts, strict=True):
+        np.testing.assert_array_equal(s1, s2)
+        np.testing.assert_allclose(a, g, atol=1e-12)
+
+
+def test_the_future_corrects_an_early_ambiguous_frame() -> None:
+    """Two roads; the first frames' best hit is on the wrong one, later frames settle it.
+
+    The causal filter follows the decoy at first; the smoothed decisions place every frame on
+    the right road.
+    """
+    source = MemoryGraphSource([40, 40])
+    config = HMMConfig(dist_scale=0.05)
+    fb = ForwardBackward(config, source)
+    causal = SprintFilter(config, source)
+    causal_seq = []
+    for t in range(15):
+        if t < 3:  # the decoy (road 1) is a hair closer at first
+            ids, dists = np.array([45 + t, 5 + t]), np.array([0.100, 0.101])
+        else:  # then only road 0 is retrieved (and a scattered far hit)
+            ids, dists = np.array([5 + t, 79 - 2 * t]), np.array([0.05, 0.3])
+        fb.forward(ids, dists)
+        causal_seq.append(causal.step(ids, dists).seq_id)
+    smoothed = fb.decisions()
+    assert causal_seq[0] == 1
+    assert [d.seq_id for d in smoothed] == [0] * 15
+    assert [d.image_id for d in smoothed][:5] == [5, 6, 7, 8, 9]
+
+
+def test_smooth_function_and_empty() -> None:
+    source = MemoryGraphSource([10])
+    assert smooth(HMMConfig(), source, []) == []
+    out = smooth(HMMConfig(), source, [(np.array([i]), np.array([0.1])) for i in range(5)])
+    assert [d.image_id for d in out] == [0, 1, 2, 3, 4]
