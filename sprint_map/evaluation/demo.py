@@ -4,6 +4,10 @@ No download: the default is the synthetic city rendered by :mod:`sprint_map.synt
 runs on real rendered images). When the Nordland summer/winter set is present on the machine
 (``$SPRINT_MAP_NORDLAND``, or ``../shared/data/nordland`` next to the working directory or the
 checkout) ``auto`` evaluates on it instead, in both directions, with the paper's protocol.
+``city-novel`` is the harder generated world (:data:`sprint_map.synth.city.PRESETS`): later
+drives spend most of their frames on streets no earlier drive saw, or saw the other way, and
+some streets are copies of others, so "no match" and false merges are exercised, not only
+recall.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from sprint_map.config import MapConfig
-from sprint_map.errors import InputError
+from sprint_map.errors import ConfigError, InputError
 from sprint_map.evaluation.report import write_report
 from sprint_map.evaluation.runner import EvalOptions, Log, run_evaluation
 from sprint_map.frontend.dataset import Dataset
@@ -22,6 +26,8 @@ NORDLAND_ENV = "SPRINT_MAP_NORDLAND"
 #: Demo city: small enough to render, map and evaluate well within the two-minute budget.
 CITY_TRAVERSALS = 6
 CITY_FRAMES = 300
+#: ``run_demo``'s choices (``sprint-map demo --dataset``).
+DATASETS = ("auto", "city", "city-novel", "nordland")
 
 
 def find_nordland() -> Path | None:
@@ -40,7 +46,13 @@ def find_nordland() -> Path | None:
 
 def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
              ) -> tuple[dict[str, Any], dict[str, Path]]:
-    """Evaluate on Nordland (if ``which`` allows and it is present) or the generated city."""
+    """Evaluate on Nordland (if ``which`` allows and it is present) or a generated city.
+
+    ``which`` is one of :data:`DATASETS`; ``auto`` and ``city`` render ``city``, and each city
+    is rendered once into ``out_dir/<name>`` and reused by later runs.
+    """
+    if which not in DATASETS:
+        raise ConfigError(f"dataset must be one of {', '.join(DATASETS)}")
     nordland = find_nordland() if which in ("auto", "nordland") else None
     if which == "nordland" and nordland is None:
         raise InputError(f"Nordland not found; set ${NORDLAND_ENV} to its folder")
@@ -51,13 +63,14 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
         options = EvalOptions(protocol="pairs", database="summer", query="winter",
                               both_directions=True)
     else:
-        from sprint_map.synth.city import generate_city
+        from sprint_map.synth.city import PRESETS, generate_city
 
-        city = out_dir / "city"
+        name = which if which in PRESETS else "city"
+        city = out_dir / name
         if not (city / "dataset.json").is_file():
             log(f"rendering the synthetic city into {city}")
             generate_city(city, n_traversals=CITY_TRAVERSALS, frames_per_traversal=CITY_FRAMES,
-                          seed=0)
+                          seed=0, config=PRESETS[name])
         dataset = Dataset.open(city)
         options = EvalOptions(protocol="lifelong")
     results = run_evaluation(dataset, out_dir / "maps", config, options, log=log)

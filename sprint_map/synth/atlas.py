@@ -51,11 +51,15 @@ def build_atlas(
     """Draw and pack every texture of ``layout``.
 
     Cost: dominated by drawing the facades, ~2 ms per building (~0.8 s for the default 4 x 4
-    city of ~320 buildings).
+    city of ~320 buildings). A building with a ``twin`` (an aliased street) is not drawn: it
+    samples its twin's texture.
     """
     ground = draw_ground(layout, rng, ground_px_per_m)
-    textures = []
+    textures: list[np.ndarray] = []
     for building in layout.buildings:
+        if building.twin >= 0:  # a copy of another street: that building's texture, again
+            textures.append(textures[building.twin])
+            continue
         if building.style < 0:
             tex = draw_skyline(building.length_m, building.height_m, px_per_m / 4, rng)
         else:
@@ -72,7 +76,11 @@ def build_atlas(
     width = max(4096, ground.shape[1])
     positions: list[tuple[int, int]] = []
     x, y, shelf = 0, ground.shape[0] + _GAP, 0
-    for tex in textures:
+    for i, tex in enumerate(textures):
+        twin = layout.buildings[i].twin
+        if twin >= 0:
+            positions.append(positions[twin])  # drawn once, sampled by both
+            continue
         h, w = tex.shape[:2]
         if w > width:
             raise ValueError("a texture is wider than the atlas")

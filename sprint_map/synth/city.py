@@ -8,10 +8,15 @@ traversal with numbered images and ``positions.csv`` (``frame,x,y,heading_deg``)
 What varies between traversals, and why:
 
 - the route (:mod:`.routes`): traversals overlap but also drive novel streets, or known streets
-  the other way, where a query has no correct match;
+  the other way, where a query has no correct match; with ``novel_fraction`` each traversal
+  after the first is chosen among candidate routes to spend at least that share of its frames
+  where no earlier traversal was (``reverse_fraction`` of them on streets driven the other way);
+- the city itself: ``alias_streets`` makes some streets copies of others (false matches);
 - the condition (:mod:`.conditions`): light, weather, traffic;
 - the driving: speed profile, stops, lane offset, camera height, pitch and a slow yaw wobble, so
   the same place is never seen from exactly the same pose.
+
+Presets: :data:`PRESETS` names the demo's worlds (``city``, ``city-novel``).
 
 Determinism: everything derives from ``seed``. Traversal ``i`` depends only on ``seed`` and on the
 routes of traversals ``< i``, so asking for more traversals leaves the first ones unchanged, and
@@ -27,6 +32,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -44,9 +50,13 @@ from sprint_map.synth.atlas import Atlas, build_atlas
 from sprint_map.synth.conditions import CONDITIONS, Appearance, Condition
 from sprint_map.synth.layout import CityLayout, Node, build_layout
 from sprint_map.synth.render import Camera, Renderer
-from sprint_map.synth.routes import Drive, Edge, Trajectory, drive, plan_route
+from sprint_map.synth.routes import Drive, Edge, Trajectory, drive, overlap, plan_route
 
 IMAGE_FORMATS = ("png", "jpg")
+#: Candidate routes drawn per traversal when ``novel_fraction`` or ``reverse_fraction`` is set.
+ROUTE_CANDIDATES = 40
+#: Share of frames a novelty-seeking traversal should still have on known ground.
+MIN_MATCHED = 0.2
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,19 @@ class CityConfig:
     radius_m, heading_deg : float
         Ground truth written to ``dataset.json``: same place within ``radius_m`` metres and
         ``heading_deg`` degrees of heading.
+    alias_streets : float
+        Share of the streets (at most 0.5) that are copies of another street: same buildings
+        and textures, so only context tells them apart (see :func:`.layout.build_layout`).
+    novel_fraction : float
+        Target share of each traversal's frames (after the first) with no true match among
+        earlier traversals, by the ground truth above. 0: routes are plain walks preferring
+        driven streets (``revisit``). Otherwise each traversal's route is the first of
+        :data:`ROUTE_CANDIDATES` seeded candidates that meets the targets (at least this share
+        novel, ``reverse_fraction`` the other way, :data:`MIN_MATCHED` known), or the one that
+        misses them least.
+    reverse_fraction : float
+        Target share of frames on streets earlier traversals drove only in the other direction
+        (part of the novel share: the other way, a street looks different and has no match).
     """
 
     grid: tuple[int, int] = (4, 4)
@@ -99,6 +122,9 @@ class CityConfig:
     shake: float = 1.5
     radius_m: float = 8.0
     heading_deg: float = 45.0
+    alias_streets: float = 0.0
+    novel_fraction: float = 0.0
+    reverse_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.grid) != 2 or min(self.grid) < 2:
@@ -109,6 +135,11 @@ class CityConfig:
             raise ValueError("speed_m must be > 0, detail >= 0, stop_prob in [0, 1]")
         if self.revisit <= 0:
             raise ValueError("revisit must be > 0")
+        if not 0 <= self.alias_streets <= 0.5:
+            raise ValueError("alias_streets must be in [0, 0.5]")
+        if not 0 <= self.reverse_fraction <= self.novel_fraction <= 1 - MIN_MATCHED:
+            raise ValueError(
+                f"need 0 <= reverse_fraction <= novel_fraction <= {1 - MIN_MATCHED}")
         Camera(self.width, self.height, self.fov_deg)  # validates the image parameters
 
     @classmethod
@@ -202,7 +233,8 @@ class _World:
         self.config = config
         rng = np.random.default_rng([seed, 0])
         self.layout: CityLayout = build_layout(
-            rng, config.grid[0], config.grid[1], config.block_m, config.street_m, config.n_styles
+            rng, config.grid[0], config.grid[1], config.block_m, config.street_m, config.n_styles,
+            config.alias_streets,
         )
         self.atlas: Atlas = build_atlas(self.layout, rng, detail=config.detail)
         self.camera = Camera(config.width, config.height, config.fov_deg)
@@ -227,8 +259,11 @@ class _World:
         # Steps never exceed 1.8x the mean speed; corners and lane offsets shorten the path a
         # little, hence the extra block.
         length = frames * params.speed_m * 1.8 + config.block_m
-        route: list[Node] = plan_route(self.layout, length, driven, rng, config.revisit)
-        trajectory = drive(self.layout, route, frames, rng, params)
+        if i and config.novel_fraction > 0:
+            trajectory = self._novel_trajectory(i, frames, seed, driven, params, length)
+        else:
+            route: list[Node] = plan_route(self.layout, length, driven, rng, config.revisit)
+            trajectory = drive(self.layout, route, frames, rng, params)
         return TraversalPlan(
             index=i,
             name=f"t{i:02d}-{preset}",
@@ -241,6 +276,39 @@ class _World:
             shake=config.shake,
             seed=(seed, 2, i),
         )
+
+    def _novel_trajectory(
+        self, i: int, frames: int, seed: int, driven: set[Edge], params: Drive, length: float
+    ) -> Trajectory:
+        """The first candidate route meeting the novelty targets, else the closest one."""
+        config = self.config
+        earlier = [plan.trajectory for plan in self.plans]
+        earlier_xy = np.concatenate([t.xy for t in earlier])
+        earlier_heading = np.concatenate([t.heading_deg for t in earlier])
+        best: tuple[float, Trajectory] | None = None
+        for c in range(ROUTE_CANDIDATES):
+            rng = np.random.default_rng([seed, 3, i, c])
+            route = plan_route(
+                self.layout, length, driven, rng, config.revisit,
+                new_weight=float(rng.uniform(1.0, 12.0)),
+                reverse_weight=float(rng.uniform(0.5, 8.0)),
+            )
+            trajectory = drive(self.layout, route, frames, rng, params)
+            matched, opposite = overlap(
+                trajectory.xy, trajectory.heading_deg, earlier_xy, earlier_heading,
+                config.radius_m, config.heading_deg,
+            )
+            shortfall = (
+                4 * max(0.0, config.novel_fraction - (1 - matched.mean()))
+                + 2 * max(0.0, config.reverse_fraction - opposite.mean())
+                + max(0.0, MIN_MATCHED - matched.mean())
+            )
+            if best is None or shortfall < best[0]:
+                best = (shortfall, trajectory)
+            if shortfall == 0:
+                break
+        assert best is not None
+        return best[1]
 
     def frames(self, plan: TraversalPlan) -> Iterator[np.ndarray]:
         """Render the traversal's images, in order."""
@@ -264,11 +332,59 @@ class _World:
             )
             yield appearance.apply(view, heading)
 
+    def traversal(self, plan: TraversalPlan) -> SyntheticTraversal:
+        """Render one traversal into memory."""
+        images = np.stack(list(self.frames(plan)))
+        preset = self.config.conditions[plan.index % len(self.config.conditions)]
+        return SyntheticTraversal(plan.name, preset, images, self.positions(plan), plan)
+
     @staticmethod
     def positions(plan: TraversalPlan) -> np.ndarray:
         traj = plan.trajectory
         frames = np.arange(len(traj.xy), dtype=np.float64)
         return np.column_stack([frames, traj.xy, traj.heading_deg])
+
+
+#: The demo's worlds (``sprint-map demo --dataset NAME``). ``city``: routes that mostly revisit,
+#: four facade styles. ``city-novel``: a larger grid where every traversal after the first
+#: spends at least 60 % of its frames where no earlier one was (10 % on streets driven the
+#: other way), three facade styles and a quarter of the streets copies of others.
+PRESETS: dict[str, CityConfig] = {
+    "city": CityConfig(),
+    "city-novel": CityConfig(
+        grid=(5, 5), n_styles=3, alias_streets=0.25, novel_fraction=0.6, reverse_fraction=0.1
+    ),
+}
+
+
+def iter_city(
+    n_traversals: int = 6,
+    frames_per_traversal: int = 300,
+    seed: int = 0,
+    config: CityConfig | None = None,
+    workers: int | None = None,
+) -> Iterator[SyntheticTraversal]:
+    """Render a synthetic city one traversal at a time, in order (same output as
+    :func:`render_city`).
+
+    At most ``workers`` traversals are rendered ahead of the consumer, so memory is bounded
+    by ``workers + 1`` traversals whatever ``n_traversals`` is.
+
+    Yields
+    ------
+    SyntheticTraversal
+    """
+    config = config or CityConfig()
+    world = _World(config, n_traversals, frames_per_traversal, seed)
+    workers = workers or default_workers()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: deque[Any] = deque()
+        for plan in world.plans:
+            pending.append(pool.submit(world.traversal, plan))
+            if len(pending) > workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def render_city(
@@ -298,14 +414,8 @@ def render_city(
     """
     config = config or CityConfig()
     world = _World(config, n_traversals, frames_per_traversal, seed)
-
-    def one(plan: TraversalPlan) -> SyntheticTraversal:
-        images = np.stack(list(world.frames(plan)))
-        preset = config.conditions[plan.index % len(config.conditions)]
-        return SyntheticTraversal(plan.name, preset, images, world.positions(plan), plan)
-
     with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
-        traversals = list(pool.map(one, world.plans))
+        traversals = list(pool.map(world.traversal, world.plans))
     return SyntheticCity(config, seed, traversals)
 
 

@@ -8,7 +8,10 @@ a skyline close the world off, so every camera ray hits something.
 
 Each block *side* gets one facade style from a small shared pool, so whole street sides resemble
 other street sides elsewhere (perceptual aliasing); buildings within a side vary in height and
-details. Coordinates are metres, x east, y north; headings are degrees counter-clockwise from +x.
+details. With ``alias_streets`` > 0 some whole streets are copies of other streets: the same
+buildings, heights and textures on both sides, in the same order for the same direction of
+travel (strong aliasing: only the cross streets, the ground and the conditions tell them apart).
+Coordinates are metres, x east, y north; headings are degrees counter-clockwise from +x.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ class Building:
     height_m: float
     style: int  # index into CityLayout.styles, or -1 for the skyline walls
     side: int  # index of the block side (street side) it belongs to, -1 for the skyline
+    twin: int = -1  # index of the building whose texture this one reuses (aliased street)
 
     @property
     def length_m(self) -> float:
@@ -79,6 +83,7 @@ def build_layout(
     block_m: float = 60.0,
     street_m: float = 14.0,
     n_styles: int = 6,
+    alias_streets: float = 0.0,
 ) -> CityLayout:
     """Lay out a city.
 
@@ -93,6 +98,9 @@ def build_layout(
         Street width between facades.
     n_styles : int
         Size of the shared facade-style pool; fewer styles, more aliasing.
+    alias_streets : float
+        Share of the streets (rounded down) made copies of another street, which keeps its own
+        look; 0 draws no extra random numbers, so the city is the same as without the option.
     """
     if nx < 2 or ny < 2:
         raise ValueError("the grid needs at least 2 x 2 intersections")
@@ -100,6 +108,8 @@ def build_layout(
         raise ValueError("street_m must be positive and less than half of block_m")
     if n_styles < 1:
         raise ValueError("n_styles must be >= 1")
+    if not 0 <= alias_streets <= 0.5:
+        raise ValueError("alias_streets must be in [0, 0.5]")
     styles = tuple(random_style(rng) for _ in range(n_styles))
     # Storeys per style: a style is "a kind of street", with a typical height.
     typical_floors = rng.integers(2, 7, size=n_styles)
@@ -119,6 +129,8 @@ def build_layout(
                 style = int(rng.integers(n_styles))
                 buildings.extend(_split_side(a, b, style, side, int(typical_floors[style]), rng))
                 side += 1
+    if alias_streets > 0:
+        buildings = _alias_streets(buildings, nx, ny, alias_streets, rng)
     margin = 1.6 * block_m
     extent = (-margin, -margin, (nx - 1) * block_m + margin, (ny - 1) * block_m + margin)
     xmin, ymin, xmax, ymax = extent
@@ -128,6 +140,65 @@ def build_layout(
     for k in range(4):
         buildings.append(Building(ring[(k + 1) % 4], ring[k], 45.0, -1, -1))
     return CityLayout(nx, ny, block_m, street_m, styles, tuple(buildings), extent)
+
+
+def _street_sides(nx: int, ny: int) -> list[tuple[int, int]]:
+    """Per street, the block sides on its right and on its left, driving east or north.
+
+    Streets in :meth:`CityLayout.nodes` order, each node's east street before its north street.
+    Side indices follow :func:`build_layout`: blocks row by row from ``(-1, -1)``, four sides
+    each (south, east, north, west faces of the block, counter-clockwise). Both sides run the
+    same way for the same direction of travel (the right one towards the car, the left one
+    away), so a side copied onto another street's side looks the same from the car.
+    """
+
+    def side(bi: int, bj: int, k: int) -> int:
+        return ((bj + 1) * (nx + 1) + bi + 1) * 4 + k
+
+    streets = []
+    for j in range(ny):
+        for i in range(nx):
+            if i + 1 < nx:  # east: the block below shows its north face, the one above its south
+                streets.append((side(i, j - 1, 2), side(i, j, 0)))
+            if j + 1 < ny:  # north: the block right shows its west face, the one left its east
+                streets.append((side(i, j, 3), side(i - 1, j, 1)))
+    return streets
+
+
+def _alias_streets(
+    buildings: list[Building], nx: int, ny: int, share: float, rng: np.random.Generator
+) -> list[Building]:
+    """Make ``share`` of the streets copies of other (original) streets."""
+    streets = _street_sides(nx, ny)
+    order = [int(k) for k in rng.permutation(len(streets))]
+    n_copies = int(share * len(streets))
+    copies, originals = order[:n_copies], order[n_copies:]
+    by_side: dict[int, list[Building]] = {}
+    for building in buildings:
+        by_side.setdefault(building.side, []).append(building)
+    source_of: dict[int, int] = {}  # copied side -> original side
+    for street in copies:
+        original = originals[int(rng.integers(len(originals)))]
+        for target, source in zip(streets[street], streets[original], strict=True):
+            source_of[target] = source
+    out: list[Building] = []
+    first: dict[int, int] = {}  # side -> index in ``out`` of its first building
+    for side in sorted(by_side, key=lambda s: (s in source_of, s)):  # originals first
+        if side not in source_of:
+            first[side] = len(out)
+            out.extend(by_side[side])
+            continue
+        walls = by_side[side]
+        start, end = np.array(walls[0].p0), np.array(walls[-1].p1)
+        direction = (end - start) / np.hypot(*(end - start))
+        origin = np.array(by_side[source_of[side]][0].p0)
+        for k, b in enumerate(by_side[source_of[side]]):
+            a0 = float(np.hypot(*(np.array(b.p0) - origin)))
+            a1 = float(np.hypot(*(np.array(b.p1) - origin)))
+            p0, p1 = start + a0 * direction, start + a1 * direction
+            out.append(Building((float(p0[0]), float(p0[1])), (float(p1[0]), float(p1[1])),
+                                b.height_m, b.style, side, first[source_of[side]] + k))
+    return out
 
 
 def _split_side(

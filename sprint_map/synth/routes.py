@@ -3,7 +3,8 @@
 A route is a walk on the intersection graph without U-turns. Walks prefer streets (in the same
 direction) that earlier traversals drove, with weight ``revisit`` against 1 for any other
 street, so traversals overlap but also explore streets never driven before (and streets driven
-the other way, which look different).
+the other way, which look different). Other weights for never-driven and reverse streets steer
+walks towards novelty; :func:`overlap` measures, per frame, what earlier drives saw.
 
 Driving a route: corners are rounded with a turning arc, the car keeps to the right lane, and its
 speed (metres per frame) follows a smooth random profile, slows down in turns and sometimes
@@ -29,6 +30,8 @@ def plan_route(
     driven: set[Edge],
     rng: np.random.Generator,
     revisit: float = 3.0,
+    new_weight: float = 1.0,
+    reverse_weight: float = 1.0,
 ) -> list[Node]:
     """A walk of at least ``length_m`` metres.
 
@@ -42,7 +45,10 @@ def plan_route(
         there are any, and prefers them.
     rng : numpy.random.Generator
     revisit : float
-        Weight of an already-driven street against 1 for a new one.
+        Weight of a street already driven in the same direction.
+    new_weight, reverse_weight : float
+        Weights of a street never driven, and of one driven only the other way. With the
+        defaults (1, 1) the walk is the plain ``revisit``-preferring one.
     """
     if driven:
         start, second = sorted(driven)[int(rng.integers(len(driven)))]
@@ -53,9 +59,51 @@ def plan_route(
     while (len(route) - 1) * layout.block_m < length_m:
         here = route[-1]
         options = [n for n in layout.neighbours(here) if len(route) < 2 or n != route[-2]]
-        weights = np.array([revisit if (here, n) in driven else 1.0 for n in options])
+        weights = np.array([
+            revisit if (here, n) in driven
+            else reverse_weight if (n, here) in driven
+            else new_weight
+            for n in options
+        ])
         route.append(options[int(rng.choice(len(options), p=weights / weights.sum()))])
     return route
+
+
+def overlap(
+    xy: np.ndarray,
+    heading_deg: np.ndarray,
+    earlier_xy: np.ndarray,
+    earlier_heading_deg: np.ndarray,
+    radius_m: float,
+    heading_tol_deg: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which frames of a trajectory earlier frames saw, and which they saw the other way.
+
+    The position ground truth's rule (within ``radius_m`` and ``heading_tol_deg``), vectorised
+    with one KD-tree over all earlier frames.
+
+    Returns
+    -------
+    matched : ndarray of bool, (N,)
+        Some earlier frame is the same place.
+    opposite : ndarray of bool, (N,)
+        Not matched, but some earlier frame within ``radius_m`` faced the other way (heading
+        difference of at least 135 degrees): a known street driven in the other direction.
+    """
+    from scipy.spatial import cKDTree
+
+    matched = np.zeros(len(xy), dtype=bool)
+    opposite = np.zeros(len(xy), dtype=bool)
+    if len(earlier_xy) == 0:
+        return matched, opposite
+    near = cKDTree(earlier_xy).query_ball_point(xy, radius_m)
+    for k, found in enumerate(near):
+        if found:
+            diff = np.abs((earlier_heading_deg[found] - heading_deg[k]) % 360.0)
+            diff = np.minimum(diff, 360.0 - diff)
+            matched[k] = bool((diff <= heading_tol_deg).any())
+            opposite[k] = not matched[k] and bool((diff >= 135.0).any())
+    return matched, opposite
 
 
 @dataclass(frozen=True)
