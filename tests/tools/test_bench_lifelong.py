@@ -1,0 +1,90 @@
+"""tools/bench_lifelong.py: the lifelong protocol, merging vs appending, on a quick run."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from sprint_map.frontend import GroundTruth, GroundTruthSpec
+from sprint_map.localizer import FrameDecision
+
+TOOLS = Path(__file__).resolve().parents[2] / "tools"
+
+
+def load_tool(name: str) -> Any:
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # its dataclasses resolve their module by name
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def bench() -> Any:
+    return load_tool("bench_lifelong")
+
+
+def test_score_counts_best_for_recall_and_accepted_for_precision(bench: Any) -> None:
+    # Query q at x = 0, 10, 20, 30; database d at x = 0, 10, 20, 30 (same heading).
+    line = np.column_stack([np.arange(4), np.arange(4) * 10.0, np.zeros(4), np.zeros(4)])
+    gt = GroundTruth(GroundTruthSpec("position", radius_m=5.0, heading_deg=45.0),
+                     positions={"q": line, "d": line})
+    decisions = [
+        FrameDecision(frame=0, seq_id=7, image_id=0, prob=0.9, best=(7, 0)),  # right, accepted
+        FrameDecision(frame=1, seq_id=7, image_id=3, prob=0.9, best=(7, 3)),  # wrong, accepted
+        FrameDecision(frame=2, seq_id=None, image_id=None, prob=0.2, best=(7, 2)),  # right, no
+        FrameDecision(frame=3, seq_id=None, image_id=None, prob=0.1, best=None),
+    ]
+    has_match = np.array([True, True, True, False])
+    out = bench.score(decisions, "q", gt, {7: "d"}, has_match)
+    assert out["sprint_correct"] == 2 and out["sprint_recall@1"] == pytest.approx(2 / 3, abs=1e-4)
+    assert (out["accepted"], out["accepted_correct"], out["precision"]) == (2, 1, 0.5)
+
+
+def test_quick_run_writes_both_arms_and_halves(bench: Any, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    out_json, out_png = tmp_path / "lifelong.json", tmp_path / "lifelong.png"
+    assert bench.main(["--quick", "--json", str(out_json), "--png", str(out_png)]) == 0
+    data = json.loads(out_json.read_text())
+    assert data["args"]["traversals"] == 8 and data["args"]["frames"] == 60
+    [run] = data["seeds"]
+    merge, append = run["arms"]["merge"], run["arms"]["no-merge"]
+    assert [r["traversal"] for r in merge] == [r["traversal"] for r in append] == list(range(1, 8))
+    assert [r["condition"] for r in merge] == ["dusk", "rain", "snow", "day", "dusk", "rain",
+                                               "snow"]
+    for a, b in zip(merge, append, strict=True):
+        # Same map contents before each traversal: the same vertices and exact k-NN answers.
+        assert a["map_vertices"] == b["map_vertices"] == 60 * a["traversal"]
+        assert a["knn_recall@1"] == b["knn_recall@1"] and a["knn_recall@10"] == b["knn_recall@10"]
+        assert a["knn_recall@1"] <= a["knn_recall@10"]
+        assert b["edges_added"] == 0 and b["components"] == b["traversal"] + 1
+        assert 0 <= a["sprint_correct"] <= a["frames_with_match"] <= a["frames"] == 60
+        assert 0 <= a["best_differs_from_streamed"] <= 60
+        # Without merging, the scored decisions are the streaming ones.
+        assert b["online_sprint_correct"] == b["sprint_correct"]
+    assert sum(r["edges_added"] for r in merge) > 0
+    assert merge[-1]["components"] < append[-1]["components"]
+    summary = run["summary"]
+    for arm, rows in (("merge", merge), ("no-merge", append)):
+        earlier, later = summary[arm]["earlier"], summary[arm]["later"]
+        assert earlier["traversals"] == [1, 3] and later["traversals"] == [4, 7]
+        matchable = sum(r["frames_with_match"] for r in rows[3:])
+        assert later["sprint_recall@1"] == pytest.approx(
+            sum(r["sprint_correct"] for r in rows[3:]) / matchable, abs=1e-4)
+        # The ground truth is wired to the right traversals: SPRINT finds most places.
+        assert earlier["sprint_recall@1"] >= 0.4 and later["sprint_recall@1"] >= 0.4
+    assert summary["merge_minus_no_merge_later_points"] == pytest.approx(
+        100 * (summary["merge"]["later"]["sprint_recall@1"]
+               - summary["no-merge"]["later"]["sprint_recall@1"]), abs=0.01)
+    assert data["mean"]["merge"]["later"]["sprint_recall@1"] == summary["merge"]["later"][
+        "sprint_recall@1"]
+    assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    printed = capsys.readouterr().out
+    assert "merge - no-merge on the later half" in printed and "no-merge R@1" in printed

@@ -1,0 +1,337 @@
+"""Lifelong: does the map get better as it grows?
+
+A synthetic city (:mod:`sprint_map.synth`: rendered images described by HoG, as the demo does) is
+driven ``--traversals`` times (default 24) over the same few streets, the conditions in turn
+(traversal ``i`` under ``CONDITIONS[i % 4]``: day, dusk, rain, snow). The lifelong protocol runs
+twice on the same descriptors, each on its own map:
+
+- ``merge`` (the product): ``SprintMap.ingest(rows, merge=True)`` localises each drive against
+  the map of all earlier ones, then commits it with its confident decisions as edges;
+- ``no-merge``: each drive is localised against the map as it stands (``SprintMap.localizer``,
+  read-only), then appended with ``ingest(merge=False)``: no edges, every drive its own
+  component.
+
+Per traversal after the first: SPRINT recall@1 (each decision's most probable place, ``best``,
+is a true match by the data set's ground truth: within ``radius_m`` and ``heading_deg``), over
+the frames that have a true match; the precision of the accepted decisions (``is_match``,
+counted over every accepted frame, with or without a true match); exact k-NN recall@1 and @10
+(the same map contents in both runs, so the same numbers). Summary per run: recall@1 pooled over
+the earlier half of the traversals (1 .. N/2 - 1) and over the later half (N/2 .. N - 1), and
+merge minus no-merge on the later half, in points.
+
+Which decisions: ``merge`` scores ``IngestResult.decisions``, the ones the merge used;
+``no-merge`` (whose ingest localises nothing) scores the frame-by-frame decisions of a streaming
+localizer on the map as it stands. ``online_*`` scores the streaming decisions in both runs
+(one procedure, so always comparable); ``best_differs_from_streamed`` counts the frames where
+the ingest's decision names another place than the streaming one (0 while ingest decides
+causally; if ingest re-decides, e.g. smoothed, compare the runs on ``online_recall@1``).
+
+    python tools/bench_lifelong.py --json lifelong.json --png lifelong.png
+    python tools/bench_lifelong.py --seeds 0 1 2 --traversals 24 --frames 300
+    python tools/bench_lifelong.py --quick            # 8 traversals x 60 frames, a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sprint_map import MapConfig
+from sprint_map.evaluation.runner import evaluate_query
+from sprint_map.frontend import GroundTruth
+from sprint_map.localizer import FrameDecision
+from sprint_map.map import SprintMap
+from sprint_map.synth import CityConfig, iter_city
+
+#: Conditions in turn: traversal i is driven under CONDITIONS[i % 4].
+CONDITIONS = ("day", "dusk", "rain", "snow")
+#: A 3 x 3 grid (12 streets) and a strong preference for driven streets: after the first few
+#: traversals nearly every frame is on a street the map has seen in the same direction.
+CITY = CityConfig(grid=(3, 3), revisit=1000.0, conditions=CONDITIONS)
+KS = (1, 10)
+ARMS = ("merge", "no-merge")
+
+
+@dataclasses.dataclass
+class Drive:
+    """One traversal as the benchmark uses it: descriptors and planar positions."""
+
+    name: str
+    condition: str
+    rows: np.ndarray  # (N, dim) float32 HoG
+    xy: np.ndarray  # (N, 2)
+
+
+def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
+                  workers: int | None) -> tuple[list[Drive], GroundTruth, float]:
+    """Render the city traversal by traversal, keeping only descriptors and positions.
+
+    Returns the drives, their ground truth and the seconds spent.
+    """
+    start = time.perf_counter()
+    spec = MapConfig.for_descriptor("hog").descriptor_spec()
+    assert spec is not None
+    drives, positions = [], {}
+    for traversal in iter_city(traversals, frames, seed=seed, config=config, workers=workers):
+        rows = spec.describe_batch(traversal.images)
+        drives.append(Drive(traversal.name, traversal.condition, rows,
+                            traversal.positions[:, 1:3].copy()))
+        positions[traversal.name] = traversal.positions
+    gt = GroundTruth(config.ground_truth_spec(), positions=positions)
+    return drives, gt, time.perf_counter() - start
+
+
+def score(decisions: list[FrameDecision], query: str, gt: GroundTruth, names: dict[int, str],
+          has_match: np.ndarray) -> dict[str, Any]:
+    """SPRINT recall@1 and the precision of accepted decisions, by the ground truth."""
+    best_correct = np.zeros(len(has_match), dtype=bool)
+    accepted = np.zeros(len(has_match), dtype=bool)
+    accepted_correct = np.zeros(len(has_match), dtype=bool)
+    for d in decisions:
+        if d.best is not None:
+            seq_id, image_id = d.best
+            best_correct[d.frame] = bool(gt.correct(query, d.frame, names[seq_id], image_id))
+        if d.is_match:
+            assert d.seq_id is not None and d.image_id is not None
+            accepted[d.frame] = True
+            accepted_correct[d.frame] = bool(
+                gt.correct(query, d.frame, names[d.seq_id], d.image_id))
+    matchable = int(has_match.sum())
+    return {
+        "sprint_correct": int((best_correct & has_match).sum()),
+        "sprint_recall@1": round(float((best_correct & has_match).sum()) / max(matchable, 1), 4),
+        "accepted": int(accepted.sum()),
+        "accepted_correct": int(accepted_correct.sum()),
+        "precision": (round(float(accepted_correct.sum()) / int(accepted.sum()), 4)
+                      if accepted.any() else None),
+    }
+
+
+def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> list[dict[str, Any]]:
+    """The lifelong protocol on one fresh map; one row per traversal after the first."""
+    rows_out: list[dict[str, Any]] = []
+    config = MapConfig.for_descriptor("hog")
+    with SprintMap.create(work / ("merge.map" if merge else "no-merge.map"), config) as m:
+        for i, drive in enumerate(drives):
+            if i == 0:
+                m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge)
+                continue
+            start = time.perf_counter()
+            names = {s.seq_id: s.name for s in m.sequences()}
+            vertices = m.stats()["vertices"]
+            # Exact k-NN and the ground truth's matchable frames, on the map before this drive.
+            knn, streamed = evaluate_query(m, drive.name, drive.rows, gt, KS, None)
+            result = m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge)
+            decisions = result.decisions if merge else streamed
+            matchable = int(knn.has_match.sum())
+            online = score(streamed, drive.name, gt, names, knn.has_match)
+            row: dict[str, Any] = {
+                "traversal": i,
+                "name": drive.name,
+                "condition": drive.condition,
+                "frames": len(drive.rows),
+                "frames_with_match": matchable,
+                "map_vertices": vertices,
+                **score(decisions, drive.name, gt, names, knn.has_match),
+                **{f"online_{key}": value for key, value in online.items()},
+            }
+            for k in KS:
+                hits = knn.knn_correct[:, :k].any(axis=1) & knn.has_match
+                row[f"knn_correct@{k}"] = int(hits.sum())
+                row[f"knn_recall@{k}"] = round(float(hits.sum()) / max(matchable, 1), 4)
+            if merge:  # the merge used the batch decisions; the streamed ones should agree
+                row["best_differs_from_streamed"] = sum(
+                    a.best != b.best for a, b in zip(result.decisions, streamed, strict=True))
+            stats = m.stats()
+            row.update(edges_added=result.added.edges_added, components=stats["components"],
+                       seconds=round(time.perf_counter() - start, 2))
+            rows_out.append(row)
+    return rows_out
+
+
+def pooled(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Recalls over all frames with a match of ``rows``, precision over all accepted."""
+    matchable = sum(r["frames_with_match"] for r in rows)
+    accepted = sum(r["accepted"] for r in rows)
+    out: dict[str, Any] = {
+        "traversals": [r["traversal"] for r in rows][:1] + [r["traversal"] for r in rows][-1:],
+        "frames_with_match": matchable,
+        "sprint_recall@1": round(sum(r["sprint_correct"] for r in rows) / max(matchable, 1), 4),
+        "precision": (round(sum(r["accepted_correct"] for r in rows) / accepted, 4)
+                      if accepted else None),
+        "accepted": accepted,
+    }
+    out["online_sprint_recall@1"] = round(sum(r["online_sprint_correct"] for r in rows)
+                                          / max(matchable, 1), 4)
+    for k in KS:
+        out[f"knn_recall@{k}"] = round(sum(r[f"knn_correct@{k}"] for r in rows)
+                                       / max(matchable, 1), 4)
+    return out
+
+
+def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    """Earlier half vs later half per arm, and merge vs no-merge on the later half."""
+    out: dict[str, Any] = {}
+    for arm, rows in arms.items():
+        split = (len(rows) + 1) // 2  # N traversals: 1 .. N/2 - 1 vs N/2 .. N - 1
+        earlier = [r for r in rows if r["traversal"] < split]
+        later = [r for r in rows if r["traversal"] >= split]
+        e, lat = pooled(earlier), pooled(later)
+        out[arm] = {"earlier": e, "later": lat,
+                    "later_minus_earlier_points": round(
+                        100 * (lat["sprint_recall@1"] - e["sprint_recall@1"]), 2)}
+    for key, prefix in (("sprint_recall@1", ""), ("online_sprint_recall@1", "online_")):
+        out[f"{prefix}merge_minus_no_merge_later_points"] = round(
+            100 * (out["merge"]["later"][key] - out["no-merge"]["later"][key]), 2)
+    out["best_differs_from_streamed"] = sum(r["best_differs_from_streamed"]
+                                            for r in arms["merge"])
+    return out
+
+
+def print_rows(seed: int, arms: dict[str, list[dict[str, Any]]]) -> None:
+    print(f"\nseed {seed}")
+    print(f"{'trav':>4} {'cond':>5} {'match':>5} | {'merge R@1':>9} {'prec':>6} {'edges':>5} | "
+          f"{'no-merge R@1':>12} {'prec':>6} | {'kNN@1':>6} {'kNN@10':>6}")
+    for a, b in zip(arms["merge"], arms["no-merge"], strict=True):
+        def pct(v: float | None) -> str:
+            return "   -  " if v is None else f"{100 * v:5.1f}%"
+        print(f"{a['traversal']:>4} {a['condition']:>5} {a['frames_with_match']:>5} | "
+              f"{pct(a['sprint_recall@1']):>9} {pct(a['precision']):>6} {a['edges_added']:>5} | "
+              f"{pct(b['sprint_recall@1']):>12} {pct(b['precision']):>6} | "
+              f"{pct(a['knn_recall@1']):>6} {pct(a['knn_recall@10']):>6}", flush=True)
+
+
+def print_summary(label: str, s: dict[str, Any]) -> None:
+    def pct(v: float | None) -> str:
+        return "-" if v is None else f"{100 * v:.1f} %"
+    print(f"\n{label}: SPRINT recall@1 (precision of accepted decisions) [k-NN@1 / k-NN@10]")
+    for arm in ARMS:
+        e, lat = s[arm]["earlier"], s[arm]["later"]
+        print(f"  {arm:>8}: earlier half {pct(e['sprint_recall@1'])} ({pct(e['precision'])}) "
+              f"[{pct(e['knn_recall@1'])} / {pct(e['knn_recall@10'])}], "
+              f"later half {pct(lat['sprint_recall@1'])} ({pct(lat['precision'])}) "
+              f"[{pct(lat['knn_recall@1'])} / {pct(lat['knn_recall@10'])}], "
+              f"later - earlier {s[arm]['later_minus_earlier_points']:+.1f} points")
+    print(f"  merge - no-merge on the later half: "
+          f"{s['merge_minus_no_merge_later_points']:+.1f} points "
+          f"(streaming decisions in both: {s['online_merge_minus_no_merge_later_points']:+.1f})")
+    if s.get("best_differs_from_streamed"):
+        print(f"  note: on {s['best_differs_from_streamed']:.0f} frames the ingest's decision "
+              "differs from the streaming one; compare the runs on the streaming figure")
+
+
+def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """Mean over seeds of the headline numbers."""
+    def mean(path: tuple[str, ...]) -> float | None:
+        values = []
+        for s in summaries:
+            v: Any = s
+            for key in path:
+                v = v[key]
+            if v is not None:
+                values.append(float(v))
+        return round(float(np.mean(values)), 4) if values else None
+
+    out: dict[str, Any] = {}
+    for arm in ARMS:
+        out[arm] = {
+            half: {key: mean((arm, half, key)) for key in
+                   ("sprint_recall@1", "online_sprint_recall@1", "precision", "knn_recall@1",
+                    "knn_recall@10")}
+            for half in ("earlier", "later")
+        }
+        out[arm]["later_minus_earlier_points"] = mean((arm, "later_minus_earlier_points"))
+    for key in ("merge_minus_no_merge_later_points", "online_merge_minus_no_merge_later_points",
+                "best_differs_from_streamed"):
+        out[key] = mean((key,))
+    return out
+
+
+def plot(path: Path, results: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    for arm, style in (("merge", "o-"), ("no-merge", "s--")):
+        per_seed = [[r["sprint_recall@1"] for r in res["arms"][arm]] for res in results]
+        x = [r["traversal"] for r in results[0]["arms"][arm]]
+        mean = np.mean(per_seed, axis=0)
+        ax.plot(x, 100 * mean, style, label=f"SPRINT, {arm}" + (
+            f" (mean of {len(results)} seeds)" if len(results) > 1 else ""))
+    knn = np.mean([[r["knn_recall@1"] for r in res["arms"]["merge"]] for res in results], axis=0)
+    ax.plot(x, 100 * knn, ":", color="grey", label="exact k-NN@1")
+    ax.axvline(x[0] + (len(x) - 1) / 2, color="lightgrey", lw=0.8)
+    ax.set(xlabel="traversal (localised against all earlier ones)", ylabel="recall@1 (%)",
+           title="Lifelong: recall@1 per traversal, merging vs appending without edges",
+           ylim=(0, 100))
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    parser.add_argument("--traversals", type=int, default=24)
+    parser.add_argument("--frames", type=int, default=300, help="frames per traversal")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1],
+                        help="one city per seed; each is reported, then the mean")
+    parser.add_argument("--quick", action="store_true",
+                        help="8 traversals x 60 frames, one seed (a smoke run)")
+    parser.add_argument("--workers", type=int, default=None, help="rendering threads")
+    parser.add_argument("--json", type=Path, help="write per-traversal rows and summaries here")
+    parser.add_argument("--png", type=Path, help="plot recall@1 per traversal here")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.traversals, args.frames, args.seeds = 8, 60, args.seeds[:1]
+    if args.traversals < 4 or args.frames < 10:
+        parser.error("need --traversals >= 4 and --frames >= 10")
+    started = time.perf_counter()
+    results = []
+    for seed in args.seeds:
+        drives, gt, render_s = render_drives(seed, args.traversals, args.frames, CITY,
+                                             args.workers)
+        print(f"seed {seed}: rendered and described {len(drives)} x {args.frames} frames in "
+              f"{render_s:.1f} s", flush=True)
+        arms = {}
+        with tempfile.TemporaryDirectory() as tmp:
+            for arm in ARMS:
+                arms[arm] = run_arm(drives, gt, arm == "merge", Path(tmp))
+        print_rows(seed, arms)
+        summary = summarise(arms)
+        print_summary(f"seed {seed}", summary)
+        results.append({"seed": seed, "render_seconds": round(render_s, 1), "arms": arms,
+                        "summary": summary})
+    mean = mean_summary([r["summary"] for r in results])
+    if len(results) > 1:
+        print_summary(f"mean of {len(results)} seeds", mean)
+    seconds = time.perf_counter() - started
+    print(f"\n{seconds:.0f} s in all")
+    out = {
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "city": CITY.to_dict(),
+        "ground_truth": CITY.ground_truth_spec().to_dict(),
+        "map_config": MapConfig.for_descriptor("hog").to_dict(),
+        "seeds": results,
+        "mean": mean,
+        "seconds": round(seconds, 1),
+    }
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2) + "\n")
+    if args.png:
+        plot(args.png, results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
