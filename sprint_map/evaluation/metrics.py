@@ -9,6 +9,10 @@ Conventions (also in ``docs/architecture.md``, "Evaluation"):
   *answered* when its best place's probability reaches the threshold; an answer is a true
   positive when it is correct. Precision is over answered frames (including frames without a
   true match, whose answers are false positives by definition); recall over frames with a match.
+- *Merge metrics* (:func:`merge_metrics`) score the decisions the merge rule selects as edges:
+  a merged decision is correct when its place is a true match (a merged decision on a frame
+  without one is wrong by definition); every merged decision makes the same number of edges
+  (2 when edges are stored both ways), and an edge is wrong when its decision is.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+__all__ = ["MergeMetrics", "PRCurve", "merge_metrics", "percentiles", "pr_curve", "recall_at_k"]
 
 
 def recall_at_k(correct: np.ndarray, has_match: np.ndarray, ks: tuple[int, ...]
@@ -83,8 +89,80 @@ def pr_curve(scores: np.ndarray, correct: np.ndarray, has_match: np.ndarray) -> 
     )
 
 
+@dataclass(frozen=True)
+class MergeMetrics:
+    """How good the edges of one drive's merge are (see :func:`merge_metrics`).
+
+    Attributes
+    ----------
+    precision : float
+        Fraction of merged decisions that are correct (1.0 when nothing is merged: no edge is
+        wrong; read it with ``recall``).
+    recall : float
+        Merged correct decisions over frames with a true match (0.0 when no frame has one).
+    edges_added, edges_wrong : int
+        Edges the merged decisions make, and how many of them come from a wrong decision.
+    novel_merged : float
+        Fraction of the frames without a true match whose decision was merged (0.0 when every
+        frame has one).
+    merged, merged_correct : int
+        Merged decisions, and how many of them are correct.
+    """
+
+    precision: float
+    recall: float
+    edges_added: int
+    edges_wrong: int
+    novel_merged: float
+    merged: int
+    merged_correct: int
+
+
+def merge_metrics(merged: np.ndarray, correct: np.ndarray, has_match: np.ndarray,
+                  edges_per_decision: int = 2) -> MergeMetrics:
+    """Score the decisions a merge rule selects.
+
+    Parameters
+    ----------
+    merged : (Q,) bool
+        Which decisions the merge rule selects (become edges).
+    correct : (Q,) bool
+        Whether each decision's place is a true match for its frame.
+    has_match : (Q,) bool
+        Whether the frame has any true match in the map.
+    edges_per_decision : int
+        Edges one merged decision makes: 2 when stored both ways, else 1.
+
+    Returns
+    -------
+    MergeMetrics
+
+    Examples
+    --------
+    >>> m = merge_metrics(np.array([True, True, False, True]), np.array([True, False, True, False]),
+    ...                   np.array([True, True, True, False]))
+    >>> m.precision, m.recall, m.edges_added, m.edges_wrong, m.novel_merged
+    (0.3333333333333333, 0.3333333333333333, 6, 4, 1.0)
+    """
+    merged = np.asarray(merged, dtype=bool)
+    has_match = np.asarray(has_match, dtype=bool)
+    good = merged & np.asarray(correct, dtype=bool) & has_match
+    n_merged, n_good = int(merged.sum()), int(good.sum())
+    n_match, n_novel = int(has_match.sum()), int((~has_match).sum())
+    return MergeMetrics(
+        precision=n_good / n_merged if n_merged else 1.0,
+        recall=n_good / n_match if n_match else 0.0,
+        edges_added=n_merged * edges_per_decision,
+        edges_wrong=(n_merged - n_good) * edges_per_decision,
+        novel_merged=int((merged & ~has_match).sum()) / n_novel if n_novel else 0.0,
+        merged=n_merged,
+        merged_correct=n_good,
+    )
+
+
 def percentiles(values: list[float] | np.ndarray, qs: tuple[int, ...] = (50, 90, 99)
                 ) -> dict[str, float]:
+    """Percentiles ``qs`` of ``values``, rounded, as ``{"p50": ...}`` (zeros when empty)."""
     arr = np.asarray(values, dtype=float)
     if not len(arr):
         return {f"p{q}": 0.0 for q in qs}

@@ -10,23 +10,37 @@ import numpy as np
 
 from sprint_map.storage.atomic import publish
 
+#: The table's columns: (key of a results row, title). ``edges (wrong)`` joins two keys.
 COLUMNS = (
     ("query", "query"),
     ("frames", "frames"),
     ("frames_with_match", "with match"),
     ("knn_recall@1", "k-NN@1"),
-    ("knn_recall@5", "k-NN@5"),
     ("knn_recall@10", "k-NN@10"),
     ("sprint_recall@1", "SPRINT@1"),
+    ("smoothed_recall@1", "smoothed@1"),
     ("pr_auc", "PR AUC"),
     ("recall@100%precision", "R@P=1"),
     ("no_match_on_novel", "novel->no match"),
-    ("active_vertices_mean", "active verts"),
+    ("merge_precision", "merge P"),
+    ("merge_recall", "merge R"),
+    ("edges_added", "edges (wrong)"),
+    ("novel_merged", "novel merged"),
 )
 
 
+def _cell(row: dict[str, Any], key: str) -> str:
+    value = row.get(key, "")
+    if key == "edges_added" and value != "":
+        return f"{value} ({row.get('edges_wrong', '?')})"
+    if isinstance(value, float):
+        return f"{100 * value:.1f} %"
+    return str(value)
+
+
 def markdown_table(results: dict[str, Any]) -> str:
-    """The results as a markdown table: one row per query traversal plus the overall row."""
+    """The results as a markdown table: one row per query traversal plus the overall row,
+    then latency, the merge rule's parameters and the protocol."""
     rows = list(results["queries"])
     if len(rows) > 1:
         rows.append(results["overall"])
@@ -34,19 +48,22 @@ def markdown_table(results: dict[str, Any]) -> str:
     rule = "| " + " | ".join("---" for _ in COLUMNS) + " |"
     lines = [head, rule]
     for row in rows:
-        cells = []
-        for key, _ in COLUMNS:
-            value = row.get(key, "")
-            if isinstance(value, float) and key not in ("active_vertices_mean",):
-                cells.append(f"{100 * value:.1f} %")
-            else:
-                cells.append(str(value))
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(_cell(row, key) for key, _ in COLUMNS) + " |")
     o = results["overall"]
+    merge_rule = results.get("merge_rule", {})
+    params = ", ".join(f"{k.removeprefix('merge_')} {v}" for k, v in merge_rule.items())
+    committed = ("committed by each query's ingest" if results["protocol"] == "lifelong"
+                 else "that merging the query would add (pairs: nothing is merged)")
     lines += [
         "",
+        "SPRINT@1: the causal (streamed) decisions; smoothed@1: the forward-backward smoothed "
+        "decisions the merge rule reads. Merge P/R: precision of the decisions the rule merges, "
+        f"and their correct ones over frames with a match; edges (wrong): the edges {committed}; "
+        "novel merged: frames without a true match whose decision was merged.",
+        f"Merge rule: {params}." if params else "Merge rule: not reported.",
         f"Per-frame latency (ms), retrieval p50/p99: {o['retrieval_ms']['p50']} / "
-        f"{o['retrieval_ms']['p99']}; HMM p50/p99: {o['hmm_ms']['p50']} / {o['hmm_ms']['p99']}.",
+        f"{o['retrieval_ms']['p99']}; HMM p50/p99: {o['hmm_ms']['p50']} / {o['hmm_ms']['p99']}; "
+        f"active vertices mean {o['active_vertices_mean']}, max {o['active_vertices_max']}.",
         f"Protocol {results['protocol']}, ground truth {results['ground_truth']}, "
         f"{results['seconds']} s in all.",
     ]
@@ -64,6 +81,8 @@ def write_report(results: dict[str, Any], out_dir: Path) -> dict[str, Path]:
         "recall": out_dir / "recall.png",
         "latency": out_dir / "latency.png",
     }
+    if results["protocol"] == "lifelong" and results.get("recall_by_traversal"):
+        paths["recall_by_traversal"] = out_dir / "recall_by_traversal.png"
     publish(paths["json"], lambda p: p.write_text(json.dumps(public, indent=2)))
     publish(paths["markdown"], lambda p: p.write_text(markdown_table(results)))
     _plots(results, paths)
@@ -77,10 +96,20 @@ def _plots(results: dict[str, Any], paths: dict[str, Path]) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4.5))
+    rows = {q["query"]: q for q in results["queries"]}
     for name, curve in results["_curves"].items():
-        ax.plot(curve.recall, curve.precision, label=f"{name} (AUC {curve.auc:.2f})")
+        (line,) = ax.plot(curve.recall, curve.precision, label=f"{name} (AUC {curve.auc:.2f})")
+        if "merge_precision" in rows.get(name, {}):
+            ax.plot(rows[name]["merge_recall"], rows[name]["merge_precision"], "o",
+                    color=line.get_color(), markeredgecolor="black")
+    overall = results["overall"]
+    if "merge_precision" in overall:
+        ax.plot(overall["merge_recall"], overall["merge_precision"], "*", color="black",
+                markersize=12, label="merge rule, overall (dots: per query)")
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1), ylim=(0, 1.02),
-           title="SPRINT precision-recall (threshold on place probability)")
+           title="SPRINT precision-recall (causal, threshold on place probability)\n"
+                 "and the merge rule's operating point (smoothed decisions)")
+    ax.title.set_fontsize(9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(paths["pr_curve"], dpi=110)
@@ -102,6 +131,9 @@ def _plots(results: dict[str, Any], paths: dict[str, Path]) -> None:
     fig.savefig(paths["recall"], dpi=110)
     plt.close(fig)
 
+    if "recall_by_traversal" in paths:
+        _recall_by_traversal(results["recall_by_traversal"], paths["recall_by_traversal"], plt)
+
     fig, ax = plt.subplots(figsize=(6, 4))
     lat = results["_latency"]
     for key in ("retrieval_ms", "hmm_ms"):
@@ -112,4 +144,22 @@ def _plots(results: dict[str, Any], paths: dict[str, Path]) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(paths["latency"], dpi=110)
+    plt.close(fig)
+
+
+def _recall_by_traversal(rows: list[dict[str, Any]], path: Path, plt: Any) -> None:
+    """Recall@1 of each traversal in the order it was localised: does the map degrade as it
+    grows?"""
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.5 * len(rows) + 3), 4))
+    x = [r["traversal"] for r in rows]
+    for key, style in (("knn_recall@1", "s:"), ("sprint_recall@1", "o-"),
+                       ("smoothed_recall@1", "^--")):
+        if all(key in r for r in rows):
+            ax.plot(x, [100 * r[key] for r in rows], style, label=key)
+    ax.set_xticks(x, [f"{r['traversal']}\n{r['query']}" for r in rows], fontsize=7)
+    ax.set(xlabel="traversal (in the order merged)", ylabel="recall@1 (%)", ylim=(0, 100),
+           title="Recall@1 per traversal as the map grows")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)

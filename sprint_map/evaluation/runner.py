@@ -2,12 +2,26 @@
 
 ``pairs`` (the paper's Table I): one database traversal is mapped, one query traversal is
 localised against it. ``lifelong`` (the paper's Mapillary protocol): traversals are taken in
-order; each is localised against the map of all earlier ones and then merged into it with its
-decisions as edges.
+order; each is localised against the map of all earlier ones and then merged into it with
+:meth:`SprintMap.ingest <sprint_map.map.SprintMap.ingest>`.
 
-Every query frame is answered twice over the same map: by exact k-NN (FAISS flat search, the
-baseline) and by SPRINT, streamed frame by frame as a vehicle would (so the latencies reported
-are per-frame latencies, not batch averages).
+Every query frame is answered three ways over the same map: by exact k-NN (FAISS flat search,
+the baseline); by SPRINT, streamed frame by frame as a vehicle would (``sprint_recall@1``, and
+the latencies reported are per-frame latencies, not batch averages); and by SPRINT's smoothed
+decisions, made once the whole drive has been seen (``smoothed_recall@1``), which the merge
+rule (:mod:`sprint_map.merge_rule`) turns into edges. The merge metrics
+(:func:`sprint_map.evaluation.metrics.merge_metrics`: ``merge_precision``, ``merge_recall``,
+``edges_added``, ``edges_wrong``, ``novel_merged``) score those edges:
+
+- ``lifelong``: the decisions and the mask of the ingest that committed the drive;
+  ``edges_added`` is the commit's count.
+- ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
+  (:meth:`SprintMap.select_merges <sprint_map.map.SprintMap.select_merges>`), and
+  ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
+  decision when ``config.merge_both_ways``).
+
+A decision is correct when its place is a true match of its frame by the data set's ground
+truth; a merged decision on a frame without a true match is wrong.
 """
 
 from __future__ import annotations
@@ -23,7 +37,7 @@ import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
-from sprint_map.evaluation.metrics import percentiles, pr_curve, recall_at_k
+from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
 from sprint_map.frontend.dataset import Dataset, Traversal
 from sprint_map.frontend.groundtruth import GroundTruth
 from sprint_map.hmm.config import HMMConfig
@@ -78,13 +92,58 @@ class QueryResult:
     hmm_ms: list[float]
     active_vertices: list[int]
     map_vertices: int
-    edges_added: int = 0
+    #: Edges the query's commit added (lifelong); None when it was not merged (pairs).
+    edges_added: int | None = None
+    #: (Q,) bool: the smoothed decision's most probable place is a true match.
+    smoothed_best_correct: np.ndarray | None = None
+    #: (Q,) bool: the merge rule selects the smoothed decision (it becomes, or would become,
+    #: edges).
+    merged: np.ndarray | None = None
+    #: (Q,) bool: the smoothed decision's place (``seq_id``, ``image_id``) is a true match.
+    merged_correct: np.ndarray | None = None
+    #: Edges one merged decision makes: 2 with ``merge_both_ways``, else 1.
+    edges_per_decision: int = 2
+
+    def score_merge(self, decisions: list[FrameDecision], merged: np.ndarray, gt: GroundTruth,
+                    names: dict[int, str], edges_per_decision: int) -> None:
+        """Record the smoothed ``decisions`` of this query and the merge rule's verdict on them.
+
+        Parameters
+        ----------
+        decisions : list of FrameDecision
+            One per query frame, in order (``IngestResult.decisions`` or
+            ``SprintMap.localize(..., smooth=True)``).
+        merged : (Q,) bool
+            Which of them the merge rule selects.
+        gt : GroundTruth
+        names : dict
+            Sequence id -> traversal name, of the map the decisions were made against.
+        edges_per_decision : int
+            Edges one merged decision makes.
+        """
+        n = len(self.has_match)
+        if len(decisions) != n or len(merged) != n:
+            raise ValueError(f"{self.query}: {len(decisions)} decisions and {len(merged)} merge "
+                             f"verdicts for {n} frames")
+        self.smoothed_best_correct = _correct(self.query, [d.best for d in decisions], gt, names)
+        self.merged_correct = _correct(
+            self.query, [None if d.seq_id is None or d.image_id is None else (d.seq_id, d.image_id)
+                         for d in decisions], gt, names)
+        self.merged = np.asarray(merged, dtype=bool).copy()
+        self.edges_per_decision = edges_per_decision
 
     def summary(self, ks: tuple[int, ...]) -> dict[str, Any]:
+        """The JSON row of this query (see the module docstring for the merge metrics)."""
         knn = recall_at_k(self.knn_correct, self.has_match, ks)
         denom = max(int(self.has_match.sum()), 1)
         curve = pr_curve(self.prob, self.best_correct, self.has_match)
         accepted_tp = self.accepted & self.best_correct & self.has_match
+        unscored = np.zeros(len(self.has_match), dtype=bool)
+        smoothed = (self.smoothed_best_correct if self.smoothed_best_correct is not None
+                    else unscored)
+        merge = merge_metrics(self.merged if self.merged is not None else unscored,
+                              self.merged_correct if self.merged_correct is not None else unscored,
+                              self.has_match, self.edges_per_decision)
         return {
             "query": self.query,
             "database": self.database,
@@ -104,7 +163,13 @@ class QueryResult:
             "hmm_ms": percentiles(self.hmm_ms),
             "active_vertices_mean": round(float(np.mean(self.active_vertices or [0])), 1),
             "active_vertices_max": int(np.max(self.active_vertices or [0])),
-            "edges_added": self.edges_added,
+            "smoothed_recall@1": round(float((smoothed & self.has_match).sum()) / denom, 4),
+            "merge_precision": round(merge.precision, 4),
+            "merge_recall": round(merge.recall, 4),
+            "merged_decisions": merge.merged,
+            "edges_added": merge.edges_added if self.edges_added is None else self.edges_added,
+            "edges_wrong": merge.edges_wrong,
+            "novel_merged": round(merge.novel_merged, 4),
         }
 
 
@@ -130,8 +195,15 @@ def describe(m: SprintMap, traversal: Traversal, stride: int) -> np.ndarray:
 
 
 def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
-                   ks: tuple[int, ...], hmm: HMMConfig | None) -> tuple[QueryResult, list[FrameDecision]]:
-    """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both."""
+                   ks: tuple[int, ...], hmm: HMMConfig | None, *, smooth: bool = False
+                   ) -> tuple[QueryResult, list[FrameDecision]]:
+    """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both.
+
+    With ``smooth`` the query is also localised with the smoothed posterior over the same map
+    (what :meth:`SprintMap.localize` with ``smooth=True`` gives, from the hits of the streamed
+    pass) and the map's merge rule is scored on it (:meth:`QueryResult.score_merge`): what
+    merging the query would add. The returned decisions are the streamed (causal) ones.
+    """
     names = {s.seq_id: s.name for s in m.sequences()}
     db_names = list(names.values())
     frames = np.arange(len(rows))
@@ -151,12 +223,9 @@ def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
     has_match = gt.has_match(query, frames, db_names)
 
     localizer = m.localizer(hmm)
+    localizer.record = smooth  # keep each frame's hits for the smoother (O(k) per frame)
     decisions = [localizer.step(row) for row in rows]
-    best_correct = np.zeros(len(rows), dtype=bool)
-    for d in decisions:
-        if d.best is not None:
-            s, i = d.best
-            best_correct[d.frame] = bool(gt.correct(query, d.frame, names[s], i))
+    best_correct = _correct(query, [d.best for d in decisions], gt, names)
     result = QueryResult(
         query=query,
         database=db_names,
@@ -170,7 +239,27 @@ def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
         active_vertices=localizer.timing.active_vertices,
         map_vertices=m.stats()["vertices"],
     )
+    if smooth:
+        smoothed = localizer.smoothed()
+        result.score_merge(smoothed, m.select_merges(smoothed), gt, names,
+                           _edges_per_decision(m.config))
     return result, decisions
+
+
+def _correct(query: str, places: list[tuple[int, int] | None], gt: GroundTruth,
+             names: dict[int, str]) -> np.ndarray:
+    """Whether each frame's place (``(seq_id, image_id)``, or None) is a true match of it."""
+    out = np.zeros(len(places), dtype=bool)
+    for frame, place in enumerate(places):
+        if place is not None:
+            seq_id, image_id = place
+            out[frame] = bool(gt.correct(query, frame, names[seq_id], image_id))
+    return out
+
+
+def _edges_per_decision(config: MapConfig) -> int:
+    """Edges one merged decision makes (:func:`sprint_map.localizer.merge_edges`)."""
+    return 2 if config.merge_both_ways else 1
 
 
 def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
@@ -199,7 +288,8 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
                                positions=_xy(dataset[db_name].positions(options.stride)))
                 log(f"localising {q_name} against {db_name}")
                 rows = describe(m, dataset[q_name], options.stride)
-                results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm)[0])
+                results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
+                                              smooth=True)[0])
     else:
         map_dir = _fresh(work_dir / "map-lifelong")
         with SprintMap.create(map_dir, config) as m:
@@ -211,9 +301,12 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
                     m.add_sequence(rows, name=traversal.name, positions=positions)
                     continue
                 log(f"localising {traversal.name} against {i} earlier traversal(s), then merging")
-                result, decisions = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm)
-                added = m.merge(rows, decisions, name=traversal.name, positions=positions)
-                result.edges_added = added.edges_added
+                seq_names = {s.seq_id: s.name for s in m.sequences()}
+                result, _ = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm)
+                ingested = m.ingest(rows, name=traversal.name, positions=positions, hmm=hmm)
+                result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
+                                   _edges_per_decision(m.config))
+                result.edges_added = ingested.added.edges_added
                 results.append(result)
     rows_out = [r.summary(options.ks) for r in results]
     overall = _overall(results, options.ks)
@@ -224,8 +317,14 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         "ground_truth": gt.spec.to_dict(),
         "config": config.to_dict(),
         "hmm": (hmm or config.hmm).to_dict(),
+        "merge_rule": {**config.merge_rule.to_dict(), "merge_both_ways": config.merge_both_ways},
         "queries": rows_out,
         "overall": overall,
+        "recall_by_traversal": [
+            {"traversal": i, "query": row["query"], "map_vertices": row["map_vertices"],
+             **{k: row[k] for k in ("knn_recall@1", "sprint_recall@1", "smoothed_recall@1")
+                if k in row}}
+            for i, row in enumerate(rows_out, start=1 if options.protocol == "lifelong" else 0)],
         "seconds": round(time.perf_counter() - started, 2),
         "_curves": {r.query: pr_curve(r.prob, r.best_correct, r.has_match) for r in results},
         "_latency": {"retrieval_ms": sum((r.retrieval_ms for r in results), []),
@@ -248,9 +347,23 @@ def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
         hmm_ms=sum((r.hmm_ms for r in results), []),
         active_vertices=sum((r.active_vertices for r in results), []),
         map_vertices=max(r.map_vertices for r in results),
-        edges_added=sum(r.edges_added for r in results),
+        edges_added=(None if any(r.edges_added is None for r in results)
+                     else sum(r.edges_added or 0 for r in results)),
+        smoothed_best_correct=_joined(results, "smoothed_best_correct"),
+        merged=_joined(results, "merged"),
+        merged_correct=_joined(results, "merged_correct"),
+        edges_per_decision=results[0].edges_per_decision,
     )
     return joined.summary(ks)
+
+
+def _joined(results: list[QueryResult], field: str) -> np.ndarray:
+    """A per-frame field of every query, end to end (all False for a query that lacks it)."""
+    parts = []
+    for r in results:
+        value = getattr(r, field)
+        parts.append(value if value is not None else np.zeros(len(r.has_match), dtype=bool))
+    return np.concatenate(parts)
 
 
 def _xy(positions: np.ndarray | None) -> np.ndarray | None:
