@@ -36,8 +36,9 @@ from sprint_map.storage.removal import edge_keys, rebuild_components
 if TYPE_CHECKING:
     from sprint_map.storage.store import MapStore
 
-#: Byte offset of the adding sequence's id (``>I``) inside an edge value (after the weight).
-_ADDED_BY_AT = struct.calcsize(EDGE_VAL.format[:2])  # ">d"
+#: Byte offset of the adding sequence's id (``>I``) inside an edge value, after the ``>d``
+#: weight: a scan compares these 4 bytes without decoding the value.
+ADDED_BY_AT = struct.calcsize(EDGE_VAL.format[:2])
 
 
 @dataclass(frozen=True)
@@ -123,7 +124,7 @@ def edges_added_by(store: MapStore, txn: lmdb.Transaction, seq_id: int) -> list[
     for key, value in txn.cursor(db=store.env.db("edges")):
         if EDGE_KEY.unpack(key)[0] > last:
             break
-        if value[_ADDED_BY_AT:_ADDED_BY_AT + 4] == want:
+        if value[ADDED_BY_AT:ADDED_BY_AT + 4] == want:
             out.append(EdgeRecord.decode(key, value))
     return out
 
@@ -242,5 +243,5 @@ def unmerge_sequence(store: MapStore, seq_id: int) -> UnmergeResult:
     return result
 
 
-__all__ = ["EdgeInfo", "UnmergeResult", "edges_added_by", "edges_touching", "list_edges",
-           "unmerge_sequence"]
+__all__ = ["ADDED_BY_AT", "EdgeInfo", "UnmergeResult", "edges_added_by", "edges_touching",
+           "list_edges", "unmerge_sequence"]
