@@ -222,8 +222,8 @@ def unmerge_sequence(store: MapStore, seq_id: int) -> UnmergeResult:
     def body(txn: lmdb.Transaction) -> UnmergeResult:
         revoked = edges_added_by(store, txn, seq_id)  # UnknownSequenceError first
         locate = _Locator(store, txn)
-        roots = sorted({store.uf.find(txn, locate(v)[0]) for e in revoked
-                        for v in (e.src, e.dst)})
+        touched = {locate(v)[0] for e in revoked for v in (e.src, e.dst)}
+        roots = sorted({store.uf.find(txn, seq) for seq in touched})
         members = {root: store.uf.members(txn, root) for root in roots}
         for e in revoked:
             txn.delete(EDGE_KEY.pack(e.src, e.dst), db=db("edges"))
