@@ -116,6 +116,8 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ok, jpeg = cv2.imencode(".jpg", (rng.random((48, 64)) * 255).astype(np.uint8))
     assert ok
     _image_dir(root, "images", rng)
+    (root / "other").mkdir()
+    _image_dir(root / "other", "images", rng)  # same name, other images
     _image_dir(root, "truncated_png", rng, png[: len(png) // 2])
     _image_dir(root, "truncated_jpeg", rng, jpeg.tobytes()[:-200], "003.jpg")
     _image_dir(root, "not_an_image", rng, b"GIF89a? no, just text")
@@ -137,6 +139,11 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (root / "pos_fields.csv").write_text(_csv([*frames3[:2], "2,2.0"]))
     (root / "pos_binary.csv").write_bytes(b"frame,x,y\n\xff\xfe\x00\x01\n")
     (root / "bad_config.json").write_text("{not json")
+    # Configs of the right keys but the wrong types (issue 14, item 12): accepted, the map
+    # then crashed every later command (shard_rows 1.5) or took "no" for true.
+    for key, value in (("shard_rows", 1.5), ("merge_both_ways", "no"), ("index_pca_dim", 1.5),
+                       ("hmm", {"window": [0.5, "x"]})):
+        (root / f"config_{key}.json").write_text(json.dumps({key: value}))
     return root
 
 
@@ -220,9 +227,10 @@ CASES: dict[str, Case] = {
     "remove-unknown-id": Case("remove {map} 0 7", UnknownSequenceError, "no sequence 7"),
     "remove-unknown-name": Case("remove {map} first second", UnknownSequenceError,
                                 "no sequence named 'second'"),
-    "duplicate-name": Case("ingest {map} {in}/good.npy --name first", DuplicateNameError,
+    # Other descriptors under a committed name (the same ones are a retry: reported, exit 0).
+    "duplicate-name": Case("ingest {map} {in}/one.npy --name first", DuplicateNameError,
                            "a sequence named 'first' already exists"),
-    "duplicate-default-name": Case("ingest {map} {in}/images", DuplicateNameError,
+    "duplicate-default-name": Case("ingest {map} {in}/other/images", DuplicateNameError,
                                    "'images' already exists", map="img"),
     "name-with-newline": Case("ingest {map} {in}/good.npy --name a\nb", InputError,
                               "non-printing characters"),
@@ -283,6 +291,22 @@ CASES: dict[str, Case] = {
     "init-dim-0": Case("init {map} --dim 0", ConfigError, "dim must be a positive", map="missing"),
     "init-bad-config": Case("init {map} --config {in}/bad_config.json", InputError,
                             "cannot read config", map="missing"),
+    "init-float-shard-rows": Case("init {map} --dim 4 --config {in}/config_shard_rows.json",
+                                  ConfigError, "MapConfig: shard_rows must be an integer, got 1.5",
+                                  map="missing"),
+    "init-string-bool": Case("init {map} --dim 4 --config {in}/config_merge_both_ways.json",
+                             ConfigError, "MapConfig: merge_both_ways must be true or false, "
+                             "got 'no'", map="missing"),
+    "init-float-pca-dim": Case("init {map} --dim 4 --config {in}/config_index_pca_dim.json",
+                               ConfigError, "MapConfig: index_pca_dim must be an integer, got 1.5",
+                               map="missing"),
+    "init-nested-window": Case("init {map} --dim 4 --config {in}/config_hmm.json", ConfigError,
+                               "MapConfig.hmm: window must be a list of numbers", map="missing"),
+    "hmm-float-k": Case("localize {map} {in}/good.npy --hmm k=1.5", ConfigError,
+                        "HMMConfig: k must be an integer, got 1.5"),
+    "hmm-string-bool-merge": Case("ingest {map} {in}/good.npy --name x --hmm place_hops=true",
+                                  ConfigError, "HMMConfig: place_hops must be an integer, got "
+                                  "True"),
     # Model options.
     "k-zero": Case("localize {map} {in}/good.npy --k 0", ConfigError, "k must be an integer"),
     "unknown-hmm-option": Case("ingest {map} {in}/good.npy --name x --hmm bogus=1", ConfigError,
