@@ -60,13 +60,70 @@ def validate_positions(positions: Any, n: int) -> np.ndarray | None:
 MAX_NAME_BYTES = 500
 
 
-def validate_name(name: str) -> None:
-    """Refuse a sequence name that is empty, too long, or holds control characters.
+def shown(text: str | bytes) -> str:
+    """``text`` quoted for a one-line message, printable whatever it holds: undecodable bytes
+    (as Python decodes file names and arguments, ``surrogateescape``) are shown as bytes."""
+    if isinstance(text, bytes):
+        return repr(text)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        try:
+            return repr(text.encode("utf-8", "surrogateescape"))
+        except UnicodeEncodeError:  # a surrogate that no byte decoded to (e.g. from JSON)
+            return ascii(text)
+    return repr(text)
 
-    Names are unique within a map (checked by the writer) and printed one per line by the
-    CLI, so a newline, a tab or any other non-printing character (but the space) is refused.
+
+def decode_text(value: str | bytes, what: str) -> str:
+    """``value`` as text, or :class:`InputError` (one line naming ``what``) if it is not UTF-8.
+
+    Every text a user or a file gives (names, paths, tokens) passes here once: ``bytes`` must
+    decode as UTF-8; a ``str`` must encode as UTF-8, which a string decoded from other bytes
+    does not (Python decodes arguments and file names with ``surrogateescape``: a byte 0xff
+    becomes the lone surrogate U+DCFF), nor one with a lone surrogate from JSON.
     """
-    if not isinstance(name, str) or not name or len(name.encode()) > MAX_NAME_BYTES:
-        raise InputError(f"sequence name must be 1 to {MAX_NAME_BYTES} bytes of text")
+    if isinstance(value, bytes):
+        try:
+            return value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{what} {shown(value)} is not UTF-8 text") from None
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{what} {shown(value)} is not UTF-8 text") from None
+    return value
+
+
+def validate_name(name: str) -> None:
+    """Refuse a sequence name that is not UTF-8, empty, too long, or holds control characters.
+
+    Names are unique within a map (checked by the writer), stored as UTF-8 and printed one per
+    line by the CLI, so a newline, a tab or any other non-printing character (but the space) is
+    refused. The one check of names for the store, the facade, the CLI and the service.
+    """
+    if not isinstance(name, str):
+        raise InputError(f"sequence name must be text, got {type(name).__name__}")
+    encoded = decode_text(name, "sequence name").encode("utf-8")
+    if not name or len(encoded) > MAX_NAME_BYTES:
+        raise InputError(f"sequence name must be 1 to {MAX_NAME_BYTES} bytes of text"
+                         + (" (an empty name is not a name)" if not name else ""))
     if not name.isprintable():
         raise InputError(f"sequence name {name!r} contains non-printing characters")
+
+
+def name_key(name: str) -> bytes | None:
+    """The ``seq_names`` key to look ``name`` up by, or None if no sequence can have that name
+    (empty, too long, not printable: a look-up then finds no sequence).
+
+    Raises
+    ------
+    InputError
+        ``name`` is not UTF-8 text.
+    """
+    if not isinstance(name, str):
+        return None
+    encoded = decode_text(name, "sequence name").encode("utf-8")
+    if not name or len(encoded) > MAX_NAME_BYTES or not name.isprintable():
+        return None
+    return encoded
