@@ -214,21 +214,29 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
 @click.argument("source", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Print the decisions as JSON.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Also write the JSON to this file.")
+@click.option("--smooth", is_flag=True,
+              help="Decide each frame from the smoothed posterior (the whole drive, as ingest "
+                   "merges); default: causal, as a vehicle gets the answers.")
 @_model_options
-def localize(map_path: str, source: str, as_json: bool, out: str | None, stride: int,
-             quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
+             stride: int, quiet: bool, k: int | None, window: str | None,
+             hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
     \b
     Examples:
       sprint-map localize city.map drives/friday/ --json
+      sprint-map localize city.map friday.npy --smooth --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m:
         src = m.open_source(source, stride=stride, progress=_progress(quiet, "localising"))
         localizer = m.localizer(**overrides)
+        localizer.record = smooth
         decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
+        if smooth:
+            decisions = localizer.smoothed()
     t = localizer.timing.to_dict()
     data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
     if out:
@@ -237,7 +245,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, stride:
     matched = sum(d.is_match for d in decisions)
     _emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")
-         + f"  p={d.prob:.3f}" for d in decisions]
+         + f"  p={d.prob:.3f} novel={d.novel_prob:.3f}" for d in decisions]
         + [f"{matched}/{len(decisions)} frames matched; per frame: retrieval "
            f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
 

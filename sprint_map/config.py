@@ -8,6 +8,7 @@ from typing import Any
 from sprint_map import dataclass_dict
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.merge_rule import MergeRule
 
 #: On-disk schema version written into every map; maps of another version are refused.
 #: 2 added removed vertex ranges (``remove``) and generation directories (``compact``); a
@@ -76,7 +77,17 @@ class MapConfig:
     initial_map_size : int
         LMDB map size at creation in bytes (sparse file; it doubles on demand).
     merge_threshold : float
-        Minimum decision probability for a localisation decision to become an edge on merge.
+        Minimum place probability for a localisation decision to become an edge on merge
+        (:mod:`sprint_map.merge_rule`).
+    merge_max_novel : float
+        A decision whose probability of being an unmapped place exceeds this is not merged.
+    merge_window : int
+        Temporal consistency: how many frames either side of a decision are looked at.
+    merge_min_agree : int
+        How many of those neighbours must be matched along the same sequence for the decision
+        to be merged (0 disables the check).
+    merge_max_rate : float
+        Images of the matched sequence a neighbour may advance per frame and still agree.
     merge_both_ways : bool
         Store each merge edge in both directions (query -> map and map -> query), so belief can
         later cross between the two drives either way. The paper keeps one direction.
@@ -101,7 +112,11 @@ class MapConfig:
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
     initial_map_size: int = 1 << 30
-    merge_threshold: float = 0.5
+    merge_threshold: float = 0.9
+    merge_max_novel: float = 0.5
+    merge_window: int = 3
+    merge_min_agree: int = 3
+    merge_max_rate: float = 3.0
     merge_both_ways: bool = True
     hmm: HMMConfig = field(default_factory=HMMConfig)
 
@@ -141,6 +156,20 @@ class MapConfig:
             raise ValueError("initial_map_size must be at least 1 MiB")
         if not 0 <= self.merge_threshold <= 1:
             raise ValueError("merge_threshold must be in [0, 1]")
+        if not 0 <= self.merge_max_novel <= 1:
+            raise ValueError("merge_max_novel must be in [0, 1]")
+        if not isinstance(self.merge_window, int) or self.merge_window < 0:
+            raise ValueError("merge_window must be an integer >= 0")
+        if not isinstance(self.merge_min_agree, int) or not 0 <= self.merge_min_agree <= 2 * self.merge_window:
+            raise ValueError("merge_min_agree must be an integer in [0, 2 * merge_window]")
+        if not self.merge_max_rate > 0:
+            raise ValueError("merge_max_rate must be > 0")
+
+    @property
+    def merge_rule(self) -> MergeRule:
+        """The merge rule these fields define (:mod:`sprint_map.merge_rule`)."""
+        return MergeRule(self.merge_threshold, self.merge_max_novel, self.merge_window,
+                         self.merge_min_agree, self.merge_max_rate)
 
     @property
     def index_dim(self) -> int:

@@ -10,7 +10,8 @@ k-NN searches: one search of B queries is much cheaper than B searches of one).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +19,8 @@ import numpy as np
 
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.hmm.decision import Decision
+from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.map_graph import MapGraphSource
 from sprint_map.storage.store import EdgeSpec
@@ -37,6 +40,8 @@ class FrameDecision:
     ``prob`` is the posterior mass of the decided place (the vertex, its temporal neighbours and
     the vertices joined to them by edges); for "no match" it is that of the best candidate,
     which ``best`` still names (``(seq_id, image_id)``, None when the map is empty).
+    ``novel_prob`` is the posterior probability that the frame shows a place the map does not
+    hold (the filter's "unmapped place" state; 1 when the map is empty).
     """
 
     frame: int
@@ -45,6 +50,7 @@ class FrameDecision:
     prob: float
     vertex_id: int | None = None
     best: tuple[int, int] | None = None
+    novel_prob: float = 0.0
 
     @property
     def is_match(self) -> bool:
@@ -52,7 +58,7 @@ class FrameDecision:
 
     def to_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
-                "prob": round(float(self.prob), 6)}
+                "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6)}
 
 
 @dataclass
@@ -112,7 +118,7 @@ class Localizer:
     """
 
     def __init__(self, smap: SprintMap, hmm: HMMConfig | None = None,
-                 cache: ComponentCache | None = None) -> None:
+                 cache: ComponentCache | None = None, *, record: bool = False) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
         self.source = MapGraphSource(smap.store)
@@ -122,12 +128,38 @@ class Localizer:
         self.timing = Timing()
         self._empty = smap.stats()["vertices"] == 0
         self._frame = 0
+        #: Keep every frame's retrieval hits, for :meth:`smoothed` (O(k) per frame).
+        self.record = record
+        self.hits: list[tuple[np.ndarray, np.ndarray]] = []
 
     def reset(self) -> None:
         """Start a new query sequence."""
         self.filter.reset()
         self.timing = Timing()
         self._frame = 0
+        self.hits = []
+
+    def smoothed(self) -> list[FrameDecision]:
+        """The decisions of every frame so far, re-made from the smoothed posterior.
+
+        Forward-backward over the same sparse active set (:mod:`sprint_map.hmm.smoother`),
+        from the hits recorded while localising (construct with ``record=True``): each frame's
+        decision then uses the frames after it as well. The causal decisions are unchanged.
+
+        Notes
+        -----
+        One more filter step and one backward step per frame, both O(live); memory O(live)
+        per frame of the sequence.
+        """
+        if self._empty:
+            return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
+        if not self.record:
+            raise ValueError("smoothed() needs a Localizer made with record=True")
+        fb = ForwardBackward(self.config, self.source, self.cache)
+        with self.source.pinned():
+            for ids, dists in self.hits:
+                fb.forward(ids, dists)
+            return [self._frame_decision(i, d) for i, d in enumerate(fb.decisions())]
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """Tell a long-lived localizer that the map changed (another drive was committed).
@@ -140,17 +172,34 @@ class Localizer:
         -----
         O(live) plus reloading the changed components that are active.
         """
-        self._empty = self.map.stats()["vertices"] == 0
-        self.filter.invalidate(component_ids)
+        with self.source.pinned():  # re-mapped as of one snapshot, which the next pin compares
+            self._empty = self.source.vertices == 0
+            self.filter.invalidate(component_ids)
+            self.source.mark_current()
+
+    @contextmanager
+    def _pinned(self) -> Iterator[None]:
+        """Read one snapshot of the map in the block (:meth:`MapGraphSource.pinned`): a writer
+        committing meanwhile is not half seen. A map changed since the last snapshot (by a writer
+        nobody told us of through :meth:`invalidate`) is caught up first."""
+        with self.source.pinned() as changed:
+            self._empty = self.source.vertices == 0
+            if changed:
+                try:
+                    self.filter.invalidate(None)
+                except ValueError:  # belief on a removed sequence: start afresh from the hits
+                    self.filter.reset()
+            yield
 
     def step(self, descriptor: np.ndarray) -> FrameDecision:
         """Localise one frame (a vehicle streaming its images)."""
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim)
-        if self._empty:
-            return self._no_map_decision()
-        start = time.perf_counter()
-        dists, ids = self.map.search(row, self.config.k)
-        return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+        with self._pinned():
+            if self._empty:
+                return self._no_map_decision()
+            start = time.perf_counter()
+            dists, ids = self.source.search(row, self.config.k)
+            return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
 
     def localize(self, descriptors: np.ndarray | Iterable[np.ndarray]) -> list[FrameDecision]:
         """Localise a whole sequence (array, or an iterable of row batches), batching searches."""
@@ -158,22 +207,27 @@ class Localizer:
 
     def iter_localize(self, descriptors: np.ndarray | Iterable[np.ndarray]
                       ) -> Iterator[FrameDecision]:
-        """Like :meth:`localize`, yielding decisions as batches are searched."""
+        """Like :meth:`localize`, yielding decisions as batches are searched.
+
+        The whole sequence is localised against one snapshot of the map (see
+        :mod:`sprint_map.storage.snapshot`), held until the last decision is yielded.
+        """
         batches = (
             (descriptors[i : i + SEARCH_BATCH] for i in range(0, len(descriptors), SEARCH_BATCH))
             if isinstance(descriptors, np.ndarray) else descriptors
         )
-        for batch in batches:
-            rows = validate_descriptors(batch, self.map.config.dim)
-            if self._empty:
-                for _ in range(len(rows)):
-                    yield self._no_map_decision()
-                continue
-            start = time.perf_counter()
-            dists, ids = self.map.search(rows, self.config.k)
-            share = (time.perf_counter() - start) * 1e3 / len(rows)
-            for i in range(len(rows)):
-                yield self._update(ids[i], dists[i], share)
+        with self._pinned():
+            for batch in batches:
+                rows = validate_descriptors(batch, self.map.config.dim)
+                if self._empty:
+                    for _ in range(len(rows)):
+                        yield self._no_map_decision()
+                    continue
+                start = time.perf_counter()
+                dists, ids = self.source.search(rows, self.config.k)
+                share = (time.perf_counter() - start) * 1e3 / len(rows)
+                for i in range(len(rows)):
+                    yield self._update(ids[i], dists[i], share)
 
     def _update(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float) -> FrameDecision:
         start = time.perf_counter()
@@ -182,36 +236,45 @@ class Localizer:
         self.timing.retrieval_ms.append(retrieval_ms)
         self.timing.active_vertices.append(int(decision.n_active_vertices))
         self.timing.active_components.append(int(decision.n_active_components))
+        if self.record:
+            self.hits.append((np.array(ids, copy=True), np.array(dists, copy=True)))
         frame = self._frame
         self._frame += 1
+        return self._frame_decision(frame, decision)
+
+    def _frame_decision(self, frame: int, decision: Decision) -> FrameDecision:
         if decision.vertex_id is None or decision.seq_id is None or decision.image_id is None:
             best = None
             if decision.candidate_id is not None:
-                best = self.map.store.locate([decision.candidate_id])[0]
-            return FrameDecision(frame, None, None, float(decision.prob), None, best)
+                best = self.source.locate([decision.candidate_id])[0]
+            return FrameDecision(frame, None, None, float(decision.prob), None, best,
+                                 float(decision.sink_prob))
         return FrameDecision(frame, int(decision.seq_id), int(decision.image_id),
                              float(decision.prob), int(decision.vertex_id),
-                             (int(decision.seq_id), int(decision.image_id)))
+                             (int(decision.seq_id), int(decision.image_id)),
+                             float(decision.sink_prob))
 
     def _no_map_decision(self) -> FrameDecision:
         self.timing.retrieval_ms.append(0.0)
         self.timing.hmm_ms.append(0.0)
         frame = self._frame
         self._frame += 1
-        return FrameDecision(frame, None, None, 0.0)
+        return FrameDecision(frame, None, None, 0.0, novel_prob=1.0)
 
 
-def merge_edges(decisions: Iterable[FrameDecision], threshold: float, both_ways: bool
+def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_ways: bool
                 ) -> list[EdgeSpec]:
-    """Edges that merging a localised sequence adds: one per confident decision.
+    """The edges that merging a localised drive adds: one per merged decision.
 
-    A decision on frame ``i`` matched to ``(s, j)`` with ``prob >= threshold`` gives the edge
-    ``(new, i) -> (s, j)``, and with ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can
-    later cross from the old drive into the new one as well as back.
+    ``merged`` is the merge rule's verdict per decision
+    (:func:`sprint_map.merge_rule.select_merges`). A merged decision on frame ``i`` matched to
+    ``(s, j)`` gives the edge ``(new, i) -> (s, j)`` with weight ``min(prob, 1)``, and with
+    ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can later cross from the old drive
+    into the new one as well as back.
     """
     edges = []
-    for d in decisions:
-        if d.seq_id is None or d.image_id is None or d.prob < threshold:
+    for d, keep in zip(decisions, np.asarray(merged, dtype=bool).tolist(), strict=True):
+        if not keep or d.seq_id is None or d.image_id is None:
             continue
         weight = min(1.0, float(d.prob))
         edges.append(EdgeSpec((None, d.frame), (d.seq_id, d.image_id), weight, d.frame))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -26,9 +26,11 @@ from sprint_map.errors import DescriptorShapeError, InputError
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
+from sprint_map.merge_rule import select_merges
 from sprint_map.storage.check import CheckReport, check_map
 from sprint_map.storage.compaction import CompactReport
 from sprint_map.storage.keys import SequenceRecord
+from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
 from sprint_map.storage.removal import RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
 
@@ -40,16 +42,20 @@ class IngestResult:
     added: AddResult
     decisions: list[FrameDecision]
     timing: Timing
+    #: The merge rule's verdict per decision: which became edges (empty without a merge).
+    merged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def to_dict(self) -> dict[str, Any]:
         seq = self.added.sequence
+        merged = self.merged.tolist() if len(self.merged) else [False] * len(self.decisions)
         return {
             "seq_id": seq.seq_id,
             "name": seq.name,
             "frames": seq.length,
             "component": self.added.component,
             "edges_added": self.added.edges_added,
-            "decisions": [d.to_dict() for d in self.decisions],
+            "decisions": [{**d.to_dict(), "merged": m}
+                          for d, m in zip(self.decisions, merged, strict=True)],
             "timing": self.timing.to_dict(),
         }
 
@@ -142,22 +148,28 @@ class SprintMap:
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
-        The lifelong step of the paper: every frame is localised against the map as it stands;
-        each decision with probability at least ``config.merge_threshold`` becomes an edge (both
-        ways if ``config.merge_both_ways``), and the sequence, its edges and the union-find
-        merges are committed in one transaction. With ``merge=False``, or on an empty map, the
-        sequence is appended as it is, without localisation or edges.
+        The lifelong step of the paper, with a smoothed merge: every frame is localised
+        against the map as it stands (causally, batch by batch); once the whole drive has been
+        seen its decisions are re-made from the forward-backward smoothed posterior over the
+        same sparse active set (:mod:`sprint_map.hmm.smoother`), and the merge rule
+        (:mod:`sprint_map.merge_rule`: confident, not novel, temporally consistent) selects
+        those that become edges (both ways if ``config.merge_both_ways``). The sequence, its
+        edges and the union-find merges are committed in one transaction. With
+        ``merge=False``, or on an empty map, the sequence is appended as it is, without
+        localisation or edges.
 
         Parameters
         ----------
         descriptors : ndarray (N, dim), or an iterable of (n_i, dim) batches
             A batch iterable (e.g. ``FrameSource.iter_batches()``) is streamed: each batch is
-            localised and written to the shards (uncommitted) as it arrives, so memory is
-            bounded by the batch, not the drive.
+            localised and written to the shards (uncommitted) as it arrives, so descriptor
+            memory is bounded by the batch, not the drive.
 
         Notes
         -----
-        Per frame: one k-NN search (batched) and one HMM step over the active set.
+        Per frame: one k-NN search (batched), one HMM step over the active set, and one
+        backward step of the smoother over the same support; the smoother keeps the frame's
+        hits and its sparse forward belief (O(live) per frame) until the drive ends.
         """
         batches: Iterable[np.ndarray]
         if isinstance(descriptors, np.ndarray):
@@ -165,22 +177,34 @@ class SprintMap:
                        for i in range(0, len(descriptors), SEARCH_BATCH))
         else:
             batches = descriptors
-        localizer = Localizer(self, hmm) if merge and self.stats()["vertices"] else None
-        decisions: list[FrameDecision] = []
+        localizer = (Localizer(self, hmm, record=True) if merge and self.stats()["vertices"]
+                     else None)
         with self.store.begin_sequence(name, source) as writer:
             for batch in batches:
                 if localizer is not None:
-                    decisions.extend(localizer.localize(batch))
+                    for _ in localizer.iter_localize(iter([batch])):
+                        pass
                 writer.append(batch)
-            edges = merge_edges(decisions, self.config.merge_threshold,
-                                self.config.merge_both_ways)
+            decisions = localizer.smoothed() if localizer is not None else []
+            merged = self.select_merges(decisions)
+            edges = merge_edges(decisions, merged, self.config.merge_both_ways)
             added = writer.commit(positions, edges)
-        return IngestResult(added, decisions, localizer.timing if localizer else Timing())
+        return IngestResult(added, decisions, localizer.timing if localizer else Timing(),
+                            merged)
+
+    def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
+        """The map's merge rule over one drive's decisions: which would become edges.
+
+        See :mod:`sprint_map.merge_rule`; the rule's parameters are the ``merge_*`` fields of
+        the map's config.
+        """
+        return select_merges(decisions, self.config.merge_rule)
 
     def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
               positions: np.ndarray | None = None, source: str = "") -> AddResult:
-        """Commit a localised drive with its confident decisions as edges, atomically."""
-        edges = merge_edges(decisions, self.config.merge_threshold, self.config.merge_both_ways)
+        """Commit a localised drive with the decisions the merge rule selects as edges,
+        atomically (``decisions``: usually :meth:`localize` with ``smooth=True``)."""
+        edges = merge_edges(decisions, self.select_merges(decisions), self.config.merge_both_ways)
         return self.add_sequence(descriptors, name=name, positions=positions, edges=edges,
                                  source=source)
 
@@ -200,6 +224,26 @@ class SprintMap:
         ids = [s if isinstance(s, int) else self.store.sequence_by_name(s).seq_id
                for s in sequences]
         return self.store.remove_sequences(ids)
+
+    def unmerge(self, seq: int | str) -> UnmergeResult:
+        """Undo a drive's merge: revoke every edge sequence ``seq`` (id or name) added.
+
+        One atomic commit removes those edges (both directions, with their reverse index) and
+        rebuilds the components they held together, which split where no other edge joins
+        them. The sequence stays in the map, as do the edges later drives added to it (remove
+        it with :meth:`remove_sequences` to drop those too). Unmerging a drive that added no
+        edge (or twice) changes nothing and reports 0. See
+        :func:`sprint_map.storage.provenance.unmerge_sequence`.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No sequence with that id or name.
+        """
+        return self.store.unmerge(self._seq_id(seq))
+
+    def _seq_id(self, seq: int | str) -> int:
+        return seq if isinstance(seq, int) else self.store.sequence_by_name(seq).seq_id
 
     def compact(self) -> CompactReport:
         """Reclaim the space of removed sequences: shards, index and LMDB are rewritten into a
@@ -226,10 +270,20 @@ class SprintMap:
         base = hmm or self.config.hmm
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
 
-    def localize(self, descriptors: Any, **overrides: Any) -> tuple[list[FrameDecision], Timing]:
-        """Localise a whole query sequence without changing the map; batches its searches."""
+    def localize(self, descriptors: Any, *, smooth: bool = False, **overrides: Any
+                 ) -> tuple[list[FrameDecision], Timing]:
+        """Localise a whole query sequence without changing the map; batches its searches.
+
+        With ``smooth`` the decisions are re-made from the forward-backward smoothed posterior
+        once the whole sequence has been seen (what ``ingest`` merges); without it they are the
+        causal filter's, as a vehicle gets them.
+        """
         localizer = self.localizer(**overrides)
-        return localizer.localize(np.asarray(descriptors)), localizer.timing
+        if not smooth:
+            return localizer.localize(np.asarray(descriptors)), localizer.timing
+        localizer.record = True
+        localizer.localize(np.asarray(descriptors))
+        return localizer.smoothed(), localizer.timing
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
                     progress: ProgressCallback | None = None) -> FrameSource:
@@ -265,6 +319,23 @@ class SprintMap:
 
     def component_of(self, seq_id: int) -> int:
         return self.store.component_of(seq_id)
+
+    def edges(self, seq: int | str | None = None, *, added_by: int | str | None = None
+              ) -> list[EdgeInfo]:
+        """Edges between ``(seq, image)`` endpoints with their provenance (``added_by``: the
+        drive whose merge created the edge; ``frame``; ``prob``), in vertex order.
+
+        ``seq`` (id or name) keeps the edges touching that sequence (either end);
+        ``added_by`` (id or name) those that drive added, i.e. what :meth:`unmerge` of it
+        revokes. See :func:`sprint_map.storage.provenance.list_edges` for the costs.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No sequence with that id or name.
+        """
+        return list_edges(self.store, None if seq is None else self._seq_id(seq),
+                          None if added_by is None else self._seq_id(added_by))
 
     def components(self) -> list[ComponentInfo]:
         return self.store.components()

@@ -9,6 +9,7 @@ from sprint_map.config import MapConfig
 from sprint_map.errors import DescriptorShapeError, DuplicateNameError
 from sprint_map.localizer import FrameDecision, merge_edges
 from sprint_map.map import SprintMap
+from sprint_map.merge_rule import MergeRule, select_merges
 
 DIM = 48
 
@@ -110,8 +111,8 @@ def test_ingest_streams_batches_and_rolls_back_on_bad_batch(tmp_path, rng, world
         bad = np.zeros((5, DIM + 1), np.float32)
         with pytest.raises(DescriptorShapeError):
             m.ingest(iter([a[:30], bad]), name="broken")
-        with pytest.raises(DuplicateNameError):
-            m.ingest(a, name="streamed")
+        with pytest.raises(DuplicateNameError):  # (the same content again is a retry)
+            m.ingest(a[:50], name="streamed")
         assert m.stats() == {"sequences": 1, "vertices": 100, "edges": 0, "components": 1}
     with SprintMap.open(tmp_path / "m", readonly=True) as m:
         assert m.check().ok
@@ -135,8 +136,40 @@ def test_merge_edges_from_confident_decisions(both, expected):
         FrameDecision(2, 3, 9, 0.4, 102),  # below the threshold
         FrameDecision(3, 4, 1, 0.5, 200),
     ]
-    edges = merge_edges(decisions, threshold=0.5, both_ways=both)
+    merged = select_merges(decisions, MergeRule(threshold=0.5))
+    assert merged.tolist() == [True, False, False, True]
+    edges = merge_edges(decisions, merged, both_ways=both)
     assert len(edges) == expected
     assert edges[0].src == (None, 0) and edges[0].dst == (3, 7) and edges[0].frame == 0
     if both:
         assert edges[1].src == (3, 7) and edges[1].dst == (None, 0)
+
+
+def test_merge_rule_needs_neighbours_that_agree():
+    along = [FrameDecision(i, 2, 10 + i, 0.9) for i in range(7)]
+    along[3] = FrameDecision(3, 5, 80, 0.99)  # a jump to another drive
+    along[5] = FrameDecision(5, None, None, 0.1)
+    rule = MergeRule(threshold=0.5, window=2, min_agree=2)
+    # (the last frame has one agreeing neighbour left: 4; 5 is no match)
+    assert select_merges(along, rule).tolist() == [True, True, True, False, True, False, False]
+    # Not novel: a decision the filter thinks unmapped is not merged however confident.
+    novel = [FrameDecision(i, 2, 10 + i, 0.9, novel_prob=0.6 if i == 1 else 0.0)
+             for i in range(3)]
+    assert select_merges(novel, MergeRule(max_novel=0.5)).tolist() == [True, False, True]
+    # A neighbour that runs backwards along the drive does not agree.
+    back = [FrameDecision(i, 2, 50 - 3 * i, 0.9) for i in range(5)]
+    assert not select_merges(back, MergeRule(window=2, min_agree=1)).any()
+
+
+def test_ingest_merges_smoothed_decisions(tmp_path, rng, world):
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+        a, _ = traverse(rng, world, 0, 80, noise=0.3)
+        b, _ = traverse(rng, world, 0, 80, noise=0.3)
+        m.add_sequence(a, name="a")
+        smoothed, _ = m.localize(b, smooth=True)
+        res = m.ingest(b, name="b")
+        assert [d.best for d in res.decisions] == [d.best for d in smoothed]
+        assert res.merged.tolist() == m.select_merges(smoothed).tolist()
+        assert res.added.edges_added == 2 * int(res.merged.sum()) > 0
+        out = res.to_dict()
+        assert all("novel_prob" in d and "merged" in d for d in out["decisions"])

@@ -126,7 +126,8 @@ class CommitWriter:
         """Commit one drive (in the writer thread; also usable directly when no thread runs)."""
         smap = self.smap
         config = smap.config
-        edges = merge_edges(job.decisions, config.merge_threshold, config.merge_both_ways)
+        edges = merge_edges(job.decisions, smap.select_merges(job.decisions),
+                            config.merge_both_ways)
         touched = {seq for e in edges for seq, _ in (e.src, e.dst) if seq is not None}
         # Only this thread changes the union-find, so these roots hold until the commit.
         before = {smap.component_of(seq) for seq in touched}

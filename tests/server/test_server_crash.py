@@ -23,6 +23,7 @@ from serve_helpers import DIM, drive
 from sprint_map.config import MapConfig
 from sprint_map.localizer import FrameDecision, merge_edges
 from sprint_map.map import SprintMap
+from sprint_map.merge_rule import select_merges
 
 FRAMES = 15
 
@@ -83,10 +84,12 @@ def _verify(path, fleets: list[Fleet], first: np.ndarray) -> int:
                 continue
             assert name in sent, f"{name} was never committed by a client"
             assert m.descriptors(rec.seq_id).tobytes() == sent[name].tobytes(), name
-            made = [FrameDecision(a["frame"], a["seq_id"], a["image_id"], a["prob"])
+            made = [FrameDecision(a["frame"], a["seq_id"], a["image_id"], a["prob"],
+                                  novel_prob=a.get("novel_prob", 0.0))
                     for a in answers[name]]
             want = {}
-            for spec in merge_edges(made, config.merge_threshold, config.merge_both_ways):
+            merged = select_merges(made, config.merge_rule)
+            for spec in merge_edges(made, merged, config.merge_both_ways):
                 src, dst = (m.store.vertex_id(rec.seq_id if s is None else s, image)
                             for s, image in (spec.src, spec.dst))
                 want[(src, dst)] = (spec.weight, spec.frame)
