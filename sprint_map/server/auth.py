@@ -9,6 +9,7 @@ from pathlib import Path
 
 from sprint_map.errors import InputError, UnsafeServeError
 from sprint_map.server.config import ServerConfig
+from sprint_map.storage.validation import decode_text
 
 
 def load_token(config: ServerConfig) -> str | None:
@@ -17,18 +18,20 @@ def load_token(config: ServerConfig) -> str | None:
     Raises
     ------
     InputError
-        If the token file cannot be read or is empty.
+        If the token file cannot be read, is empty, or it or ``$token_env`` is not UTF-8 text.
     """
     if config.token_file:
         try:
-            token = Path(config.token_file).read_text().strip()
+            raw = Path(config.token_file).read_bytes()
         except OSError as exc:
             raise InputError(f"cannot read token file {config.token_file}: "
                              f"{exc.strerror or exc}") from exc
+        token = decode_text(raw, f"token file {config.token_file}", secret=True).strip()
         if not token:
             raise InputError(f"token file {config.token_file} is empty")
         return token
-    token = os.environ.get(config.token_env, "").strip()
+    token = decode_text(os.environ.get(config.token_env, ""), f"${config.token_env}",
+                        secret=True).strip()
     return token or None
 
 

@@ -75,23 +75,25 @@ def shown(text: str | bytes) -> str:
     return repr(text)
 
 
-def decode_text(value: str | bytes, what: str) -> str:
-    """``value`` as text, or :class:`InputError` (one line naming ``what``) if it is not UTF-8.
+def decode_text(value: str | bytes, what: str, *, secret: bool = False) -> str:
+    """``value`` as text, or :class:`InputError` (one line naming ``what``) if it is not UTF-8;
+    the message quotes ``value`` unless it is a ``secret`` (a token).
 
     Every text a user or a file gives (names, paths, tokens) passes here once: ``bytes`` must
     decode as UTF-8; a ``str`` must encode as UTF-8, which a string decoded from other bytes
     does not (Python decodes arguments and file names with ``surrogateescape``: a byte 0xff
     becomes the lone surrogate U+DCFF), nor one with a lone surrogate from JSON.
     """
+    refused = f"{what} is not UTF-8 text" if secret else f"{what} {shown(value)} is not UTF-8 text"
     if isinstance(value, bytes):
         try:
             return value.decode("utf-8")
         except UnicodeDecodeError:
-            raise InputError(f"{what} {shown(value)} is not UTF-8 text") from None
+            raise InputError(refused) from None
     try:
         value.encode("utf-8")
     except UnicodeEncodeError:
-        raise InputError(f"{what} {shown(value)} is not UTF-8 text") from None
+        raise InputError(refused) from None
     return value
 
 
