@@ -354,3 +354,118 @@ def test_check_beside_a_live_writer_treats_files_in_flight_as_notes(make_map):
         assert report.ok, report.violations
     finally:
         _kill(writer)
+
+
+# --- localize across merging ingests and removes ------------------------------------------------
+
+#: Drives over disjoint stretches of the 60 places start as separate components; the writer's
+#: drives each bridge two stretches (their components merge), its removes split them again.
+CHURN_PLAN = PLAN + textwrap.dedent("""
+    def walk(seed, start, n):
+        rng = np.random.default_rng(seed)
+        x = PLACES[(start + np.arange(n)) % 60] + 0.3 * rng.standard_normal((n, DIM))
+        return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+    def batches(x, rows=20):
+        return [x[i : i + rows] for i in range(0, len(x), rows)]
+""")
+
+#: Ingests ``count`` drives (localised and merged) and removes the drive ingested two commits
+#: earlier after every fourth, pausing between commits; one line per commit.
+CHURN_WRITER = CHURN_PLAN + textwrap.dedent("""
+    import json, sys, time
+    from sprint_map.map import SprintMap
+
+    path, count = sys.argv[1], int(sys.argv[2])
+    with SprintMap.open(path) as m:
+        print(json.dumps({"ready": True}), flush=True)
+        sys.stdin.readline()  # the readers are up
+        for i in range(count):
+            m.ingest(walk(100 + i, 15 * i + 8, 25), name=f"c{i}")
+            print(json.dumps({"ingest": i}), flush=True)
+            time.sleep(0.1)
+            if i % 4 == 3:  # 5 removes in 20 ingests
+                m.remove_sequences([f"c{i - 2}"])
+                print(json.dumps({"remove": i - 2}), flush=True)
+                time.sleep(0.1)
+""")
+
+#: Localises a 240-frame drive (12 searches of 20 frames) over and over, one open as a server
+#: would, until the file ``stop`` exists; counts runs, failures and the map states it saw.
+CHURN_READER = CHURN_PLAN + textwrap.dedent("""
+    import json, os, sys, traceback
+    from sprint_map.map import SprintMap
+
+    path, stop = sys.argv[1], sys.argv[2]
+    query = batches(walk(900, 0, 240))
+    out = {"runs": 0, "failures": [], "states": set()}
+    with SprintMap.open(path, readonly=True) as m:
+        print(json.dumps({"ready": True}), flush=True)
+        while not os.path.exists(stop) or out["runs"] < 3:
+            try:
+                decisions = m.localizer().localize(iter(query))
+                assert len(decisions) == 240
+            except Exception:
+                out["failures"].append(traceback.format_exc(limit=-4))
+            out["runs"] += 1
+            out["states"].add(m.stats()["vertices"])
+    out["states"] = len(out["states"])
+    print(json.dumps(out))
+""")
+
+
+@pytest.mark.slow
+def test_localize_survives_merging_ingests_and_removes(tmp_path):
+    """Issue 14, item 7: a reader's ``localize`` died while a writer committed (a merge:
+    "vertex N is not in the component the source named"; a remove: "vertex N belonged to a
+    removed sequence"). Every localize reads one pinned snapshot now: 0 failures in library
+    readers and in the real ``sprint-map localize`` across 20 merging ingests and 5 removes."""
+    from sprint_map.config import MapConfig
+    from sprint_map.map import SprintMap
+
+    path = tmp_path / "churn.map"
+    plan: dict[str, Any] = {}
+    exec(CHURN_PLAN, plan)  # the drives every process shares
+    with SprintMap.create(path, MapConfig(dim=DIM)) as m:
+        for i in range(4):  # four stretches of 15 places: four components
+            m.add_sequence(plan["walk"](i, 15 * i, 15), name=f"d{i}")
+    query = tmp_path / "query.npy"
+    np.save(query, plan["walk"](900, 0, 240))
+    writer = _python(CHURN_WRITER, str(path), "20", stdin=subprocess.PIPE)
+    readers = [_python(CHURN_READER, str(path), str(tmp_path / "stop")) for _ in range(2)]
+    cli: list[subprocess.Popen] = []
+    try:
+        assert writer.stdout is not None and writer.stdin is not None
+        assert json.loads(writer.stdout.readline()) == {"ready": True}
+        for reader in readers:
+            assert reader.stdout is not None
+            assert json.loads(reader.stdout.readline()) == {"ready": True}
+        writer.stdin.write("go\n")
+        writer.stdin.flush()
+        # The real CLI beside the writer, one run after another while it writes.
+        while writer.poll() is None:
+            cli.append(subprocess.Popen([SPRINT_MAP, "localize", str(path), str(query),
+                                         "--json", "--quiet"], stdout=subprocess.PIPE,
+                                        stderr=subprocess.PIPE, text=True))
+            cli[-1].wait(timeout=120)
+        out, err = writer.communicate(timeout=120)
+        assert writer.returncode == 0, err
+        (tmp_path / "stop").touch()
+        seen = [json.loads(r.communicate(timeout=120)[0]) for r in readers]
+        assert all(r.returncode == 0 for r in readers)
+    finally:
+        for proc in [writer, *readers, *cli]:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    commits = _json_lines(out)
+    assert sum("ingest" in c for c in commits) == 20 and sum("remove" in c for c in commits) == 5
+    for reader in seen:
+        assert reader["failures"] == [], f"{len(reader['failures'])} of {reader['runs']} runs " \
+                                         f"failed; the first:\n{reader['failures'][0]}"
+        assert reader["runs"] >= 5 and reader["states"] >= 5, reader  # ran across commits
+    for proc in cli:
+        stdout, stderr = proc.communicate()
+        assert proc.returncode == 0, stderr
+        assert len(json.loads(stdout)["decisions"]) == 240
+    assert cli

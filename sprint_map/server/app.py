@@ -1,4 +1,4 @@
-"""The HTTP API (FastAPI on uvicorn): routes, error answers, the request-size limit, auth.
+"""The HTTP API (FastAPI on uvicorn): routes, error answers, the token and body limits.
 
 Paths (a contract): ``POST /v1/sessions``, ``POST /v1/sessions/{id}/frames``,
 ``POST /v1/sessions/{id}/commit``, ``DELETE /v1/sessions/{id}``, ``GET /v1/map``,
@@ -118,43 +118,68 @@ def frame_body(dim: int) -> dict[str, Any]:
     }
 
 
-#: Documents the optional bearer token in the schema; the check itself is ``authorised``.
+#: Documents the optional bearer token in the schema; checked by ``RequestGuard`` (before the
+#: body is read) and again by ``authorised``.
 BEARER = HTTPBearer(auto_error=False, description="Required when the server has a token.")
 
 
-class BodyLimit:
-    """ASGI middleware: refuse request bodies above ``limit`` bytes with 413 (JSON).
+#: Paths answered without the token (liveness, readiness, the API's documentation).
+PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/openapi.json", "/docs",
+                          "/docs/oauth2-redirect", "/redoc"})
 
-    The body is buffered up to the limit before the app sees it, so no route reads more.
+
+class RequestGuard:
+    """ASGI middleware: the token, then the body's size and time, before the app runs.
+
+    In this order, from the headers alone: a request to a guarded path without the right
+    bearer token is answered 401 before a byte of its body is read (the routes' ``authorised``
+    dependency then documents the scheme and checks again); a ``Content-Length`` above
+    ``limit`` is answered 413. Then the body is buffered up to ``limit`` bytes (413 beyond),
+    all of it within ``body_timeout_s`` (408 otherwise), so no route reads more or waits longer.
+    An answer given before the body was read closes the connection.
     """
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+    def __init__(self, app: ASGIApp, limit: int, token: str | None = None,
+                 body_timeout_s: float = 30.0) -> None:
         self.app = app
         self.limit = limit
+        self.token = token
+        self.body_timeout_s = body_timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         headers = dict(scope.get("headers") or [])
+        if (self.token is not None and scope.get("path") not in PUBLIC_PATHS
+                and not token_matches(_latin1(headers.get(b"authorization")), self.token)):
+            await _refuse(send, ApiError(401, "unauthorised", "missing or wrong bearer token",
+                                         {"WWW-Authenticate": "Bearer"}))
+            return
         length = headers.get(b"content-length")
         if length is not None and (not length.isdigit() or int(length) > self.limit):
-            await self._refuse(send)
+            await _refuse(send, self._too_large())
             return
         chunks: list[bytes] = []
         size = 0
-        while True:
-            message = await receive()
-            if message["type"] != "http.request":
-                break  # a disconnect: the app sees it below
-            chunk = message.get("body", b"")
-            size += len(chunk)
-            if size > self.limit:
-                await self._refuse(send)
-                return
-            chunks.append(chunk)
-            if not message.get("more_body", False):
-                break
+        try:
+            with anyio.fail_after(self.body_timeout_s):
+                while True:
+                    message = await receive()
+                    if message["type"] != "http.request":
+                        break  # a disconnect: the app sees it below
+                    chunk = message.get("body", b"")
+                    size += len(chunk)
+                    if size > self.limit:
+                        await _refuse(send, self._too_large())
+                        return
+                    chunks.append(chunk)
+                    if not message.get("more_body", False):
+                        break
+        except TimeoutError:
+            await _refuse(send, ApiError(408, "timeout", "the request body did not arrive "
+                                         f"within {self.body_timeout_s:g} s"))
+            return
         body = b"".join(chunks)
         sent = False
 
@@ -167,10 +192,19 @@ class BodyLimit:
 
         await self.app(scope, replay, send)
 
-    async def _refuse(self, send: Send) -> None:
-        err = ApiError(413, "too_large", f"request body exceeds {self.limit} bytes")
-        response = SafeJSONResponse(err.body(), status_code=413)
-        await response({"type": "http"}, _no_receive, send)
+    def _too_large(self) -> ApiError:
+        return ApiError(413, "too_large", f"request body exceeds {self.limit} bytes")
+
+
+def _latin1(value: bytes | None) -> str | None:
+    return None if value is None else value.decode("latin-1")
+
+
+async def _refuse(send: Send, err: ApiError) -> None:
+    """Answer ``err`` and close the connection (its body, if any, is not read)."""
+    response = SafeJSONResponse(err.body(), status_code=err.status,
+                                headers={**err.headers, "Connection": "close"})
+    await response({"type": "http"}, _no_receive, send)
 
 
 class RequestMetrics:
@@ -307,6 +341,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         text = await anyio.to_thread.run_sync(service.metrics.render)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
-    app.add_middleware(BodyLimit, limit=service.config.max_request_bytes)
+    app.add_middleware(RequestGuard, limit=service.config.max_request_bytes, token=token,
+                       body_timeout_s=service.config.body_timeout_s)
     app.add_middleware(RequestMetrics, metrics=service.metrics)
     return app

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,8 +47,20 @@ class ServerConfig:
     on_shutdown : str
         ``"discard"`` or ``"commit"`` the sessions still open at a graceful shutdown.
     max_connections : int
-        Concurrent connections and requests uvicorn serves (``limit_concurrency``); more: 503.
-        With ``max_request_bytes`` it bounds the memory held by request bodies.
+        Open connections. A new connection beyond it closes the idle connection least worth
+        keeping (one that never completed a request first, then the longest quiet); one with
+        a request in progress is never closed. If all are busy, requests beyond it are answered
+        503 ``busy``, but ``/healthz`` and ``/readyz`` still answer (:mod:`.guard`). With
+        ``max_request_bytes`` and ``max_header_bytes`` it bounds the memory held by requests.
+    max_header_bytes : int
+        Largest request line plus headers; larger: 431 and the connection is closed.
+    header_timeout_s : float
+        A request's headers must be complete this long after its connection opened (or its
+        previous response ended); otherwise 408 (or a silent close if nothing came).
+    body_timeout_s : float
+        A request's whole body must arrive within this; otherwise 408.
+    keep_alive_s : float
+        An idle keep-alive connection is closed after this (uvicorn ``timeout_keep_alive``).
     shutdown_grace_s : float
         How long a graceful shutdown waits for requests in progress.
     max_image_pixels : int
@@ -71,6 +84,10 @@ class ServerConfig:
     commit_queue_size: int = 16
     on_shutdown: str = "discard"
     max_connections: int = 512
+    max_header_bytes: int = 16 << 10
+    header_timeout_s: float = 10.0
+    body_timeout_s: float = 30.0
+    keep_alive_s: float = 5.0
     shutdown_grace_s: float = 10.0
     max_image_pixels: int = 1 << 26
 
@@ -80,13 +97,16 @@ class ServerConfig:
         for name in ("max_request_bytes", "max_sessions", "max_frames_per_session",
                      "max_buffered_bytes", "frame_workers", "max_pending_frames",
                      "max_queued_frames", "commit_queue_size", "max_connections",
-                     "max_image_pixels"):
+                     "max_image_pixels", "max_header_bytes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive integer")
-        for name in ("session_ttl_s", "shutdown_grace_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0")
+        for name in ("session_ttl_s", "shutdown_grace_s", "header_timeout_s", "body_timeout_s",
+                     "keep_alive_s"):
+            value = getattr(self, name)
+            if (isinstance(value, bool) or not isinstance(value, int | float)
+                    or not 0 < value < math.inf):
+                raise ValueError(f"{name} must be a number > 0")
         if self.on_shutdown not in SHUTDOWN_MODES:
             raise ValueError(f"on_shutdown must be one of {', '.join(SHUTDOWN_MODES)}")
 

@@ -96,3 +96,48 @@ def test_image_frames_above_the_pixel_limit_are_refused_before_decoding(tmp_path
         assert (gif.status_code, gif.json()["error"]) == (422, "bad_image")
 
     run(path, body, max_image_pixels=1_000_000)
+
+
+def test_the_token_is_checked_before_the_body_is_read():
+    """Item 5: bodies were buffered (up to 4 MiB each) before the token was checked."""
+    from sprint_map.server.app import RequestGuard
+
+    reached: list[str] = []
+
+    async def app(scope: Any, receive: Any, send: Any) -> None:
+        reached.append(scope["path"])
+        await receive()
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def call(path: str, headers: list[tuple[bytes, bytes]]) -> tuple[int, bytes, int]:
+        reads = 0
+
+        async def receive() -> dict[str, Any]:
+            nonlocal reads
+            reads += 1
+            return {"type": "http.request", "body": b"x" * 100, "more_body": False}
+
+        sent: list[dict[str, Any]] = []
+
+        async def send(message: dict[str, Any]) -> None:
+            sent.append(message)
+
+        guard = RequestGuard(app, limit=1000, token="tok", body_timeout_s=5)
+        await guard({"type": "http", "path": path, "method": "POST", "headers": headers},
+                    receive, send)
+        head = dict(sent[0]["headers"])
+        return sent[0]["status"], head.get(b"connection", b""), reads
+
+    lengths = [(b"content-length", b"100")]
+    assert asyncio.run(call("/v1/sessions/x/frames", lengths)) == (401, b"close", 0)
+    assert asyncio.run(call("/v1/sessions/x/frames", lengths + [
+        (b"authorization", b"Bearer nope")])) == (401, b"close", 0)
+    assert asyncio.run(call("/v1/sessions/x/frames", [(b"content-length", b"5000"),
+                                                       (b"authorization", b"Bearer tok")])
+                       ) == (413, b"close", 0)
+    assert reached == []
+    assert asyncio.run(call("/v1/sessions/x/frames", lengths + [
+        (b"authorization", b"Bearer tok")]))[::2] == (200, 1)  # read once, replayed to the app
+    assert asyncio.run(call("/healthz", []))[0] == 200  # public paths need no token
+    assert reached == ["/v1/sessions/x/frames", "/healthz"]
