@@ -33,6 +33,7 @@ from sprint_map.storage.keys import SequenceRecord
 from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
 from sprint_map.storage.removal import RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
+from sprint_map.storage.validation import decode_text
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,14 @@ class SprintMap:
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
     def create(cls, path: str | os.PathLike[str], config: MapConfig) -> SprintMap:
-        """Create an empty map in ``path`` (absent or empty) and open it for writing."""
+        """Create an empty map in ``path`` (absent or empty) and open it for writing.
+
+        Raises
+        ------
+        InputError
+            ``path`` is not UTF-8 text (nothing is created).
+        """
+        decode_text(os.fspath(path), "map path")
         return cls(MapStore.create(path, config))
 
     @classmethod
@@ -86,6 +94,7 @@ class SprintMap:
         shard that may hold uncommitted rows. Raises ``MapLockedError`` at once if another
         process is writing.
         """
+        decode_text(os.fspath(path), "map path")
         return cls(MapStore.open(path, readonly=readonly))
 
     def close(self) -> None:
