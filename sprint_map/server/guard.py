@@ -106,6 +106,8 @@ class _Guarded(HttpToolsProtocol):
 
     def _make_room(self) -> None:
         """Keep at most ``max_connections`` open, closing the least useful idle ones."""
+        if len(self.connections) <= self.limits.max_connections:
+            return  # (the common case, without a scan)
         peers = self._open_peers()
         excess = len(peers) - self.limits.max_connections
         if excess <= 0:
@@ -170,7 +172,8 @@ class _Guarded(HttpToolsProtocol):
         self._in_headers = False
         self._header_bytes = 0
         self._cancel_header_timer()
-        over = len(self._open_peers()) > self.limits.max_connections
+        limit = self.limits.max_connections
+        over = len(self.connections) > limit and len(self._open_peers()) > limit
         if over and httptools.parse_url(self.url).path not in ALWAYS_ANSWERED:
             app, self.app = self.app, _busy_app
             try:
