@@ -72,6 +72,8 @@ class Timing:
     hmm_ms: list[float] = field(default_factory=list)
     active_vertices: list[int] = field(default_factory=list)
     active_components: list[int] = field(default_factory=list)
+    #: Time of the last smoothing pass (forward again + backward + decisions), whole drive.
+    smooth_ms: float = 0.0
 
     @property
     def frames(self) -> int:
@@ -84,6 +86,7 @@ class Timing:
         act = np.asarray(self.active_vertices or [0])
         return {
             "frames": self.frames,
+            "smooth_ms_per_frame": round(self.smooth_ms / n, 4),
             "retrieval_ms_total": round(float(ret.sum()), 3),
             "hmm_ms_total": round(float(hmm.sum()), 3),
             "retrieval_ms_per_frame": round(float(ret.sum()) / n, 4),
@@ -155,11 +158,14 @@ class Localizer:
             return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
         if not self.record:
             raise ValueError("smoothed() needs a Localizer made with record=True")
+        start = time.perf_counter()
         fb = ForwardBackward(self.config, self.source, self.cache)
         with self.source.pinned():
             for ids, dists in self.hits:
                 fb.forward(ids, dists)
-            return [self._frame_decision(i, d) for i, d in enumerate(fb.decisions())]
+            out = [self._frame_decision(i, d) for i, d in enumerate(fb.decisions())]
+        self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
+        return out
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """Tell a long-lived localizer that the map changed (another drive was committed).
