@@ -109,23 +109,16 @@ def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int,
 
 
 def session_name(name: str | None) -> str | None:
-    """A session's sequence name, checked as the store checks it, or a 422 ``bad_input``.
+    """A session's sequence name, checked by the store's one name check, or a 422 ``bad_input``.
 
-    JSON can carry a lone surrogate (``"\\udcff"``), which is a Python ``str`` but not text:
-    it cannot be stored (names are UTF-8) nor printed, so it is refused here, before the
-    store's own :func:`~sprint_map.storage.validation.validate_name`.
+    JSON can carry a lone surrogate (``"\\udcff"``): a Python ``str`` but not UTF-8 text, which
+    :func:`~sprint_map.storage.validation.validate_name` refuses (it was a 500).
     """
-    if name is None:
-        return None
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        raise ApiError(422, "bad_input", "sequence name must be valid UTF-8 text (it holds a "
-                       "lone surrogate escape such as \\udcff)") from None
-    try:
-        validate_name(name)
-    except SprintMapError as exc:
-        raise from_library(exc) from None
+    if name is not None:
+        try:
+            validate_name(name)
+        except SprintMapError as exc:
+            raise from_library(exc) from None
     return name
 
 
