@@ -104,7 +104,7 @@ class HMMConfig:
     dist_scale_ema: float = 0.05
     dist_scale_factor: float = 0.5
     miss_margin: float = 1.0
-    novelty_margin: float = 0.75
+    novelty_margin: float = 0.5
     novelty_dist: float | None = None
     place_radius: int = 2
     place_hops: int = 4
