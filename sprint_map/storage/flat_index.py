@@ -72,6 +72,14 @@ def file_problem(path: Path, upto: int, committed: int, dim: int) -> str | None:
     return None
 
 
+def _ids_dense(index: faiss.Index, upto: int) -> bool:
+    """Whether ``index`` holds ids ``0..upto-1`` in order, as every persisted file does.
+    O(upto)."""
+    if not hasattr(index, "id_map"):
+        return True  # no ids stored: positions are the ids
+    return bool(np.array_equal(faiss.vector_to_array(index.id_map), np.arange(upto)))
+
+
 class FlatIndex:
     """Exact L2 retrieval over all committed descriptors, as ``IndexIDMap2(IndexFlatL2)``.
 
@@ -130,6 +138,9 @@ class FlatIndex:
     def load(self, committed: int, shards: ShardSet) -> faiss.IndexIDMap2:
         """Load the newest trustworthy file and bring it up to ``committed`` vertices.
 
+        A file whose vector count, dimension or ids are not the ones its stamp implies is
+        discarded (the writer deletes it) and the index rebuilt from the shards.
+
         Notes
         -----
         O(file size) to read plus O((committed - upto) * dim) to catch up from the shards.
@@ -152,7 +163,9 @@ class FlatIndex:
                 if self.writable:
                     path.unlink(missing_ok=True)
                 continue
-            if candidate.ntotal != upto or candidate.d != self.dim:
+            if candidate.ntotal != upto or candidate.d != self.dim or not _ids_dense(
+                    candidate, upto):
+                # A garbled id would be a vertex outside the map: a cache event, not a crash.
                 self.events.append(f"index {path.name} does not match its stamp; discarded")
                 if self.writable:
                     path.unlink(missing_ok=True)

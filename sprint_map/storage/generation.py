@@ -66,11 +66,19 @@ def current_data(root: Path) -> Path:
         If ``CURRENT`` names something that is not a generation directory.
     """
     try:
-        name = (root / CURRENT_NAME).read_text().strip()
+        raw = (root / CURRENT_NAME).read_bytes()
     except FileNotFoundError:
         return root
     except NotADirectoryError:
         raise NotAMapError(f"not a sprint-map directory: {root}") from None
+    except IsADirectoryError:
+        raise MapCorruptError(f"{root / CURRENT_NAME} is a directory, not the file naming the "
+                              "live generation") from None
+    try:
+        name = raw.decode("ascii").strip()
+    except UnicodeDecodeError:
+        raise MapCorruptError(f"{root / CURRENT_NAME} is corrupt: it does not name a generation "
+                              "directory") from None
     if not GEN_RE.match(name) or not (root / name).is_dir():
         raise MapCorruptError(f"{root / CURRENT_NAME} names {name!r}, which is not a generation "
                               "directory of the map")

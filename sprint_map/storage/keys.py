@@ -3,30 +3,57 @@
 Keys are big-endian fixed-width integers so that LMDB's byte order is numeric order: this allows
 ``append=True`` bulk loads, range scans (all out-edges of a vertex range) and floor look-ups
 (vertex id -> sequence) with a single cursor seek.
+
+Every decode of an LMDB record goes through this module (:class:`RecordStruct`, :func:`read_u32`,
+:func:`read_u64`, :meth:`SequenceRecord.decode`, :meth:`EdgeRecord.decode`,
+:func:`decode_text`, :func:`decode_number`), and each raises
+:class:`~sprint_map.errors.MapCorruptError` for a record that is not what its database holds: a
+corrupt record is the corrupt-map error (exit 7), never a ``struct.error`` or ``ValueError``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import struct
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-U32 = struct.Struct(">I")
-U64 = struct.Struct(">Q")
+from sprint_map.errors import MapCorruptError
+
+
+class RecordStruct(struct.Struct):
+    """A fixed-width LMDB key or value layout whose ``unpack`` raises MapCorruptError.
+
+    A record of the wrong length (a torn or garbled LMDB page, a record of another database)
+    is corruption of the map, reported as such wherever it is read. O(1).
+    """
+
+    def unpack(self, buffer: Any) -> tuple[Any, ...]:
+        try:
+            return super().unpack(buffer)
+        except (struct.error, TypeError) as exc:
+            raise MapCorruptError(f"corrupt map record: {len(bytes(buffer))} bytes where the "
+                                  f"layout {self.format!r} takes {self.size}") from exc
+
+
+U32 = RecordStruct(">I")
+U64 = RecordStruct(">Q")
 #: (src vertex, dst vertex): edges and the reverse index
-EDGE_KEY = struct.Struct(">QQ")
+EDGE_KEY = RecordStruct(">QQ")
 #: edge provenance: weight (prob), query sequence that created it, frame, unix time
-EDGE_VAL = struct.Struct(">dIId")
+EDGE_VAL = RecordStruct(">dIId")
 #: union-find row of a sequence: parent sequence id, component size in sequences (valid at roots)
-UF_VAL = struct.Struct(">II")
+UF_VAL = RecordStruct(">II")
 #: per-component totals kept at the root: sequences, vertices
-COMP_VAL = struct.Struct(">QQ")
+COMP_VAL = RecordStruct(">QQ")
 #: optional per-vertex data: x, y, heading (deg, NaN if unknown), timestamp (NaN if unknown)
-VERTEX_VAL = struct.Struct(">dddd")
+VERTEX_VAL = RecordStruct(">dddd")
 
 #: removed vertex range, keyed by its last vertex: first vertex, seq id it belonged to
-REMOVED_VAL = struct.Struct(">QI")
+REMOVED_VAL = RecordStruct(">QI")
+#: content digest of a sequence's descriptor rows (``digests`` database): BLAKE2b, 16 bytes
+DIGEST_BYTES = 16
 
 NO_QUERY = 0xFFFFFFFF  # provenance query id for edges given directly, not by a localisation
 
@@ -50,6 +77,35 @@ def read_u64(raw: Raw) -> int:
     return int(U64.unpack(raw)[0])
 
 
+def decode_text(raw: Raw, what: str) -> str:
+    """A UTF-8 record (a name, a meta value) or MapCorruptError naming ``what``. O(len)."""
+    try:
+        return bytes(raw).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MapCorruptError(f"corrupt map record {what}: not UTF-8 text") from exc
+
+
+def decode_number(raw: Raw, what: str, kind: type[int] | type[float] = int) -> Any:
+    """A number stored as ASCII text (``schema_version``, ``created``) or MapCorruptError."""
+    text = decode_text(raw, what).strip()
+    try:
+        value = kind(text)
+    except ValueError as exc:
+        raise MapCorruptError(f"corrupt map record {what}: {text[:40]!r} is not "
+                              f"{'an integer' if kind is int else 'a number'}") from exc
+    if kind is float and not math.isfinite(value):
+        raise MapCorruptError(f"corrupt map record {what}: {text[:40]!r} is not finite")
+    return value
+
+
+def decode_json(raw: Raw, what: str) -> Any:
+    """A JSON record (the config, a sequence record) or MapCorruptError naming ``what``."""
+    try:
+        return json.loads(decode_text(raw, what))
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise MapCorruptError(f"corrupt map record {what}: not JSON ({exc})") from exc
+
+
 @dataclass(frozen=True)
 class SequenceRecord:
     """One committed sequence (drive). Its vertices are ``first_vertex .. first_vertex+length-1``."""
@@ -70,8 +126,33 @@ class SequenceRecord:
 
     @classmethod
     def decode(cls, raw: Raw) -> SequenceRecord:
-        data: dict[str, Any] = json.loads(bytes(raw))
-        return cls(**data)
+        """Parse a record; MapCorruptError unless every field is there with its type.
+
+        Unknown keys are ignored (a newer writer may add fields). O(len(raw)).
+        """
+        data = decode_json(raw, "of a sequence")
+        if not isinstance(data, dict):
+            raise MapCorruptError("corrupt sequence record: not a JSON object")
+        values: dict[str, Any] = {}
+        for f in fields(cls):
+            if f.name not in data:
+                if f.name == "source":
+                    continue
+                raise MapCorruptError(f"corrupt sequence record: no {f.name!r}")
+            value = data[f.name]
+            want = _FIELD_TYPES[f.name]
+            if isinstance(value, bool) or not isinstance(value, want):
+                raise MapCorruptError(f"corrupt sequence record: {f.name!r} is {value!r}")
+            values[f.name] = value
+        record = cls(**values)
+        if record.seq_id < 0 or record.length < 0 or record.first_vertex < 0:
+            raise MapCorruptError(f"corrupt sequence record {record.seq_id}: negative ids")
+        return record
+
+
+_FIELD_TYPES: dict[str, type | tuple[type, ...]] = {
+    "seq_id": int, "name": str, "length": int, "first_vertex": int, "created": (int, float),
+    "source": str}
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import struct
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,8 +17,8 @@ from typing import TypeVar
 
 import lmdb
 
-from sprint_map.errors import MapLockedError, NotAMapError, StorageIOError
-from sprint_map.storage.lock import LOCK_NAME
+from sprint_map.errors import MapCorruptError, MapLockedError, NotAMapError, StorageIOError
+from sprint_map.storage.lock import LOCK_NAME, open_lock_file
 
 T = TypeVar("T")
 
@@ -35,11 +36,75 @@ DB_NAMES = (
     "comp",  # >I root -> >QQ sequences, vertices per component
     "shards",  # >I shard number -> >Q committed rows
     "removed",  # >Q last vertex of a removed sequence -> >QI first vertex, seq_id (schema 2)
+    "digests",  # >I seq_id -> 16-byte BLAKE2b of its descriptor rows (absent: older writer)
 )
 #: Databases a map of an older schema may lack: a writer's open creates them (the migration),
 #: a reader reads such a map as if they were empty.
-OPTIONAL_DBS = frozenset({"removed"})
+OPTIONAL_DBS = frozenset({"removed", "digests"})
 MAX_DBS = 16
+
+#: LMDB errors that mean the file's pages are not what LMDB wrote: the corrupt-map error.
+CORRUPT_ERRORS: tuple[type[lmdb.Error], ...] = (
+    lmdb.CorruptedError, lmdb.PageNotFoundError, lmdb.InvalidError, lmdb.VersionMismatchError,
+    lmdb.IncompatibleError)
+
+#: LMDB's meta page (``MDB_meta`` after the 16-byte page header, 64-bit little-endian build):
+#: magic, version at 16; the free DB's ``md_pad`` (the page size) at 40; last page, txnid at 136.
+_META_MAGIC = 0xBEEFC0DE
+_META_HEAD = struct.Struct("<II")
+_META_PSIZE = struct.Struct("<I")
+_META_TAIL = struct.Struct("<QQ")
+_META_BYTES = 152
+
+
+def check_data_file(path: Path) -> None:
+    """Refuse an LMDB ``data.mdb`` shorter than its newest meta page says it is.
+
+    LMDB memory-maps the file and trusts it: a page past the end of a truncated file is a
+    SIGBUS, not an error. So before any open, the two meta pages of the file header are read
+    (two 152-byte reads and an ``fstat``: O(1)) and the file must reach the last page of the
+    newest valid meta (``(last_pg + 1) * page_size`` bytes). A writer only ever appends pages
+    before it writes the meta that counts them, so a reader racing it never sees a file too
+    short. The meta layout is LMDB's on-disk format 1 of a 64-bit build.
+
+    Raises
+    ------
+    MapCorruptError
+        The file is truncated, or its header is not LMDB's.
+    StorageIOError
+        The file cannot be read.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise NotAMapError(f"not a sprint-map directory (no {path})") from None
+    except OSError as exc:
+        raise StorageIOError(f"cannot open {path}: {exc.strerror or exc}") from exc
+    try:
+        size = os.fstat(fd).st_size
+        first = os.pread(fd, _META_BYTES, 0)
+        metas = []
+        if len(first) == _META_BYTES and _META_HEAD.unpack_from(first, 16)[0] == _META_MAGIC:
+            psize = _META_PSIZE.unpack_from(first, 40)[0]
+            if psize < 512 or psize > 1 << 16 or psize & (psize - 1):
+                raise MapCorruptError(f"LMDB file {path} is corrupt: page size {psize}")
+            second = os.pread(fd, _META_BYTES, psize)
+            for raw in (first, second):
+                if len(raw) == _META_BYTES and _META_HEAD.unpack_from(raw, 16)[0] == _META_MAGIC:
+                    last_pg, txnid = _META_TAIL.unpack_from(raw, 136)
+                    metas.append((txnid, last_pg))
+        if not metas:
+            raise MapCorruptError(f"LMDB file {path} is corrupt: no valid meta page "
+                                  f"({size} bytes)")
+        _, last_pg = max(metas)
+        need = (last_pg + 1) * psize
+        if size < need or size < 2 * psize:
+            raise MapCorruptError(f"LMDB file {path} is truncated: {size} bytes, its last "
+                                  f"committed page needs {max(need, 2 * psize)}")
+    except OSError as exc:
+        raise StorageIOError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    finally:
+        os.close(fd)
 
 
 class LmdbEnv:
@@ -66,6 +131,8 @@ class LmdbEnv:
     ) -> None:
         if not create and not (path / "data.mdb").is_file():
             raise NotAMapError(f"not a sprint-map directory (no {path / 'data.mdb'})")
+        if not create:
+            check_data_file(path / "data.mdb")
         self.readonly = readonly
         self._broken: str | None = None
         self._reader_lock: int | None = None
@@ -85,8 +152,12 @@ class LmdbEnv:
                 # Python threads share read transactions' slots poorly; one slot per txn.
                 max_readers=256,
             )
+        except CORRUPT_ERRORS as exc:
+            raise MapCorruptError(f"LMDB environment {path} is corrupt: {exc}") from exc
         except lmdb.Error as exc:
             raise StorageIOError(f"cannot open {path}: {exc}") from exc
+        except (OverflowError, ValueError, TypeError) as exc:  # a map size LMDB cannot take
+            raise StorageIOError(f"cannot open {path}: map size {map_size}: {exc}") from exc
         if lockless:
             try:
                 self._reader_lock = _lock_out_writers(map_root or path.parent)
@@ -110,6 +181,9 @@ class LmdbEnv:
             except lmdb.NotFoundError as exc:
                 self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
+            except CORRUPT_ERRORS as exc:
+                self.close()
+                raise MapCorruptError(f"LMDB environment {path} is corrupt: {exc}") from exc
             except lmdb.Error as exc:
                 self.close()
                 raise StorageIOError(f"cannot open {path}: {exc}") from exc
@@ -126,6 +200,9 @@ class LmdbEnv:
             except lmdb.NotFoundError as exc:
                 self.close()
                 raise NotAMapError(f"not a sprint-map directory ({path}: {exc})") from exc
+            except CORRUPT_ERRORS as exc:
+                self.close()
+                raise MapCorruptError(f"LMDB environment {path} is corrupt: {exc}") from exc
             except lmdb.Error as exc:
                 self.close()
                 raise StorageIOError(f"cannot open {path}: {exc}") from exc
@@ -159,10 +236,14 @@ class LmdbEnv:
                 # Another process grew the map: adopt its size, then retry.
                 self.env.set_mapsize(0)
                 txn = self.env.begin(buffers=False)
+        except CORRUPT_ERRORS as exc:
+            raise MapCorruptError(f"the map's LMDB is corrupt: {exc}") from exc
         except lmdb.Error as exc:
             raise StorageIOError(f"cannot read the map's LMDB: {exc}") from exc
         try:
             yield txn
+        except CORRUPT_ERRORS as exc:
+            raise MapCorruptError(f"the map's LMDB is corrupt: {exc}") from exc
         except lmdb.Error as exc:
             raise StorageIOError(f"cannot read the map's LMDB: {exc}") from exc
         finally:
@@ -200,6 +281,8 @@ class LmdbEnv:
                 self._grow()
             except lmdb.MapResizedError:
                 self._adopt_size()
+            except CORRUPT_ERRORS as exc:
+                raise MapCorruptError(f"the map's LMDB is corrupt: {exc}") from exc
             except lmdb.Error as exc:
                 raise StorageIOError(f"LMDB write failed: {exc}") from exc
 
@@ -253,7 +336,7 @@ def _lock_out_writers(root: Path) -> int | None:
     refused while such a reader is open.
     """
     try:
-        fd = os.open(root / LOCK_NAME, os.O_RDONLY)
+        fd = open_lock_file(root / LOCK_NAME, os.O_RDONLY)
     except FileNotFoundError:
         return None  # no writer ever ran here, and none can create the lock file
     try:

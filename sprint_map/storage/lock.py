@@ -7,13 +7,44 @@ SIGKILL), so a crashed writer never leaves a stale lock behind.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
+import stat
 from pathlib import Path
 
-from sprint_map.errors import MapLockedError
+from sprint_map.errors import MapCorruptError, MapLockedError
 
 LOCK_NAME = "LOCK"
+#: Never follow a link planted as ``MAP/LOCK`` (the writer would write into its target).
+NOFOLLOW = os.O_NOFOLLOW | os.O_CLOEXEC
+
+
+def open_lock_file(path: Path, flags: int) -> int:
+    """Open ``path`` (a map's ``LOCK``) without following a symbolic link; refuse anything but
+    a regular file with one link (a hard link could be a file outside the map). O(1).
+
+    Raises
+    ------
+    MapCorruptError
+        ``LOCK`` is a symbolic link, a hard link, or not a regular file.
+    OSError
+        Any other error of ``open`` (e.g. FileNotFoundError, PermissionError).
+    """
+    try:
+        fd = os.open(path, flags | NOFOLLOW, 0o644)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise MapCorruptError(f"{path} is a symbolic link; a map's lock file must be a "
+                                  "regular file inside the map (remove the link)") from None
+        raise
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+        os.close(fd)
+        what = "not a regular file" if not stat.S_ISREG(info.st_mode) else "a hard link"
+        raise MapCorruptError(f"{path} is {what}; a map's lock file must be a regular file "
+                              "of the map alone (remove it)")
+    return fd
 
 
 class WriterLock:
@@ -25,7 +56,7 @@ class WriterLock:
 
     def acquire(self) -> None:
         """Take the lock or raise :class:`MapLockedError` naming the holder's pid."""
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = open_lock_file(self.path, os.O_RDWR | os.O_CREAT)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -57,9 +88,9 @@ def writer_active(directory: Path) -> bool:
     description of the same process conflicts with its own exclusive lock too).
     """
     try:
-        fd = os.open(directory / LOCK_NAME, os.O_RDONLY)
-    except OSError:  # no LOCK file: no writer ever opened this map, or it is not readable
-        return False
+        fd = open_lock_file(directory / LOCK_NAME, os.O_RDONLY)
+    except (OSError, MapCorruptError):  # no LOCK file (no writer ever opened this map), not
+        return False                    # readable, or not a lock file any writer could hold
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:

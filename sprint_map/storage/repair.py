@@ -14,9 +14,9 @@ is derived from them and can be rebuilt (:data:`sprint_map.storage.check.REPAIRA
    one), it is rebuilt from the shards and published atomically.
 
 What is not derivable is reported, never guessed: sequence records that do not tile the vertex
-ids (then nothing at all is touched, not even by the writer's open: every derived record and
-file length depends on that tiling), a shard file
-missing or shorter than its committed rows, an edge with an endpoint outside the map or inside
+ids, or a shard file missing or shorter than its committed rows (then nothing at all is touched,
+not even by the writer's open: every derived record and file length depends on that tiling, and
+no row is ever invented to fill a gap), an edge with an endpoint outside the map or inside
 one sequence.
 
 Every step is idempotent and leaves an openable map, so a kill anywhere (crash points
@@ -84,10 +84,18 @@ def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
     # records it trusts are sound (LMDB snapshots are consistent: no lock needed to read).
     with MapStore.open(path, readonly=True) as store:
         tiling = check_sequences(store)
+        lost = [] if "sequences" in tiling.areas else lost_rows(store)
     if "sequences" in tiling.areas:
         report.found = tiling.violations
         report.skipped.append("nothing touched: the sequence records do not tile the vertex "
                               "ids, and every derived record and file length depends on them")
+    elif lost:
+        # Rows exist nowhere else: a writer's open, a truncation or an index rebuild would
+        # only hide the loss (or fill it with zeros).
+        report.found = lost
+        report.skipped.append("nothing touched: shard files miss committed rows, which exist "
+                              "nowhere else (restore the shard files from a backup, or "
+                              "remove the sequences that lost rows)")
     else:
         with MapStore.open(path) as store:
             report.repaired.extend(store.recovery)
@@ -102,6 +110,14 @@ def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
     with MapStore.open(path, readonly=True) as store:
         report.after = check_map(store, seed=seed)
     return report
+
+
+def lost_rows(store: MapStore) -> list[str]:
+    """Shard files missing or shorter than their committed rows. O(shards) ``stat`` calls."""
+    total = store.counter("next_vertex_id")
+    problems = (store.shards.size_problem(shard, rows)
+                for shard, rows in store.shards.lengths_for(total).items())
+    return [problem for problem in problems if problem is not None]
 
 
 def truncate_shard_tails(store: MapStore, total: int) -> list[str]:

@@ -3,7 +3,9 @@
 Invariants (area ``index``):
 
 * the manifest parses, its segments are contiguous from vertex 0 and none ends past the map;
-* every file it names has its recorded size (torn or padded files are caught by one ``stat``);
+* every file it names has its recorded size (torn or padded files are caught by one ``stat``)
+  and, when the manifest records checksums (every manifest written since they were added), its
+  recorded checksum: bytes overwritten in place are caught too;
 * the model is readable, of the map's indexed dimension and the manifest's ``nlist``;
 * each segment holds exactly the ids of its range, once each;
 * a seeded sample of vertices per segment: the shard row, encoded again with the model, gives
@@ -17,6 +19,7 @@ segments are notes: the next writer's open removes them.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +31,7 @@ from sprint_map.storage.flat_index import index_files
 from sprint_map.storage.segment_index import (
     MANIFEST,
     Manifest,
+    checksum_problems,
     is_segment_file,
     manifest_problems,
     read_manifest,
@@ -71,7 +75,8 @@ def check_segments(directory: Path, config: MapConfig, shards: ShardSet, total: 
 
     Notes
     -----
-    One ``stat`` per file, O(sealed) ids read, O(segments * CODE_SAMPLE) re-encodings.
+    One ``stat`` per file, every file's bytes read once for its checksum (O(index bytes)),
+    O(sealed) ids read, O(segments * CODE_SAMPLE) re-encodings.
     """
     try:
         manifest = read_manifest(directory)
@@ -80,6 +85,15 @@ def check_segments(directory: Path, config: MapConfig, shards: ShardSet, total: 
         return
     assert manifest is not None
     model_problem, good, problems = manifest_problems(directory, manifest, total)
+    if not model_problem:
+        model_bad, sound, bad_bytes = checksum_problems(
+            directory, replace(manifest, segments=manifest.segments[:good]))
+        model_problem = model_bad
+        good = min(good, sound)
+        problems = problems + bad_bytes
+        checked["index_files_checksummed"] = sum(
+            1 for _, _, c in manifest.checksummed()[: (2 if manifest.pca_bytes else 1) + good]
+            if c)
     for problem in problems:
         if live:
             notes.append(f"index {problem}, in flight")

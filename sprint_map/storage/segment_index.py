@@ -16,14 +16,20 @@ their true float32 rows from the memory-mapped shards and returns the k best by 
 L2 distance: the distances are the flat index's, only the candidate set is approximate.
 
 ``segments.json`` (the manifest, published atomically) names the model, its PCA and the
-segments with their byte sizes; it is the only thing a reader trusts. Files it does not name
-are leftovers of an interrupted publication. Like the flat index this is a cache of the
-shards: a segment ahead of LMDB or whose size is not its recorded size is dropped with every
-segment after it (the tail then starts earlier), a bad model drops the whole index.
+segments with their byte sizes and checksums (BLAKE2b-128 of the file's bytes; a manifest
+written before checksums has none, and its files are trusted on their sizes alone); it is the
+only thing a reader trusts. Files it does not name are leftovers of an interrupted publication.
+Like the flat index this is a cache of the shards: a segment ahead of LMDB, whose size is not
+its recorded size or whose bytes fail their checksum is dropped with every segment after it
+(the tail then starts earlier: its rows are searched exactly, and the writer seals them again),
+a bad model drops the whole index (the writer retrains it). The checksums are verified when an
+index is loaded (O(index bytes), read sequentially once per process) and by ``check``; the
+writer's open only compares sizes (O(1)).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -70,12 +76,33 @@ def is_segment_file(name: str) -> bool:
     return name == MANIFEST or bool(SEGMENT_RE.match(name) or MODEL_RE.match(name))
 
 
+#: Bytes of a file's checksum (BLAKE2b), hex in the manifest.
+CHECKSUM_BYTES = 16
+#: Bytes read at a time when checksumming a file.
+CHECKSUM_CHUNK = 1 << 20
+
+
+def checksum_bytes(data: bytes | memoryview) -> str:
+    """The manifest checksum of ``data``: BLAKE2b-128, hex. O(len(data))."""
+    return hashlib.blake2b(data, digest_size=CHECKSUM_BYTES).hexdigest()
+
+
+def checksum_file(path: Path) -> str:
+    """The manifest checksum of the file ``path`` (read in 1 MiB blocks). O(file size)."""
+    digest = hashlib.blake2b(digest_size=CHECKSUM_BYTES)
+    with open(path, "rb") as fh:
+        while block := fh.read(CHECKSUM_CHUNK):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 @dataclass(frozen=True)
 class SegmentEntry:
     start: int
     stop: int
     file: str
     bytes: int
+    checksum: str = ""  # "": a manifest written before checksums
 
 
 @dataclass(frozen=True)
@@ -89,6 +116,8 @@ class Manifest:
     pca_bytes: int  # 0: no PCA
     trained_on: int  # vertices in the map when the model was trained
     segments: tuple[SegmentEntry, ...] = field(default_factory=tuple)
+    model_checksum: str = ""  # "": a manifest written before checksums
+    pca_checksum: str = ""
 
     @property
     def sealed(self) -> int:
@@ -97,10 +126,14 @@ class Manifest:
 
     def files(self) -> list[tuple[str, int]]:
         """Every file the manifest names, with its recorded size."""
-        out = [(model_name(self.generation), self.model_bytes)]
+        return [(name, size) for name, size, _ in self.checksummed()]
+
+    def checksummed(self) -> list[tuple[str, int, str]]:
+        """Every file the manifest names with its recorded size and checksum ("" if none)."""
+        out = [(model_name(self.generation), self.model_bytes, self.model_checksum)]
         if self.pca_bytes:
-            out.append((pca_name(self.generation), self.pca_bytes))
-        return out + [(s.file, s.bytes) for s in self.segments]
+            out.append((pca_name(self.generation), self.pca_bytes, self.pca_checksum))
+        return out + [(s.file, s.bytes, s.checksum) for s in self.segments]
 
     def encode(self) -> bytes:
         data = asdict(self)
@@ -116,8 +149,19 @@ class Manifest:
                 raise ValueError("unknown manifest format")
             segments = tuple(SegmentEntry(**s) for s in data.pop("segments"))
             manifest = cls(**data, segments=segments)
-        except (TypeError, KeyError, AttributeError, json.JSONDecodeError) as exc:
+        except (TypeError, KeyError, AttributeError, RecursionError,
+                UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"not a segment manifest: {exc}") from exc
+        ints = [manifest.generation, manifest.nlist, manifest.model_bytes, manifest.pca_bytes,
+                manifest.trained_on] + [v for s in manifest.segments
+                                        for v in (s.start, s.stop, s.bytes)]
+        texts = [manifest.kind, manifest.model_checksum, manifest.pca_checksum] + [
+            v for s in manifest.segments for v in (s.file, s.checksum)]
+        if not all(type(v) is int and 0 <= v < 1 << 63 for v in ints) or not all(
+                isinstance(v, str) for v in texts):
+            raise ValueError("not a segment manifest: a field has the wrong type")
+        if any(not SEGMENT_RE.match(seg.file) for seg in manifest.segments):
+            raise ValueError("not a segment manifest: a segment file name is not one")
         start = 0
         for seg in manifest.segments:
             if seg.start != start or seg.stop <= seg.start:
@@ -158,6 +202,44 @@ def manifest_problems(directory: Path, manifest: Manifest, committed: int
     for seg in manifest.segments:
         why = (f"{seg.file} is ahead of the map ({committed} vertices)" if seg.stop > committed
                else problem(seg.file, seg.bytes))
+        if why:
+            problems.append(why)
+            break
+        good += 1
+    return model_problem, good, problems
+
+
+def checksum_problems(directory: Path, manifest: Manifest) -> tuple[str | None, int, list[str]]:
+    """Verify the checksum of every file ``manifest`` records one for (call after
+    :func:`manifest_problems`, on the files it trusts).
+
+    Returns ``(model problem or None, number of leading segments whose bytes are sound,
+    problems)``, like :func:`manifest_problems`.
+
+    Notes
+    -----
+    O(bytes of the files): each is read once, sequentially (1 MiB blocks).
+    """
+
+    def problem(name: str, checksum: str) -> str | None:
+        if not checksum:
+            return None
+        try:
+            actual = checksum_file(directory / name)
+        except FileNotFoundError:
+            return f"{name} is missing"
+        except OSError as exc:
+            return f"{name} is unreadable ({exc.strerror or exc})"
+        return None if actual == checksum else f"{name} fails its checksum (corrupt bytes)"
+
+    files = manifest.checksummed()
+    model_problem = None
+    for name, _, checksum in files[: 2 if manifest.pca_bytes else 1]:
+        model_problem = model_problem or problem(name, checksum)
+    problems = [model_problem] if model_problem else []
+    good = 0
+    for seg in manifest.segments:
+        why = problem(seg.file, seg.checksum)
         if why:
             problems.append(why)
             break
@@ -252,9 +334,17 @@ class SegmentedIndex:
         if manifest is None:
             return None
         model_problem, good, problems = manifest_problems(directory, manifest, committed)
+        if not model_problem:
+            # Bytes corrupted in place (size unchanged): a cache event, like a torn file.
+            model_bad, sound, bad_bytes = checksum_problems(
+                directory, replace(manifest, segments=manifest.segments[:good]))
+            model_problem = model_problem or model_bad
+            good = min(good, sound)
+            problems = bad_bytes + problems
         if strict and problems:
             return None
-        events.extend(f"index {p}; left out" for p in problems)
+        events.extend(f"index {p}; left out (its vertices are searched exactly from the "
+                      "shards and indexed again by the writer)" for p in problems)
         if model_problem:
             return None
         manifest = replace(manifest, segments=manifest.segments[:good])
@@ -462,8 +552,9 @@ class SegmentedIndex:
 
     def _publish_segment(self, segment: Any, start: int, stop: int) -> SegmentEntry:
         name = segment_name(self.manifest.generation, start, stop)
-        size = publish_bytes(self.directory / name, serialize(segment))
-        return SegmentEntry(start, stop, name, size)
+        data = serialize(segment)
+        size = publish_bytes(self.directory / name, data)
+        return SegmentEntry(start, stop, name, size, checksum_bytes(data))
 
     def _publish(self, manifest: Manifest) -> None:
         """Publish ``manifest``, open its new segments, delete the files it no longer names."""
@@ -509,7 +600,10 @@ class SegmentedIndex:
         model = train_model(config, kind, sample)
         model_bytes, pca_bytes = model.publish(directory, generation)
         crash_point("index.model_trained")
-        manifest = Manifest(generation, kind, model.nlist, model_bytes, pca_bytes, committed)
+        manifest = Manifest(
+            generation, kind, model.nlist, model_bytes, pca_bytes, committed,
+            model_checksum=checksum_file(directory / model_name(generation)),
+            pca_checksum=checksum_file(directory / pca_name(generation)) if pca_bytes else "")
         index = cls(directory, config, manifest, model)
         entries = []
         for start, stop in tier_plan(committed, config.index_segment_rows,

@@ -22,6 +22,7 @@ import faiss
 import numpy as np
 
 from sprint_map.config import MapConfig
+from sprint_map.errors import MapCorruptError
 from sprint_map.storage.atomic import publish
 from sprint_map.storage.shards import ShardSet
 
@@ -102,10 +103,14 @@ class RowReader:
             shard, row = divmod(vid, per_shard)
             fd = fds.get(shard)
             if fd is None:
-                fd = fds[shard] = os.open(shards.path(shard), os.O_RDONLY)
+                try:
+                    fd = fds[shard] = os.open(shards.path(shard), os.O_RDONLY)
+                except FileNotFoundError:
+                    raise MapCorruptError(f"shard file {shards.path(shard).name} is missing: "
+                                          "committed descriptors are lost") from None
             if os.preadv(fd, [view[i * size : (i + 1) * size]], row * size) != size:
-                raise OSError(errno.EIO, f"{shards.path(shard).name}: short read of vertex "
-                                         f"{vid}")
+                raise MapCorruptError(f"shard file {shards.path(shard).name} is truncated: "
+                                      f"committed vertex {vid} is lost")
         return out
 
     def close(self) -> None:

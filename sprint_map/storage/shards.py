@@ -5,6 +5,11 @@ shard ``v // shard_rows`` at row ``v % shard_rows``: no per-vertex location is s
 is sealed (never written again) once full. The committed row count of each shard is recorded in
 LMDB; bytes past it belong to an uncommitted append and are truncated when a writer opens the
 map. Readers only ever map committed rows, so they never see an append in flight.
+
+A shard file shorter than its committed rows (cut short, deleted) lost committed data: it is
+never extended with zeros and never mapped (a page past the end of a mapped file is a SIGBUS).
+Every path that would (a writer's open, an append, a read) raises
+:class:`~sprint_map.errors.MapCorruptError` instead; ``check`` reports it.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sprint_map.errors import StorageIOError
+from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage import atomic
 
 ROW_DTYPE = np.dtype("<f4")
@@ -51,21 +56,64 @@ class ShardSet:
             lengths[full] = rest
         return lengths
 
+    def size_problem(self, shard: int, rows: int) -> str | None:
+        """Why shard ``shard`` cannot hold its ``rows`` committed rows (missing, short), or
+        None. One ``stat``."""
+        path = self.path(shard)
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            return f"shard file {path.name} is missing ({rows} committed rows)"
+        except OSError as exc:
+            raise StorageIOError(f"cannot stat {path}: {exc.strerror or exc}") from exc
+        want = rows * self.row_bytes
+        if size < want:
+            return (f"shard file {path.name} is truncated: {size} bytes, its {rows} committed "
+                    f"rows take {want}")
+        return None
+
+    def verify(self, total_rows: int) -> None:
+        """Refuse a map whose shard files miss committed rows (a writer's open).
+
+        Raises
+        ------
+        MapCorruptError
+            Naming the first shard that is missing or shorter than its committed rows.
+
+        Notes
+        -----
+        One ``stat`` per shard: O(total_rows / shard_rows) (16 at 1M vertices with the default
+        65,536 rows per shard), no data read.
+        """
+        for shard, rows in self.lengths_for(total_rows).items():
+            problem = self.size_problem(shard, rows)
+            if problem is not None:
+                raise MapCorruptError(f"{problem}: committed descriptors are lost; refusing "
+                                      "to write (see `sprint-map check`)")
+
     # --- recovery -------------------------------------------------------------------------
     def recover(self, total_rows: int) -> list[str]:
         """Truncate the open shard to the committed length and delete shards past it.
 
         Only the shard being filled and any created after it can hold uncommitted bytes, so
-        this touches O(1) files however large the map is.
+        this touches O(1) files however large the map is. A shard shorter than its committed
+        length is never extended (that would invent zero rows).
 
         Raises
         ------
+        MapCorruptError
+            If the open shard is missing or shorter than its committed rows.
         StorageIOError
             If a file cannot be truncated or removed (the next writer's open tries again).
         """
         actions = []
         shard, rest = divmod(total_rows, self.shard_rows)
         path = self.path(shard)
+        if rest:
+            problem = self.size_problem(shard, rest)
+            if problem is not None:
+                self._maps.clear()
+                raise MapCorruptError(f"{problem}: committed descriptors are lost")
         try:
             if path.exists():
                 if rest == 0:
@@ -116,6 +164,11 @@ class ShardSet:
                 created |= not path.exists()
                 fd = atomic.open_for_write(path)
                 try:
+                    if os.fstat(fd).st_size < offset * self.row_bytes:
+                        # Truncating up would fill the lost committed rows with zeros.
+                        raise MapCorruptError(
+                            f"shard file {path.name} is shorter than its {offset} committed "
+                            "rows: committed descriptors are lost; refusing to write")
                     # Drop any stale tail first, then write at the committed offset.
                     atomic.truncate(path, offset * self.row_bytes, fd)
                     view = rows[done : done + take].data.cast("B")
@@ -139,6 +192,10 @@ class ShardSet:
         if cached is not None and cached[0] == committed:
             return cached[1]
         path = self.path(shard)
+        # Never map past the end of the file: reading such a page is a SIGBUS, not an error.
+        problem = self.size_problem(shard, committed)
+        if problem is not None:
+            raise MapCorruptError(f"{problem}: committed descriptors are lost")
         try:
             mm = np.memmap(path, dtype=ROW_DTYPE, mode="r", shape=(committed, self.dim))
         except (OSError, ValueError) as exc:

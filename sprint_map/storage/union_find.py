@@ -20,16 +20,15 @@ a sequence's keys move O(log n) times over the life of the map: O(n log n) in to
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Iterable, Iterator, Mapping
 
 import lmdb
 
 from sprint_map.errors import MapCorruptError
-from sprint_map.storage.keys import COMP_VAL, UF_VAL, u32
+from sprint_map.storage.keys import COMP_VAL, UF_VAL, RecordStruct, read_u32, u32
 from sprint_map.storage.lmdb_env import LmdbEnv
 
-MEMBER_KEY = struct.Struct(">II")
+MEMBER_KEY = RecordStruct(">II")
 
 
 class UnionFindStore:
@@ -133,7 +132,7 @@ class UnionFindStore:
         """Yield ``(root, n_sequences, n_vertices)`` of every component. O(components)."""
         for key, value in txn.cursor(db=self._comp):
             seqs, verts = COMP_VAL.unpack(value)
-            yield struct.unpack(">I", key)[0], int(seqs), int(verts)
+            yield read_u32(key), int(seqs), int(verts)
 
     def component_totals(self, txn: lmdb.Transaction, root: int) -> tuple[int, int]:
         raw = txn.get(u32(root), db=self._comp)
