@@ -87,7 +87,7 @@ def check_segments(directory: Path, config: MapConfig, shards: ShardSet, total: 
     model_problem, good, problems = manifest_problems(directory, manifest, total)
     if not model_problem:
         model_bad, sound, bad_bytes = checksum_problems(
-            directory, replace(manifest, segments=manifest.segments[:good]))
+            directory, replace(manifest, segments=manifest.segments[:good]), cached=False)
         model_problem = model_bad
         good = min(good, sound)
         problems = problems + bad_bytes

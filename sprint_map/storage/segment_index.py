@@ -209,12 +209,20 @@ def manifest_problems(directory: Path, manifest: Manifest, committed: int
     return model_problem, good, problems
 
 
-def checksum_problems(directory: Path, manifest: Manifest) -> tuple[str | None, int, list[str]]:
+#: Files this process verified: (path, inode, size, mtime_ns) -> checksum. Published index files
+#: are never rewritten in place (a change is a new name), so a reader that reopens the index
+#: (it fell behind the writer's segments) re-reads only the new files.
+_VERIFIED: dict[tuple[str, int, int, int], str] = {}
+
+
+def checksum_problems(directory: Path, manifest: Manifest, *, cached: bool = True
+                      ) -> tuple[str | None, int, list[str]]:
     """Verify the checksum of every file ``manifest`` records one for (call after
     :func:`manifest_problems`, on the files it trusts).
 
     Returns ``(model problem or None, number of leading segments whose bytes are sound,
-    problems)``, like :func:`manifest_problems`.
+    problems)``, like :func:`manifest_problems`. ``cached``: skip files this process already
+    verified, unchanged since (``check`` passes False: it reads every byte).
 
     Notes
     -----
@@ -224,13 +232,21 @@ def checksum_problems(directory: Path, manifest: Manifest) -> tuple[str | None, 
     def problem(name: str, checksum: str) -> str | None:
         if not checksum:
             return None
+        path = directory / name
         try:
-            actual = checksum_file(directory / name)
+            info = path.stat()
+            key = (str(path), info.st_ino, info.st_size, info.st_mtime_ns)
+            if cached and _VERIFIED.get(key) == checksum:
+                return None
+            actual = checksum_file(path)
         except FileNotFoundError:
             return f"{name} is missing"
         except OSError as exc:
             return f"{name} is unreadable ({exc.strerror or exc})"
-        return None if actual == checksum else f"{name} fails its checksum (corrupt bytes)"
+        if actual != checksum:
+            return f"{name} fails its checksum (corrupt bytes)"
+        _VERIFIED[key] = checksum
+        return None
 
     files = manifest.checksummed()
     model_problem = None
