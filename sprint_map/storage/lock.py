@@ -13,7 +13,7 @@ import os
 import stat
 from pathlib import Path
 
-from sprint_map.errors import MapCorruptError, MapLockedError
+from sprint_map.errors import MapCorruptError, MapLockedError, ReadOnlyMapError
 
 LOCK_NAME = "LOCK"
 #: Never follow a link planted as ``MAP/LOCK`` (the writer would write into its target).
@@ -55,8 +55,19 @@ class WriterLock:
         self._fd: int | None = None
 
     def acquire(self) -> None:
-        """Take the lock or raise :class:`MapLockedError` naming the holder's pid."""
-        fd = open_lock_file(self.path, os.O_RDWR | os.O_CREAT)
+        """Take the lock or raise :class:`MapLockedError` naming the holder's pid.
+
+        Raises
+        ------
+        ReadOnlyMapError
+            ``LOCK`` (or the map directory, to create it) is not writable by this process: the
+            map can only be read (the permission error's own exit code, not an OS error's).
+        """
+        try:
+            fd = open_lock_file(self.path, os.O_RDWR | os.O_CREAT)
+        except PermissionError as exc:
+            raise ReadOnlyMapError(f"map is not writable ({self.path}: {exc.strerror}); it can "
+                                   "only be read") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
