@@ -25,7 +25,7 @@ import errno
 import ipaddress
 import json
 import os
-import select
+import selectors
 import socket
 import statistics
 import subprocess
@@ -122,17 +122,19 @@ def unauthenticated_bodies(host: str, port: int, count: int, size: int,
         socks.append(sock)
     answers = {s: b"" for s in socks}
     deadline = time.monotonic() + timeout
-    waiting = set(socks)
-    while waiting and time.monotonic() < deadline:
-        ready, _, _ = select.select(list(waiting), [], [], max(0.0, deadline - time.monotonic()))
-        for sock in ready:
-            try:
-                chunk = sock.recv(65536)
-            except ConnectionResetError:
-                chunk = b""
-            answers[sock] += chunk
-            if not chunk or b"\r\n\r\n" in answers[sock]:
-                waiting.discard(sock)
+    with selectors.DefaultSelector() as waiting:  # (select() stops at descriptor 1024)
+        for sock in socks:
+            waiting.register(sock, selectors.EVENT_READ)
+        while waiting.get_map() and time.monotonic() < deadline:
+            for key, _ in waiting.select(max(0.0, deadline - time.monotonic())):
+                sock = key.fileobj  # type: ignore[assignment]
+                try:
+                    chunk = sock.recv(65536)
+                except ConnectionResetError:
+                    chunk = b""
+                answers[sock] += chunk
+                if not chunk or b"\r\n\r\n" in answers[sock]:
+                    waiting.unregister(sock)
     body = b"\0" * size
     for sock in socks:  # then the bodies, as far as each connection takes them
         sock.setblocking(False)

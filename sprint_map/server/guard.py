@@ -114,9 +114,14 @@ class _Guarded(HttpToolsProtocol):
             return
         idle = [c for c in peers if c is not self and not c._busy()]
         # Never served (a half-sent request, or nothing at all) before served; then oldest quiet.
-        for victim in heapq.nsmallest(excess, idle,
-                                      key=lambda c: (c._served > 0, c._quiet_since)):
-            victim._close_quietly()
+        # A flood of new connections would scan the peers once each: close a slack of never
+        # served ones beyond the excess too, so the next scans wait for that many new ones.
+        slack = max(1, self.limits.max_connections // 16)
+        ranked = heapq.nsmallest(excess + slack, idle,
+                                 key=lambda c: (c._served > 0, c._quiet_since))
+        for i, victim in enumerate(ranked):
+            if i < excess or victim._served == 0:
+                victim._close_quietly()
         if len(peers) - min(excess, len(idle)) > 2 * self.limits.max_connections:
             log.warning("connection refused: %d connections, all busy", len(peers))
             self.transport.close()
