@@ -54,3 +54,53 @@ def test_a_token_that_is_not_utf8_is_refused_without_showing_it(tmp_path, monkey
         load_token(ServerConfig())
     token_file.write_bytes("s3crét\n".encode())
     assert load_token(ServerConfig(token_file=str(token_file))) == "s3crét"
+
+
+def test_the_real_cli_gives_one_line_for_bytes_that_are_not_utf8(tmp_path):
+    """Each case of the issue through the installed ``sprint-map`` with real bytes in argv and
+    in file names (parallel processes; each starts in ~2 s): exit 13, one ``Error:`` line."""
+    import shutil
+    import subprocess
+
+    import numpy as np
+
+    from sprint_map.config import MapConfig
+    from sprint_map.map import SprintMap
+
+    exe = os.fsencode(shutil.which("sprint-map") or "sprint-map")
+    root = os.fsencode(tmp_path)
+    good = np.random.default_rng(3).standard_normal((4, 8)).astype(np.float32)
+    np.save(tmp_path / "good.npy", good)
+    np.save(os.fsdecode(root + b"/bad\xff.npy"), good)
+    (tmp_path / "token").write_bytes(b"s3cr\xe9t\n")
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=8)) as m:
+        m.add_sequence(good, name="first")
+    cases = {
+        "name": ([b"ingest", root + b"/m", root + b"/good.npy", b"--name", b"a\xffb"],
+                 13, "sequence name b'a\\xffb' is not UTF-8 text"),
+        "source-name": ([b"ingest", root + b"/m", root + b"/bad\xff.npy"],
+                        13, "sequence name b'bad\\xff' is not UTF-8 text"),
+        "remove": ([b"remove", root + b"/m", b"\xff"], 13, "is not UTF-8 text"),
+        "remove-empty": ([b"remove", root + b"/m", b""], 12, "no sequence named '' in the map"),
+        "init-path": ([b"init", root + b"/new\xff.map", b"--dim", b"8"], 13,
+                      "new\\xff.map' is not UTF-8 text"),
+        "token-file": ([b"serve", root + b"/m", b"--token-file", root + b"/token"], 13,
+                       f"token file {tmp_path / 'token'} is not UTF-8 text"),
+    }
+    procs = {}
+    for name, (args, _, _) in cases.items():  # each writer its own copy of the map
+        shutil.copytree(tmp_path / "m", tmp_path / name)
+        args = [a.replace(root + b"/m", root + b"/" + name.encode()) for a in args]
+        procs[name] = subprocess.Popen([exe, *args], stdout=subprocess.PIPE,
+                                       stderr=subprocess.PIPE)
+    for name, proc in procs.items():
+        out, err = proc.communicate(timeout=120)
+        _, code, message = cases[name]
+        lines = err.decode("utf-8", "backslashreplace").strip().splitlines()
+        assert proc.returncode == code, (name, err)
+        assert out == b"" and len(lines) == 1 and lines[0].startswith("Error: "), (name, err)
+        assert message in lines[0], (name, lines)
+    assert not os.path.exists(root + b"/new\xff.map")  # init made nothing
+    for name in cases:
+        with SprintMap.open(tmp_path / name, readonly=True) as m:
+            assert [s.name for s in m.sequences()] == ["first"]
