@@ -5,12 +5,16 @@ Every violation belongs to an *area* (:data:`AREAS`); ``check --repair``
 (:mod:`sprint_map.storage.repair`) rebuilds the areas that are derivable from the sequence
 records, the edges and the shards (:data:`REPAIRABLE`) and reports the others.
 
-Complexity: O(sequences + edges + shards) LMDB reads, plus reading the persisted index file once
-and comparing a sample of its vectors with the shards.
+Complexity: O(sequences + edges + shards) LMDB reads, plus one streaming pass over the shards
+(every sequence's rows against the content digest committed with it), reading the persisted
+index once and comparing **every** vector of the exact index with its shard row (in blocks of
+``CHECK_BLOCK`` rows), or checksumming every file of the segmented index:
+O(vertices * dim) in all.
 """
 
 from __future__ import annotations
 
+import hashlib
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,16 +26,18 @@ import lmdb
 import networkx as nx
 import numpy as np
 
-from sprint_map.errors import StorageIOError
+from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage.atomic import PARTIAL_SUFFIX
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index_store import file_problem, index_files
 from sprint_map.storage.keys import (
     COMP_VAL,
+    DIGEST_BYTES,
     EDGE_KEY,
     REMOVED_VAL,
     UF_VAL,
     SequenceRecord,
+    decode_text,
     read_u32,
     read_u64,
     u64,
@@ -41,14 +47,15 @@ from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.union_find import MEMBER_KEY
 
-#: Index vectors compared bit for bit with their shard rows.
-INDEX_SAMPLE = 32
+#: Rows compared (index vectors with shard rows) or hashed per block: bounds check's memory.
+CHECK_BLOCK = 65536
 
 #: What each area of the invariants covers.
 AREAS = {
     "sequences": "sequence records tile the vertex ids 0..next_vertex_id-1 (source of truth)",
     "lookup": "name and vertex-range indexes, next_seq_id and n_sequences",
-    "shard_files": "shard files hold every committed row",
+    "shard_files": "shard files hold every committed row, equal to the digest committed with "
+                   "its sequence",
     "shard_lengths": "committed shard lengths recorded in LMDB",
     "edges": "edge endpoints exist and join two sequences",
     "edge_index": "reverse edge index and n_edges",
@@ -108,6 +115,9 @@ class MapRecords:
     removed_vertices: int = 0
     #: removed ranges that still hold a position (``vertex_data`` key): one seek per range
     stray_positions: list[tuple[int, int]] = field(default_factory=list)
+    #: content digests of the sequences' rows (``digests``; a sequence written before digests
+    #: has none)
+    digests: dict[int, bytes] = field(default_factory=dict)
 
     @classmethod
     def read(cls, store: MapStore, txn: lmdb.Transaction) -> MapRecords:
@@ -123,7 +133,8 @@ class MapRecords:
         return cls(
             counters={name: store.counter(name, txn) for name in COUNTERS},
             seqs=[SequenceRecord.decode(v) for _, v in txn.cursor(db=env.db("sequences"))],
-            names={bytes(k).decode(): read_u32(v) for k, v in txn.cursor(db=env.db("seq_names"))},
+            names={decode_text(k, "name"): read_u32(v)
+                   for k, v in txn.cursor(db=env.db("seq_names"))},
             vrange={read_u64(k): read_u32(v) for k, v in txn.cursor(db=env.db("vrange"))},
             shard_rows={read_u32(k): read_u64(v) for k, v in txn.cursor(db=env.db("shards"))},
             edges=keys("edges", EDGE_KEY),
@@ -134,6 +145,8 @@ class MapRecords:
             removed=removed,
             removed_vertices=store.removed_vertices(txn),
             stray_positions=[(a, b) for a, b, _ in removed if _any_key(txn, positions, a, b)],
+            digests={read_u32(k): bytes(v) for k, v in txn.cursor(db=env.db("digests"))}
+            if env.has_db("digests") else {},
         )
 
     @property
@@ -207,6 +220,8 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
                           edges=len(records.edges))
     _check_sequences(records, report)
     check_shards(store, records.total, report)
+    if "sequences" not in report.areas and "shard_files" not in report.areas:
+        check_digests(store, records, report)
     if records.shard_rows != store.shards.lengths_for(records.total):
         report.violation("shard_lengths", f"shard lengths in LMDB {records.shard_rows} do not "
                                           f"match {records.total} vertices")
@@ -391,17 +406,58 @@ def _check_components(records: MapRecords, edges: list[tuple[int, int, int, int]
     report.checked["components"] = len(groups)
 
 
+def check_digests(store: MapStore, records: MapRecords, report: CheckReport) -> None:
+    """Every sequence's shard rows hash to the digest committed with it (area
+    ``shard_files``: rows changed in place, which no size reveals). Sequences written before
+    digests were recorded are skipped (counted in ``checked["digests_missing"]``).
+
+    Notes
+    -----
+    One streaming pass over the committed rows of the live sequences, ``CHECK_BLOCK`` rows
+    at a time through the shards' memory maps: O(vertices * dim) reads, O(CHECK_BLOCK * dim)
+    memory.
+    """
+    verified = missing = 0
+    for seq in records.seqs:
+        want = records.digests.get(seq.seq_id)
+        if want is None:
+            missing += 1
+            continue
+        digest = hashlib.blake2b(digest_size=DIGEST_BYTES)
+        try:
+            for start in range(seq.first_vertex, seq.last_vertex + 1, CHECK_BLOCK):
+                stop = min(seq.last_vertex + 1, start + CHECK_BLOCK)
+                rows = store.shards.rows(start, stop, records.total)
+                digest.update(rows.astype("<f4", copy=False).data)
+        except (MapCorruptError, StorageIOError) as exc:  # sizes are checked by check_shards
+            report.notes.append(f"rows of sequence {seq.seq_id} not hashed: {exc}")
+            continue
+        if digest.digest() != want:
+            report.violation("shard_files", f"descriptor rows of sequence {seq.seq_id} "
+                                            f"({seq.name!r}) differ from the digest committed "
+                                            "with them: shard bytes were changed")
+        verified += 1
+    report.checked["sequence_digests_verified"] = verified
+    if missing:
+        report.checked["digests_missing"] = missing
+        report.notes.append(f"{missing} sequence(s) were written before content digests: their "
+                            "rows are checked for size only")
+
+
 def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0, *,
                 live: bool = False) -> None:
     """No index file is ahead of the map; the newest other one is whole, covers exactly
-    ``0..upto-1`` and a sample of its vectors equals the shard rows bit for bit.
+    ``0..upto-1`` and every one of its vectors equals its shard row bit for bit.
 
     With ``live`` (a writer holds the lock), a file ahead of our snapshot or removed while we
     look is the writer's work in flight: a note, not a violation.
 
     Notes
     -----
-    O(file size) to read the newest file, O(INDEX_SAMPLE * dim) to compare.
+    O(file size) to read the newest file, O(upto * dim) to compare it with the shards, in
+    blocks of ``CHECK_BLOCK`` rows (measured: about 1 s per million 128-d vectors, see
+    ``docs/architecture.md``). ``seed`` is unused by the exact index (every vector is
+    compared) and kept for the segmented index's sample of codes.
     """
     dim = store.config.dim
 
@@ -450,19 +506,38 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
         return
     if upto < total:
         report.notes.append(f"index lags the map by {total - upto} vertices (caught up on load)")
-    rng = np.random.default_rng(seed)
-    sample = np.unique(np.r_[0, upto - 1, rng.integers(0, upto, INDEX_SAMPLE)]) if upto else ()
-    for vid in sample:
-        stored = index.reconstruct(int(vid))
+    report.checked["index_vectors_compared"] = _compare_all(store, index, ids, upto, total,
+                                                            report, bad)
+
+
+def _compare_all(store: MapStore, index: Any, ids: np.ndarray, upto: int, total: int,
+                 report: CheckReport, bad: Callable[[str], None]) -> int:
+    """Compare every vector of the flat ``index`` (ids ``ids``, a permutation of
+    ``0..upto-1``) with its shard row, ``CHECK_BLOCK`` vertices at a time; report the first
+    block that differs. Returns how many vectors were compared. O(upto * dim)."""
+    inner = faiss.downcast_index(index.index) if hasattr(index, "id_map") else index
+    if not hasattr(inner, "get_xb"):
+        bad(f"index holds a {type(inner).__name__}, not a flat index")
+        return 0
+    dim = store.config.dim
+    vectors = faiss.rev_swig_ptr(inner.get_xb(), upto * dim).reshape(upto, dim)
+    in_order = bool(np.array_equal(ids, np.arange(upto)))
+    where = None if in_order else np.argsort(ids)  # where[v]: position of vertex v
+    compared = 0
+    for start in range(0, upto, CHECK_BLOCK):
+        stop = min(upto, start + CHECK_BLOCK)
         try:
-            row = store.shards.rows(int(vid), int(vid) + 1, total)[0]
-        except StorageIOError as exc:  # a missing/short shard, reported by check_shards
-            report.notes.append(f"index vector of vertex {vid} not compared: {exc}")
+            rows = store.shards.rows(start, stop, total)
+        except (MapCorruptError, StorageIOError) as exc:  # reported by check_shards
+            report.notes.append(f"index vectors from vertex {start} on not compared: {exc}")
             break
-        if not np.array_equal(stored, row):
-            bad(f"index vector of vertex {vid} differs from its shard row")
+        stored = vectors[start:stop] if where is None else vectors[where[start:stop]]
+        if not np.array_equal(stored, rows):
+            differ = start + int(np.flatnonzero((stored != rows).any(axis=1))[0])
+            bad(f"index vector of vertex {differ} differs from its shard row")
             break
-    report.checked["index_vectors_compared"] = len(sample)
+        compared = stop
+    return compared
 
 
 def partial_files(store: MapStore) -> list[Path]:

@@ -7,10 +7,20 @@ sequence, its positions and edges in one LMDB transaction: the commit point. Lea
 block without committing, or any error, truncates the shards back: nothing is half-visible. (If
 the truncation fails too, the error that caused it is the one raised; the rows stay invisible
 and the next writer's open truncates them.)
+
+**Digests and idempotent retries.** The commit records a content digest of the rows (BLAKE2b,
+16 bytes, over the little-endian float32 rows in order: ``digests`` database). A sequence whose
+name is already committed *with a digest* is a possible retry: its rows are hashed but not
+written, and at the commit the digest decides: the same rows (same length and digest) commit
+nothing and report the existing sequence (``AddResult.already_committed``); other rows are a
+:class:`DuplicateNameError`. So a retry after a failure past the commit point (which is only
+ever a warning) never adds the drive twice. A name committed without a digest (by an older
+writer) is refused at once, as before.
 """
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -20,11 +30,12 @@ import numpy as np
 from sprint_map.errors import (
     DuplicateNameError,
     EmptySequenceError,
+    MapCorruptError,
     SprintMapError,
     StorageIOError,
 )
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import SequenceRecord
+from sprint_map.storage.keys import DIGEST_BYTES, SequenceRecord, read_u32, u32
 from sprint_map.storage.validation import (
     validate_descriptors,
     validate_name,
@@ -57,11 +68,19 @@ class SequenceWriter:
             self.first = store.counter("next_vertex_id", txn)
             self.name = f"seq-{self.seq_id}" if name is None else name
             validate_name(self.name)
-            if txn.get(self.name.encode(), db=store.env.db("seq_names")) is not None:
-                raise DuplicateNameError(
-                    f"a sequence named {self.name!r} already exists (choose another name)"
-                )
+            #: (record, digest) of the committed sequence of this name: rows are only hashed
+            self.retry_of: tuple[SequenceRecord, bytes] | None = None
+            existing = txn.get(self.name.encode(), db=store.env.db("seq_names"))
+            if existing is not None:
+                record = store.sequence(read_u32(existing), txn)
+                digest = store.sequence_digest(record.seq_id, txn)
+                if digest is None:
+                    raise DuplicateNameError(
+                        f"a sequence named {self.name!r} already exists (choose another name)"
+                    )
+                self.retry_of = (record, digest)
         self.store = store
+        self._hash = hashlib.blake2b(digest_size=DIGEST_BYTES)
         self.source = source
         self.frames = 0
         self._lengths: dict[int, int] = {}
@@ -99,7 +118,9 @@ class SequenceWriter:
             return
         try:
             arr = validate_descriptors(arr, self.store.config.dim, first_frame=self.frames)
-            self._lengths.update(self.store.shards.append(self.first + self.frames, arr))
+            self._hash.update(arr.astype("<f4", copy=False).data)
+            if self.retry_of is None:  # a possible retry writes nothing until it is decided
+                self._lengths.update(self.store.shards.append(self.first + self.frames, arr))
         except BaseException:
             self._rollback_after_error()
             raise
@@ -118,13 +139,19 @@ class SequenceWriter:
         try:
             if self.frames == 0:
                 raise EmptySequenceError("the sequence has no frames")
+            digest = self._hash.digest()
+            if self.retry_of is not None:
+                return self._finish_retry(digest)
             pos, resolved = self.prepare(positions, edges, self.frames)
             record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
                                     self.source)
             crash_point("add.shards_written")
-            component, added = self.store.env.write(
-                lambda txn: self.store._commit(txn, record, self._lengths, pos, resolved)
-            )
+
+            def body(txn: Any) -> tuple[int, int]:
+                txn.put(u32(record.seq_id), digest, db=self.store.env.db("digests"))
+                return self.store._commit(txn, record, self._lengths, pos, resolved)
+
+            component, added = self.store.env.write(body)
         except BaseException:
             self._rollback_after_error()
             raise
@@ -133,12 +160,32 @@ class SequenceWriter:
         crash_point("add.committed")
         try:
             self.store._after_commit(self.first, self.frames)
-        except StorageIOError as exc:
+        except Exception as exc:
             # The sequence is committed and durable; the index is a cache of it. Failing the
-            # call would invite a retry that adds the sequence twice.
+            # call would invite a retry (which would find the sequence committed, see the
+            # module docstring): past the commit point every failure is a warning.
             self.store.warnings.append(f"sequence {record.name!r} committed, but the index "
                                        f"cache was not updated ({exc}); rebuilt when needed")
         return AddResult(record, component, added)
+
+    def _finish_retry(self, digest: bytes) -> AddResult:
+        """Commit nothing for rows that equal the committed sequence of this name; refuse
+        others (DuplicateNameError). No shard row was written (see :meth:`append`)."""
+        from sprint_map.storage.store import AddResult
+
+        assert self.retry_of is not None
+        record, committed = self.retry_of
+        if self.frames != record.length or digest != committed:
+            raise DuplicateNameError(
+                f"a sequence named {self.name!r} already exists with other descriptors "
+                f"({record.length} frames; choose another name)")
+        self._done = True
+        self.store._writing = None
+        self.store.warnings.append(
+            f"sequence {record.name!r} was already committed with these very descriptors (as "
+            f"sequence {record.seq_id}): nothing added")
+        return AddResult(record, self.store.component_of(record.seq_id), 0,
+                         already_committed=True)
 
     def abort(self) -> None:
         """Drop every row appended so far (truncate the shards to the committed length).
@@ -153,11 +200,12 @@ class SequenceWriter:
             return
         self._done = True
         self.store._writing = None
-        self.store.shards.recover(self.first)
+        if self.retry_of is None:  # a possible retry wrote no row
+            self.store.shards.recover(self.first)
 
     def _rollback_after_error(self) -> None:
         """:meth:`abort` while an error propagates: a failed rollback must not mask the error."""
         try:
             self.abort()
-        except StorageIOError as exc:
+        except (StorageIOError, MapCorruptError) as exc:
             self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")

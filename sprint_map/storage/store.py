@@ -57,7 +57,10 @@ from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
     EdgeRecord,
+    Raw,
     SequenceRecord,
+    decode_json,
+    decode_number,
     read_u32,
     read_u64,
     u32,
@@ -102,6 +105,9 @@ class AddResult:
     sequence: SequenceRecord
     component: int
     edges_added: int
+    #: The sequence was already committed under this name with the very same descriptors (a
+    #: retry after a failure past the commit point): nothing was added.
+    already_committed: bool = False
 
 
 @dataclass(frozen=True)
@@ -136,7 +142,7 @@ class MapStore:
             raw_version = txn.get(b"schema_version", db=meta)
             if raw_version is None:
                 raise NotAMapError(f"not a sprint-map directory (no schema version): {path}")
-            version = int(raw_version)
+            version = decode_number(raw_version, "schema_version")
             if version not in READABLE_SCHEMA_VERSIONS:
                 raise SchemaVersionError(
                     f"map schema version {version} is not supported by this sprint-map "
@@ -147,8 +153,10 @@ class MapStore:
             raw_config = txn.get(b"config", db=meta)
             if raw_config is None:
                 raise MapCorruptError(f"map has no config record: {path}")
-            self.config = MapConfig.from_dict(json.loads(bytes(raw_config)))
-            self.created = float(txn.get(b"created", db=meta) or 0)
+            self.config = decode_config(raw_config)
+            raw_created = txn.get(b"created", db=meta)
+            self.created = 0.0 if raw_created is None else decode_number(raw_created, "created",
+                                                                         float)
         self.uf = UnionFindStore(env)
         self.shards = ShardSet(self.data_path / SHARDS_DIR, self.config.dim,
                                self.config.shard_rows)
@@ -166,13 +174,22 @@ class MapStore:
         root = Path(path)
         if root.exists() and (not root.is_dir() or any(root.iterdir())):
             raise MapExistsError(f"refusing to create a map in non-empty path: {root}")
-        root.mkdir(parents=True, exist_ok=True)
-        for sub in (SHARDS_DIR, INDEX_DIR, LMDB_DIR):
-            (root / sub).mkdir(exist_ok=True)
+        created: list[Path] = []  # what this call made, undone (newest first) on failure
         lock = WriterLock(root)
-        lock.acquire()
         env = None
         try:
+            for parent in reversed(root.parents):
+                if not parent.exists():
+                    parent.mkdir()
+                    created.append(parent)
+            if not root.exists():
+                root.mkdir()
+                created.append(root)
+            for sub in (SHARDS_DIR, INDEX_DIR, LMDB_DIR):
+                (root / sub).mkdir()
+                created.append(root / sub)
+            created.append(lock.path)
+            lock.acquire()
             env = LmdbEnv(root / LMDB_DIR, readonly=False, map_size=config.initial_map_size,
                           create=True)
 
@@ -195,6 +212,7 @@ class MapStore:
             if env is not None:
                 env.close()
             lock.release()
+            _undo_create(created)
             raise
 
     @classmethod
@@ -278,7 +296,9 @@ class MapStore:
         self._removed = None
 
     def _recover(self) -> None:
-        """Bring files back to the committed state (writer only). O(1) in the map size.
+        """Bring files back to the committed state (writer only). O(1) in the map size but
+        for one ``stat`` per shard file (:meth:`ShardSet.verify`): a map whose shards lost
+        committed rows is refused (MapCorruptError), never refilled.
 
         Also migrates a schema-1 map to schema 2 (the version record only: every schema-1 map
         is a schema-2 map without removed ranges; the ``removed`` database was created by the
@@ -305,6 +325,7 @@ class MapStore:
                 self.recovery.append(f"removed leftover temp file {removed.name}")
         crash_point("recover.partials_removed")
         committed = self.counter("next_vertex_id")
+        self.shards.verify(committed)  # a writer never fills lost committed rows with zeros
         self.recovery.extend(self.shards.recover(committed))
         crash_point("recover.shards_truncated")
         self.recovery.extend(self.index.discard_untrusted(committed))
@@ -317,7 +338,7 @@ class MapStore:
             if not self.readonly:
                 try:
                     self.flush()
-                except StorageIOError as exc:  # a cache of committed data: nothing is lost
+                except Exception as exc:  # a cache of committed data: nothing is lost
                     self.warnings.append(f"index cache not saved ({exc}); rebuilt when needed")
         finally:
             self.shards.close()
@@ -361,6 +382,8 @@ class MapStore:
         raw = txn.get(name.encode(), db=self.env.db("meta"))
         if raw is None:
             raise MapCorruptError(f"meta record {name!r} is missing")
+        if len(raw) != 8:
+            raise MapCorruptError(f"corrupt map record {name}: {len(raw)} bytes, not 8")
         return read_u64(raw)
 
     def stats(self) -> dict[str, int]:
@@ -677,6 +700,14 @@ class MapStore:
         crash_point("add.before_commit")
         return self.uf.find(txn, record.seq_id), added
 
+    def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None:
+        """The content digest committed with sequence ``seq_id`` (None: written before digests
+        were recorded). O(log n_sequences)."""
+        if not self.env.has_db("digests"):
+            return None
+        raw = txn.get(u32(seq_id), db=self.env.db("digests"))
+        return None if raw is None else bytes(raw)
+
     def put_lookups(self, txn: lmdb.Transaction, record: SequenceRecord) -> None:
         """Write the name and vertex-range index entries of ``record`` (derived from it)."""
         txn.put(record.name.encode(), u32(record.seq_id), db=self.env.db("seq_names"))
@@ -687,6 +718,35 @@ class MapStore:
         # the flat file on a geometric schedule, a full tail block of the segmented index.
         if self.index.after_commit(first + frames, self.shards, first):
             self.flush()
+
+
+def _undo_create(created: list[Path]) -> None:
+    """Remove what a failed :meth:`MapStore.create` made, newest first, and nothing else: the
+    directories it created (with the files LMDB put in them) and the lock file. Best effort:
+    an error here must not mask the one that failed the creation."""
+    for path in reversed(created):
+        with contextlib.suppress(OSError):
+            if path.is_dir() and not path.is_symlink():
+                for entry in path.iterdir():  # LMDB's data.mdb/lock.mdb; our dirs are flat
+                    if entry.is_file() or entry.is_symlink():
+                        entry.unlink()
+                path.rmdir()
+            else:
+                path.unlink()
+
+
+def decode_config(raw: Raw) -> MapConfig:
+    """The map's stored config record, or MapCorruptError if it is not a config (a config
+    error of the stored values themselves, ConfigError, passes through). O(len(raw))."""
+    data = decode_json(raw, "config")
+    if not isinstance(data, dict):
+        raise MapCorruptError("corrupt map record config: not a JSON object")
+    try:
+        return MapConfig.from_dict(data)
+    except SprintMapError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
 
 
 def is_map(path: str | os.PathLike[str]) -> bool:
