@@ -12,8 +12,9 @@ Rules these tests fix (see ``docs/architecture.md``, "Failure model"):
 
 - a sequence has at least one frame; one frame is a valid sequence (added, localised, matched);
 - sequence names are unique in a map, printable, 1-500 bytes; ``ingest`` names a sequence after
-  its source (file stem or directory name), so ingesting the same source twice is refused unless
-  ``--name`` differs.
+  its source (file stem or directory name), so ingesting other frames under a committed name is
+  refused unless ``--name`` differs (the very same frames again are a retry: reported, nothing
+  added, exit 0; ``tests/storage/test_integrity.py``).
 """
 
 from __future__ import annotations
