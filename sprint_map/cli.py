@@ -204,6 +204,10 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
         click.echo(f"Warning: {warning}", err=True)
     out = result.to_dict()
     matched = sum(d["seq_id"] is not None for d in out["decisions"])
+    if out["already_committed"]:  # a retry: the drive is in the map already, nothing added
+        _emit(out, as_json, f"sequence {out['seq_id']} ({out['name']}) was already committed "
+                            f"with these {out['frames']} frames: nothing added")
+        return
     _emit(out, as_json, f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
                         f"{matched} matched, {out['edges_added']} edges, component "
                         f"{out['component']}")

@@ -55,6 +55,8 @@ class IngestResult:
             "frames": seq.length,
             "component": self.added.component,
             "edges_added": self.added.edges_added,
+            # a retry of a drive committed under this name with these very descriptors
+            "already_committed": self.added.already_committed,
             "decisions": [{**d.to_dict(), "merged": m}
                           for d, m in zip(self.decisions, merged, strict=True)],
             "timing": self.timing.to_dict(),

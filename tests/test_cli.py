@@ -51,7 +51,8 @@ def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
     csv.write_text("frame,x,y\n" + "".join(f"{i},{i}.0,0\n" for i in range(60)))
     first = json.loads(run("ingest", map_path, drives[0], "--positions", csv, "--json").output)
     assert first == {"seq_id": 0, "name": "drive0", "frames": 60, "component": 0,
-                     "edges_added": 0, "decisions": [], "timing": first["timing"]}
+                     "edges_added": 0, "already_committed": False, "decisions": [],
+                     "timing": first["timing"]}
     second = json.loads(run("ingest", map_path, drives[1], "--json").output)
     assert len(second["decisions"]) == 60
     assert set(second["decisions"][0]) == {"frame", "seq_id", "image_id", "prob"}

@@ -234,6 +234,10 @@ def test_a_retry_is_reported_not_added(tmp_path, npy):
         size = (path / "shards" / "shard-000003.f32").stat().st_size
     again = cli("ingest", path, npy[3], "--quiet")
     assert again.exit_code == 0 and "already committed" in again.output, again.output
+    assert "sequence 3 (d3) was already committed with these 50 frames: nothing added" in (
+        again.output)
+    retried = json.loads(cli("ingest", path, npy[3], "--quiet", "--json").stdout)
+    assert retried["already_committed"] and retried["seq_id"] == 3
     with MapStore.open(path, readonly=True) as store:
         assert store.stats() == state[0]
     assert (path / "shards" / "shard-000003.f32").stat().st_size == size
