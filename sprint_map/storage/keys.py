@@ -32,8 +32,8 @@ class RecordStruct(struct.Struct):
     def unpack(self, buffer: Any) -> tuple[Any, ...]:
         try:
             return super().unpack(buffer)
-        except (struct.error, TypeError) as exc:
-            raise MapCorruptError(f"corrupt map record: {len(bytes(buffer))} bytes where the "
+        except struct.error as exc:
+            raise MapCorruptError(f"corrupt map record: {len(buffer)} bytes where the "
                                   f"layout {self.format!r} takes {self.size}") from exc
 
 
