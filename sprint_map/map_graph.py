@@ -19,8 +19,9 @@ from typing import Any
 import lmdb
 import numpy as np
 
+from sprint_map.errors import MapCorruptError
 from sprint_map.hmm.graph import ComponentGraph
-from sprint_map.storage.keys import read_u32, u64
+from sprint_map.storage.keys import SequenceRecord, read_u32, u64
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
 
@@ -87,7 +88,8 @@ class MapGraphSource:
     @contextmanager
     def _txn(self) -> Iterator[lmdb.Transaction]:
         if self._snapshot is not None:
-            yield self._snapshot.txn
+            with self.store.env.translated():
+                yield self._snapshot.txn
         else:
             with self.store.env.read() as txn:
                 yield txn
@@ -137,6 +139,7 @@ class MapGraphSource:
                     src.append(edge.src)
                     dst.append(edge.dst)
                     weight.append(edge.weight)
+        _edges_inside(component_id, seqs, src, dst)
         return ComponentGraph(
             component_id=component_id,
             seq_ids=np.array([s.seq_id for s in seqs], dtype=np.int64),
@@ -146,3 +149,24 @@ class MapGraphSource:
             edge_dst=np.array(dst, dtype=np.int64),
             edge_weight=np.array(weight, dtype=np.float64),
         )
+
+
+def _edges_inside(component_id: int, seqs: list[SequenceRecord], src: list[int],
+                  dst: list[int]) -> None:
+    """Refuse a component whose stored edges leave it (a corrupt edge record: MapCorruptError,
+    never a graph built on it). O((E + S) log S)."""
+    if not src or not seqs:
+        return
+    ordered = sorted(seqs, key=lambda s: s.first_vertex)
+    firsts = np.array([s.first_vertex for s in ordered], dtype=np.int64)
+    lasts = np.array([s.last_vertex for s in ordered], dtype=np.int64)
+    top = int(lasts.max())
+    ends = np.array([[min(v, top + 1) for v in src], [min(v, top + 1) for v in dst]],
+                    dtype=np.int64)
+    at = np.maximum(np.searchsorted(firsts, ends, side="right") - 1, 0)
+    outside = (ends < firsts[at]) | (ends > lasts[at])
+    if outside.any():
+        bad = int(np.flatnonzero(outside.any(axis=0))[0])
+        raise MapCorruptError(f"edge {src[bad]} -> {dst[bad]} of component {component_id} "
+                              "leaves it: the map's edge records are corrupt (see "
+                              "`sprint-map check`)")

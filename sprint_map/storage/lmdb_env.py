@@ -219,6 +219,22 @@ class LmdbEnv:
             raise StorageIOError(f"the map's LMDB environment is unusable: {self._broken}; "
                                  "reopen the map")
 
+    @staticmethod
+    @contextmanager
+    def translated() -> Iterator[None]:
+        """Turn LMDB errors raised in the block into ours: corruption (``MDB_CORRUPTED``, a page
+        not found, ...) into MapCorruptError, any other into StorageIOError.
+
+        For reads through a transaction held beyond its :meth:`read` block (a pinned snapshot):
+        :meth:`read` only translates what is raised inside its own block.
+        """
+        try:
+            yield
+        except CORRUPT_ERRORS as exc:
+            raise MapCorruptError(f"the map's LMDB is corrupt: {exc}") from exc
+        except lmdb.Error as exc:
+            raise StorageIOError(f"cannot read the map's LMDB: {exc}") from exc
+
     @contextmanager
     def read(self) -> Iterator[lmdb.Transaction]:
         """A consistent read snapshot for the duration of the ``with`` block.

@@ -37,6 +37,7 @@ from sprint_map.errors import DuplicateNameError, MapCorruptError
 from sprint_map.storage import index_store
 from sprint_map.storage.check import check_map
 from sprint_map.storage.flat_index import file_bytes, index_files
+from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL
 from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.lock import writer_active
 from sprint_map.storage.segment_index import MANIFEST
@@ -350,6 +351,18 @@ def test_a_corrupt_record_is_the_corrupt_map_error(tmp_path, npy, record, comman
         return
     assert result.exit_code == CORRUPT, result.output
     assert "corrupt" in one_error_line(result.output)
+
+
+def test_an_edge_record_leaving_its_component_is_the_corrupt_map_error(tmp_path, npy):
+    """A garbled edge key (a bit flipped in LMDB: no checksum there) that points into another
+    component: localize said ValueError 'an edge end is not a vertex of this component'."""
+    path = build(tmp_path / "m", npy)  # no edges: every drive is its own component
+    with raw_lmdb(path) as (txn, db):
+        txn.put(EDGE_KEY.pack(3, 120), EDGE_VAL.pack(1.0, 0, 0, 0.0), db=db("edges"))
+    result = cli("localize", path, npy[0], "--quiet")
+    assert result.exit_code == CORRUPT, result.output
+    assert "edge 3 -> 120 of component 0 leaves it" in one_error_line(result.output)
+    assert cli("check", path).exit_code == 1  # the check names it too
 
 
 # --- 13: a failed init leaves nothing ------------------------------------------------------------
