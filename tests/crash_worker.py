@@ -15,9 +15,10 @@ Run as a script it is the child side (never imported by pytest as a test module)
         A fork server: imports everything once, then for each JSON line on stdin
         ``{"op": "spawn", "ack": FILE, ...}`` forks a child that runs ``write`` (the default)
         or, with ``"mode": "repair"``, ``check --repair`` (``"remove"`` with ``"seqs"``:
-        ``remove``; ``"compact"``: ``compact``), with ``SPRINT_MAP_CRASH_AT`` set to
-        ``"crash_at"`` if given; the child appends ``ready``, ``ack <i>``, ``done`` lines to FILE
-        (``os.write``: in the kernel once it returns) and the zygote replies ``{"pid": ...}``;
+        ``remove``; ``"unmerge"`` with ``"seq"``: ``unmerge``; ``"compact"``: ``compact``),
+        with ``SPRINT_MAP_CRASH_AT`` set to ``"crash_at"`` if given; the child appends
+        ``ready``, ``ack <i>``, ``done`` lines to FILE (``os.write``: in the kernel once it
+        returns) and the zygote replies ``{"pid": ...}``;
         ``{"op": "wait", "pid": P}`` reaps it and replies ``{"signal": ..., "code": ...}``.
         Forking a warmed-up process makes a kill-and-restart cycle cost milliseconds instead of
         a Python start-up (~0.7 s with numpy/faiss/cv2).
@@ -165,6 +166,14 @@ def remove(path: str, seqs: list[int], emit: Callable[[str], None]) -> None:
     emit("done")
 
 
+def unmerge(path: str, seq: int, emit: Callable[[str], None]) -> None:
+    """Unmerge ``seq`` in ``path``; emit ``unmerged <edges removed>`` once the commit returned."""
+    with MapStore.open(path) as store:
+        emit("ready")
+        emit(f"unmerged {store.unmerge(seq).edges_removed}")
+    emit("done")
+
+
 def compact(path: str, emit: Callable[[str], None]) -> None:
     """Compact ``path``; emit ``compacted <generation>`` once it returned."""
     with MapStore.open(path) as store:
@@ -221,6 +230,8 @@ def _child(request: dict[str, Any]) -> None:
             remove(request["map"], request["seqs"], emit)
         elif mode == "compact":
             compact(request["map"], emit)
+        elif mode == "unmerge":
+            unmerge(request["map"], request["seq"], emit)
         else:
             write(request["map"], request["seed"], request.get("count"), request.get("length"),
                   emit)

@@ -34,11 +34,12 @@ from sprint_map.storage.crash import (
     REMOVE_POINTS,
     REPAIR_POINTS,
     SEGMENT_POINTS,
+    UNMERGE_POINTS,
 )
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.index_store import index_files
 from sprint_map.storage.keys import u32, u64
-from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
+from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, EdgeSpec, MapStore
 
 worker = crash_worker
 verify = worker.verify
@@ -241,6 +242,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     assert names == set(CRASH_POINTS)
     tested = set(ADD_POINTS + INDEX_POINTS) | set(RECOVER_POINTS) | set(REPAIR_POINTS)
     tested |= set(REMOVE_POINTS) | set(COMPACT_POINTS)  # test_kill_at_each_{remove,compact}_point
+    tested |= set(UNMERGE_POINTS)  # test_kill_at_each_unmerge_point
     tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
     assert tested == set(CRASH_POINTS)
 
@@ -336,6 +338,117 @@ def test_kill_at_each_compact_point(six, zygote, point):
     live = sorted(p.name for p in path.iterdir())
     assert live == ["CURRENT", "LOCK", lines[1].split()[1]]
     worker.assert_search_finds_everything(path)
+
+
+# --- unmerge ----------------------------------------------------------------------------------
+
+UNMERGED = 6
+
+
+@pytest.fixture
+def seven(six):
+    """``six`` (edges 2-0, 3-0, 4-1) plus drive 6, which matched drives 0 and 2 both ways and
+    added an edge between drives 1 and 5, their only link: unmerging it splits two
+    components, {0, 2, 3, 6} and {1, 4, 5}, into {0, 2, 3}, {6}, {1, 4} and {5}."""
+    rows = np.random.default_rng(6).standard_normal((LENGTH, 8)).astype(np.float32)
+    with MapStore.open(six) as store:
+        store.add_sequence(rows, name="d6", edges=[
+            EdgeSpec((None, 0), (0, 5), 0.9, 0), EdgeSpec((0, 5), (None, 0), 0.9, 0),
+            EdgeSpec((None, 3), (2, 1), 0.8, 3), EdgeSpec((2, 1), (None, 3), 0.8, 3),
+            EdgeSpec((1, 2), (5, 3), 0.7)])
+    return six
+
+
+def unmerged(state: dict[str, Any], seq: int) -> dict[str, Any]:
+    """``state`` without the edges ``seq`` added (the components: those of the edges left,
+    which ``logical_state`` checks itself)."""
+    return {"sequences": state["sequences"], "edges": {e for e in state["edges"] if e[3] != seq}}
+
+
+@pytest.mark.parametrize("point", UNMERGE_POINTS)
+def test_kill_at_each_unmerge_point(seven, zygote, point):
+    """Killed while unmerging: all of it or none of it, check passing; an unmerge run again
+    completes (or finds nothing left to revoke)."""
+    path = seven
+    before = state_of(path)
+    assert before["components"] == {frozenset({0, 2, 3, 6}), frozenset({1, 4, 5})}
+    lines = run_child(zygote, path.parent / "ack1", map=str(path), mode="unmerge",
+                      seq=UNMERGED, crash_at=point)
+    assert lines == ["ready"]
+    after = state_of(path)
+    committed = point == "unmerge.committed"
+    if committed:
+        assert {k: after[k] for k in ("sequences", "edges")} == unmerged(before, UNMERGED)
+        assert after["components"] == {frozenset({0, 2, 3}), frozenset({6}),
+                                       frozenset({1, 4}), frozenset({5})}
+        assert after["stats"]["edges"] == before["stats"]["edges"] - 5
+    else:
+        assert after == before
+    strictly_ok(path)
+    lines = run_child(zygote, path.parent / "ack2", map=str(path), mode="unmerge",
+                      seq=UNMERGED)
+    assert lines == ["ready", f"unmerged {0 if committed else 5}", "done"]
+    assert {k: state_of(path)[k] for k in ("sequences", "edges")} == unmerged(before, UNMERGED)
+    strictly_ok(path)
+
+
+def test_random_kills_during_unmerge(tmp_path, zygote):
+    """Unmerges killed at random instants, 30 times (the delay calibrated on a copy, so kills
+    land on both sides of the commit): after each kill the map means exactly what it meant
+    before the unmerge or after it (every sequence bit for bit, the edges with their
+    provenance, the components of the edges) and passes ``check``; every other kill a
+    writer's open leaves it strictly clean. A map whose drives have no edge left is replaced."""
+    rng = np.random.default_rng(17)
+    kills, outcomes, maps = 0, {"before": 0, "after": 0}, 0
+    while kills < 30:
+        maps += 1
+        path = tmp_path / f"unmerge-map-{maps}"
+        create_map(path, dim=8, shard_rows=64)
+        with MapStore.open(path) as store:
+            for i in range(12):
+                worker.add_planned(store, SEED + maps, i, 20)
+        acks = tmp_path / "acks"
+        copy = tmp_path / "copy"  # calibrate: how long a whole unmerge takes here
+        shutil.copytree(path, copy)
+        seq = max(range(12), key=lambda s: sum(e[3] == s for e in state_of(copy)["edges"]))
+        acks.unlink(missing_ok=True)
+        pid = zygote.spawn(map=str(copy), mode="unmerge", seq=seq, ack=str(acks))
+        worker.wait_for_line(acks, "ready")
+        begun = time.monotonic()
+        worker.wait_for_line(acks, "done")
+        max_wait = 1.2 * (time.monotonic() - begun)
+        zygote.wait(pid)
+        shutil.rmtree(copy)
+        while kills < 30:
+            before = state_of(path)
+            left = sorted({e[3] for e in before["edges"]})
+            if not left:
+                break
+            seq = int(rng.choice(left))
+            acks.unlink(missing_ok=True)
+            pid = zygote.spawn(map=str(path), mode="unmerge", seq=seq, ack=str(acks))
+            worker.wait_for_line(acks, "ready")
+            time.sleep(rng.uniform(0, max_wait))
+            os.kill(pid, signal.SIGKILL)
+            status = zygote.wait(pid)
+            kills += 1
+            if status["signal"] != signal.SIGKILL:  # it finished first
+                assert status == {"signal": None, "code": 0}, zygote.log.read_text()
+            with MapStore.open(path, readonly=True) as store:
+                report = check_map(store)
+            assert report.ok, report.violations
+            after = state_of(path)
+            if after == before:
+                outcomes["before"] += 1
+            else:
+                assert {k: after[k] for k in ("sequences", "edges")} == unmerged(before, seq)
+                outcomes["after"] += 1
+            if kills % 2:
+                MapStore.open(path).close()
+                strictly_ok(path)
+        acks.unlink(missing_ok=True)
+    print({"kills": kills, "maps": maps, **outcomes})
+    assert sum(outcomes.values()) == kills == 30
 
 
 # --- (b) random kills -------------------------------------------------------------------------

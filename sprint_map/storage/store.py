@@ -68,6 +68,7 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
+from sprint_map.storage.provenance import UnmergeResult, unmerge_sequence
 from sprint_map.storage.removal import RemovedRanges, RemoveResult, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
@@ -586,6 +587,14 @@ class MapStore:
         if self._writing is not None:
             raise SprintMapError("a sequence is being written: commit or abort it first")
         return remove_sequences(self, seq_ids)
+
+    def unmerge(self, seq_id: int) -> UnmergeResult:
+        """Revoke the edges sequence ``seq_id`` added, in one LMDB transaction; see
+        :func:`provenance.unmerge_sequence`."""
+        self._require_writer()
+        if self._writing is not None:
+            raise SprintMapError("a sequence is being written: commit or abort it first")
+        return unmerge_sequence(self, seq_id)
 
     # --- writing ----------------------------------------------------------------------------
     def add_sequence(
