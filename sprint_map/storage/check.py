@@ -34,8 +34,11 @@ from sprint_map.storage.keys import (
     COMP_VAL,
     DIGEST_BYTES,
     EDGE_KEY,
+    EDGE_VAL,
+    NO_QUERY,
     REMOVED_VAL,
     UF_VAL,
+    Raw,
     SequenceRecord,
     decode_text,
     read_u32,
@@ -43,12 +46,16 @@ from sprint_map.storage.keys import (
     u64,
 )
 from sprint_map.storage.lock import writer_active
+from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.union_find import MEMBER_KEY
 
 #: Rows compared (index vectors with shard rows) or hashed per block: bounds check's memory.
 CHECK_BLOCK = 65536
+
+#: :attr:`MapRecords.added_by` of an edge whose value is not an edge value.
+MALFORMED = -1
 
 #: What each area of the invariants covers.
 AREAS = {
@@ -57,7 +64,7 @@ AREAS = {
     "shard_files": "shard files hold every committed row, equal to the digest committed with "
                    "its sequence",
     "shard_lengths": "committed shard lengths recorded in LMDB",
-    "edges": "edge endpoints exist and join two sequences",
+    "edges": "edge endpoints exist and join two sequences; edge values and their provenance",
     "edge_index": "reverse edge index and n_edges",
     "components": "union-find, membership lists, totals and n_components",
     "index": "the persisted FAISS index",
@@ -115,6 +122,9 @@ class MapRecords:
     removed_vertices: int = 0
     #: removed ranges that still hold a position (``vertex_data`` key): one seek per range
     stray_positions: list[tuple[int, int]] = field(default_factory=list)
+    #: provenance of each edge, parallel to ``edges``: the sequence that added it, ``NO_QUERY``
+    #: for none, ``MALFORMED`` for a value that is not an edge value
+    added_by: list[int] = field(default_factory=list)
     #: content digests of the sequences' rows (``digests``; a sequence written before digests
     #: has none)
     digests: dict[int, bytes] = field(default_factory=dict)
@@ -129,6 +139,8 @@ class MapRecords:
         removed = [(REMOVED_VAL.unpack(v)[0], read_u64(k), REMOVED_VAL.unpack(v)[1])
                    for k, v in txn.cursor(db=env.db("removed"))] if env.has_db("removed") else []
         positions = env.db("vertex_data")
+        edges = [(EDGE_KEY.unpack(k), edge_added_by(v))
+                 for k, v in txn.cursor(db=env.db("edges"))]
 
         return cls(
             counters={name: store.counter(name, txn) for name in COUNTERS},
@@ -137,7 +149,7 @@ class MapRecords:
                    for k, v in txn.cursor(db=env.db("seq_names"))},
             vrange={read_u64(k): read_u32(v) for k, v in txn.cursor(db=env.db("vrange"))},
             shard_rows={read_u32(k): read_u64(v) for k, v in txn.cursor(db=env.db("shards"))},
-            edges=keys("edges", EDGE_KEY),
+            edges=[key for key, _ in edges],
             rev=keys("edges_rev", EDGE_KEY),
             uf={read_u32(k): UF_VAL.unpack(v) for k, v in txn.cursor(db=env.db("uf"))},
             members=keys("members", MEMBER_KEY),
@@ -145,6 +157,7 @@ class MapRecords:
             removed=removed,
             removed_vertices=store.removed_vertices(txn),
             stray_positions=[(a, b) for a, b, _ in removed if _any_key(txn, positions, a, b)],
+            added_by=[added for _, added in edges],
             digests={read_u32(k): bytes(v) for k, v in txn.cursor(db=env.db("digests"))}
             if env.has_db("digests") else {},
         )
@@ -227,6 +240,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
                                           f"match {records.total} vertices")
     report.checked["shards"] = len(records.shard_rows)
     _check_edges(records, report)
+    _check_provenance(records, report)
     _check_components(records, sequence_edges(records, report), report)
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
@@ -354,6 +368,53 @@ def _check_edges(records: MapRecords, report: CheckReport) -> None:
                                        f"found {len(records.edges)}")
     if sorted((d, s) for s, d in records.edges) != sorted(records.rev):
         report.violation("edge_index", "reverse edge index does not mirror the edges")
+
+
+def edge_added_by(value: Raw) -> int:
+    """The provenance field of an edge value: the sequence that added the edge, ``NO_QUERY``
+    for none, ``MALFORMED`` if ``value`` is not an edge value. O(1)."""
+    if len(value) != EDGE_VAL.size:
+        return MALFORMED
+    return read_u32(value[ADDED_BY_AT:ADDED_BY_AT + 4])
+
+
+def _check_provenance(records: MapRecords, report: CheckReport) -> None:
+    """Sequence ids follow vertex order, and each edge was added by a sequence below
+    ``next_seq_id`` and no older than either of its ends (a drive's commit adds edges to itself
+    and to earlier drives only). ``unmerge`` finds a drive's edges with one range scan that
+    rests on both (:mod:`sprint_map.storage.provenance`).
+
+    Notes
+    -----
+    O(n log n + E log n), vectorised over the edges.
+    """
+    ordered = sorted(records.seqs, key=lambda s: s.first_vertex)
+    for prev, seq in zip(ordered, ordered[1:], strict=False):
+        if seq.seq_id < prev.seq_id:
+            report.violation("sequences", f"sequence {seq.seq_id} lies after sequence "
+                                          f"{prev.seq_id} in vertex order (both follow commits)")
+    if not records.edges or not ordered:
+        return
+    starts = np.array([s.first_vertex for s in ordered], dtype=np.int64)
+    lasts = np.array([s.last_vertex for s in ordered], dtype=np.int64)
+    ids = np.array([s.seq_id for s in ordered], dtype=np.int64)
+    ends = np.minimum(np.array(records.edges, dtype=np.uint64), records.total).astype(np.int64)
+    at = np.searchsorted(starts, ends, side="right") - 1
+    inside = (at >= 0) & (ends <= lasts[np.maximum(at, 0)]) & (ends < records.total)
+    newest = np.where(inside, ids[np.maximum(at, 0)], -1).max(axis=1)
+    added = np.array(records.added_by, dtype=np.int64)
+    given = (added != NO_QUERY) & (added != MALFORMED)
+    limit = records.counters["next_seq_id"]
+    for i in np.flatnonzero((added == MALFORMED) | (given & ((added >= limit) | (newest > added)))):
+        (src, dst), by = records.edges[i], int(added[i])
+        if by == MALFORMED:
+            report.violation("edges", f"edge {src} -> {dst} has a malformed value")
+        elif by >= limit:
+            report.violation("edges", f"edge {src} -> {dst} was added by sequence {by}, beyond "
+                                      f"next_seq_id {limit}")
+        else:
+            report.violation("edges", f"edge {src} -> {dst} joins sequence {int(newest[i])}, "
+                                      f"newer than sequence {by} that added it")
 
 
 def _check_components(records: MapRecords, edges: list[tuple[int, int, int, int]],
