@@ -69,7 +69,8 @@ class LocalisationService:
         self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
                                         config.max_buffered_bytes)
         self.cache = SharedComponentCache(smap.config.hmm.cache_budget_bytes)
-        self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size)
+        self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
+                                   self.registry)
         self.spec = smap.config.descriptor_spec()
         self.dim = smap.config.dim
         self.ready = False

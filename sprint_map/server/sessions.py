@@ -12,10 +12,12 @@ or -> ``closed`` (discarded, expired, shut down).
 from __future__ import annotations
 
 import asyncio
+import collections
+import contextlib
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Container, Iterable
 
 import numpy as np
 
@@ -23,8 +25,12 @@ from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.localizer import FrameDecision, Localizer
 from sprint_map.server.errors import ApiError, busy, unknown_session
+from sprint_map.storage.sequence_writer import SequenceWriter
 
 OPEN, COMMITTING, CLOSED = "open", "committing", "closed"
+
+#: How many default names of recent unnamed commits stay claimed (see ``begin_default``).
+CLAIMED_NAMES = 64
 
 
 class SharedComponentCache(ComponentCache):
@@ -152,6 +158,9 @@ class SessionRegistry:
         self._sessions: dict[str, Session] = {}
         self._lock = threading.Lock()
         self._buffered = 0
+        #: Default names of the latest unnamed commits (in progress or just done: the map may
+        #: not show them to a session being created yet); see :meth:`begin_default`.
+        self._claimed: collections.deque[str] = collections.deque(maxlen=CLAIMED_NAMES)
 
     def __len__(self) -> int:
         return len(self._sessions)
@@ -170,7 +179,30 @@ class SessionRegistry:
                     s.name == session.name for s in self._sessions.values()):
                 raise ApiError(409, "duplicate_name",
                                f"an open session is already named {session.name!r}")
+            if session.name in self._claimed:
+                raise ApiError(409, "duplicate_name", f"an unnamed drive committed as "
+                               f"{session.name!r} (its default name) just now")
             self._sessions[session.id] = session
+
+    def begin_default(self, begin: Callable[[Container[str]], SequenceWriter]
+                      ) -> SequenceWriter:
+        """Begin an unnamed drive's sequence, its default name avoiding every session's name.
+
+        ``begin(taken)`` chooses the name (:func:`~sprint_map.storage.sequence_writer.
+        default_name`) under the registry's lock, and the name is claimed with it: until its
+        commit ends (and a while after, when the map holds it), :meth:`add` refuses a session of
+        that name, so a session is never promised a name an unnamed drive then takes.
+        """
+        with self._lock:
+            taken = {s.name for s in self._sessions.values() if s.name is not None}
+            writer = begin(taken | set(self._claimed))
+            self._claimed.append(writer.name)
+            return writer
+
+    def release(self, name: str) -> None:
+        """Give up the claim of a default name whose commit failed (nothing holds it)."""
+        with self._lock, contextlib.suppress(ValueError):
+            self._claimed.remove(name)
 
     def get(self, session_id: str) -> Session:
         session = self._sessions.get(session_id)

@@ -13,9 +13,10 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from concurrent.futures import Future
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -23,6 +24,7 @@ from sprint_map.localizer import FrameDecision, merge_edges
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
+from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import AddResult
 
 
@@ -47,6 +49,17 @@ class CommitOutcome:
 
 
 
+class NameClaims(Protocol):
+    """Where an unnamed drive's default name is chosen (the service's session registry)."""
+
+    def begin_default(self, begin: Callable[[Container[str]], SequenceWriter]
+                      ) -> SequenceWriter:
+        """``begin(names in use)``, atomically with claiming the name it chose."""
+
+    def release(self, name: str) -> None:
+        """Give up a claimed name whose commit failed."""
+
+
 class CommitWriter:
     """One thread committing :class:`CommitJob` s from a bounded queue.
 
@@ -61,13 +74,18 @@ class CommitWriter:
         registry tells the live filters), so no frame sees the new map before its filter knows.
     queue_size : int
         Commits that may wait; :meth:`submit` answers 503 beyond.
+    names : NameClaims, optional
+        The names held by drives not committed yet (the open sessions): an unnamed drive's
+        sequence is begun through :meth:`NameClaims.begin_default`, so its default name avoids
+        them as it avoids the map's names, and no session can take that name meanwhile.
     """
 
     def __init__(self, smap: SprintMap, gate: MapGate, on_commit: Callable[[set[int]], None],
-                 queue_size: int) -> None:
+                 queue_size: int, names: NameClaims | None = None) -> None:
         self.smap = smap
         self.gate = gate
         self.on_commit = on_commit
+        self.names = names
         self._queue: queue.Queue[tuple[CommitJob, Future[CommitOutcome]] | None] = queue.Queue(
             maxsize=queue_size)
         self._thread = threading.Thread(target=self._run, name="sprint-map-writer", daemon=True)
@@ -131,13 +149,23 @@ class CommitWriter:
         touched = {seq for e in edges for seq, _ in (e.src, e.dst) if seq is not None}
         # Only this thread changes the union-find, so these roots hold until the commit.
         before = {smap.component_of(seq) for seq in touched}
-        with smap.store.begin_sequence(job.name, job.source) as writer:
-            writer.append(job.descriptors)  # shards written and fsynced; invisible to readers
-            with self.gate.exclusive():
-                start = time.perf_counter()
-                # The commit point (durable on return).
-                added = writer.commit(job.positions, edges)
-                changed = before | {added.component}
-                self.on_commit(changed)
-                held = time.perf_counter() - start
+        if job.name is not None or self.names is None:
+            begun = SequenceWriter(smap.store, job.name, job.source)
+        else:
+            begun = self.names.begin_default(
+                lambda taken: SequenceWriter(smap.store, None, job.source, taken))
+        try:
+            with begun as writer:
+                writer.append(job.descriptors)  # shards written and fsynced; not yet visible
+                with self.gate.exclusive():
+                    start = time.perf_counter()
+                    # The commit point (durable on return).
+                    added = writer.commit(job.positions, edges)
+                    changed = before | {added.component}
+                    self.on_commit(changed)
+                    held = time.perf_counter() - start
+        except BaseException:
+            if job.name is None and self.names is not None:
+                self.names.release(begun.name)  # nothing was committed under it
+            raise
         return CommitOutcome(added, frozenset(changed), held)

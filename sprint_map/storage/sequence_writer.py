@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Container, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -46,6 +46,21 @@ if TYPE_CHECKING:
     from sprint_map.storage.store import AddResult, EdgeSpec, MapStore, ResolvedEdge
 
 
+def default_name(seq_id: int, taken: Callable[[str], bool]) -> str:
+    """The default name of sequence ``seq_id``: ``seq-<id>``, unless that name is ``taken``.
+
+    Ids are not names: a user may have named an earlier drive ``seq-<id>`` (or a drive not
+    committed yet may hold it), so a taken name is skipped for ``seq-<id>-2``, ``seq-<id>-3``,
+    ... The first name not taken is returned; the loop ends because finitely many are taken.
+    """
+    name = f"seq-{seq_id}"
+    suffix = 1
+    while taken(name):
+        suffix += 1
+        name = f"seq-{seq_id}-{suffix}"
+    return name
+
+
 class SequenceWriter:
     """Writes one new sequence into ``store``; use as a context manager.
 
@@ -54,23 +69,34 @@ class SequenceWriter:
     store : MapStore
         A map open for writing; one sequence may be in progress at a time.
     name : str, optional
-        Unique sequence name (default ``seq-<id>``); checked now, before any row is written.
+        Unique sequence name; checked now, before any row is written. The default is
+        ``seq-<id>``, or the first of ``seq-<id>-2``, ``seq-<id>-3``, ... that no sequence of
+        the map has and ``reserved`` does not hold (:func:`default_name`): a default never
+        collides.
     source : str
         Free text recording where the sequence came from.
+    reserved : container of str
+        Names a default must also avoid (e.g. the service's sessions not committed yet).
     """
 
-    def __init__(self, store: MapStore, name: str | None = None, source: str = "") -> None:
+    def __init__(self, store: MapStore, name: str | None = None, source: str = "",
+                 reserved: Container[str] = ()) -> None:
         store._require_writer()
         if store._writing is not None:
             raise SprintMapError("another sequence is already being written to this map")
         with store.env.read() as txn:
             self.seq_id = store.counter("next_seq_id", txn)
             self.first = store.counter("next_vertex_id", txn)
-            self.name = f"seq-{self.seq_id}" if name is None else name
+            names = store.env.db("seq_names")
+            if name is None:
+                self.name = default_name(self.seq_id, lambda candidate: candidate in reserved
+                                         or txn.get(candidate.encode(), db=names) is not None)
+            else:
+                self.name = name
             validate_name(self.name)
             #: (record, digest) of the committed sequence of this name: rows are only hashed
             self.retry_of: tuple[SequenceRecord, bytes] | None = None
-            existing = txn.get(self.name.encode(), db=store.env.db("seq_names"))
+            existing = txn.get(self.name.encode(), db=names)
             if existing is not None:
                 record = store.sequence(read_u32(existing), txn)
                 digest = store.sequence_digest(record.seq_id, txn)
