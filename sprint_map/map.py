@@ -22,7 +22,7 @@ import numpy as np
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
-from sprint_map.errors import DescriptorShapeError, InputError, UnknownSequenceError
+from sprint_map.errors import DescriptorShapeError, InputError
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
@@ -33,7 +33,6 @@ from sprint_map.storage.keys import SequenceRecord
 from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
 from sprint_map.storage.removal import RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
-from sprint_map.storage.validation import decode_text, name_key, shown
 
 
 @dataclass(frozen=True)
@@ -83,7 +82,6 @@ class SprintMap:
         InputError
             ``path`` is not UTF-8 text (nothing is created).
         """
-        decode_text(os.fspath(path), "map path")
         return cls(MapStore.create(path, config))
 
     @classmethod
@@ -96,7 +94,6 @@ class SprintMap:
         shard that may hold uncommitted rows. Raises ``MapLockedError`` at once if another
         process is writing.
         """
-        decode_text(os.fspath(path), "map path")
         return cls(MapStore.open(path, readonly=readonly))
 
     def close(self) -> None:
@@ -257,11 +254,7 @@ class SprintMap:
     def _seq_id(self, seq: int | str) -> int:
         """The id of sequence ``seq`` (an id, or a name checked by the store's name rules: one
         no sequence can have, like ``""``, is unknown; one that is not UTF-8 an InputError)."""
-        if isinstance(seq, int):
-            return seq
-        if name_key(seq) is None:
-            raise UnknownSequenceError(f"no sequence named {shown(seq)} in the map")
-        return self.store.sequence_by_name(seq).seq_id
+        return seq if isinstance(seq, int) else self.store.sequence_by_name(seq).seq_id
 
     def compact(self) -> CompactReport:
         """Reclaim the space of removed sequences: shards, index and LMDB are rewritten into a

@@ -47,6 +47,7 @@ from sprint_map.errors import (
     InputError,
     InvalidDescriptorError,
     ListenError,
+    MapCorruptError,
     MapExistsError,
     MapLockedError,
     NotAMapError,
@@ -145,15 +146,20 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for key, value in (("shard_rows", 1.5), ("merge_both_ways", "no"), ("index_pca_dim", 1.5),
                        ("hmm", {"window": [0.5, "x"]})):
         (root / f"config_{key}.json").write_text(json.dumps({key: value}))
+    # Text that is not UTF-8 (issue 14, item 10): a file name and a token file.
+    np.save(root / os.fsdecode(b"bad\xff.npy"), good)
+    (root / "token_latin1.txt").write_bytes(b"s3cr\xe9t\n")
     return root
 
 
 @pytest.fixture(scope="module")
 def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[str, Path]:
     """``npy``: precomputed map with sequence "first"; ``img``: HoG map with sequence "images";
-    ``newer``: a map of a schema version newer than this code's."""
+    ``newer``: a map of a schema version newer than this code's; ``badconfig``: a map whose
+    stored config has a value of the wrong type (``shard_rows`` 1.5)."""
     root = tmp_path_factory.mktemp("templates")
-    paths = {"npy": root / "npy.map", "img": root / "img.map", "newer": root / "newer.map"}
+    paths = {"npy": root / "npy.map", "img": root / "img.map", "newer": root / "newer.map",
+             "badconfig": root / "badconfig.map"}
     with SprintMap.create(paths["npy"], MapConfig(dim=DIM)) as m:
         m.add_sequence(np.load(inputs / "good.npy"), name="first")
         m.search(np.load(inputs / "one.npy"), k=1)  # the index is persisted at close: a failed
@@ -166,6 +172,13 @@ def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[st
     meta = env.open_db(b"meta")  # before the write txn: open_db would wait for it
     with env.begin(write=True) as txn:
         txn.put(b"schema_version", str(SCHEMA_VERSION + 1).encode(), db=meta)
+    env.close()
+    shutil.copytree(paths["npy"], paths["badconfig"])
+    env = lmdb.open(str(paths["badconfig"] / LMDB_DIR), max_dbs=MAX_DBS)
+    meta = env.open_db(b"meta")
+    with env.begin(write=True) as txn:
+        config = json.loads(txn.get(b"config", db=meta))
+        txn.put(b"config", json.dumps({**config, "shard_rows": 1.5}).encode(), db=meta)
     env.close()
     return paths
 
@@ -233,6 +246,19 @@ CASES: dict[str, Case] = {
                            "a sequence named 'first' already exists"),
     "duplicate-default-name": Case("ingest {map} {in}/other/images", DuplicateNameError,
                                    "'images' already exists", map="img"),
+    # Names and paths that are not UTF-8 (argv and file names decode with surrogateescape).
+    "name-not-utf8": Case("ingest {map} {in}/good.npy --name a\udcffb", InputError,
+                          "sequence name b'a\\xffb' is not UTF-8 text"),
+    "source-name-not-utf8": Case("ingest {map} {in}/bad\udcff.npy", InputError,
+                                 "sequence name b'bad\\xff' is not UTF-8 text"),
+    "remove-name-not-utf8": Case("remove {map} \udcff", InputError,
+                                 "sequence name b'\\xff' is not UTF-8 text"),
+    "remove-empty-name": Case("remove {map} ", UnknownSequenceError,
+                              "no sequence named '' in the map"),
+    "init-path-not-utf8": Case("init {map} --dim 4", InputError, "case\\xff.map' is not UTF-8 "
+                               "text", map="undecodable"),
+    "serve-token-not-utf8": Case("serve {map} --token-file {in}/token_latin1.txt", InputError,
+                                 "token_latin1.txt is not UTF-8 text"),
     "name-with-newline": Case("ingest {map} {in}/good.npy --name a\nb", InputError,
                               "non-printing characters"),
     # Images and video for a HoG map.
@@ -303,6 +329,11 @@ CASES: dict[str, Case] = {
                                map="missing"),
     "init-nested-window": Case("init {map} --dim 4 --config {in}/config_hmm.json", ConfigError,
                                "MapConfig.hmm: window must be a list of numbers", map="missing"),
+    # A stored config that fails validation is a corrupt map (it was a crash in every command).
+    **{f"stored-config-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/one.npy" if cmd in (
+        "ingest", "localize") else ""), MapCorruptError, "corrupt map record config: MapConfig: "
+        "shard_rows must be an integer, got 1.5", map="badconfig")
+       for cmd in ("info", "check", "ingest", "localize")},
     "hmm-float-k": Case("localize {map} {in}/good.npy --hmm k=1.5", ConfigError,
                         "HMMConfig: k must be an integer, got 1.5"),
     "hmm-string-bool-merge": Case("ingest {map} {in}/good.npy --name x --hmm place_hops=true",
@@ -317,6 +348,8 @@ CASES: dict[str, Case] = {
 
 def _map_path(case: Case, templates: dict[str, Path], tmp_path: Path) -> Path:
     path = tmp_path / "case.map"
+    if case.map == "undecodable":  # a path that is not UTF-8, absent
+        path = tmp_path / os.fsdecode(b"case\xff.map")
     if case.map in templates:
         shutil.copytree(templates[case.map], path)
     elif case.map == "empty-dir":
@@ -378,9 +411,9 @@ def test_every_error_class_is_exercised():
     untested = {c.__name__ for c in vars(errors).values()
                 if isinstance(c, type) and issubclass(c, SprintMapError)} - {
         c.__name__ for c in tried if c is not None}
-    # Corruption is check's business (tests/storage/test_check.py); the base class is for API
-    # misuse only.
-    assert untested == {"MapCorruptError", "SprintMapError"}
+    # The base class is for API misuse only (corruption: the stored-config rows here, the rest in
+    # tests/storage/test_check.py and the fuzz).
+    assert untested == {"SprintMapError"}
 
 
 def test_a_bad_stride_is_a_usage_error_not_a_traceback(inputs, templates, tmp_path):
@@ -495,7 +528,8 @@ def test_one_frame_sequences_are_valid_everywhere(tmp_path, inputs):
     """The rule: a one-frame sequence is a sequence. As the whole map, as a query, as a drive
     merged into a map of one-frame sequences: added, localised, matched."""
     good = np.load(inputs / "good.npy")
-    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+    # (The default merge rule wants a run of frames along a drive: no one-frame drive passes.)
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, merge_min_run=0)) as m:
         m.add_sequence(good[:1], name="only")
         single = m.ingest(good[:1] + 0.001, name="again")  # a one-frame drive, localised
         assert single.decisions[0].seq_id == 0 and single.added.edges_added > 0

@@ -32,6 +32,7 @@ import numpy as np
 
 from sprint_map.config import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
+    ConfigError,
     InputError,
     MapCorruptError,
     MapExistsError,
@@ -73,7 +74,7 @@ from sprint_map.storage.removal import RemovedRanges, RemoveResult, remove_seque
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.union_find import UnionFindStore
-from sprint_map.storage.validation import validate_descriptors
+from sprint_map.storage.validation import decode_text, name_key, shown, validate_descriptors
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
@@ -171,8 +172,11 @@ class MapStore:
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
     def create(cls, path: str | os.PathLike[str], config: MapConfig) -> MapStore:
-        """Create a new, empty map at ``path`` (absent or an empty directory) and open it."""
-        root = Path(path)
+        """Create a new, empty map at ``path`` (absent or an empty directory) and open it.
+
+        A ``path`` that is not UTF-8 text is refused (InputError) before anything is made.
+        """
+        root = Path(decode_text(os.fspath(path), "map path"))
         if root.exists() and (not root.is_dir() or any(root.iterdir())):
             raise MapExistsError(f"refusing to create a map in non-empty path: {root}")
         created: list[Path] = []  # what this call made, undone (newest first) on failure
@@ -218,8 +222,11 @@ class MapStore:
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> MapStore:
-        """Open an existing map. A writer takes the map's lock and recovers interrupted writes."""
-        root = Path(path)
+        """Open an existing map. A writer takes the map's lock and recovers interrupted writes.
+
+        A ``path`` that is not UTF-8 text is refused (InputError).
+        """
+        root = Path(decode_text(os.fspath(path), "map path"))
         if not root.is_dir() or not (current_data(root) / LMDB_DIR / "data.mdb").is_file():
             raise NotAMapError(f"not a sprint-map directory: {root}")
         lock = None
@@ -419,10 +426,20 @@ class MapStore:
         return SequenceRecord.decode(raw)
 
     def sequence_by_name(self, name: str) -> SequenceRecord:
+        """The record of the sequence named ``name``. O(log n_sequences).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No sequence has that name (none can have ``""`` or a name with a newline).
+        InputError
+            ``name`` is not UTF-8 text.
+        """
+        key = name_key(name)
         with self.env.read() as txn:
-            raw = txn.get(name.encode(), db=self.env.db("seq_names"))
+            raw = None if key is None else txn.get(key, db=self.env.db("seq_names"))
             if raw is None:
-                raise UnknownSequenceError(f"no sequence named {name!r} in the map")
+                raise UnknownSequenceError(f"no sequence named {shown(name)} in the map")
             return self.sequence(read_u32(raw), txn)
 
     def sequences(self) -> list[SequenceRecord]:
@@ -745,13 +762,16 @@ def _undo_create(created: list[Path]) -> None:
 
 
 def decode_config(raw: Raw) -> MapConfig:
-    """The map's stored config record, or MapCorruptError if it is not a config (a config
-    error of the stored values themselves, ConfigError, passes through). O(len(raw))."""
+    """The map's stored config record, or MapCorruptError if it is not a valid config: not
+    JSON, not an object, or values the config refuses (of the wrong type or out of range: a
+    map is only ever created with a valid one). O(len(raw))."""
     data = decode_json(raw, "config")
     if not isinstance(data, dict):
         raise MapCorruptError("corrupt map record config: not a JSON object")
     try:
         return MapConfig.from_dict(data)
+    except ConfigError as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
     except SprintMapError:
         raise
     except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
