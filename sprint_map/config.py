@@ -88,6 +88,16 @@ class MapConfig:
         to be merged (0 disables the check).
     merge_max_rate : float
         Images of the matched sequence a neighbour may advance per frame and still agree.
+    merge_min_run : int
+        A merged decision lies on a run of at least this many frames matched one after the
+        other along the same sequence (0 or 1 disables the check).
+    merge_min_advance : float
+        The images of such a run advance by at least this many per frame, first frame to
+        last (a match stuck on one image while the drive moves on is not merged).
+    merge_dist_quantile : float
+        A merged decision's frame is at most as far from the map (best-hit distance) as this
+        quantile of the distances of the drive's frames that pass every other test (0
+        disables the check).
     merge_both_ways : bool
         Store each merge edge in both directions (query -> map and map -> query), so belief can
         later cross between the two drives either way. The paper keeps one direction.
@@ -112,11 +122,14 @@ class MapConfig:
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
     initial_map_size: int = 1 << 30
-    merge_threshold: float = 0.9
-    merge_max_novel: float = 0.5
+    merge_threshold: float = 0.5
+    merge_max_novel: float = 0.2
     merge_window: int = 3
-    merge_min_agree: int = 3
+    merge_min_agree: int = 0
     merge_max_rate: float = 3.0
+    merge_min_run: int = 20
+    merge_dist_quantile: float = 0.98
+    merge_min_advance: float = 0.3
     merge_both_ways: bool = True
     hmm: HMMConfig = field(default_factory=HMMConfig)
 
@@ -164,12 +177,19 @@ class MapConfig:
             raise ValueError("merge_min_agree must be an integer in [0, 2 * merge_window]")
         if not self.merge_max_rate > 0:
             raise ValueError("merge_max_rate must be > 0")
+        if not isinstance(self.merge_min_run, int) or self.merge_min_run < 0:
+            raise ValueError("merge_min_run must be an integer >= 0")
+        if not 0 <= self.merge_dist_quantile <= 1:
+            raise ValueError("merge_dist_quantile must be in [0, 1]")
+        if not 0 <= self.merge_min_advance <= self.merge_max_rate:
+            raise ValueError("merge_min_advance must be in [0, merge_max_rate]")
 
     @property
     def merge_rule(self) -> MergeRule:
         """The merge rule these fields define (:mod:`sprint_map.merge_rule`)."""
         return MergeRule(self.merge_threshold, self.merge_max_novel, self.merge_window,
-                         self.merge_min_agree, self.merge_max_rate)
+                         self.merge_min_agree, self.merge_max_rate, self.merge_min_run,
+                         self.merge_dist_quantile, self.merge_min_advance)
 
     @property
     def index_dim(self) -> int:

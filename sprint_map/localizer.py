@@ -9,6 +9,8 @@ k-NN searches: one search of B queries is much cheaper than B searches of one).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -23,6 +25,7 @@ from sprint_map.hmm.decision import Decision
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.map_graph import MapGraphSource
+from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, run_ids, select_merges
 from sprint_map.storage.store import EdgeSpec
 from sprint_map.storage.validation import validate_descriptors
 
@@ -41,7 +44,9 @@ class FrameDecision:
     the vertices joined to them by edges); for "no match" it is that of the best candidate,
     which ``best`` still names (``(seq_id, image_id)``, None when the map is empty).
     ``novel_prob`` is the posterior probability that the frame shows a place the map does not
-    hold (the filter's "unmapped place" state; 1 when the map is empty).
+    hold (the filter's "unmapped place" state; 1 when the map is empty). ``distance`` is the
+    frame's best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which
+    the merge rule compares with the drive's accepted matches.
     """
 
     frame: int
@@ -51,6 +56,7 @@ class FrameDecision:
     vertex_id: int | None = None
     best: tuple[int, int] | None = None
     novel_prob: float = 0.0
+    distance: float = math.inf
 
     @property
     def is_match(self) -> bool:
@@ -58,7 +64,8 @@ class FrameDecision:
 
     def to_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
-                "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6)}
+                "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6),
+                "distance": round(self.distance, 6) if math.isfinite(self.distance) else None}
 
 
 @dataclass
@@ -134,6 +141,8 @@ class Localizer:
         #: Keep every frame's retrieval hits, for :meth:`smoothed` (O(k) per frame).
         self.record = record
         self.hits: list[tuple[np.ndarray, np.ndarray]] = []
+        #: The per-frame unmapped-place distances the last :meth:`smoothed` calibrated.
+        self.novelty_dist: np.ndarray | None = None
 
     def reset(self) -> None:
         """Start a new query sequence."""
@@ -159,14 +168,44 @@ class Localizer:
         if not self.record:
             raise ValueError("smoothed() needs a Localizer made with record=True")
         start = time.perf_counter()
-        fb = ForwardBackward(self.config, self.source, self.cache)
         with self.source.pinned():
-            for ids, dists in self.hits:
-                fb.forward(ids, dists)
-            out = [self._frame_decision(i, d) for i, d in enumerate(fb.decisions())]
+            out = self._smooth_pass()
+            novelty = self._calibrated_novelty(out)
+            if novelty is not None:
+                calibrated = self._smooth_pass(novelty)
+                out = [dataclasses.replace(d, novel_prob=c.novel_prob)
+                       for d, c in zip(out, calibrated, strict=True)]
         self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
         return out
 
+    def _smooth_pass(self, novelty: np.ndarray | None = None) -> list[FrameDecision]:
+        fb = ForwardBackward(self.config, self.source, self.cache)
+        for t, (ids, dists) in enumerate(self.hits):
+            if novelty is not None:
+                nd = float(novelty[t])
+                fb.set_novelty_dist(nd if math.isfinite(nd) else None)
+            fb.forward(ids, dists)
+        return [self._frame_decision(i, d, _nearest(*self.hits[i]))
+                for i, d in enumerate(fb.decisions())]
+
+    def _calibrated_novelty(self, decisions: list[FrameDecision]) -> np.ndarray | None:
+        """Per-frame ``novelty_dist`` for this drive (see :meth:`smoothed`; ``inf``: none at
+        that frame), or None to keep the config's: calibration off, set by hand, or too few
+        accepted frames to calibrate on."""
+        cfg = self.config
+        if not cfg.novelty_quantile or cfg.novelty_dist is not None:
+            return None
+        accepted = select_merges(decisions, self.map.config.merge_rule)
+        if int(accepted.sum()) < CALIBRATE_MIN_FRAMES:
+            return None
+        rule = self.map.config.merge_rule
+        seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions])
+        img = np.array([-1 if d.image_id is None else d.image_id for d in decisions])
+        runs = run_ids(np.where(accepted, seq, -1), img, max(rule.window, 1), rule.max_rate)
+        self.novelty_dist = local_quantiles(np.array([d.distance for d in decisions]), accepted,
+                                            cfg.novelty_quantile, cfg.novelty_window,
+                                            CALIBRATE_MIN_FRAMES, runs)
+        return self.novelty_dist
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """Tell a long-lived localizer that the map changed (another drive was committed).
 
@@ -246,19 +285,20 @@ class Localizer:
             self.hits.append((np.array(ids, copy=True), np.array(dists, copy=True)))
         frame = self._frame
         self._frame += 1
-        return self._frame_decision(frame, decision)
+        return self._frame_decision(frame, decision, _nearest(ids, dists))
 
-    def _frame_decision(self, frame: int, decision: Decision) -> FrameDecision:
+    def _frame_decision(self, frame: int, decision: Decision, distance: float
+                        ) -> FrameDecision:
         if decision.vertex_id is None or decision.seq_id is None or decision.image_id is None:
             best = None
             if decision.candidate_id is not None:
                 best = self.source.locate([decision.candidate_id])[0]
             return FrameDecision(frame, None, None, float(decision.prob), None, best,
-                                 float(decision.sink_prob))
+                                 float(decision.sink_prob), distance)
         return FrameDecision(frame, int(decision.seq_id), int(decision.image_id),
                              float(decision.prob), int(decision.vertex_id),
                              (int(decision.seq_id), int(decision.image_id)),
-                             float(decision.sink_prob))
+                             float(decision.sink_prob), distance)
 
     def _no_map_decision(self) -> FrameDecision:
         self.timing.retrieval_ms.append(0.0)
@@ -266,6 +306,42 @@ class Localizer:
         frame = self._frame
         self._frame += 1
         return FrameDecision(frame, None, None, 0.0, novel_prob=1.0)
+
+
+def local_quantiles(values: np.ndarray, mask: np.ndarray, q: float, window: int,
+                    min_count: int, groups: np.ndarray | None = None) -> np.ndarray:
+    """For every frame, the ``q`` quantile of ``values[mask]`` over the frames within
+    ``window`` of it (0: the whole sequence), leaving out the frame's own group (its run of
+    matches: a stretch is judged against the others, not against itself) while at least
+    ``min_count`` frames remain; else with its group; else over the whole sequence.
+
+    Notes
+    -----
+    O(n w log w) for ``w = 2 * window + 1``.
+    """
+    n = len(values)
+    overall = float(np.quantile(values[mask], q))
+    out = np.full(n, overall)
+    if window <= 0:
+        return out
+    idx = np.flatnonzero(mask)
+    lo = np.searchsorted(idx, np.arange(n) - window)
+    hi = np.searchsorted(idx, np.arange(n) + window, side="right")
+    for t in range(n):
+        near = idx[lo[t]:hi[t]]
+        if groups is not None and groups[t] >= 0:
+            others = near[groups[near] != groups[t]]
+            if others.size >= min_count:
+                near = others
+        if near.size >= min_count:
+            out[t] = float(np.quantile(values[near], q))
+    return out
+
+
+def _nearest(ids: np.ndarray, dists: np.ndarray) -> float:
+    """A frame's best-hit distance (squared L2; inf without a valid hit)."""
+    d = np.asarray(dists, dtype=np.float64).ravel()[np.asarray(ids).ravel() >= 0]
+    return float(d.min()) if d.size else math.inf
 
 
 def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_ways: bool

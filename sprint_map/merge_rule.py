@@ -1,17 +1,28 @@
 """The merge rule: which localisation decisions of a drive become permanent edges.
 
 A merged edge is permanent and carries belief for every later drive, so the rule is tuned for
-precision (``docs/architecture.md``, "The merge rule"). A decision on frame ``i`` matched to
+precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`` matched to
 ``(s, j)`` is merged when all of these hold:
 
 1. it is confident: its place probability is at least ``merge_threshold``;
 2. it is not novel: its probability of being an unmapped place (``novel_prob``) is at most
    ``merge_max_novel``;
-3. it is temporally consistent: among the frames ``i - merge_window .. i + merge_window``
-   (``i`` excluded), at least ``merge_min_agree`` are matched to the same sequence ``s`` at
-   images that advance with the frames: for a neighbour ``i + d`` matched to ``(s, j')``,
-   ``0 <= (j' - j) * sign(d) <= merge_max_rate * |d| + 1``. A vehicle on a mapped road is
-   matched along it; a wrong match rarely has neighbours that agree with it.
+3. it is as close to the map as this drive's matches are: its frame's best-hit distance is
+   at most the ``merge_dist_quantile`` quantile of the best-hit distances of the frames that
+   pass every other test (calibrated per drive: under rain or at night every distance to the
+   map grows, and the drive's own accepted matches say by how much). A lookalike street
+   (perceptual aliasing) is matched, but less closely than the streets the drive really
+   shares with the map;
+4. it lies on a long enough run: at least ``merge_min_run`` frames passing 1-3, matched one
+   after the other along the same sequence, each at most ``merge_window`` frames after the
+   previous one of the run and at an image ``0 <= step <= merge_max_rate * gap + 1`` ahead
+   of it. A mapped road is followed for as long as the drive stays on it; a lookalike stretch
+   ends where the streets differ and the match jumps elsewhere. Around each frame, the run's
+   images must also advance by at least ``merge_min_advance`` per frame: a match stuck on one
+   image while the drive goes on is a belief coasting on a place the drive has left (a
+   tunnel, a dark or featureless stretch);
+5. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
+   either side agree with it in the sense of 4.
 
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
 drive has been seen, the future of the drive supports or contradicts each frame.
@@ -19,13 +30,17 @@ drive has been seen, the future of the drive supports or contradicts each frame.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-__all__ = ["MergeDecision", "MergeRule", "select_merges"]
+__all__ = ["MergeDecision", "MergeRule", "run_ids", "run_lengths", "select_merges"]
+
+#: Frames that must pass the other tests before the distance test is calibrated on them.
+CALIBRATE_MIN_FRAMES = 10
 
 
 class MergeDecision(Protocol):
@@ -41,6 +56,8 @@ class MergeDecision(Protocol):
     def prob(self) -> float: ...
     @property
     def novel_prob(self) -> float: ...
+    @property
+    def distance(self) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -52,11 +69,16 @@ class MergeRule:
     window: int = 0
     min_agree: int = 0
     max_rate: float = 3.0
+    min_run: int = 0
+    dist_quantile: float = 0.0
+    min_advance: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {"merge_threshold": self.threshold, "merge_max_novel": self.max_novel,
                 "merge_window": self.window, "merge_min_agree": self.min_agree,
-                "merge_max_rate": self.max_rate}
+                "merge_max_rate": self.max_rate, "merge_min_run": self.min_run,
+                "merge_dist_quantile": self.dist_quantile,
+                "merge_min_advance": self.min_advance}
 
 
 def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.ndarray:
@@ -78,6 +100,10 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     >>> ds[2] = FrameDecision(2, 1, 40, 0.9)  # a jump to another drive: no neighbour agrees
     >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
     [True, True, False, True, True]
+    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=3)).tolist()
+    [True, True, False, True, True]
+    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=5)).tolist()
+    [False, False, False, False, False]
     """
     n = len(decisions)
     seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], dtype=np.int64)
@@ -85,16 +111,98 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     prob = np.array([d.prob for d in decisions], dtype=np.float64)
     novel = np.array([d.novel_prob for d in decisions], dtype=np.float64)
     ok = (seq >= 0) & (prob >= rule.threshold) & (novel <= rule.max_novel)
+    gap = max(rule.window, 1)
+
+    def on_runs(keep: np.ndarray) -> np.ndarray:
+        if rule.min_run <= 1:
+            return keep
+        return keep & (run_lengths(np.where(keep, seq, -1), img, gap, rule.max_rate,
+                                   rule.min_advance) >= rule.min_run)
+
+    accepted = on_runs(ok)
+    if rule.dist_quantile > 0 and int(accepted.sum()) >= CALIBRATE_MIN_FRAMES:
+        dist = np.array([getattr(d, "distance", math.inf) for d in decisions], dtype=np.float64)
+        limit = float(np.quantile(dist[accepted], rule.dist_quantile))
+        accepted = on_runs(ok & (dist <= limit))
     if rule.min_agree <= 0 or rule.window <= 0 or not n:
-        return ok
+        return accepted
     agree = np.zeros(n, dtype=np.int64)
     for d in range(1, rule.window + 1):
         if d >= n:
             break
-        limit = rule.max_rate * d + 1
+        limit_step = rule.max_rate * d + 1
         # neighbour ahead: frame i + d against frame i
         step = img[d:] - img[:-d]
-        same = (seq[d:] == seq[:-d]) & (seq[:-d] >= 0) & (step >= 0) & (step <= limit)
+        same = (seq[d:] == seq[:-d]) & (seq[:-d] >= 0) & (step >= 0) & (step <= limit_step)
         agree[:-d] += same
         agree[d:] += same  # the same pair seen from the later frame (the step is mirrored)
-    return ok & (agree >= rule.min_agree)
+    return accepted & (agree >= rule.min_agree)
+
+
+def run_lengths(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float,
+                min_advance: float = 0.0) -> np.ndarray:
+    """For every frame, the number of matched frames in its run (0 for "no match").
+
+    A run is a chain of matched frames on one sequence, each at most ``max_gap`` frames after
+    the previous one of the chain and at an image ``0 <= step <= max_rate * gap + 1`` ahead of
+    it. Each matched frame continues the run of the latest matched frame it fits (so an
+    outlier decision between two frames of a run neither breaks the run nor joins it).
+
+    Where a run's images advance by less than ``min_advance`` per frame (over the run's frames
+    within ``5 * max_gap`` frames of a member, first to last), that member counts as 0: a drive
+    moving along a mapped road is matched to images that move too, while a match stuck on one
+    image as the drive goes on is a belief coasting on a place the drive has left.
+
+    Notes
+    -----
+    O(n * max_gap).
+    """
+    n = len(seq)
+    run = run_ids(seq, img, max_gap, max_rate)
+    n_runs = int(run.max()) + 1 if n else 0
+    held = run >= 0
+    sizes = np.bincount(run[held], minlength=n_runs)
+    out = np.zeros(n, dtype=np.int64)
+    out[held] = sizes[run[held]]
+    if min_advance > 0 and n_runs:
+        out[held & ~_advancing(run, img, min_advance, max(max_gap, 1) * 5)] = 0
+    return out
+
+
+def run_ids(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> np.ndarray:
+    """The run (see :func:`run_lengths`) of every frame: 0, 1, ... in order of their first
+    frame; -1 for "no match". O(n * max_gap)."""
+    n = len(seq)
+    run = np.full(n, -1, dtype=np.int64)
+    n_runs = 0
+    for f in range(n):
+        if seq[f] < 0:
+            continue
+        for g in range(f - 1, max(f - max_gap, 0) - 1, -1):
+            if seq[g] == seq[f] and run[g] >= 0 and 0 <= img[f] - img[g] <= max_rate * (f - g) + 1:
+                run[f] = run[g]
+                break
+        else:
+            run[f] = n_runs
+            n_runs += 1
+    return run
+
+
+def _advancing(run: np.ndarray, img: np.ndarray, min_advance: float, half: int) -> np.ndarray:
+    """Whether each run member's images advance by ``min_advance`` per frame over the run's
+    frames within ``half`` frames of it (first to last of them): a run that stalls for a
+    stretch loses that stretch, even if the run as a whole moves on."""
+    ok = np.zeros(len(run), dtype=bool)
+    order = np.flatnonzero(run >= 0)
+    if not order.size:
+        return ok
+    by_run = order[np.argsort(run[order], kind="stable")]
+    starts = np.flatnonzero(np.r_[True, run[by_run[1:]] != run[by_run[:-1]]])
+    for a, b in zip(starts.tolist(), np.r_[starts[1:], by_run.size].tolist(), strict=True):
+        frames = by_run[a:b]  # ascending: frames are visited in order within a run
+        lo = np.searchsorted(frames, frames - half)
+        hi = np.searchsorted(frames, frames + half, side="right") - 1
+        span = frames[hi] - frames[lo]
+        moved = img[frames[hi]] - img[frames[lo]]
+        ok[frames] = (span == 0) | (moved >= min_advance * span)
+    return ok

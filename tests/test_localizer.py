@@ -173,3 +173,24 @@ def test_ingest_merges_smoothed_decisions(tmp_path, rng, world):
         assert res.added.edges_added == 2 * int(res.merged.sum()) > 0
         out = res.to_dict()
         assert all("novel_prob" in d and "merged" in d for d in out["decisions"])
+
+
+def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
+    """A drive that follows a mapped road closely, then comes upon a lookalike of a stretch
+    it saw earlier, which it matches only loosely: the unmapped-place probability, calibrated
+    on the drive's other matches, vetoes that stretch's merge."""
+    places = unit(rng.standard_normal((240, DIM)))
+    mapped = unit(places + 0.05 * unit(rng.standard_normal(places.shape)))
+    close = unit(places[:200] + 0.15 * unit(rng.standard_normal((200, DIM))))
+    lookalike = unit(places[60:100] + 0.5 * unit(rng.standard_normal((40, DIM))))
+    query = np.vstack([close, lookalike])
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+        m.add_sequence(mapped, name="mapped")
+        smoothed, _ = m.localize(query, smooth=True)
+        assert max(d.distance for d in smoothed[:200]) < min(d.distance for d in smoothed[200:])
+        merged = m.select_merges(smoothed)
+        assert merged[:200].mean() > 0.9 and not merged[200:].any()
+        assert min(d.novel_prob for d in smoothed[205:]) > 0.5
+        plain, _ = m.localize(query, smooth=True, novelty_quantile=0.0)
+        assert m.select_merges(plain)[200:].sum() > 20  # what the calibration takes away
+        assert [d.best for d in plain] == [d.best for d in smoothed]  # the places stay

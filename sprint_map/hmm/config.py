@@ -76,6 +76,18 @@ class HMMConfig:
         Optional absolute test: if the best hit of a frame is farther than this squared distance,
         the sink is scored like a hit at ``novelty_dist``, i.e. it explains the frame better than
         every hit. ``None`` (default) disables it (distances are descriptor-dependent).
+    novelty_quantile : float
+        Calibration of the unmapped-place hypothesis for smoothed (merge) decisions, per
+        drive: after a first smoothing pass, the best-hit distances of the frames the map's
+        merge rule accepts are this drive's match distances to the map (under its own light
+        and weather); their ``novelty_quantile`` quantile becomes ``novelty_dist`` for a
+        second pass, so a frame whose best hit is farther than the drive's accepted matches
+        is explained at least as well by an unmapped place. 0 disables it (and so does a
+        ``novelty_dist`` set by hand). The causal filter does not use it.
+    novelty_window : int
+        The calibration is local: frame ``t`` uses the accepted frames within this many
+        frames of it (light and weather change along a drive: tunnels, dusk), or the whole
+        drive where fewer than 10 lie that close. 0: the whole drive.
     place_radius : int
         ``r``: a place is the vertex's temporal neighbourhood ``[i - r, i + r]`` in its sequence
         plus the same neighbourhood of every vertex reached from that neighbourhood over at most
@@ -104,8 +116,10 @@ class HMMConfig:
     dist_scale_ema: float = 0.05
     dist_scale_factor: float = 0.5
     miss_margin: float = 1.0
-    novelty_margin: float = 0.5
+    novelty_margin: float = 0.25
     novelty_dist: float | None = None
+    novelty_quantile: float = 0.85
+    novelty_window: int = 100
     place_radius: int = 2
     place_hops: int = 4
     decision_candidates: int = 4
@@ -134,6 +148,9 @@ class HMMConfig:
         _finite_range("novelty_margin", self.novelty_margin, -700.0, 700.0)
         if self.novelty_dist is not None:
             _finite_range("novelty_dist", self.novelty_dist, 0.0, math.inf)
+        _finite_range("novelty_quantile", self.novelty_quantile, 0.0, 1.0)
+        if not _is_int(self.novelty_window) or self.novelty_window < 0:
+            raise ValueError("novelty_window must be an integer >= 0")
         if not _is_int(self.place_radius) or self.place_radius < 0:
             raise ValueError("place_radius must be an integer >= 0")
         if not _is_int(self.place_hops) or self.place_hops < 0:

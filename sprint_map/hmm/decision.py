@@ -256,7 +256,7 @@ def _runs_sum(x: np.ndarray, runs: list[tuple[int, int]]) -> float:
 
 def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], sink: float,
            radius: int, hops: int, min_confidence: float, n_active_components: int,
-           n_active_vertices: int) -> Decision:
+           n_active_vertices: int, prefer_seq: int | None = None) -> Decision:
     """Score candidates by place mass and apply the novelty rules.
 
     Parameters
@@ -270,6 +270,12 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
         ``place_radius``, ``place_hops`` and ``min_confidence`` of the config.
     n_active_components, n_active_vertices : int
         Reported as is.
+    prefer_seq : int, optional
+        A sequence id to report the place by when the place holds vertices of it (the
+        sequence the neighbouring frame was matched to): the answer is then that sequence's
+        most probable vertex in the place, so that consecutive answers stay on one drive
+        where several drives, joined by edges, show the place. The place and its mass do not
+        change.
 
     Notes
     -----
@@ -290,6 +296,8 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
     prob, slot = next((p, sl) for p, v, sl in candidates
                       if v == vi and any(a <= sl < b for a, b in runs))
     view = views[vi]
+    if prefer_seq is not None:
+        slot, prob = _preferred(view, runs, prefer_seq, slot, prob)
     s = int(np.searchsorted(view.slot_first, slot, side="right")) - 1
     image = slot - int(view.slot_first[s])
     vid = int(view.graph.seq_first[s]) + image
@@ -298,6 +306,29 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
                         n_active_vertices, vid)
     return Decision(vid, int(view.graph.seq_ids[s]), image, mass, prob, sink,
                     n_active_components, n_active_vertices, vid)
+
+
+def _preferred(view: BeliefView, runs: list[tuple[int, int]], seq_id: int, slot: int,
+               prob: float) -> tuple[int, float]:
+    """The most probable slot of sequence ``seq_id`` inside the place ``runs`` (with its
+    posterior), or ``(slot, prob)`` unchanged if the place holds no belief on that sequence."""
+    graph = view.graph
+    s = int(np.searchsorted(graph.seq_ids, seq_id))
+    if s >= len(graph.seq_ids) or int(graph.seq_ids[s]) != seq_id:
+        return slot, prob
+    lo = int(view.slot_first[s])
+    hi = lo + int(graph.seq_len[s])
+    best_slot, best = slot, -1.0
+    for a, b in runs:
+        a, b = max(a, lo), min(b, hi)
+        if a < b:
+            seg = view.x[a:b]
+            i = int(seg.argmax())
+            if seg[i] > best:
+                best, best_slot = float(seg[i]), a + i
+    if best <= 0.0:
+        return slot, prob
+    return best_slot, best * view.scale
 
 
 def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, int]]:

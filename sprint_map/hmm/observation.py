@@ -96,6 +96,18 @@ class ObservationModel:
             return None
         return self._scale_now()
 
+    @property
+    def novelty_dist(self) -> float | None:
+        """The absolute novelty distance in force (``HMMConfig.novelty_dist`` until set)."""
+        return self._novelty_dist
+
+    @novelty_dist.setter
+    def novelty_dist(self, value: float | None) -> None:
+        if value is not None and not (math.isfinite(value) and value >= 0.0):
+            raise ValueError("novelty_dist must be a finite number >= 0 or None")
+        self._novelty_dist = value
+        self._plain = value is None
+
     def reset(self) -> None:
         """Forget the adaptive scale (start of a new query sequence)."""
         self._scale = None

@@ -113,6 +113,11 @@ class ForwardBackward:
         self._obs.reset()
         self.frames = []
 
+    def set_novelty_dist(self, value: float | None) -> None:
+        """The novelty distance for the next frames (:meth:`SprintFilter.set_novelty_dist`)."""
+        self.filter.set_novelty_dist(value)
+        self._obs.novelty_dist = value
+
     def forward(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> None:
         """Filter one frame (as :meth:`SprintFilter.update`) and keep its belief."""
         ids = np.asarray(hit_ids)
@@ -137,6 +142,7 @@ class ForwardBackward:
         cfg = self.config
         buffers: dict[int, np.ndarray] = {}
         out: list[Decision] = []
+        prefer: int | None = None
         for parts, sink in self._backward():
             views = []
             for trans, slots, gamma in parts:
@@ -150,8 +156,13 @@ class ForwardBackward:
                 views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
             candidates = top_candidates(views, cfg.decision_candidates)
             n_vertices = sum(len(slots) for _, slots, _ in parts)
-            out.append(decide(views, candidates, sink, cfg.place_radius, cfg.place_hops,
-                              cfg.min_confidence, len(parts), n_vertices))
+            decision = decide(views, candidates, sink, cfg.place_radius, cfg.place_hops,
+                              cfg.min_confidence, len(parts), n_vertices, prefer)
+            # Report a place by the drive the next frame was reported on, where it can be:
+            # consecutive answers then follow one drive (see merge_rule's runs).
+            if decision.candidate_id is not None and decision.seq_id is not None:
+                prefer = decision.seq_id
+            out.append(decision)
             for (_, slots, _), view in zip(parts, views, strict=True):
                 view.x[slots] = 0.0
         out.reverse()

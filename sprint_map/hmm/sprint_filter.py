@@ -200,6 +200,13 @@ class SprintFilter:
         order = np.argsort(v, kind="stable")
         return v[order], p[order], self.sink_prob
 
+    def set_novelty_dist(self, value: float | None) -> None:
+        """Use ``value`` as the novelty distance from the next frame on (see
+        ``HMMConfig.novelty_dist``; None: no absolute test). The smoother calibrates it per
+        frame; a causal filter keeps its config's."""
+        self._obs.novelty_dist = value
+        self._sink_lik_const = self._obs.sink_lik_const
+
     def live_belief(self) -> tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
                                    float]:
         """The belief held now: per active component its transition, the slots of its live

@@ -88,3 +88,61 @@ def test_smooth_function_and_empty() -> None:
     assert smooth(HMMConfig(), source, []) == []
     out = smooth(HMMConfig(), source, [(np.array([i]), np.array([0.1])) for i in range(5)])
     assert [d.image_id for d in out] == [0, 1, 2, 3, 4]
+
+
+def five_drives_of_one_street(length: int = 40) -> MemoryGraphSource:
+    edges = [(d * length + i, (d + 1) * length + i, 0.9)
+             for d in range(4) for i in range(0, length, 2)]
+    edges += [(b, a, w) for a, b, w in edges]
+    return MemoryGraphSource([length] * 5, edges)
+
+
+def test_smoothed_answers_stay_on_one_drive_of_a_shared_place() -> None:
+    """Where five drives joined by edges show the place, the smoothed decisions report it by
+    one drive frame after frame (the place and its mass do not change)."""
+    source = five_drives_of_one_street()
+    fb = ForwardBackward(HMMConfig(), source)
+    rng = np.random.default_rng(5)
+    for t in range(5, 30):
+        fb.forward(np.array([d * 40 + t for d in range(5)]), 0.1 + 0.01 * rng.random(5))
+    out = fb.decisions()
+    assert len({d.seq_id for d in out}) == 1
+    assert all(abs(d.image_id - t) <= 1 for d, t in zip(out, range(5, 30), strict=True))
+    assert min(d.prob for d in out[3:]) > 0.8
+
+
+def test_decide_prefers_the_named_drive_inside_the_place() -> None:
+    source = five_drives_of_one_street()
+    filt = SprintFilter(HMMConfig(), source)
+    for t in range(5, 25):
+        filt.update(np.array([d * 40 + t for d in range(5)]), np.full(5, 0.1))
+    parts, sink = filt.live_belief()
+    (trans, slots, probs), = parts
+    from sprint_map.hmm.decision import BeliefView, decide, top_candidates
+
+    x = np.zeros(trans.n_slots)
+    x[slots] = probs
+    view = BeliefView(trans.graph, trans.slot_first, x, idx=slots)
+    cands = top_candidates([view], 4)
+    plain = decide([view], cands, sink, 2, 4, 0.2, 1, len(slots))
+    other = 3 if plain.seq_id != 3 else 1
+    pref = decide([view], cands, sink, 2, 4, 0.2, 1, len(slots), prefer_seq=other)
+    assert pref.seq_id == other and abs(pref.image_id - plain.image_id) <= 2
+    assert pref.prob == plain.prob
+    # a drive the place does not hold changes nothing
+    assert decide([view], cands, sink, 2, 4, 0.2, 1, len(slots), prefer_seq=77) == plain
+
+
+def test_novelty_dist_can_be_set_per_frame() -> None:
+    source = MemoryGraphSource([30])
+    fb = ForwardBackward(HMMConfig(), source)
+    for t in range(10):
+        fb.forward(np.array([t, 20]), np.array([0.5, 0.9]))
+    before = fb.filter.sink_prob
+    fb.set_novelty_dist(0.1)  # every hit is now farther than an unmapped place would be
+    for t in range(10, 15):
+        fb.forward(np.array([t, 20]), np.array([0.5, 0.9]))
+    assert fb.filter.sink_prob > 0.5 > before
+    fb.set_novelty_dist(None)
+    with pytest.raises(ValueError):
+        fb.set_novelty_dist(float("nan"))

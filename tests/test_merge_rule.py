@@ -1,0 +1,83 @@
+"""The merge rule (sprint_map.merge_rule) on hand-made drives."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sprint_map.localizer import FrameDecision, local_quantiles
+from sprint_map.merge_rule import MergeRule, run_lengths, select_merges
+
+
+def along(n: int, seq: int = 0, start: int = 10, step: int = 1, prob: float = 0.9,
+          first_frame: int = 0, distance: float = 0.1) -> list[FrameDecision]:
+    return [FrameDecision(first_frame + i, seq, start + step * i, prob, distance=distance)
+            for i in range(n)]
+
+
+def test_runs_follow_one_drive_across_small_gaps_and_outliers():
+    seq = np.array([0, 0, -1, 0, 1, 0, 0, 2, 2])
+    img = np.array([5, 6, -1, 8, 90, 10, 11, 3, 4])
+    # 0,1,3,5,6 are one run (the no-match and the outlier on drive 1 do not break it)
+    assert run_lengths(seq, img, max_gap=2, max_rate=3.0).tolist() == [5, 5, 0, 5, 1, 5, 5, 2, 2]
+    # a gap longer than max_gap starts a new run
+    assert run_lengths(seq, img, max_gap=1, max_rate=3.0).tolist() == [2, 2, 0, 1, 1, 2, 2, 2, 2]
+
+
+def test_a_backward_or_too_fast_step_breaks_a_run():
+    assert run_lengths(np.zeros(4, int), np.array([10, 9, 8, 7]), 3, 3.0).tolist() == [1] * 4
+    assert run_lengths(np.zeros(3, int), np.array([10, 20, 30]), 3, 3.0).tolist() == [1] * 3
+
+
+def test_a_stalled_stretch_of_a_run_is_not_merged():
+    # 30 frames that advance, then 30 stuck on one image while the drive goes on.
+    img = np.r_[np.arange(30), np.full(30, 29)]
+    lengths = run_lengths(np.zeros(60, int), img, 3, 3.0, min_advance=0.3)
+    assert (lengths[:15] == 60).all() and (lengths[-15:] == 0).all()
+    assert (run_lengths(np.zeros(60, int), img, 3, 3.0) == 60).all()
+
+
+def test_min_run_rejects_short_lookalike_stretches():
+    drive = along(30) + along(8, seq=1, start=200, first_frame=30) + along(30, first_frame=38,
+                                                                          start=60)
+    merged = select_merges(drive, MergeRule(window=3, min_run=20))
+    assert merged[:30].all() and not merged[30:38].any() and merged[38:].all()
+
+
+def test_distance_gate_is_calibrated_on_the_drive():
+    near = along(200, distance=0.1)
+    far = along(20, seq=1, start=300, first_frame=200, distance=0.3)  # under 10 % of the drive
+    rule = MergeRule(window=3, min_run=20, dist_quantile=0.9)
+    merged = select_merges(near + far, rule)
+    assert merged[:200].all() and not merged[200:].any()
+    # the same distances, all scaled (another light or weather): the same verdict
+    scaled = [FrameDecision(d.frame, d.seq_id, d.image_id, d.prob, distance=d.distance * 3)
+              for d in near + far]
+    assert (select_merges(scaled, rule) == merged).all()
+    # without the gate both stretches are long enough
+    assert select_merges(near + far, MergeRule(window=3, min_run=20)).all()
+
+
+def test_novel_and_unconfident_decisions_are_never_merged():
+    drive = along(30)
+    drive[5] = FrameDecision(5, 0, 15, 0.9, novel_prob=0.6)
+    drive[6] = FrameDecision(6, 0, 16, 0.2)
+    merged = select_merges(drive, MergeRule(threshold=0.5, max_novel=0.5, window=3, min_run=20))
+    assert not merged[5] and not merged[6] and merged[:5].all() and merged[7:].all()
+
+
+@pytest.mark.parametrize("window", [0, 5])
+def test_local_quantiles(window):
+    values = np.r_[np.full(50, 1.0), np.full(50, 3.0)]
+    mask = np.ones(100, bool)
+    out = local_quantiles(values, mask, 0.5, window, 3)
+    if window:
+        assert out[0] == 1.0 and out[-1] == 3.0
+    else:
+        assert (out == 2.0).all()
+    mask[:] = False
+    mask[60:] = True  # too few accepted frames near the start: the whole drive's
+    out = local_quantiles(values, mask, 0.5, 5, 3)
+    assert out[0] == 3.0 and math.isfinite(out[0])
