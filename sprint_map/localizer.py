@@ -168,7 +168,11 @@ class Localizer:
         if not self.record:
             raise ValueError("smoothed() needs a Localizer made with record=True")
         start = time.perf_counter()
-        with self.source.pinned():
+        with self._pinned() as changed:
+            if changed:  # a writer committed since the hits were searched: the components are
+                # re-read (the cache was cleared), hits on sequences removed meanwhile dropped
+                self.hits = [(np.where(self.source.visible(ids), ids, -1), dists)
+                             for ids, dists in self.hits]
             out = self._smooth_pass()
             novelty = self._calibrated_novelty(out)
             if novelty is not None:
@@ -223,10 +227,11 @@ class Localizer:
             self.source.mark_current()
 
     @contextmanager
-    def _pinned(self) -> Iterator[None]:
+    def _pinned(self) -> Iterator[bool]:
         """Read one snapshot of the map in the block (:meth:`MapGraphSource.pinned`): a writer
         committing meanwhile is not half seen. A map changed since the last snapshot (by a writer
-        nobody told us of through :meth:`invalidate`) is caught up first."""
+        nobody told us of through :meth:`invalidate`) is caught up first; yields whether it
+        had changed."""
         with self.source.pinned() as changed:
             self._empty = self.source.vertices == 0
             if changed:
@@ -234,7 +239,7 @@ class Localizer:
                     self.filter.invalidate(None)
                 except ValueError:  # belief on a removed sequence: start afresh from the hits
                     self.filter.reset()
-            yield
+            yield changed
 
     def step(self, descriptor: np.ndarray) -> FrameDecision:
         """Localise one frame (a vehicle streaming its images)."""

@@ -85,6 +85,16 @@ class MapGraphSource:
             return self._snapshot.vertices
         return self.store.counter("next_vertex_id")
 
+    def visible(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Which of ``vertex_ids`` the map holds (pinned snapshot, else now): ids below its
+        vertex count and outside its removed ranges (``-1`` pads: False). O(n log ranges)."""
+        ids = np.asarray(vertex_ids, dtype=np.int64)
+        snap = self._snapshot
+        if snap is None:
+            with MapSnapshot(self.store) as now:
+                return (ids >= 0) & (ids < now.vertices) & ~now.removed.contains(ids)
+        return (ids >= 0) & (ids < snap.vertices) & ~snap.removed.contains(ids)
+
     @contextmanager
     def _txn(self) -> Iterator[lmdb.Transaction]:
         if self._snapshot is not None:

@@ -391,19 +391,23 @@ CHURN_WRITER = CHURN_PLAN + textwrap.dedent("""
 """)
 
 #: Localises a 240-frame drive (12 searches of 20 frames) over and over, one open as a server
-#: would, until the file ``stop`` exists; counts runs, failures and the map states it saw.
+#: would, until the file ``stop`` exists; counts runs, failures and the map states it saw. Mode
+#: "smooth" also smooths each drive (``localize --smooth``: a second pass after the first).
 CHURN_READER = CHURN_PLAN + textwrap.dedent("""
     import json, os, sys, traceback
     from sprint_map.map import SprintMap
 
-    path, stop = sys.argv[1], sys.argv[2]
+    path, stop, mode = sys.argv[1], sys.argv[2], sys.argv[3]
     query = batches(walk(900, 0, 240))
     out = {"runs": 0, "failures": [], "states": set()}
     with SprintMap.open(path, readonly=True) as m:
         print(json.dumps({"ready": True}), flush=True)
         while not os.path.exists(stop) or out["runs"] < 3:
             try:
-                decisions = m.localizer().localize(iter(query))
+                if mode == "smooth":
+                    decisions, _ = m.localize(np.concatenate(query), smooth=True)
+                else:
+                    decisions = m.localizer().localize(iter(query))
                 assert len(decisions) == 240
             except Exception:
                 out["failures"].append(traceback.format_exc(limit=-4))
@@ -419,7 +423,8 @@ def test_localize_survives_merging_ingests_and_removes(tmp_path):
     """Issue 14, item 7: a reader's ``localize`` died while a writer committed (a merge:
     "vertex N is not in the component the source named"; a remove: "vertex N belonged to a
     removed sequence"). Every localize reads one pinned snapshot now: 0 failures in library
-    readers and in the real ``sprint-map localize`` across 20 merging ingests and 5 removes."""
+    readers (causal and smoothed) and in the real ``sprint-map localize`` across 20 merging
+    ingests and 5 removes."""
     from sprint_map.config import MapConfig
     from sprint_map.map import SprintMap
 
@@ -432,7 +437,8 @@ def test_localize_survives_merging_ingests_and_removes(tmp_path):
     query = tmp_path / "query.npy"
     np.save(query, plan["walk"](900, 0, 240))
     writer = _python(CHURN_WRITER, str(path), "20", stdin=subprocess.PIPE)
-    readers = [_python(CHURN_READER, str(path), str(tmp_path / "stop")) for _ in range(2)]
+    readers = [_python(CHURN_READER, str(path), str(tmp_path / "stop"), mode)
+               for mode in ("causal", "smooth")]
     cli: list[subprocess.Popen] = []
     try:
         assert writer.stdout is not None and writer.stdin is not None
