@@ -72,3 +72,16 @@ def test_a_pinned_source_reads_one_snapshot_and_reports_changes(tmp_path, rng):
         with source.pinned() as changed:
             assert not changed
             assert source.locate([15]) == [(1, 5)]
+
+
+def test_visible_is_what_the_pinned_snapshot_holds(tmp_path, rng):
+    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM)) as store:
+        store.add_sequence(_rows(rng, 10), name="a")
+        store.add_sequence(_rows(rng, 10), name="b")
+        source = MapGraphSource(store)
+        ids = np.array([5, 15, 25, -1])
+        with source.pinned():
+            store.remove_sequences([0])
+            store.add_sequence(_rows(rng, 10), name="c")
+            assert source.visible(ids).tolist() == [True, True, False, False]
+        assert source.visible(ids).tolist() == [False, True, True, False]
