@@ -171,7 +171,7 @@ class LocalisationService:
                 else:
                     raise ApiError(409, "duplicate_name",
                                    f"the map already has a sequence named {name!r}")
-            return Session(name, Localizer(self.map, cache=self.cache), self.dim)
+            return Session(name, Localizer(self.map, cache=self.cache, record=True), self.dim)
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)
@@ -272,7 +272,8 @@ class LocalisationService:
     def _job(self, session: Session) -> CommitJob:
         return CommitJob(session.name, session.descriptors(), list(session.decisions),
                          source=f"sprint-map serve session {session.id}",
-                         positions=session.position_array())
+                         positions=session.position_array(),
+                         smoothed=session.localizer.smoothed)
 
     async def commit(self, session_id: str) -> dict[str, Any]:
         """Commit a session's drive; returns once the commit is durable."""

@@ -30,13 +30,19 @@ from sprint_map.storage.store import AddResult
 
 @dataclass(frozen=True)
 class CommitJob:
-    """A drive to commit: its descriptors (in frame order) and the decisions it was answered."""
+    """A drive to commit: its descriptors (in frame order) and the decisions it was answered.
+
+    ``smoothed``, if given, re-makes the decisions from the whole drive (the session
+    localizer's :meth:`~sprint_map.localizer.Localizer.smoothed`); the writer merges those,
+    as ``ingest`` does, and calls it in its own thread, never in the event loop.
+    """
 
     name: str | None
     descriptors: np.ndarray
     decisions: list[FrameDecision]
     source: str = ""
     positions: np.ndarray | None = None  # (frames, 2..4) as ``ingest`` takes them
+    smoothed: Callable[[], list[FrameDecision]] | None = None
 
 
 @dataclass(frozen=True)
@@ -144,8 +150,9 @@ class CommitWriter:
         """Commit one drive (in the writer thread; also usable directly when no thread runs)."""
         smap = self.smap
         config = smap.config
-        edges = merge_edges(job.decisions, smap.select_merges(job.decisions),
-                            config.merge_both_ways)
+        # The map changes only in this thread: the smoothing sees the map the commit extends.
+        decisions = job.smoothed() if job.smoothed is not None else job.decisions
+        edges = merge_edges(decisions, smap.select_merges(decisions), config.merge_both_ways)
         touched = {seq for e in edges for seq, _ in (e.src, e.dst) if seq is not None}
         # Only this thread changes the union-find, so these roots hold until the commit.
         before = {smap.component_of(seq) for seq in touched}

@@ -76,12 +76,11 @@ def test_drives_end_to_end_equal_offline_localize_and_ingest(one_drive_map, plac
     info = c.get("/v1/map").json()
     assert server.terminate() == 0
 
-    # The commits are exactly what the library commits for the same drives localised causally
-    # (the service merges the decisions it answered through the map's merge rule; `ingest`
-    # merges smoothed ones, which a stream does not have: docs/architecture.md).
+    # The commits are exactly what `ingest` commits for the same drives (the service smooths a
+    # drive's decisions at its commit, as ingest does, from the hits its frames retrieved).
     with SprintMap.open(reference) as m:
-        m.merge(second, m.localize(second)[0], name="second", positions=where)
-        m.merge(third, m.localize(third)[0], name="third")
+        m.ingest(second, name="second", positions=where)
+        m.ingest(third, name="third")
     got, expected = _stored(one_drive_map), _stored(reference)
     assert got[0] == expected[0]  # names, descriptors (bit for bit) and positions
     assert got[0][1][2] is not None and got[0][2][2] is None
