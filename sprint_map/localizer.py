@@ -25,7 +25,7 @@ from sprint_map.hmm.decision import Decision
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.map_graph import MapGraphSource
-from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, run_ids, select_merges
+from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
 from sprint_map.storage.store import EdgeSpec
 from sprint_map.storage.validation import validate_descriptors
 
@@ -202,13 +202,9 @@ class Localizer:
         accepted = select_merges(decisions, self.map.config.merge_rule)
         if int(accepted.sum()) < CALIBRATE_MIN_FRAMES:
             return None
-        rule = self.map.config.merge_rule
-        seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions])
-        img = np.array([-1 if d.image_id is None else d.image_id for d in decisions])
-        runs = run_ids(np.where(accepted, seq, -1), img, max(rule.window, 1), rule.max_rate)
         self.novelty_dist = local_quantiles(np.array([d.distance for d in decisions]), accepted,
                                             cfg.novelty_quantile, cfg.novelty_window,
-                                            CALIBRATE_MIN_FRAMES, runs)
+                                            CALIBRATE_MIN_FRAMES)
         return self.novelty_dist
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """Tell a long-lived localizer that the map changed (another drive was committed).
@@ -314,11 +310,10 @@ class Localizer:
 
 
 def local_quantiles(values: np.ndarray, mask: np.ndarray, q: float, window: int,
-                    min_count: int, groups: np.ndarray | None = None) -> np.ndarray:
+                    min_count: int) -> np.ndarray:
     """For every frame, the ``q`` quantile of ``values[mask]`` over the frames within
-    ``window`` of it (0: the whole sequence), leaving out the frame's own group (its run of
-    matches: a stretch is judged against the others, not against itself) while at least
-    ``min_count`` frames remain; else with its group; else over the whole sequence.
+    ``window`` of it (0: the whole sequence), or over the whole sequence where fewer than
+    ``min_count`` masked frames lie that close.
 
     Notes
     -----
@@ -333,13 +328,8 @@ def local_quantiles(values: np.ndarray, mask: np.ndarray, q: float, window: int,
     lo = np.searchsorted(idx, np.arange(n) - window)
     hi = np.searchsorted(idx, np.arange(n) + window, side="right")
     for t in range(n):
-        near = idx[lo[t]:hi[t]]
-        if groups is not None and groups[t] >= 0:
-            others = near[groups[near] != groups[t]]
-            if others.size >= min_count:
-                near = others
-        if near.size >= min_count:
-            out[t] = float(np.quantile(values[near], q))
+        if hi[t] - lo[t] >= min_count:
+            out[t] = float(np.quantile(values[idx[lo[t]:hi[t]]], q))
     return out
 
 
