@@ -33,6 +33,7 @@ from sprint_map.storage.keys import SequenceRecord
 from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
 from sprint_map.storage.removal import RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
+from sprint_map.storage.validation import decode_text
 
 
 @dataclass(frozen=True)
@@ -303,12 +304,13 @@ class SprintMap:
         Raises
         ------
         InputError
-            Images or video given to a map of precomputed descriptors.
+            Images or video given to a map of precomputed descriptors; a path that is not
+            UTF-8 text (OpenCV would crash on it, and it would name the sequence).
         DescriptorShapeError
             A ``.npy`` whose dimension is not the map's.
         """
         spec = self.config.descriptor_spec()
-        src = Path(path)
+        src = Path(decode_text(os.fspath(path), "source path"))
         if spec is None and src.suffix.lower() != ".npy":
             raise InputError(
                 f"{src}: this map holds precomputed descriptors (dim {self.config.dim}); give a "

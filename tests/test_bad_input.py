@@ -249,8 +249,8 @@ CASES: dict[str, Case] = {
     # Names and paths that are not UTF-8 (argv and file names decode with surrogateescape).
     "name-not-utf8": Case("ingest {map} {in}/good.npy --name a\udcffb", InputError,
                           "sequence name b'a\\xffb' is not UTF-8 text"),
-    "source-name-not-utf8": Case("ingest {map} {in}/bad\udcff.npy", InputError,
-                                 "sequence name b'bad\\xff' is not UTF-8 text"),
+    "source-path-not-utf8": Case("ingest {map} {in}/bad\udcff.npy", InputError,
+                                 "bad\\xff.npy' is not UTF-8 text"),
     "remove-name-not-utf8": Case("remove {map} \udcff", InputError,
                                  "sequence name b'\\xff' is not UTF-8 text"),
     "remove-empty-name": Case("remove {map} ", UnknownSequenceError,

@@ -78,8 +78,8 @@ def test_the_real_cli_gives_one_line_for_bytes_that_are_not_utf8(tmp_path):
     cases = {
         "name": ([b"ingest", root + b"/m", root + b"/good.npy", b"--name", b"a\xffb"],
                  13, "sequence name b'a\\xffb' is not UTF-8 text"),
-        "source-name": ([b"ingest", root + b"/m", root + b"/bad\xff.npy"],
-                        13, "sequence name b'bad\\xff' is not UTF-8 text"),
+        "source-path": ([b"ingest", root + b"/m", root + b"/bad\xff.npy"],
+                        13, "bad\\xff.npy' is not UTF-8 text"),
         "remove": ([b"remove", root + b"/m", b"\xff"], 13, "is not UTF-8 text"),
         "remove-empty": ([b"remove", root + b"/m", b""], 12, "no sequence named '' in the map"),
         "init-path": ([b"init", root + b"/new\xff.map", b"--dim", b"8"], 13,
