@@ -37,10 +37,15 @@ def make_city(rng: np.random.Generator, n_streets: int, street_len: int, dim: in
     return smooth[:, :street_len]
 
 
-def drive(rng: np.random.Generator, city: np.ndarray, frames: int) -> np.ndarray:
-    """One drive: a route of whole street stretches at varying speed under one condition."""
+def drive(rng: np.random.Generator, city: np.ndarray, frames: int, condition_std: float = 0.25,
+          noise: float = 0.6) -> np.ndarray:
+    """One drive: a route of whole street stretches at varying speed under one condition.
+
+    ``condition_std`` scales the drive's random appearance change, ``noise`` the per-frame
+    noise (relative to the descriptors' spread)."""
     n_streets, street_len, dim = city.shape
-    condition = np.eye(dim, dtype=np.float32) + rng.normal(0, 0.25, (dim, dim)).astype(np.float32)
+    condition = np.eye(dim, dtype=np.float32) + rng.normal(
+        0, condition_std, (dim, dim)).astype(np.float32)
     out = []
     while sum(len(o) for o in out) < frames:
         street = rng.integers(n_streets)
@@ -49,7 +54,7 @@ def drive(rng: np.random.Generator, city: np.ndarray, frames: int) -> np.ndarray
         pos = start + np.arange(int((street_len - start) / speed)) * speed
         out.append(city[street, pos.astype(int)])
     seq = np.concatenate(out)[:frames] @ condition
-    seq += rng.normal(0, 0.6 * seq.std(), seq.shape).astype(np.float32)
+    seq += rng.normal(0, noise * seq.std(), seq.shape).astype(np.float32)
     seq /= np.linalg.norm(seq, axis=1, keepdims=True)
     return seq.astype(np.float32)
 
@@ -62,6 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--streets", type=int, default=60)
     parser.add_argument("--street-len", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--condition", type=float, default=0.25,
+                        help="std of each drive's appearance change (default 0.25)")
+    parser.add_argument("--noise", type=float, default=0.6,
+                        help="per-frame noise, relative to the descriptors' spread (default 0.6; "
+                             "0.3 with --condition 0.1 is a world whose drives can be matched)")
     parser.add_argument("--quick", action="store_true", help="20 drives of 300 frames")
     parser.add_argument("--json", type=Path, help="write the rows here")
     parser.add_argument("--png", type=Path, help="plot here")
@@ -78,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'seq':>4} {'frames':>6} {'map_vertices':>12} {'hmm_ms':>8} {'retr_ms':>8} "
               f"{'smooth_ms':>9} {'active':>8} {'edges':>6} {'comps':>5}")
         for i in range(args.sequences):
-            seq = drive(rng, city, args.frames)
+            seq = drive(rng, city, args.frames, args.condition, args.noise)
             before = m.stats()["vertices"]
             start = time.perf_counter()
             result = m.ingest(seq, name=f"drive-{i:03d}")

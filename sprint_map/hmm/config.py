@@ -38,6 +38,11 @@ class HMMConfig:
         leave the active set; their belief is dropped and the rest renormalised (paper: 1e-4).
         0 disables pruning. With ``support_threshold`` also 0 the filter is exact w.r.t.
         :class:`FullGraphFilter`.
+    max_active_components : int
+        A beam over the active set: after pruning, only this many components (the most
+        massive) stay active; the rest are pruned like those below ``prune_threshold``. It
+        bounds a frame's cost where many unmerged drives of the same streets each receive a
+        hit now and then (every drive its own component). 0: no beam.
     support_threshold : float
         Inside an active component only the *live support* is propagated: windows (runs of
         slots of one sequence) that hold belief. After each update, slots whose belief is below
@@ -109,6 +114,7 @@ class HMMConfig:
     window: tuple[float, ...] = (0.25, 0.5, 0.15, 0.07, 0.03)
     edge_weight: float = 1.0
     prune_threshold: float = 1e-4
+    max_active_components: int = 8
     support_threshold: float = 1e-6
     restart_prob: float = 0.01
     new_place_prob: float = 0.01
@@ -135,6 +141,8 @@ class HMMConfig:
         object.__setattr__(self, "window", window)
         _finite_range("edge_weight", self.edge_weight, 0.0, math.inf)
         _finite_range("prune_threshold", self.prune_threshold, 0.0, 1.0, hi_open=True)
+        if not _is_int(self.max_active_components) or self.max_active_components < 0:
+            raise ValueError("max_active_components must be an integer >= 0")
         _finite_range("support_threshold", self.support_threshold, 0.0, 1.0, hi_open=True)
         _finite_range("restart_prob", self.restart_prob, 0.0, 1.0)
         _finite_range("new_place_prob", self.new_place_prob, 0.0, 1.0)

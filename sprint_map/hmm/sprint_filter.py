@@ -114,6 +114,7 @@ class SprintFilter:
         self._nu = config.new_place_prob
         self._scale = 1.0 - config.restart_prob - config.new_place_prob
         self._prune = config.prune_threshold
+        self._max_active = config.max_active_components
         self._support = config.support_threshold
         self.reset()
 
@@ -432,6 +433,16 @@ class SprintFilter:
         if low < self._prune * total:
             limit = self._prune * total
             for cid in [cid for cid, comp in comps.items() if comp.mass < limit]:
+                pruned += comps[cid].mass
+                active.remove(cid)
+            total = sink + sum(c.mass for c in comps.values())
+        cap = self._max_active
+        if cap and len(comps) > cap:
+            # A beam over components: only the ``cap`` most massive stay active, so a frame
+            # costs O(cap) components whatever the number of drives whose hits it meets (many
+            # unmerged drives of the same streets would otherwise each keep a window alive).
+            order = sorted(comps, key=lambda c: comps[c].mass, reverse=True)
+            for cid in order[cap:]:
                 pruned += comps[cid].mass
                 active.remove(cid)
             total = sink + sum(c.mass for c in comps.values())

@@ -368,3 +368,20 @@ def test_config_must_be_an_hmm_config(four_roads: MemoryGraphSource) -> None:
         SprintFilter({"k": 10}, four_roads)  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         FullGraphFilter(HMMConfig(), [])
+
+
+def test_the_beam_bounds_the_active_set() -> None:
+    """Forty unmerged drives whose hits scatter: at most max_active_components stay active,
+    and the road the frames follow is among them."""
+    source = MemoryGraphSource([50] * 40)
+    rng = np.random.default_rng(11)
+    for cap in (0, 6):
+        filt = SprintFilter(HMMConfig(max_active_components=cap), source)
+        most = 0
+        for t in range(40):
+            decoys = rng.choice(np.arange(50, 2000), 9, replace=False)
+            ids = np.r_[t + 5, decoys]
+            decision = filt.step(ids, np.r_[0.05, np.full(9, 0.3)])
+            most = max(most, filt.n_active_components)
+        assert decision.seq_id == 0 and abs(decision.image_id - 44) <= 1
+        assert (most <= 6) if cap else (most > 6)
