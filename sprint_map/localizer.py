@@ -158,10 +158,17 @@ class Localizer:
         from the hits recorded while localising (construct with ``record=True``): each frame's
         decision then uses the frames after it as well. The causal decisions are unchanged.
 
+        With ``novelty_quantile`` set (the default), each decision's ``novel_prob`` comes from
+        a second pass whose unmapped-place hypothesis is calibrated on this drive: the frames
+        of the first pass that the map's merge rule accepts give the drive's match distances,
+        and their ``novelty_quantile`` quantile within ``novelty_window`` frames becomes each
+        frame's ``novelty_dist`` (kept in :attr:`novelty_dist`). The places decided stay
+        those of the first pass.
+
         Notes
         -----
-        One more filter step and one backward step per frame, both O(live); memory O(live)
-        per frame of the sequence.
+        Two more filter steps and backward steps per frame (one without calibration), all
+        O(live); memory O(live) per frame of the sequence.
         """
         if self._empty:
             return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
