@@ -345,6 +345,12 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
     sys.exit(0 if report.ok else 1)
 
 
+def _seq_ref(seq: str, by_name: bool) -> int | str:
+    """A sequence argument: digits are an id, anything else (or anything with --by-name) a
+    name."""
+    return seq if by_name or not seq.isdigit() else int(seq)
+
+
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("seqs", metavar="SEQ...", nargs=-1, required=True)
@@ -362,13 +368,66 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
       sprint-map remove city.map monday-2019    # by name
       sprint-map remove city.map 2024 --by-name # a sequence named "2024"
     """
-    refs = [s if by_name or not s.isdigit() else int(s) for s in seqs]
+    refs = [_seq_ref(s, by_name) for s in seqs]
     with SprintMap.open(map_path) as m:
         data = m.remove_sequences(refs).to_dict()
     names = ", ".join(f"{r['seq_id']} ({r['name']})" for r in data["removed"])
     _emit(data, as_json, f"removed {names}: {data['vertices_removed']} vertices, "
                          f"{data['edges_removed']} edges; components {data['components_affected']}"
                          f" -> {data['components_after']}; reclaim the space with compact")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--seq", help="Only edges touching this sequence (id or name), either end.")
+@click.option("--added-by", help="Only edges this drive (id or name) added: what unmerge "
+              "revokes.")
+@click.option("--by-name", is_flag=True, help="Read --seq and --added-by as names, even digits.")
+@click.option("--json", "as_json", is_flag=True, help="Print as JSON: a list of {src_seq, "
+              "src_image, dst_seq, dst_image, prob, added_by}.")
+def edges(map_path: str, seq: str | None, added_by: str | None, by_name: bool,
+          as_json: bool) -> None:
+    """List the edges of MAP with their provenance: the drive whose merge added each one.
+
+    \b
+    Examples:
+      sprint-map edges city.map --seq monday        # edges from or to monday
+      sprint-map edges city.map --added-by 3 --json # what `unmerge city.map 3` would revoke
+    """
+    with SprintMap.open(map_path, readonly=True) as m:
+        found = m.edges(None if seq is None else _seq_ref(seq, by_name),
+                        added_by=None if added_by is None else _seq_ref(added_by, by_name))
+        names = {s.seq_id: s.name for s in m.sequences()} if not as_json else {}
+    text = "\n".join(
+        f"{f'{e.src_seq}:{e.src_image}':>11} -> {f'{e.dst_seq}:{e.dst_image}':<11} "
+        f"p={e.prob:.3f}  added by "
+        + ("-" if e.added_by is None else f"{e.added_by} ({names.get(e.added_by, 'removed')})")
+        + ("" if e.frame is None else f", frame {e.frame}") for e in found)
+    _emit([e.to_dict() for e in found], as_json, text or "(no edges)")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.argument("seq", metavar="SEQ")
+@click.option("--by-name", is_flag=True, help="Read SEQ as a name, even all digits.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON: {seq_id, "
+              "edges_removed, components}.")
+def unmerge(map_path: str, seq: str, by_name: bool, as_json: bool) -> None:
+    """Undo the merge of drive SEQ (id or name): revoke every edge it added, atomically.
+
+    Components split where nothing else joins them; the drive stays in the map, as do the
+    edges later drives added to it. `components` lists the components the affected ones
+    form now. A drive that added no edge is a no-op.
+
+    \b
+    Examples:
+      sprint-map edges city.map --added-by tuesday   # preview
+      sprint-map unmerge city.map tuesday --json
+    """
+    with SprintMap.open(map_path) as m:
+        data = m.unmerge(_seq_ref(seq, by_name)).to_dict()
+    _emit(data, as_json, f"unmerged sequence {data['seq_id']}: {data['edges_removed']} edges "
+                         f"revoked; components now {data['components']}")
 
 
 @main.command()
@@ -486,9 +545,12 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
 @main.command()
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="sprint-demo",
               show_default=True, help="Where the data, maps, results and plots go.")
-@click.option("--dataset", "which", type=click.Choice(["auto", "city", "nordland"]),
+@click.option("--dataset", "which",
+              type=click.Choice(["auto", "city", "city-novel", "nordland"]),
               default="auto", show_default=True,
-              help="auto: Nordland when it is present on this machine, else the generated city.")
+              help="auto: Nordland when it is present on this machine, else the generated city; "
+              "city-novel: a harder city (mostly novel streets, some driven the other way, "
+              "aliased streets).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress messages.")
 def demo(out_dir: str, which: str, quiet: bool) -> None:
     """Build a map from the embedded default data, evaluate it, print the table and plots.
@@ -498,8 +560,9 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
     present (found through $SPRINT_MAP_NORDLAND or ../shared/data/nordland).
 
     \b
-    Example:
+    Examples:
       sprint-map demo --out sprint-demo
+      sprint-map demo --dataset city-novel --out sprint-demo-novel
     """
     from sprint_map.evaluation.demo import run_demo
     from sprint_map.evaluation.report import markdown_table

@@ -16,6 +16,7 @@ from sprint_map.errors import (
     InvalidDescriptorError,
     MapExistsError,
     NotAMapError,
+    UnknownSequenceError,
 )
 
 DIM = 16
@@ -149,3 +150,45 @@ def test_init_hog_sets_the_dimension(tmp_path):
 def test_every_command_has_an_example():
     for name, command in main.commands.items():
         assert "Example" in (command.help or ""), name
+
+
+#: ``edges --json`` and ``unmerge --json``: the keys outside scripts read.
+EDGE_KEYS = {"src_seq", "src_image", "dst_seq", "dst_image", "prob", "added_by"}
+UNMERGE_KEYS = {"seq_id", "edges_removed", "components"}
+
+
+def test_edges_and_unmerge(make_map):
+    built = make_map((8, 9, 10, 11, 12, 13), dim=DIM, edges=3)
+    listed = json.loads(run("edges", built.path, "--json").output)
+    assert len(listed) == len(built.edge_set()) and listed
+    assert all(set(e) == EDGE_KEYS for e in listed)
+    seq = max(range(6), key=lambda s: sum(e["added_by"] == s for e in listed))
+    name = built.sequences[seq].name
+    preview = json.loads(run("edges", built.path, "--added-by", name, "--json").output)
+    assert preview == [e for e in listed if e["added_by"] == seq] and preview
+    touching = json.loads(run("edges", built.path, "--seq", seq, "--json").output)
+    assert touching == [e for e in listed if seq in (e["src_seq"], e["dst_seq"])]
+    text = run("edges", built.path, "--seq", name).output
+    assert f"added by {seq} ({name})" in text and "p=" in text
+
+    result = run("unmerge", built.path, name, "--json")
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert set(data) == UNMERGE_KEYS
+    assert (data["seq_id"], data["edges_removed"]) == (seq, len(preview))
+    comps = {c["component"] for c in json.loads(run("components", built.path, "--json").output)}
+    assert data["components"] and set(data["components"]) <= comps
+    assert json.loads(run("edges", built.path, "--json").output) == [
+        e for e in listed if e["added_by"] != seq]
+    again = run("unmerge", built.path, seq)
+    assert again.output.strip() == f"unmerged sequence {seq}: 0 edges revoked; components now []"
+    assert run("check", built.path).exit_code == 0
+
+    for args in (("unmerge", built.path, "9"), ("edges", built.path, "--seq", "nope"),
+                 ("edges", built.path, "--added-by", "9")):
+        result = CliRunner().invoke(main, [str(a) for a in args])
+        assert result.exit_code == UnknownSequenceError.exit_code
+        lines = result.output.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("Error: no sequence"), result.output
+    result = CliRunner().invoke(main, ["edges", str(built.path), "--seq", "12", "--by-name"])
+    assert result.output.startswith("Error: no sequence named '12'")

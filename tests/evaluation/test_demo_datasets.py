@@ -30,3 +30,22 @@ def test_unknown_demo_dataset_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="city-novel"):
         demo.run_demo(tmp_path, "mars")
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("which", ["city", "city-novel"])
+def test_cli_demo_dataset_writes_results_in_sprint_demo(which: str, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """``sprint-map demo --dataset city|city-novel``: ./sprint-demo/results.json by default."""
+    from click.testing import CliRunner
+
+    from sprint_map.cli import main
+
+    monkeypatch.setattr(demo, "CITY_TRAVERSALS", 2)
+    monkeypatch.setattr(demo, "CITY_FRAMES", 30)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["demo", "--dataset", which, "-q"])
+    assert result.exit_code == 0, result.output
+    assert "SPRINT@1" in result.output
+    results = json.loads((tmp_path / "sprint-demo" / "results.json").read_text())
+    assert results["protocol"] == "lifelong" and len(results["queries"]) == 1
+    assert (tmp_path / "sprint-demo" / which / "dataset.json").is_file()
