@@ -95,14 +95,14 @@ def init(map_path: str, dim: int | None, descriptor: str | None, config_json: st
 
 
 def _read_json_config(path: str | None) -> dict[str, Any]:
-    """The options in the JSON file ``path`` (``{}`` without one); an unreadable file is an
-    InputError."""
+    """The options in the JSON file ``path`` (``{}`` without one); an unreadable file (or one
+    that is not UTF-8 JSON) is an InputError."""
     if not path:
         return {}
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             options = json.load(fh)
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"cannot read config {path}: {exc}") from exc
     if not isinstance(options, dict):
         raise InputError(f"config {path} must hold a JSON object")
@@ -198,7 +198,9 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
         pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
-        result = m.ingest(src.iter_batches(), name=name or src.name, positions=pos,
+        # An empty --name is refused by the name rules, not replaced by the source's name.
+        result = m.ingest(src.iter_batches(), name=src.name if name is None else name,
+                          positions=pos,
                           merge=not no_merge, hmm=hmm, source=str(source))
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)

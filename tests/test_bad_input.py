@@ -149,6 +149,7 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # Text that is not UTF-8 (issue 14, item 10): a file name and a token file.
     np.save(root / os.fsdecode(b"bad\xff.npy"), good)
     (root / "token_latin1.txt").write_bytes(b"s3cr\xe9t\n")
+    (root / "config_latin1.json").write_bytes(b'{"descriptor": "caf\xe9"}')
     return root
 
 
@@ -253,6 +254,10 @@ CASES: dict[str, Case] = {
                                  "bad\\xff.npy' is not UTF-8 text"),
     "remove-name-not-utf8": Case("remove {map} \udcff", InputError,
                                  "sequence name b'\\xff' is not UTF-8 text"),
+    "name-empty": Case("ingest {map} {in}/good.npy --name ", InputError,
+                       "an empty name is not a name"),  # was: named after the source
+    "init-config-not-utf8": Case("init {map} --dim 4 --config {in}/config_latin1.json",
+                                 InputError, "cannot read config", map="missing"),
     "remove-empty-name": Case("remove {map} ", UnknownSequenceError,
                               "no sequence named '' in the map"),
     "init-path-not-utf8": Case("init {map} --dim 4", InputError, "case\\xff.map' is not UTF-8 "
