@@ -104,6 +104,12 @@ class StoreMachine(RuleBasedStateMachine):
         pos = rows[:, :2].astype(np.float64) if with_pos else None
         edges = self.draw_edges(data, len(rows))
         if name in self.names:
+            same = self.rows[self.names.index(name)]
+            if same.shape == rows.shape and same.tobytes() == rows.astype(np.float32).tobytes():
+                # The same drive again (a retry): reported, nothing added.
+                again = self.store.add_sequence(rows, name=name, positions=pos, edges=edges)
+                assert again.already_committed and again.sequence.name == name
+                return
             try:
                 self.store.add_sequence(rows, name=name, positions=pos, edges=edges)
                 raise AssertionError("a used name was accepted")
