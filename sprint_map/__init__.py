@@ -1,8 +1,44 @@
-"""sprint-map: a persistent, lifelong visual place-recognition map (SPRINT, Latif et al. 2020)."""
+"""sprint-map: a persistent, lifelong visual place-recognition map (SPRINT, Latif et al. 2020).
+
+The front door is :class:`SprintMap`::
+
+    from sprint_map import MapConfig, SprintMap
+
+The facade and its records are imported on first use (PEP 562), so ``import sprint_map``
+stays as light as its configuration.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
 
-__all__ = ["SCHEMA_VERSION", "HMMConfig", "MapConfig", "SprintMapError"]
+if TYPE_CHECKING:
+    from sprint_map.localizer import FrameDecision, Localizer, Timing
+    from sprint_map.map import IngestResult, SprintMap
+
+__all__ = ["SCHEMA_VERSION", "FrameDecision", "HMMConfig", "IngestResult", "Localizer",
+           "MapConfig", "SprintMap", "SprintMapError", "Timing"]
 __version__ = "0.1.0"
+
+#: Names imported on first use, and the module that defines each.
+_LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.map",
+         "Localizer": "sprint_map.localizer", "FrameDecision": "sprint_map.localizer",
+         "Timing": "sprint_map.localizer"}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'sprint_map' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
