@@ -1,6 +1,6 @@
 """Image front end: descriptors, frame sources, data sets on disk and their ground truth.
 
-Public API (see ``docs/frontend.md``):
+Public API (see ``docs/architecture.md``, "Front end"):
 
 - :class:`DescriptorSpec` -- the paper's HoG (``"hog"``) or a SeqSLAM-style patch-normalised
   thumbnail (``"patchnorm"``); ``describe`` / ``describe_batch``.
@@ -11,12 +11,39 @@ Public API (see ``docs/frontend.md``):
   and the rule that says whether a retrieved frame is the same place.
 """
 
-from sprint_map.frontend.dataset import Dataset, Traversal
-from sprint_map.frontend.descriptors import DESCRIPTOR_KINDS, DescriptorSpec
-from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
-from sprint_map.frontend.imagefiles import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key
-from sprint_map.frontend.positions import read_positions
-from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sprint_map.frontend.dataset import Dataset, Traversal
+    from sprint_map.frontend.descriptors import DESCRIPTOR_KINDS, DescriptorSpec
+    from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
+    from sprint_map.frontend.imagefiles import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key
+    from sprint_map.frontend.positions import read_positions
+    from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
+
+#: Each public name and the module that defines it: imported on first use (PEP 562), so a
+#: module that needs only descriptor specs does not load data sets (scipy) or OpenCV.
+_LAZY = {
+    "Dataset": "dataset", "Traversal": "dataset",
+    "DESCRIPTOR_KINDS": "descriptors", "DescriptorSpec": "descriptors",
+    "GroundTruth": "groundtruth", "GroundTruthSpec": "groundtruth",
+    "IMAGE_EXTENSIONS": "imagefiles", "VIDEO_EXTENSIONS": "imagefiles",
+    "natural_key": "imagefiles", "read_positions": "positions",
+    "FrameSource": "sources", "ProgressCallback": "sources", "open_source": "sources",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'sprint_map.frontend' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"sprint_map.frontend.{module}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "DESCRIPTOR_KINDS",

@@ -30,12 +30,14 @@ import json
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from sprint_map.errors import ConfigError
+
+if TYPE_CHECKING:
+    import cv2
 
 #: Parameter defaults per kind; a spec always carries every parameter of its kind, so two specs
 #: that describe the same computation compare (and serialise) equal.
@@ -228,8 +230,12 @@ def to_gray(image: np.ndarray) -> np.ndarray:
         if channels == 1:
             return image[:, :, 0]
         if channels == 3:
+            import cv2  # (OpenCV loads with the first image, not with the package)
+
             return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if channels == 4:
+            import cv2
+
             return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
     raise ValueError(f"expected a (H, W), (H, W, 3) or (H, W, 4) image, got shape {image.shape}")
 
@@ -248,6 +254,8 @@ def _hog_object(p: dict[str, int]) -> cv2.HOGDescriptor:
     key = (p["size"], p["block"], p["stride"], p["cell"], p["bins"])
     hog = cache.get(key)
     if hog is None:
+        import cv2
+
         hog = cv2.HOGDescriptor(
             (p["size"], p["size"]),
             (p["block"], p["block"]),
@@ -262,6 +270,8 @@ def _hog_object(p: dict[str, int]) -> cv2.HOGDescriptor:
 def _hog(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
     size = p["size"]
     if gray.shape != (size, size):
+        import cv2
+
         gray = cv2.resize(gray, (size, size), interpolation=cv2.INTER_AREA)
     # compute() needs a contiguous buffer; a channel slice of a BGR array is not one.
     vector = _hog_object(p).compute(np.ascontiguousarray(gray))
@@ -271,6 +281,8 @@ def _hog(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
 def _patchnorm(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
     width, height, patch = p["width"], p["height"], p["patch"]
     if gray.shape != (height, width):
+        import cv2
+
         gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
     # (rows of patches, patch row, cols of patches, patch col): statistics over axes 1 and 3.
     blocks = gray.astype(np.float32).reshape(height // patch, patch, width // patch, patch)

@@ -2,9 +2,9 @@
 
 Image ingest is decode-bound (a 640x480 JPEG takes ~2 ms to decode, its HoG ~0.45 ms), and
 OpenCV releases the GIL inside ``imdecode``, ``resize`` and ``HOGDescriptor.compute``, so plain
-threads scale over the cores without the start-up and pickling cost of processes (see
-``docs/frontend.md`` for the measurements). Processes remain available for descriptor code that
-holds the GIL.
+threads scale over the cores without the start-up and pickling cost of processes (measured by
+``tools/bench_frontend.py ingest``). Processes remain available for descriptor code that holds
+the GIL.
 
 The map is *streaming*: items are pulled from the input iterator only when a slot frees up, and at
 most ``max_in_flight`` tasks are queued or running, so memory stays bounded however long the
