@@ -141,8 +141,8 @@ def compact_map(store: MapStore) -> CompactReport:
     O(live vertices * dim) to copy the shards and rebuild the index, O(records) LMDB reads
     and bulk puts; peak disk use is the old map plus the new one.
     """
-    store._require_writer()
-    if store._writing is not None:
+    store.require_writer()
+    if store.writing is not None:
         raise SprintMapError("a sequence is being written: commit or abort it first")
     started = time.monotonic()
     root, old = store.path, store.data_path
@@ -171,7 +171,7 @@ def compact_map(store: MapStore) -> CompactReport:
     _write_lmdb(store, new, renumber)
     crash_point("compact.lmdb_written")
 
-    index = store._new_index(new / "index")
+    index = store.new_index(new / "index")
     try:
         index.rebuild(renumber.total, shards)
         index.merge_segments()  # an approximate index: its segments into one (else a no-op)
@@ -182,7 +182,7 @@ def compact_map(store: MapStore) -> CompactReport:
 
     publish_current(root, new)  # the commit point
     crash_point("compact.published")
-    store._switch_generation(new, index)
+    store.switch_generation(new, index)
     removed = _remove_old(store, old)
     return CompactReport(
         generation=new.name,

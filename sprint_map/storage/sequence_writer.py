@@ -81,8 +81,8 @@ class SequenceWriter:
 
     def __init__(self, store: MapStore, name: str | None = None, source: str = "",
                  reserved: Container[str] = ()) -> None:
-        store._require_writer()
-        if store._writing is not None:
+        store.require_writer()
+        if store.writing is not None:
             raise SprintMapError("another sequence is already being written to this map")
         with store.env.read() as txn:
             self.seq_id = store.counter("next_seq_id", txn)

@@ -162,7 +162,7 @@ class MapStore:
         self.uf = UnionFindStore(env)
         self.shards = ShardSet(self.data_path / SHARDS_DIR, self.config.dim,
                                self.config.shard_rows)
-        self.index = self._new_index(self.data_path / INDEX_DIR, writable=not readonly)
+        self.index = self.new_index(self.data_path / INDEX_DIR, writable=not readonly)
         self._removed: tuple[int, RemovedRanges] | None = None  # cache, by removed_vertices
         self.recovery: list[str] = []
         #: Problems that lost nothing and failed no operation (e.g. the index cache not saved).
@@ -269,11 +269,11 @@ class MapStore:
                 raise
         return store
 
-    def _new_index(self, directory: Path, *, writable: bool = True) -> IndexStore:
+    def new_index(self, directory: Path, *, writable: bool = True) -> IndexStore:
         """The index of this map's config kept in ``directory`` (also a compaction's staging)."""
         return IndexStore(directory, self.config.dim, writable=writable, config=self.config)
 
-    def _switch_generation(self, data: Path, index: IndexStore) -> None:
+    def switch_generation(self, data: Path, index: IndexStore) -> None:
         """Reopen this writer on the just-published generation ``data`` with its ``index``.
 
         The old generation's environment is closed and its pin dropped first, so that the
@@ -365,7 +365,7 @@ class MapStore:
         StorageIOError
             If the index file cannot be written; the committed map is untouched.
         """
-        self._require_writer()
+        self.require_writer()
         try:
             self.index.persist()
         except OSError as exc:  # e.g. the directory fsync after removing older index files
@@ -378,9 +378,15 @@ class MapStore:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _require_writer(self) -> None:
+    def require_writer(self) -> None:
+        """Raise ``ReadOnlyMapError`` unless this store was opened for writing."""
         if self.readonly:
             raise ReadOnlyMapError("the map is open read-only")
+
+    @property
+    def writing(self) -> SequenceWriter | None:
+        """The sequence being written, if any (one at a time per writer)."""
+        return self._writing
 
     # --- meta -------------------------------------------------------------------------------
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
@@ -561,7 +567,7 @@ class MapStore:
     def rebuild_index(self, *, train: bool = False) -> list[str]:
         """Rebuild (flat) or retrain and re-encode (approximate) the index; publish it
         atomically. O(vertices * dim) plus training."""
-        self._require_writer()
+        self.require_writer()
         total = self.counter("next_vertex_id")
         try:
             if train:
@@ -600,7 +606,7 @@ class MapStore:
 
     def remove_sequences(self, seq_ids: Iterable[int]) -> RemoveResult:
         """Retire sequences in one LMDB transaction; see :func:`removal.remove_sequences`."""
-        self._require_writer()
+        self.require_writer()
         if self._writing is not None:
             raise SprintMapError("a sequence is being written: commit or abort it first")
         return remove_sequences(self, seq_ids)
@@ -608,7 +614,7 @@ class MapStore:
     def unmerge(self, seq_id: int) -> UnmergeResult:
         """Revoke the edges sequence ``seq_id`` added, in one LMDB transaction; see
         :func:`provenance.unmerge_sequence`."""
-        self._require_writer()
+        self.require_writer()
         if self._writing is not None:
             raise SprintMapError("a sequence is being written: commit or abort it first")
         return unmerge_sequence(self, seq_id)
