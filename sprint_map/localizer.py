@@ -180,24 +180,25 @@ class Localizer:
                 # re-read (the cache was cleared), hits on sequences removed meanwhile dropped
                 self.hits = [(np.where(self.source.visible(ids), ids, -1), dists)
                              for ids, dists in self.hits]
-            out = self._smooth_pass()
+            nearest = [_nearest(ids, dists) for ids, dists in self.hits]
+            out = self._smooth_pass(nearest)
             novelty = self._calibrated_novelty(out)
             if novelty is not None:
-                calibrated = self._smooth_pass(novelty)
+                calibrated = self._smooth_pass(nearest, novelty)
                 out = [dataclasses.replace(d, novel_prob=c.novel_prob)
                        for d, c in zip(out, calibrated, strict=True)]
         self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
         return out
 
-    def _smooth_pass(self, novelty: np.ndarray | None = None) -> list[FrameDecision]:
+    def _smooth_pass(self, nearest: list[float], novelty: np.ndarray | None = None
+                     ) -> list[FrameDecision]:
         fb = ForwardBackward(self.config, self.source, self.cache)
         for t, (ids, dists) in enumerate(self.hits):
             if novelty is not None:
                 nd = float(novelty[t])
                 fb.set_novelty_dist(nd if math.isfinite(nd) else None)
             fb.forward(ids, dists)
-        return [self._frame_decision(i, d, _nearest(*self.hits[i]))
-                for i, d in enumerate(fb.decisions())]
+        return [self._frame_decision(i, d, nearest[i]) for i, d in enumerate(fb.decisions())]
 
     def _calibrated_novelty(self, decisions: list[FrameDecision]) -> np.ndarray | None:
         """Per-frame ``novelty_dist`` for this drive (see :meth:`smoothed`; ``inf``: none at

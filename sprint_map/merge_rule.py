@@ -30,7 +30,6 @@ drive has been seen, the future of the drive supports or contradicts each frame.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -121,7 +120,7 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
 
     accepted = on_runs(ok)
     if rule.dist_quantile > 0 and int(accepted.sum()) >= CALIBRATE_MIN_FRAMES:
-        dist = np.array([getattr(d, "distance", math.inf) for d in decisions], dtype=np.float64)
+        dist = np.array([d.distance for d in decisions], dtype=np.float64)
         limit = float(np.quantile(dist[accepted], rule.dist_quantile))
         accepted = on_runs(ok & (dist <= limit))
     if rule.min_agree <= 0 or rule.window <= 0 or not n:

@@ -81,6 +81,9 @@ class FullGraphFilter:
         self._started = False
         self.frames = 0
         self._obs.reset()
+        #: The last frame's (hit states, likelihood ratios, sink ratio), for :meth:`smooth`.
+        self._obs_last: tuple[np.ndarray, np.ndarray, float] = (
+            np.empty(0, dtype=_I64), np.empty(0), 1.0)
 
     @property
     def sink_prob(self) -> float:
@@ -174,8 +177,7 @@ class FullGraphFilter:
         for ids, dists in hits:
             self.update(ids, dists)
             alphas.append(self.x.copy())
-            o = self._obs_last
-            obs_list.append(o)
+            obs_list.append(self._obs_last)
         out: list[tuple[np.ndarray, float]] = []
         if not alphas:
             return out
