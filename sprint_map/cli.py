@@ -20,8 +20,8 @@ from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
-from sprint_map.frontend.sources import ProgressCallback
 from sprint_map.map import SprintMap
+from sprint_map.progress import progress_display
 from sprint_map.storage.repair import repair_map
 
 
@@ -109,20 +109,6 @@ def _read_json_config(path: str | None) -> dict[str, Any]:
     return options
 
 
-def _progress(quiet: bool, label: str) -> ProgressCallback | None:
-    """A one-line progress display on stderr; none with --quiet or when not a terminal."""
-    if quiet or not sys.stderr.isatty():
-        return None
-
-    def report(done: int, total: int | None) -> None:
-        of = f"/{total}" if total else ""
-        click.echo(f"\r{label}: {done}{of} frames", err=True, nl=False)
-        if total is not None and done >= total:
-            click.echo("", err=True)
-
-    return report
-
-
 def _hmm_overrides(k: int | None, window: str | None, pairs: tuple[str, ...]) -> dict[str, Any]:
     """Per-call model overrides from --k, --window and repeated --hmm key=value."""
     out: dict[str, Any] = {}
@@ -165,7 +151,8 @@ def _model_options(f: Any) -> Any:
     f = click.option("--k", type=int, help="Neighbours retrieved per frame.")(f)
     f = click.option("--stride", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Keep every STRIDE-th frame (video and image folders).")(f)
-    f = click.option("--quiet", "-q", is_flag=True, help="No progress display.")(f)
+    f = click.option("--quiet", "-q", is_flag=True,
+                     help="No progress bar (none either when stderr is not a terminal).")(f)
     return f
 
 
@@ -193,8 +180,8 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
       sprint-map ingest city.map tuesday.mp4 --stride 5 --no-merge
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path) as m:
-        src = m.open_source(source, stride=stride, progress=_progress(quiet, "ingesting"))
+    with SprintMap.open(map_path) as m, progress_display("ingesting", quiet) as progress:
+        src = m.open_source(source, stride=stride, progress=progress)
         pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
@@ -236,8 +223,9 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map friday.npy --k 20 --out friday.json
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path, readonly=True) as m:
-        src = m.open_source(source, stride=stride, progress=_progress(quiet, "localising"))
+    with SprintMap.open(map_path, readonly=True) as m, \
+            progress_display("localising", quiet) as progress:
+        src = m.open_source(source, stride=stride, progress=progress)
         localizer = m.localizer(**overrides)
         localizer.record = smooth
         decisions = localizer.localize(src.iter_batches())  # streamed, searches batched

@@ -1,0 +1,148 @@
+"""Progress display of long command-line work (``ingest``, ``localize``): a bar on a terminal.
+
+:func:`progress_display` yields a :data:`~sprint_map.frontend.sources.ProgressCallback` that
+draws one `rich <https://rich.readthedocs.io>`_ progress line on ``stream`` (stderr by default):
+label, bar, frames done of the total, rate in frames/s, elapsed time and ETA. A source of
+unknown length (a video) shows a pulsing bar, the count and the rate, with no ETA. It yields
+``None`` (no display at all, and rich is not even imported) with ``quiet`` or when ``stream``
+is not a terminal, so piped and scripted runs print nothing but their result.
+
+rich is imported on the first display only: ``import sprint_map.cli`` stays fast
+(``tests/test_startup.py``).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
+
+__all__ = ["ProgressBar", "progress_display", "shows_progress"]
+
+
+def shows_progress(stream: TextIO, quiet: bool = False) -> bool:
+    """Whether a progress display goes to ``stream``: not ``quiet`` and a terminal."""
+    if quiet:
+        return False
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+class ProgressBar:
+    """One rich progress line; call it as ``bar(frames_done, total_or_None)``.
+
+    The line appears at the first call (so nothing is drawn for work that never starts) and is
+    refreshed about ten times a second by rich's own thread; :meth:`close` draws its final
+    state and ends the line. Cost per call O(1).
+
+    Parameters
+    ----------
+    label : str
+        What is being done (``"ingesting"``).
+    stream : text stream
+        Where the line goes; should be a terminal (see :func:`shows_progress`).
+    """
+
+    def __init__(self, label: str, stream: TextIO) -> None:
+        self.label = label
+        self.stream = stream
+        self._progress: Progress | None = None
+        self._task: TaskID | None = None
+
+    def __call__(self, done: int, total: int | None) -> None:
+        if self._progress is None or self._task is None:
+            self._progress = _new_progress(self.stream)
+            self._progress.start()
+            self._task = self._progress.add_task(self.label, total=total)
+        self._progress.update(self._task, completed=done, total=total)
+
+    def close(self) -> None:
+        """Draw the final state and end the line (idempotent)."""
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+
+@contextmanager
+def progress_display(label: str, quiet: bool = False,
+                     stream: TextIO | None = None) -> Iterator[ProgressBar | None]:
+    """A progress callback for the duration of the ``with`` block, or ``None``.
+
+    Parameters
+    ----------
+    label : str
+        What is being done, shown first on the line.
+    quiet : bool
+        No display at all (``--quiet``).
+    stream : text stream, optional
+        Default ``sys.stderr``. Without a terminal there, no display.
+
+    Yields
+    ------
+    ProgressBar or None
+        Pass it as the ``progress`` of a frame source; ``None`` means no display.
+    """
+    out = sys.stderr if stream is None else stream
+    if not shows_progress(out, quiet):
+        yield None
+        return
+    bar = ProgressBar(label, out)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+def _new_progress(stream: TextIO) -> Progress:
+    """A rich Progress writing to ``stream`` (rich imported here, on first use: ~45 ms)."""
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        ProgressColumn,
+        Task,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+    from rich.text import Text
+
+    class RateColumn(ProgressColumn):
+        """Frames per second, over rich's recent-samples window."""
+
+        def render(self, task: Task) -> Any:
+            speed = task.finished_speed or task.speed
+            return Text("? frames/s" if speed is None else f"{speed:,.0f} frames/s")
+
+    class EtaColumn(ProgressColumn):
+        """Time left at the recent rate; nothing for a source of unknown length."""
+
+        def render(self, task: Task) -> Any:
+            if task.total is None:
+                return Text("")
+            left = 0.0 if task.finished else task.time_remaining
+            if left is None:
+                return Text("eta -:--:--")
+            minutes, seconds = divmod(int(left), 60)
+            hours, minutes = divmod(minutes, 60)
+            return Text(f"eta {hours}:{minutes:02d}:{seconds:02d}")
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        RateColumn(),
+        TimeElapsedColumn(),
+        EtaColumn(),
+        console=Console(file=stream),
+        # sys.stdout and sys.stderr are left alone: commands print their result (and warnings)
+        # after the line has ended.
+        redirect_stdout=False,
+        redirect_stderr=False,
+    )
