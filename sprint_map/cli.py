@@ -23,6 +23,7 @@ from sprint_map.frontend.positions import read_positions
 from sprint_map.map import SprintMap
 from sprint_map.progress import progress_display
 from sprint_map.storage.repair import repair_map
+from sprint_map.trace import TraceRecorder
 
 
 class _Group(click.Group):
@@ -144,6 +145,12 @@ def _key_values(pairs: tuple[str, ...], option: str) -> dict[str, Any]:
     return out
 
 
+def _trace_option(f: Any) -> Any:
+    return click.option("--trace", type=click.Path(dir_okay=False), metavar="OUT",
+                        help="Record per frame the hits, active components and top belief "
+                             "states to OUT (.npz) for `sprint-map view --trace OUT`.")(f)
+
+
 def _model_options(f: Any) -> Any:
     f = click.option("--hmm", "hmm_pairs", multiple=True, metavar="KEY=VALUE",
                      help="Override any HMM parameter for this call (repeatable).")(f)
@@ -164,10 +171,11 @@ def _model_options(f: Any) -> Any:
               help="CSV frame,x,y[,heading_deg] with a header row.")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@_trace_option
 @_model_options
 def ingest(map_path: str, source: str, name: str | None, positions: str | None,
-           no_merge: bool, as_json: bool, stride: int, quiet: bool, k: int | None,
-           window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+           no_merge: bool, as_json: bool, trace: str | None, stride: int, quiet: bool,
+           k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP, then merge it with its decisions as edges.
 
     SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
@@ -178,17 +186,24 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
       sprint-map ingest city.map drives/monday/ --positions drives/monday/positions.csv
       sprint-map ingest city.map monday.npy --name monday --json
       sprint-map ingest city.map tuesday.mp4 --stride 5 --no-merge
+      sprint-map ingest city.map wednesday.npy --trace wednesday.trace.npz
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path) as m, progress_display("ingesting", quiet) as progress:
         src = m.open_source(source, stride=stride, progress=progress)
+        recorder = TraceRecorder(m) if trace else None
         pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
         # An empty --name is refused by the name rules, not replaced by the source's name.
         result = m.ingest(src.iter_batches(), name=src.name if name is None else name,
                           positions=pos,
-                          merge=not no_merge, hmm=hmm, source=str(source))
+                          merge=not no_merge, hmm=hmm, source=str(source),
+                          observe=recorder.attach if recorder else None)
+        if recorder is not None and trace:
+            recorder.save(trace, final=result.decisions, merged=result.merged,
+                          meta={"command": "ingest", "source": str(source), "smoothed": True,
+                                "seq_id": result.added.sequence.seq_id})
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     out = result.to_dict()
@@ -210,9 +225,10 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
 @click.option("--smooth", is_flag=True,
               help="Decide each frame from the smoothed posterior (the whole drive, as ingest "
                    "merges); default: causal, as a vehicle gets the answers.")
+@_trace_option
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             stride: int, quiet: bool, k: int | None, window: str | None,
+             trace: str | None, stride: int, quiet: bool, k: int | None, window: str | None,
              hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
@@ -221,6 +237,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map drives/friday/ --json
       sprint-map localize city.map friday.npy --smooth --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
+      sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
@@ -228,9 +245,15 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         src = m.open_source(source, stride=stride, progress=progress)
         localizer = m.localizer(**overrides)
         localizer.record = smooth
+        recorder = TraceRecorder(m) if trace else None
+        if recorder is not None:
+            recorder.attach(localizer)
         decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
         if smooth:
             decisions = localizer.smoothed()
+        if recorder is not None and trace:
+            recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
+                                                        "source": str(source)})
     t = localizer.timing.to_dict()
     data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
     if out:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -143,6 +143,9 @@ class Localizer:
         self.hits: list[tuple[np.ndarray, np.ndarray]] = []
         #: The per-frame unmapped-place distances the last :meth:`smoothed` calibrated.
         self.novelty_dist: np.ndarray | None = None
+        #: Called after every frame with ``(decision, hit ids, hit distances)`` (e.g. a
+        #: :class:`sprint_map.trace.TraceRecorder`, which reads ``filter`` too); None: nothing.
+        self.observer: Callable[[FrameDecision, np.ndarray, np.ndarray], None] | None = None
 
     def reset(self) -> None:
         """Start a new query sequence."""
@@ -294,7 +297,10 @@ class Localizer:
             self.hits.append((np.array(ids, copy=True), np.array(dists, copy=True)))
         frame = self._frame
         self._frame += 1
-        return self._frame_decision(frame, decision, _nearest(ids, dists))
+        out = self._frame_decision(frame, decision, _nearest(ids, dists))
+        if self.observer is not None:
+            self.observer(out, ids, dists)
+        return out
 
     def _frame_decision(self, frame: int, decision: Decision, distance: float
                         ) -> FrameDecision:
@@ -314,7 +320,10 @@ class Localizer:
         self.timing.hmm_ms.append(0.0)
         frame = self._frame
         self._frame += 1
-        return FrameDecision(frame, None, None, 0.0, novel_prob=1.0)
+        out = FrameDecision(frame, None, None, 0.0, novel_prob=1.0)
+        if self.observer is not None:
+            self.observer(out, np.empty(0, np.int64), np.empty(0, np.float32))
+        return out
 
 
 def local_quantiles(values: np.ndarray, mask: np.ndarray, q: float, window: int,

@@ -13,7 +13,7 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -154,6 +154,7 @@ class SprintMap:
         merge: bool = True,
         hmm: HMMConfig | None = None,
         source: str = "",
+        observe: Callable[[Localizer], None] | None = None,
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
@@ -179,6 +180,9 @@ class SprintMap:
         Per frame: one k-NN search (batched), one HMM step over the active set, and one
         backward step of the smoother over the same support; the smoother keeps the frame's
         hits and its sparse forward belief (O(live) per frame) until the drive ends.
+        ``observe`` receives the localizer before the first frame (e.g.
+        :meth:`sprint_map.trace.TraceRecorder.attach`); it is not called when the drive is
+        appended without localisation.
         """
         batches: Iterable[np.ndarray]
         if isinstance(descriptors, np.ndarray):
@@ -188,6 +192,8 @@ class SprintMap:
             batches = descriptors
         localizer = (Localizer(self, hmm, record=True) if merge and self.stats()["vertices"]
                      else None)
+        if localizer is not None and observe is not None:
+            observe(localizer)
         with self.store.begin_sequence(name, source) as writer:
             for batch in batches:
                 if localizer is not None:

@@ -1,0 +1,276 @@
+"""Localisation traces: what the filter saw and believed at every frame of one drive.
+
+``sprint-map localize ... --trace OUT`` and ``sprint-map ingest ... --trace OUT`` attach a
+:class:`TraceRecorder` to the :class:`~sprint_map.localizer.Localizer` (its ``observer``
+hook); after every frame it keeps
+
+* the frame's retrieval hits (vertex ids and squared-L2 distances, ``k`` per frame),
+* the active components and the posterior mass of each,
+* the ``top_n`` most probable states (vertices) of the belief and their posterior,
+* the causal decision (place, its probability, the unmapped-place probability) and the
+  active-set size,
+
+and :meth:`TraceRecorder.save` writes them, with the decisions the command reported (smoothed
+ones for ``--smooth`` and ``ingest``, with the merge rule's verdict), as one compressed
+``.npz`` written atomically (``*.partial``, fsync, ``os.replace``). Memory and file size are
+O(frames * (k + top_n + active components)): bounded per frame, whatever the map's size.
+
+File format (``FORMAT``, ``VERSION`` in its ``meta`` JSON; arrays with ``F`` frames):
+
+=====================  ===========  ==========================================================
+key                    shape        meaning
+=====================  ===========  ==========================================================
+``meta``               ()           JSON text: format, version, map path, k, top_n, frames,
+                                    command, source, smoothed
+``hit_vertex``         (F, k)       retrieved vertex ids (-1: none)
+``hit_seq``            (F, k)       their sequence (-1: none, or since removed)
+``hit_image``          (F, k)       their image in that sequence
+``hit_dist``           (F, k)       squared-L2 distances (float32)
+``top_seq``            (F, top_n)   most probable states, descending (-1 pads)
+``top_image``          (F, top_n)
+``top_prob``           (F, top_n)   their posterior (float32)
+``active_ptr``         (F + 1,)     CSR offsets into ``active_component`` / ``active_mass``
+``active_component``   (A,)         active component ids (union-find root sequences)
+``active_mass``        (A,)         posterior mass of each (float32)
+``n_active_vertices``  (F,)         vertices the step propagated
+``dec_seq``            (F,)         causal decision (-1: no match)
+``dec_image``          (F,)
+``dec_prob``           (F,)         its place probability (float32)
+``novel_prob``         (F,)         unmapped-place probability (float32)
+``final_seq``          (F,)         the reported decision (smoothed with --smooth / ingest)
+``final_image``        (F,)
+``final_prob``         (F,)
+``merged``             (F,)         ingest: whether the decision became an edge (bool)
+=====================  ===========  ==========================================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sprint_map.errors import InputError
+from sprint_map.storage.atomic import publish
+
+if TYPE_CHECKING:
+    from sprint_map.localizer import FrameDecision, Localizer
+    from sprint_map.map import SprintMap
+
+__all__ = ["FORMAT", "TOP_N", "VERSION", "Trace", "TraceRecorder", "read_trace"]
+
+FORMAT = "sprint-map-trace"
+VERSION = 1
+#: Belief states kept per frame by default.
+TOP_N = 8
+
+
+class TraceRecorder:
+    """Collects one drive's per-frame filter state; attach with :meth:`attach`.
+
+    Parameters
+    ----------
+    smap : SprintMap
+        The map being localised against (vertex ids are resolved against it on save).
+    top_n : int
+        Belief states kept per frame.
+
+    Notes
+    -----
+    Per frame: O(live) to pick the top states (``argpartition`` over the live belief) plus
+    O(k + active components) kept; nothing when not attached.
+    """
+
+    def __init__(self, smap: SprintMap, top_n: int = TOP_N) -> None:
+        if top_n < 1:
+            raise ValueError("top_n must be >= 1")
+        self.map = smap
+        self.top_n = top_n
+        self.k = 0
+        self._localizer: Localizer | None = None
+        self._hits: list[tuple[np.ndarray, np.ndarray]] = []
+        self._top: list[tuple[np.ndarray, np.ndarray]] = []
+        self._active: list[tuple[np.ndarray, np.ndarray]] = []
+        self._decisions: list[FrameDecision] = []
+        self._n_active: list[int] = []
+
+    def attach(self, localizer: Localizer) -> None:
+        """Record every frame ``localizer`` decides from now on (sets its ``observer``)."""
+        self._localizer = localizer
+        self.k = localizer.config.k
+        localizer.observer = self.observe
+
+    @property
+    def frames(self) -> int:
+        return len(self._decisions)
+
+    def observe(self, decision: FrameDecision, ids: np.ndarray, dists: np.ndarray) -> None:
+        """The localizer's per-frame hook: keep the frame's hits, belief and decision."""
+        loc = self._localizer
+        if loc is None:
+            raise RuntimeError("TraceRecorder.observe before attach()")
+        self._hits.append((np.asarray(ids, dtype=np.int64).ravel().copy(),
+                           np.asarray(dists, dtype=np.float32).ravel().copy()))
+        live, _sink = loc.filter.live_belief() if loc.filter.frames else ([], 1.0)
+        vids, probs = [], []
+        for trans, slots, vals in live:
+            if len(vals):
+                keep = _top_indices(vals, self.top_n)
+                vids.append(trans.vertex_of_slots(slots[keep]))
+                probs.append(vals[keep])
+        if vids:
+            v, p = np.concatenate(vids), np.concatenate(probs)
+            keep = _top_indices(p, self.top_n)
+            self._top.append((v[keep], p[keep].astype(np.float32)))
+        else:
+            self._top.append((np.empty(0, np.int64), np.empty(0, np.float32)))
+        masses = loc.filter.component_probs() if loc.filter.frames else {}
+        self._active.append((np.fromiter(masses.keys(), np.int64, len(masses)),
+                             np.fromiter(masses.values(), np.float32, len(masses))))
+        self._n_active.append(int(loc.filter.n_active_vertices) if loc.filter.frames else 0)
+        self._decisions.append(decision)
+
+    def save(self, path: str | os.PathLike[str], *, final: Sequence[FrameDecision] | None = None,
+             merged: np.ndarray | None = None, meta: dict[str, Any] | None = None) -> None:
+        """Write the trace to ``path`` atomically.
+
+        Parameters
+        ----------
+        final : decisions, optional
+            What the command reported per frame (default: the causal decisions recorded).
+        merged : bool array, optional
+            The merge rule's verdict per decision (``ingest``).
+        meta : dict, optional
+            Extra JSON fields (command, source, ...).
+
+        Notes
+        -----
+        O(F (k + top_n) log S) to resolve vertex ids to ``(sequence, image)`` for S sequences.
+        """
+        n = self.frames
+        final = list(final) if final is not None else self._decisions
+        if len(final) != n:
+            raise ValueError(f"{len(final)} final decisions for {n} traced frames")
+        k = max([self.k, *(len(h[0]) for h in self._hits)])
+        hit_v = np.full((n, k), -1, np.int64)
+        hit_d = np.full((n, k), np.inf, np.float32)
+        top_v = np.full((n, self.top_n), -1, np.int64)
+        top_p = np.zeros((n, self.top_n), np.float32)
+        for t, ((ids, dists), (tv, tp)) in enumerate(zip(self._hits, self._top, strict=True)):
+            hit_v[t, :len(ids)], hit_d[t, :len(dists)] = ids, dists
+            order = np.argsort(-tp, kind="stable")
+            top_v[t, :len(tv)], top_p[t, :len(tp)] = tv[order], tp[order]
+        resolve = _Resolver(self.map)
+        hit_s, hit_i = resolve(hit_v)
+        top_s, top_i = resolve(top_v)
+        ptr = np.zeros(n + 1, np.int64)
+        ptr[1:] = np.cumsum([len(a) for a, _ in self._active])
+        arrays: dict[str, np.ndarray] = {
+            "hit_vertex": hit_v, "hit_seq": hit_s, "hit_image": hit_i, "hit_dist": hit_d,
+            "top_seq": top_s, "top_image": top_i, "top_prob": top_p,
+            "active_ptr": ptr,
+            "active_component": _cat([a for a, _ in self._active], np.int64),
+            "active_mass": _cat([m for _, m in self._active], np.float32),
+            "n_active_vertices": np.asarray(self._n_active, np.int64),
+            "merged": (np.zeros(n, bool) if merged is None or not len(merged)
+                       else np.asarray(merged, bool)),
+        }
+        for prefix, decisions in (("dec", self._decisions), ("final", final)):
+            arrays[f"{prefix}_seq"] = np.array([-1 if d.seq_id is None else d.seq_id
+                                                for d in decisions], np.int64)
+            arrays[f"{prefix}_image"] = np.array([-1 if d.image_id is None else d.image_id
+                                                  for d in decisions], np.int64)
+            arrays[f"{prefix}_prob"] = np.array([d.prob for d in decisions], np.float32)
+        arrays["novel_prob"] = np.array([d.novel_prob for d in self._decisions], np.float32)
+        info = {"format": FORMAT, "version": VERSION, "map": str(self.map.path), "k": k,
+                "top_n": self.top_n, "frames": n, **(meta or {})}
+        arrays["meta"] = np.array(json.dumps(info))
+
+        def write(partial: Path) -> None:
+            with open(partial, "wb") as fh:
+                np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
+
+        publish(Path(path), write)
+
+
+@dataclass(frozen=True)
+class Trace:
+    """A trace file read back: ``meta`` (its JSON) and the arrays of the module table."""
+
+    meta: dict[str, Any]
+    arrays: dict[str, np.ndarray]
+
+    @property
+    def frames(self) -> int:
+        return int(self.meta["frames"])
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    def active(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(component ids, masses)`` active after ``frame``."""
+        lo, hi = self.arrays["active_ptr"][frame:frame + 2]
+        return self.arrays["active_component"][lo:hi], self.arrays["active_mass"][lo:hi]
+
+
+def read_trace(path: str | os.PathLike[str]) -> Trace:
+    """Read a trace written by :meth:`TraceRecorder.save`.
+
+    Raises
+    ------
+    InputError
+        Not a readable trace file, or one of another format or a newer version.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+        meta = json.loads(str(arrays.pop("meta")))
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise InputError(f"{path}: not a sprint-map trace ({exc})") from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{path}: not a sprint-map trace")
+    if not isinstance(meta.get("version"), int) or meta["version"] > VERSION:
+        raise InputError(f"{path}: trace version {meta.get('version')} is newer than this "
+                         f"sprint-map reads ({VERSION})")
+    missing = {"hit_seq", "top_seq", "top_prob", "active_ptr", "dec_seq", "final_seq"} - set(arrays)
+    if missing:
+        raise InputError(f"{path}: trace lacks {', '.join(sorted(missing))}")
+    return Trace(meta, arrays)
+
+
+class _Resolver:
+    """Vertex ids to ``(sequence, image)`` through the map's sequence table (searchsorted)."""
+
+    def __init__(self, smap: SprintMap) -> None:
+        seqs = sorted(smap.sequences(), key=lambda s: s.first_vertex)
+        self.first = np.array([s.first_vertex for s in seqs], np.int64)
+        self.length = np.array([s.length for s in seqs], np.int64)
+        self.ids = np.array([s.seq_id for s in seqs], np.int64)
+
+    def __call__(self, vids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        seq = np.full(vids.shape, -1, np.int64)
+        image = np.full(vids.shape, -1, np.int64)
+        if not len(self.first):
+            return seq, image
+        pos = np.searchsorted(self.first, vids, side="right") - 1
+        ok = (vids >= 0) & (pos >= 0)
+        pos = np.clip(pos, 0, None)
+        ok &= vids - self.first[pos] < self.length[pos]  # not in a removed range
+        seq[ok] = self.ids[pos[ok]]
+        image[ok] = (vids - self.first[pos])[ok]
+        return seq, image
+
+
+def _top_indices(values: np.ndarray, n: int) -> np.ndarray:
+    if len(values) <= n:
+        return np.arange(len(values))
+    return np.argpartition(values, -n)[-n:]
+
+
+def _cat(parts: list[np.ndarray], dtype: type) -> np.ndarray:
+    return np.concatenate(parts).astype(dtype) if parts else np.empty(0, dtype)
