@@ -31,7 +31,7 @@ from sprint_map.storage.check import CheckReport, check_map
 from sprint_map.storage.compaction import CompactReport
 from sprint_map.storage.keys import SequenceRecord
 from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
-from sprint_map.storage.removal import RemoveResult
+from sprint_map.storage.removal import RemovedRanges, RemoveResult
 from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
 from sprint_map.storage.validation import decode_text
 
@@ -364,6 +364,24 @@ class SprintMap:
 
     def positions(self, seq_id: int) -> np.ndarray | None:
         return self.store.positions(seq_id)
+
+    def vertex_rows(self, start: int, stop: int | None = None) -> np.ndarray:
+        """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the
+        last committed vertex), removed sequences' rows included (their ids stay until
+        ``compact``). A read-only view when the range lies in one shard file.
+
+        Notes
+        -----
+        O((stop - start) * dim) bytes read; what a retrieval shard of the fleet loads
+        (:mod:`sprint_map.fleet.shards`).
+        """
+        total = self.stats()["vertices"]
+        return self.store.shards.rows(start, total if stop is None else stop, total)
+
+    def removed_ranges(self) -> RemovedRanges:
+        """The vertex ranges of removed sequences (hidden from every search). O(removed)."""
+        with self.store.env.read() as txn:
+            return self.store.removed_ranges(txn)
 
     def stats(self) -> dict[str, int]:
         """Counts of sequences, vertices, edges and components. O(1)."""

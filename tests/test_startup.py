@@ -24,3 +24,10 @@ def test_the_front_end_loads_opencv_when_an_image_is_described():
         "import numpy as np; from sprint_map.frontend import DescriptorSpec; "
         "DescriptorSpec('hog').describe(np.zeros((48, 64, 3), np.uint8))")
     assert "cv2" in mods
+
+
+def test_nothing_imports_ray_without_ray_asked_for():
+    """Ray (the optional extra) loads only with ``--ray`` or sprint_map.fleet's functions."""
+    mods = loaded_after("import sprint_map.cli, sprint_map.map, sprint_map.fleet.runtime, "
+                        "sprint_map.fleet.shards")
+    assert "ray" not in mods

@@ -1,0 +1,249 @@
+"""Retrieval shards: Ray actors that each own a vertex range of the index; a search fans out.
+
+When a map's index outgrows one machine, it is cut into vertex ranges ``[a, b)`` (aligned to
+``ALIGN`` ids, the granularity of index segments and shard files). A :class:`ShardWorker`, run
+as a Ray actor, holds the rows of one range in an exact flat index; the last one is open-ended
+and catches up with commits. :class:`ShardedIndex` (in the caller) sends each query batch to
+every shard at once, gets each one's k best and merges them into the k best overall.
+
+The answer equals the in-process exact search, ids and distances: each distance is computed by
+the same FAISS kernel on the same two rows (one OpenMP thread below 8 queries, as in
+:func:`~sprint_map.storage.segment_model.use_threads`: with more threads, FAISS splits a single
+query's scan of a large index in a way whose rounding depends on the index size), and the k best
+of the union of the ranges' k best are the k best of the whole. Removed sequences are hidden as
+the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
+
+Where the rows come from (see ``docs/fleet.md``): with a shared filesystem each actor opens the
+map read-only and reads its range itself (``ship=False``); otherwise the caller reads the rows
+and ships them through Ray's object store (``ship=True``).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import faiss
+import numpy as np
+
+from sprint_map.map import SprintMap
+from sprint_map.storage.removal import RemovedRanges, search_live
+from sprint_map.storage.segment_model import use_threads
+from sprint_map.storage.validation import validate_descriptors
+
+__all__ = ["ALIGN", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk", "plan_ranges",
+           "spread"]
+
+#: Shard boundaries are multiples of this many vertex ids.
+ALIGN = 1024
+#: Rows added to a shard's index per call when loading (bounds the copy of a memory map).
+LOAD_CHUNK = 65536
+PAD_DISTANCE = np.finfo(np.float32).max
+
+
+def plan_ranges(vertices: int, shards: int, align: int = ALIGN) -> list[tuple[int, int | None]]:
+    """``shards`` vertex ranges ``[a, b)`` tiling ``0..vertices``, boundaries multiples of
+    ``align``; the last is open-ended (``b`` None: it takes the vertices committed later).
+    Fewer ranges when the map is too small to give each one ``align`` ids."""
+    if shards < 1:
+        raise ValueError("shards must be >= 1")
+    blocks = max(1, -(-vertices // align))
+    shards = min(shards, blocks)
+    cuts = [round(i * blocks / shards) * align for i in range(shards)]
+    return [(a, b) for a, b in zip(cuts, cuts[1:], strict=False)] + [(cuts[-1], None)]
+
+
+def merge_topk(dists: list[np.ndarray], ids: list[np.ndarray], k: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The k best of several ``(nq, k_i)`` result lists (distance ascending; on equal distances
+    the earlier list first, -1 pads last). O(nq * m log m) for m = sum of k_i."""
+    d = np.concatenate(dists, axis=1)
+    i = np.concatenate(ids, axis=1)
+    d = np.where(i >= 0, d, PAD_DISTANCE)
+    order = np.argsort(d, axis=1, kind="stable")[:, :k]
+    out_d = np.take_along_axis(d, order, axis=1)
+    out_i = np.take_along_axis(i, order, axis=1)
+    if out_d.shape[1] < k:  # fewer candidates than k in all: pad like FAISS
+        pad = k - out_d.shape[1]
+        out_d = np.pad(out_d, ((0, 0), (0, pad)), constant_values=PAD_DISTANCE)
+        out_i = np.pad(out_i, ((0, 0), (0, pad)), constant_values=-1)
+    return out_d.astype(np.float32, copy=False), out_i.astype(np.int64, copy=False)
+
+
+def alive_nodes(ray: Any) -> list[str]:
+    """Ids of the cluster's live nodes, in a stable order."""
+    return sorted(node["NodeID"] for node in ray.nodes() if node.get("Alive"))
+
+
+def spread(nodes: list[str], n: int) -> Any:
+    """The scheduling strategy of the ``n``-th actor of a group: round robin over ``nodes``
+    (hard: Ray's soft affinity was seen to stack actors on one node), so that S actors use
+    min(S, nodes) nodes."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    if not nodes:
+        return "SPREAD"
+    return NodeAffinitySchedulingStrategy(nodes[n % len(nodes)], soft=False)
+
+
+class ShardWorker:
+    """The exact index of one vertex range ``[start, stop)`` (``stop`` None: open-ended).
+
+    Run as a Ray actor by :class:`ShardedIndex`; a plain object otherwise. With ``rows`` None
+    the map at ``path`` is opened read-only and the range read from its shard files (a shared
+    filesystem); else ``rows`` are the range's descriptors, shipped by the caller.
+
+    Notes
+    -----
+    Memory: ``4 * dim`` bytes per vertex held (the flat index's copy of the rows). A search of
+    q queries costs O(q * rows * dim).
+    """
+
+    def __init__(self, path: str | None, start: int, stop: int | None, dim: int,
+                 rows: np.ndarray | None = None) -> None:
+        self.start = start
+        self.stop = stop
+        self.index = faiss.IndexFlatL2(dim)
+        self.map: SprintMap | None = None
+        if rows is None:
+            if path is None:
+                raise ValueError("a shard needs the map's path or its rows")
+            self.map = SprintMap.open(path, readonly=True)
+            total = self.map.stats()["vertices"]
+            self._load(self.map, total if stop is None else min(stop, total))
+        else:
+            self.append(start, rows)
+
+    def _load(self, smap: SprintMap, upto: int) -> None:
+        at = self.covered()
+        while at < upto:
+            stop = min(upto, at + LOAD_CHUNK)
+            self.index.add(np.ascontiguousarray(smap.vertex_rows(at, stop), dtype=np.float32))
+            at = stop
+
+    def covered(self) -> int:
+        """One past the last vertex id this shard holds."""
+        return self.start + int(self.index.ntotal)
+
+    def append(self, first: int, rows: np.ndarray) -> int:
+        """Add ``rows`` as vertex ids ``first..`` (must continue the covered range)."""
+        if first != self.covered():
+            raise ValueError(f"shard covers up to {self.covered()}, cannot add at {first}")
+        if self.stop is not None and first + len(rows) > self.stop:
+            raise ValueError(f"rows past the shard's end {self.stop}")
+        self.index.add(np.ascontiguousarray(rows, dtype=np.float32))
+        return self.covered()
+
+    def catch_up(self, committed: int) -> int:
+        """Read the vertices committed since (open-ended shard on a shared filesystem)."""
+        if self.map is not None:
+            end = committed if self.stop is None else min(self.stop, committed)
+            self._load(self.map, end)
+        return self.covered()
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
+        use_threads(len(queries))
+        if not self.index.ntotal:
+            return (np.full((len(queries), k), PAD_DISTANCE, dtype=np.float32),
+                    np.full((len(queries), k), -1, dtype=np.int64))
+        d, i = self.index.search(np.ascontiguousarray(queries, dtype=np.float32), k)
+        return d, np.where(i >= 0, i + self.start, -1)
+
+    def pid(self) -> int:
+        """The process running this shard (tests kill it)."""
+        return os.getpid()
+
+    def node(self) -> str:
+        """The Ray node this actor runs on."""
+        import ray
+
+        return str(ray.get_runtime_context().get_node_id())
+
+    def close(self) -> None:
+        if self.map is not None:
+            self.map.close()
+            self.map = None
+
+
+class ShardedIndex:
+    """Exact k-NN over a map, fanned out to :class:`ShardWorker` actors (one per range).
+
+    Parameters
+    ----------
+    smap : SprintMap
+        The map (its path, size and removed ranges are read here).
+    shards : int
+        Number of vertex ranges (fewer for a tiny map: see :func:`plan_ranges`).
+    ship : bool
+        Read the rows here and send them to the actors (no shared filesystem); default: each
+        actor reads its range from the map's files.
+    actor_options : dict, optional
+        Ray options of the actors (default ``num_cpus=0``, placed round robin over the
+        cluster's nodes: one actor per node while there are nodes).
+
+    Notes
+    -----
+    One search: one Ray call per shard, all in flight at once, and an O(q * S k log S k) merge;
+    its overhead over the in-process search is the round trip (~1-3 ms), so batch queries.
+    """
+
+    def __init__(self, smap: SprintMap, shards: int = 3, *, ship: bool = False,
+                 actor_options: dict[str, Any] | None = None) -> None:
+        from sprint_map.fleet.runtime import require_ray
+
+        ray = require_ray()
+        self._ray = ray
+        self.dim = smap.config.dim
+        self.removed: RemovedRanges = smap.removed_ranges()
+        vertices = smap.stats()["vertices"]
+        self.ranges = plan_ranges(vertices, shards)
+        remote = ray.remote(ShardWorker)
+        path = str(smap.path)
+        nodes = alive_nodes(ray)
+        self.actors = []
+        for n, (a, b) in enumerate(self.ranges):
+            options = {"num_cpus": 0, "scheduling_strategy": spread(nodes, n),
+                       **(actor_options or {})}
+            rows = None
+            if ship:
+                rows = ray.put(np.ascontiguousarray(smap.vertex_rows(a, vertices if b is None
+                                                                    else min(b, vertices))))
+            self.actors.append(remote.options(**options).remote(
+                None if ship else path, a, b, self.dim, rows))
+        self.covered = max(ray.get([actor.covered.remote() for actor in self.actors]))
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k nearest vertices, every range searched: ``(squared L2, vertex ids)``, -1 padded.
+        Removed vertices included (see :meth:`search_live`)."""
+        queries = validate_descriptors(queries, self.dim)
+        ref = self._ray.put(queries) if queries.nbytes > 65536 else queries
+        parts = self._ray.get([actor.search.remote(ref, k) for actor in self.actors])
+        return merge_topk([p[0] for p in parts], [p[1] for p in parts], k)
+
+    def search_live(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """k nearest *live* vertices (removed sequences hidden), as ``SprintMap.search``."""
+        if not self.removed.count:
+            return self.search(queries, k)
+        return search_live(self.search, validate_descriptors(queries, self.dim), k,
+                           self.removed, self.covered)
+
+    def catch_up(self, smap: SprintMap) -> int:
+        """Bring the open-ended shard up to the map's committed vertices (shared filesystem),
+        or ship it the new rows; refresh the removed ranges."""
+        vertices = smap.stats()["vertices"]
+        self.removed = smap.removed_ranges()
+        tail = self.actors[-1]
+        if vertices > self.covered:
+            covered = self._ray.get(tail.catch_up.remote(vertices))
+            if covered < vertices:  # shipped rows: the actor cannot read the map
+                covered = self._ray.get(tail.append.remote(
+                    covered, smap.vertex_rows(covered, vertices)))
+            self.covered = covered
+        return self.covered
+
+    def close(self) -> None:
+        """End the actors."""
+        for actor in self.actors:
+            self._ray.kill(actor)
+        self.actors = []
