@@ -4,7 +4,8 @@ The front door is :class:`SprintMap`::
 
     from sprint_map import MapConfig, SprintMap
 
-The facade and its records are imported on first use (PEP 562), so ``import sprint_map``
+The facade and its records (the storage layer's are defined in
+:mod:`sprint_map.storage.records`) are imported on first use (PEP 562), so ``import sprint_map``
 stays as light as its configuration.
 """
 
@@ -20,15 +21,34 @@ from sprint_map.hmm.config import HMMConfig
 if TYPE_CHECKING:
     from sprint_map.localizer import FrameDecision, Localizer, Timing
     from sprint_map.map import IngestResult, SprintMap
+    from sprint_map.storage.records import (
+        AddResult,
+        CheckReport,
+        CompactReport,
+        ComponentInfo,
+        EdgeInfo,
+        EdgeSpec,
+        RemoveResult,
+        RepairReport,
+        SequenceRecord,
+        UnmergeResult,
+    )
 
-__all__ = ["SCHEMA_VERSION", "FrameDecision", "HMMConfig", "IngestResult", "Localizer",
-           "MapConfig", "SprintMap", "SprintMapError", "Timing"]
+#: The records the facade's methods return (or take: ``EdgeSpec``).
+_RECORDS = ("AddResult", "CheckReport", "CompactReport", "ComponentInfo", "EdgeInfo", "EdgeSpec",
+            "RemoveResult", "RepairReport", "SequenceRecord", "UnmergeResult")
+
+__all__ = ["SCHEMA_VERSION", "AddResult", "CheckReport", "CompactReport", "ComponentInfo",
+           "EdgeInfo", "EdgeSpec", "FrameDecision", "HMMConfig", "IngestResult", "Localizer",
+           "MapConfig", "RemoveResult", "RepairReport", "SequenceRecord", "SprintMap",
+           "SprintMapError", "Timing", "UnmergeResult"]
 __version__ = "0.1.0"
 
 #: Names imported on first use, and the module that defines each.
 _LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.map",
          "Localizer": "sprint_map.localizer", "FrameDecision": "sprint_map.localizer",
-         "Timing": "sprint_map.localizer"}
+         "Timing": "sprint_map.localizer",
+         **dict.fromkeys(_RECORDS, "sprint_map.storage.records")}
 
 
 def __getattr__(name: str) -> Any:

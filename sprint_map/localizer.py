@@ -26,7 +26,7 @@ from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.map_graph import MapGraphSource
 from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
-from sprint_map.storage.store import EdgeSpec
+from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.validation import validate_descriptors
 
 if TYPE_CHECKING:

@@ -27,12 +27,21 @@ from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_sour
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
 from sprint_map.merge_rule import select_merges
-from sprint_map.storage.check import CheckReport, check_map
-from sprint_map.storage.compaction import CompactReport
-from sprint_map.storage.keys import SequenceRecord
-from sprint_map.storage.provenance import EdgeInfo, UnmergeResult, list_edges
-from sprint_map.storage.removal import RemovedRanges, RemoveResult
-from sprint_map.storage.store import AddResult, ComponentInfo, EdgeSpec, MapStore
+from sprint_map.storage.check import check_map
+from sprint_map.storage.provenance import list_edges
+from sprint_map.storage.records import (
+    AddResult,
+    CheckReport,
+    CompactReport,
+    ComponentInfo,
+    EdgeInfo,
+    EdgeSpec,
+    RemoveResult,
+    SequenceRecord,
+    UnmergeResult,
+)
+from sprint_map.storage.removal import RemovedRanges
+from sprint_map.storage.store import MapStore
 from sprint_map.storage.validation import decode_text
 
 

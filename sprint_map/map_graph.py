@@ -21,7 +21,8 @@ import numpy as np
 
 from sprint_map.errors import MapCorruptError
 from sprint_map.hmm.graph import ComponentGraph
-from sprint_map.storage.keys import SequenceRecord, read_u32, u64
+from sprint_map.storage.keys import read_u32, u64
+from sprint_map.storage.records import SequenceRecord
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
 

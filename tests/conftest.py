@@ -22,7 +22,8 @@ import pytest
 from hypothesis import settings
 
 from sprint_map.config import MapConfig
-from sprint_map.storage.store import EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import MapStore
 
 SEED = 20200531
 

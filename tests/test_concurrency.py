@@ -83,7 +83,8 @@ READER = PLAN + textwrap.dedent("""
     import json, os, sys, time
     from sprint_map.map import SprintMap
     from sprint_map.storage import lmdb_env
-    from sprint_map.storage.keys import SequenceRecord, read_u64
+    from sprint_map.storage.keys import read_u64
+    from sprint_map.storage.records import SequenceRecord
 
     # Map no more than the initial size, so that the writer's growth reaches this reader.
     lmdb_env.LmdbEnv.__init__.__kwdefaults__["map_size"] = 1 << 20

@@ -39,7 +39,8 @@ from sprint_map.storage.crash import (
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.index_store import index_files
 from sprint_map.storage.keys import u32, u64
-from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
 worker = crash_worker
 verify = worker.verify

@@ -9,7 +9,8 @@ from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import MapLockedError, NotAMapError, ReadOnlyMapError
 from sprint_map.map import SprintMap
 from sprint_map.storage.index_store import index_files
-from sprint_map.storage.store import INDEX_DIR, EdgeSpec
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR
 
 DIM = 6
 

@@ -26,7 +26,8 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.storage.check import check_map
 from sprint_map.storage.compaction import part_bytes
-from sprint_map.storage.store import EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import MapStore
 
 
 def drive(rng: np.random.Generator, places: np.ndarray, i: int, frames: int

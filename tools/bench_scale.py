@@ -56,7 +56,7 @@ import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
-from sprint_map.storage.store import EdgeSpec
+from sprint_map.storage.records import EdgeSpec
 
 QUERY_FRAMES = 300
 RECALL_QUERIES = 50

@@ -24,8 +24,8 @@ from sprint_map.localizer import FrameDecision, merge_edges
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
+from sprint_map.storage.records import AddResult
 from sprint_map.storage.sequence_writer import SequenceWriter
-from sprint_map.storage.store import AddResult
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Full consistency check of a map against every invariant of the on-disk format.
 
 Run on a map opened read-only, so that nothing the writer's open would silently repair is hidden.
-Every violation belongs to an *area* (:data:`AREAS`); ``check --repair``
+Every violation belongs to an *area* (:data:`sprint_map.storage.records.AREAS`); ``check --repair``
 (:mod:`sprint_map.storage.repair`) rebuilds the areas that are derivable from the sequence
 records, the edges and the shards (:data:`REPAIRABLE`) and reports the others.
 
@@ -39,7 +39,6 @@ from sprint_map.storage.keys import (
     REMOVED_VAL,
     UF_VAL,
     Raw,
-    SequenceRecord,
     decode_text,
     read_u32,
     read_u64,
@@ -47,6 +46,7 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lock import writer_active
 from sprint_map.storage.provenance import ADDED_BY_AT
+from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.union_find import MEMBER_KEY
@@ -57,50 +57,10 @@ CHECK_BLOCK = 65536
 #: :attr:`MapRecords.added_by` of an edge whose value is not an edge value.
 MALFORMED = -1
 
-#: What each area of the invariants covers.
-AREAS = {
-    "sequences": "sequence records tile the vertex ids 0..next_vertex_id-1 (source of truth)",
-    "lookup": "name and vertex-range indexes, next_seq_id and n_sequences",
-    "shard_files": "shard files hold every committed row, equal to the digest committed with "
-                   "its sequence",
-    "shard_lengths": "committed shard lengths recorded in LMDB",
-    "edges": "edge endpoints exist and join two sequences; edge values and their provenance",
-    "edge_index": "reverse edge index and n_edges",
-    "components": "union-find, membership lists, totals and n_components",
-    "index": "the persisted FAISS index",
-    "temp": "leftover temp files",
-    "removed": "removed vertex ranges hold no positions; the removed_vertices counter",
-}
 #: Areas ``check --repair`` rebuilds: everything derivable from the sequence records, the edges
 #: and the shards. The others hold information that exists nowhere else.
 REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp",
                         "removed"})
-
-
-@dataclass
-class CheckReport:
-    """Result of :func:`check_map`: ``ok`` when ``violations`` is empty.
-
-    ``areas`` names the :data:`AREAS` with at least one violation.
-    """
-
-    violations: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    checked: dict[str, int] = field(default_factory=dict)
-    areas: set[str] = field(default_factory=set)
-
-    @property
-    def ok(self) -> bool:
-        return not self.violations
-
-    def violation(self, area: str, message: str) -> None:
-        assert area in AREAS, area
-        self.violations.append(message)
-        self.areas.add(area)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"ok": self.ok, "violations": self.violations, "notes": self.notes,
-                "checked": self.checked, "areas": sorted(self.areas)}
 
 
 @dataclass

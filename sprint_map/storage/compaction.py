@@ -29,9 +29,8 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import lmdb
 import numpy as np
@@ -47,8 +46,9 @@ from sprint_map.storage.generation import (
     remove_generation,
     stale_generations,
 )
-from sprint_map.storage.keys import SequenceRecord, u32, u64
+from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
+from sprint_map.storage.records import CompactReport, SequenceRecord
 from sprint_map.storage.shards import ShardSet
 
 if TYPE_CHECKING:
@@ -61,27 +61,6 @@ BATCH = 65536
 SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests")
 #: Databases whose keys are 1 or 2 big-endian vertex ids, renumbered on the way.
 VERTEX_KEYED = {"vertex_data": 1, "edges": 2, "edges_rev": 2}
-
-
-@dataclass(frozen=True)
-class CompactReport:
-    """What :func:`compact_map` did; byte counts are allocated blocks of the map directory."""
-
-    generation: str
-    sequences: int
-    vertices_before: int
-    vertices_after: int
-    bytes_before: int
-    bytes_after: int
-    #: bytes of each part of the old and the new generation (lmdb, shards, index)
-    parts_before: dict[str, int]
-    parts_after: dict[str, int]
-    #: False if a reader still had the old generation open (the next writer's open removes it)
-    old_generation_removed: bool
-    seconds: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class Renumbering:
@@ -306,4 +285,4 @@ def _copy_renumbered(cursor: lmdb.Cursor, out: lmdb.Cursor, fields: int,
     flush()
 
 
-__all__ = ["CompactReport", "Renumbering", "compact_map", "part_bytes"]
+__all__ = ["Renumbering", "compact_map", "part_bytes"]

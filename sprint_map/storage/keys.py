@@ -5,8 +5,9 @@ Keys are big-endian fixed-width integers so that LMDB's byte order is numeric or
 (vertex id -> sequence) with a single cursor seek.
 
 Every decode of an LMDB record goes through this module (:class:`RecordStruct`, :func:`read_u32`,
-:func:`read_u64`, :meth:`SequenceRecord.decode`, :meth:`EdgeRecord.decode`,
-:func:`decode_text`, :func:`decode_number`), and each raises
+:func:`read_u64`, :func:`decode_text`, :func:`decode_number`, :func:`decode_json`, and the
+record classes' codecs built on them: ``SequenceRecord.decode`` and ``EdgeRecord.decode`` in
+:mod:`sprint_map.storage.records`), and each raises
 :class:`~sprint_map.errors.MapCorruptError` for a record that is not what its database holds: a
 corrupt record is the corrupt-map error (exit 7), never a ``struct.error`` or ``ValueError``.
 """
@@ -16,7 +17,6 @@ from __future__ import annotations
 import json
 import math
 import struct
-from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from sprint_map.errors import MapCorruptError
@@ -106,80 +106,3 @@ def decode_json(raw: Raw, what: str) -> Any:
         raise MapCorruptError(f"corrupt map record {what}: not JSON ({exc})") from exc
 
 
-@dataclass(frozen=True)
-class SequenceRecord:
-    """One committed sequence (drive). Its vertices are ``first_vertex .. first_vertex+length-1``."""
-
-    seq_id: int
-    name: str
-    length: int
-    first_vertex: int
-    created: float
-    source: str = ""
-
-    @property
-    def last_vertex(self) -> int:
-        return self.first_vertex + self.length - 1
-
-    def encode(self) -> bytes:
-        return json.dumps(asdict(self), separators=(",", ":")).encode()
-
-    @classmethod
-    def decode(cls, raw: Raw) -> SequenceRecord:
-        """Parse a record; MapCorruptError unless every field is there with its type.
-
-        Unknown keys are ignored (a newer writer may add fields). O(len(raw)).
-        """
-        data = decode_json(raw, "of a sequence")
-        if not isinstance(data, dict):
-            raise MapCorruptError("corrupt sequence record: not a JSON object")
-        values: dict[str, Any] = {}
-        for f in fields(cls):
-            if f.name not in data:
-                if f.name == "source":
-                    continue
-                raise MapCorruptError(f"corrupt sequence record: no {f.name!r}")
-            value = data[f.name]
-            want = _FIELD_TYPES[f.name]
-            if isinstance(value, bool) or not isinstance(value, want):
-                raise MapCorruptError(f"corrupt sequence record: {f.name!r} is {value!r}")
-            values[f.name] = value
-        record = cls(**values)
-        if record.seq_id < 0 or record.length < 0 or record.first_vertex < 0:
-            raise MapCorruptError(f"corrupt sequence record {record.seq_id}: negative ids")
-        return record
-
-
-_FIELD_TYPES: dict[str, type | tuple[type, ...]] = {
-    "seq_id": int, "name": str, "length": int, "first_vertex": int, "created": (int, float),
-    "source": str}
-
-
-@dataclass(frozen=True)
-class EdgeRecord:
-    """A directed inter-sequence edge with its provenance."""
-
-    src: int
-    dst: int
-    weight: float
-    query_seq: int | None
-    frame: int | None
-    time: float
-
-    def encode_value(self) -> bytes:
-        query = NO_QUERY if self.query_seq is None else self.query_seq
-        frame = NO_QUERY if self.frame is None else self.frame
-        return EDGE_VAL.pack(self.weight, query, frame, self.time)
-
-    @classmethod
-    def decode(cls, key: Raw, value: Raw) -> EdgeRecord:
-        src, dst = EDGE_KEY.unpack(key)
-        weight, query, frame, when = EDGE_VAL.unpack(value)
-        return cls(
-            src=src,
-            dst=dst,
-            weight=weight,
-            query_seq=None if query == NO_QUERY else query,
-            frame=None if frame == NO_QUERY else frame,
-            time=when,
-        )

@@ -23,14 +23,14 @@ not past ``S`` (all edges for the newest drive, few for an old one).
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import lmdb
 
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, EdgeRecord, read_u32, u32, u64
+from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, read_u32, u32, u64
+from sprint_map.storage.records import EdgeInfo, EdgeRecord, UnmergeResult
 from sprint_map.storage.removal import edge_keys, rebuild_components
 
 if TYPE_CHECKING:
@@ -39,48 +39,6 @@ if TYPE_CHECKING:
 #: Byte offset of the adding sequence's id (``>I``) inside an edge value, after the ``>d``
 #: weight: a scan compares these 4 bytes without decoding the value.
 ADDED_BY_AT = struct.calcsize(EDGE_VAL.format[:2])
-
-
-@dataclass(frozen=True)
-class EdgeInfo:
-    """One directed edge between ``(seq, image)`` endpoints, with its provenance.
-
-    ``added_by`` is the sequence whose commit wrote the edge (None for an edge written without
-    one); ``frame`` the query frame of that drive that made it (None if not given).
-    """
-
-    src_seq: int
-    src_image: int
-    dst_seq: int
-    dst_image: int
-    prob: float
-    added_by: int | None
-    frame: int | None
-    time: float
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON contract of ``sprint-map edges --json``: exactly these six keys."""
-        return {"src_seq": self.src_seq, "src_image": self.src_image, "dst_seq": self.dst_seq,
-                "dst_image": self.dst_image, "prob": self.prob, "added_by": self.added_by}
-
-
-@dataclass(frozen=True)
-class UnmergeResult:
-    """What :func:`unmerge_sequence` committed.
-
-    ``components`` are the ids of the components that the affected ones (those that held a
-    revoked edge) form afterwards, ascending; empty when nothing was revoked. The map's total
-    is in ``stats()``.
-    """
-
-    seq_id: int
-    edges_removed: int
-    components: list[int]
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON contract of ``sprint-map unmerge --json``: exactly these three keys."""
-        return {"seq_id": self.seq_id, "edges_removed": self.edges_removed,
-                "components": self.components}
 
 
 class _Locator:
@@ -243,5 +201,5 @@ def unmerge_sequence(store: MapStore, seq_id: int) -> UnmergeResult:
     return result
 
 
-__all__ = ["ADDED_BY_AT", "EdgeInfo", "UnmergeResult", "edges_added_by", "edges_touching",
+__all__ = ["ADDED_BY_AT", "edges_added_by", "edges_touching",
            "list_edges", "unmerge_sequence"]

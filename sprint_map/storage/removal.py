@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import lmdb
@@ -25,17 +24,9 @@ import numpy as np
 
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import (
-    COMP_VAL,
-    EDGE_KEY,
-    REMOVED_VAL,
-    UF_VAL,
-    SequenceRecord,
-    read_u64,
-    u32,
-    u64,
-)
+from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
+from sprint_map.storage.records import RemoveResult, SequenceRecord
 from sprint_map.storage.union_find import MEMBER_KEY
 
 if TYPE_CHECKING:
@@ -112,28 +103,6 @@ def search_live(search: Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray
         todo = todo[~finished]
         fetch = min(fetch * 4, indexed)
     return out_d, out_i
-
-
-@dataclass(frozen=True)
-class RemoveResult:
-    """What :func:`remove_sequences` committed."""
-
-    removed: list[SequenceRecord]
-    edges_removed: int
-    #: Components before the removal that held a removed sequence.
-    components_affected: list[int]
-    #: The components their remaining sequences form now (ids = union-find roots).
-    components_after: list[int]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "removed": [{"seq_id": s.seq_id, "name": s.name, "frames": s.length}
-                        for s in self.removed],
-            "vertices_removed": sum(s.length for s in self.removed),
-            "edges_removed": self.edges_removed,
-            "components_affected": self.components_affected,
-            "components_after": self.components_after,
-        }
 
 
 def edge_keys(txn: lmdb.Transaction, db: Any, first: int, last: int) -> list[tuple[int, int]]:
@@ -296,5 +265,5 @@ def write_component(txn: lmdb.Transaction, env: LmdbEnv, group: list[SequenceRec
     return root
 
 
-__all__ = ["RemoveResult", "RemovedRanges", "edge_keys", "rebuild_components", "regroup",
+__all__ = ["RemovedRanges", "edge_keys", "rebuild_components", "regroup",
            "remove_sequences", "search_live", "write_component"]

@@ -27,46 +27,18 @@ repair again.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
-from typing import Any
 
 import lmdb
 
 from sprint_map.storage.atomic import fsync_file, truncate
-from sprint_map.storage.check import (
-    CheckReport,
-    MapRecords,
-    check_map,
-    check_sequences,
-    sequence_edges,
-)
+from sprint_map.storage.check import MapRecords, check_map, check_sequences, sequence_edges
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
+from sprint_map.storage.records import RepairReport
 from sprint_map.storage.store import MapStore
 
 #: Areas rebuilt by the LMDB transaction of step 3.
 RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed")
-
-
-@dataclass
-class RepairReport:
-    """What :func:`repair_map` found after the writer's open (``found``), did (``repaired``,
-    the open's recovery included) and declined to do (``skipped``), and the check of the map
-    afterwards (``after``): ``ok`` when the map is now healthy."""
-
-    found: list[str] = field(default_factory=list)
-    repaired: list[str] = field(default_factory=list)
-    skipped: list[str] = field(default_factory=list)
-    after: CheckReport = field(default_factory=CheckReport)
-
-    @property
-    def ok(self) -> bool:
-        return self.after.ok
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"ok": self.ok, "found": self.found, "repaired": self.repaired,
-                "skipped": self.skipped, "unrepaired": self.after.violations,
-                "after": self.after.to_dict()}
 
 
 def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
@@ -215,4 +187,4 @@ def _repair_index(store: MapStore, total: int, areas: set[str], skipped: list[st
     return [f"{verb} index from the shards ({total} vertices)"]
 
 
-__all__ = ["RepairReport", "rebuild_records", "repair_map", "truncate_shard_tails"]
+__all__ = ["rebuild_records", "repair_map", "truncate_shard_tails"]

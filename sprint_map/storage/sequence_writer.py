@@ -35,7 +35,8 @@ from sprint_map.errors import (
     StorageIOError,
 )
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import DIGEST_BYTES, SequenceRecord, read_u32, u32
+from sprint_map.storage.keys import DIGEST_BYTES, read_u32, u32
+from sprint_map.storage.records import SequenceRecord
 from sprint_map.storage.validation import (
     validate_descriptors,
     validate_name,
@@ -43,7 +44,8 @@ from sprint_map.storage.validation import (
 )
 
 if TYPE_CHECKING:
-    from sprint_map.storage.store import AddResult, EdgeSpec, MapStore, ResolvedEdge
+    from sprint_map.storage.records import AddResult, EdgeSpec
+    from sprint_map.storage.store import MapStore, ResolvedEdge
 
 
 def default_name(seq_id: int, taken: Callable[[str], bool]) -> str:
@@ -160,7 +162,7 @@ class SequenceWriter:
         EmptySequenceError
             If no row was appended. Any error aborts the sequence (nothing is committed).
         """
-        from sprint_map.storage.store import AddResult
+        from sprint_map.storage.records import AddResult
 
         try:
             if self.frames == 0:
@@ -197,7 +199,7 @@ class SequenceWriter:
     def _finish_retry(self, digest: bytes) -> AddResult:
         """Commit nothing for rows that equal the committed sequence of this name; refuse
         others (DuplicateNameError). No shard row was written (see :meth:`append`)."""
-        from sprint_map.storage.store import AddResult
+        from sprint_map.storage.records import AddResult
 
         assert self.retry_of is not None
         record, committed = self.retry_of

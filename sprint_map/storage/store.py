@@ -23,7 +23,6 @@ import math
 import os
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +43,7 @@ from sprint_map.errors import (
     UnknownSequenceError,
 )
 from sprint_map.storage.atomic import fsync_dir, remove_partials
-from sprint_map.storage.compaction import CompactReport, compact_map
+from sprint_map.storage.compaction import compact_map
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.generation import (
     current_data,
@@ -57,9 +56,7 @@ from sprint_map.storage.index_store import IndexStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
-    EdgeRecord,
     Raw,
-    SequenceRecord,
     decode_json,
     decode_number,
     read_u32,
@@ -69,8 +66,18 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
-from sprint_map.storage.provenance import UnmergeResult, unmerge_sequence
-from sprint_map.storage.removal import RemovedRanges, RemoveResult, remove_sequences, search_live
+from sprint_map.storage.provenance import unmerge_sequence
+from sprint_map.storage.records import (
+    AddResult,
+    CompactReport,
+    ComponentInfo,
+    EdgeRecord,
+    EdgeSpec,
+    RemoveResult,
+    SequenceRecord,
+    UnmergeResult,
+)
+from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.union_find import UnionFindStore
@@ -82,41 +89,8 @@ INDEX_DIR = "index"
 COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
 
 
-@dataclass(frozen=True)
-class EdgeSpec:
-    """An inter-sequence edge to commit with a new sequence.
-
-    ``src`` and ``dst`` are ``(seq_id, image_id)``; ``seq_id`` ``None`` means the sequence
-    being added. ``weight`` is the match probability; ``frame`` the query frame that made it.
-    """
-
-    src: tuple[int | None, int]
-    dst: tuple[int | None, int]
-    weight: float = 1.0
-    frame: int | None = None
-
-
 #: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
 ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
-
-
-@dataclass(frozen=True)
-class AddResult:
-    """What :meth:`MapStore.add_sequence` committed."""
-
-    sequence: SequenceRecord
-    component: int
-    edges_added: int
-    #: The sequence was already committed under this name with the very same descriptors (a
-    #: retry after a failure past the commit point): nothing was added.
-    already_committed: bool = False
-
-
-@dataclass(frozen=True)
-class ComponentInfo:
-    component: int
-    sequences: list[int]
-    vertices: int
 
 
 class MapStore:
@@ -794,9 +768,6 @@ def is_map(path: str | os.PathLike[str]) -> bool:
 
 
 __all__ = [
-    "AddResult",
-    "ComponentInfo",
-    "EdgeSpec",
     "MapStore",
     "SprintMapError",
     "is_map",

@@ -18,7 +18,8 @@ from sprint_map.cli import main
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
-from sprint_map.storage.store import SHARDS_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import SHARDS_DIR, MapStore
 
 logical_state = crash_worker.logical_state
 

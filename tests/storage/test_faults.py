@@ -45,7 +45,8 @@ from sprint_map.storage.faults import (
     PowerLossSimulator,
     installed,
 )
-from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
 
 DIM = 4
 ERRNOS = {"EIO": errno.EIO, "ENOSPC": errno.ENOSPC}

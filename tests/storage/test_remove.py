@@ -19,8 +19,9 @@ from sprint_map.map_graph import MapGraphSource
 from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import u64
 from sprint_map.storage.lmdb_env import MAX_DBS
+from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.repair import repair_map
-from sprint_map.storage.store import LMDB_DIR, EdgeSpec, MapStore
+from sprint_map.storage.store import LMDB_DIR, MapStore
 
 logical_state = crash_worker.logical_state
 

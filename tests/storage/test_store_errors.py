@@ -32,7 +32,8 @@ from sprint_map.errors import (
 )
 from sprint_map.storage.lmdb_env import DB_NAMES, MAX_DBS
 from sprint_map.storage.lock import LOCK_NAME
-from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
 
 WORKER = Path(__file__).resolve().parents[1] / "crash_worker.py"
 DIM = 4

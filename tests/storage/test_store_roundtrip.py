@@ -8,7 +8,8 @@ import pytest
 from sprint_map.config import MapConfig
 from sprint_map.storage.check import check_map
 from sprint_map.storage.index_store import index_files
-from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
 # Lengths around shard_rows=16: single frames, exact fills, spans over two and three shards.
 LENGTH_SETS = {

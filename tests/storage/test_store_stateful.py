@@ -29,7 +29,8 @@ from sprint_map.errors import (
     InvalidDescriptorError,
 )
 from sprint_map.storage.check import check_map
-from sprint_map.storage.store import EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import MapStore
 
 DIM = 3
 CONFIG = MapConfig(dim=DIM, shard_rows=5, index_persist_every=4, index_persist_growth=0.5)

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from sprint_map.config import MapConfig
 from sprint_map.storage.check import check_map
-from sprint_map.storage.store import EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import MapStore
 
 DIM = 2
 

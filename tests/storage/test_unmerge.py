@@ -21,7 +21,8 @@ from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import EDGE_KEY, u32, u64
 from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.provenance import list_edges
-from sprint_map.storage.store import LMDB_DIR, EdgeSpec, MapStore
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import LMDB_DIR, MapStore
 
 logical_state = crash_worker.logical_state
 
@@ -362,7 +363,7 @@ def test_check_catches_provenance_unmerge_could_not_trust(make_map, rng, value, 
 
 def test_check_catches_sequence_ids_out_of_vertex_order(make_map, rng):
     """Sequence ids follow vertex order (both follow commits): two records swapped are caught."""
-    from sprint_map.storage.keys import SequenceRecord
+    from sprint_map.storage.records import SequenceRecord
 
     built = make_map((5, 5, 3), edges=0)
     with MapStore.open(built.path) as store:
