@@ -170,12 +170,14 @@ def _model_options(f: Any) -> Any:
 @click.option("--positions", type=click.Path(dir_okay=False),
               help="CSV frame,x,y[,heading_deg] with a header row.")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
+@click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
+              "(images and video; about 2-3 KiB a frame), for viewers.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 @_trace_option
 @_model_options
 def ingest(map_path: str, source: str, name: str | None, positions: str | None,
-           no_merge: bool, as_json: bool, trace: str | None, stride: int, quiet: bool,
-           k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+           no_merge: bool, thumbnails: bool, as_json: bool, trace: str | None, stride: int,
+           quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP, then merge it with its decisions as edges.
 
     SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
@@ -187,10 +189,12 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
       sprint-map ingest city.map monday.npy --name monday --json
       sprint-map ingest city.map tuesday.mp4 --stride 5 --no-merge
       sprint-map ingest city.map wednesday.npy --trace wednesday.trace.npz
+      sprint-map ingest city.map drives/friday/ --thumbnails
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path) as m, progress_display("ingesting", quiet) as progress:
-        src = m.open_source(source, stride=stride, progress=progress)
+        src = m.open_source(source, stride=stride, progress=progress,
+                            thumbnails=thumbnails)
         recorder = TraceRecorder(m) if trace else None
         pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
@@ -199,6 +203,7 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
         result = m.ingest(src.iter_batches(), name=src.name if name is None else name,
                           positions=pos,
                           merge=not no_merge, hmm=hmm, source=str(source),
+                          thumbnails=src.thumbnails,
                           observe=recorder.attach if recorder else None)
         if recorder is not None and trace:
             recorder.save(trace, final=result.decisions, merged=result.merged,

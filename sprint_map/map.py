@@ -145,13 +145,16 @@ class SprintMap:
         positions: np.ndarray | None = None,
         edges: Sequence[EdgeSpec] = (),
         source: str = "",
+        thumbnails: Sequence[bytes] | None = None,
     ) -> AddResult:
-        """Append a sequence as it is (no localisation) with optional edges, atomically.
+        """Append a sequence as it is (no localisation) with optional edges and thumbnails
+        (one JPEG per frame), atomically.
 
         See :meth:`sprint_map.storage.store.MapStore.add_sequence`.
         """
         return self.store.add_sequence(
-            descriptors, name=name, positions=positions, edges=edges, source=source
+            descriptors, name=name, positions=positions, edges=edges, source=source,
+            thumbnails=thumbnails,
         )
 
     def ingest(
@@ -164,6 +167,7 @@ class SprintMap:
         hmm: HMMConfig | None = None,
         source: str = "",
         observe: Callable[[Localizer], None] | None = None,
+        thumbnails: Sequence[bytes] | None = None,
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
@@ -183,6 +187,11 @@ class SprintMap:
             A batch iterable (e.g. ``FrameSource.iter_batches()``) is streamed: each batch is
             localised and written to the shards (uncommitted) as it arrives, so descriptor
             memory is bounded by the batch, not the drive.
+        thumbnails : sequence of bytes, optional
+            One small JPEG per frame, committed with the drive (``FrameSource.thumbnails`` of
+            a source opened with ``thumbnails=True``: read at the commit, after the batches,
+            so a list the source fills while it streams is complete by then). Held in memory
+            until the commit: about 2-3 KiB per frame.
 
         Notes
         -----
@@ -212,7 +221,7 @@ class SprintMap:
             decisions = localizer.smoothed() if localizer is not None else []
             merged = self.select_merges(decisions)
             edges = merge_edges(decisions, merged, self.config.merge_both_ways)
-            added = writer.commit(positions, edges)
+            added = writer.commit(positions, edges, thumbnails)
         return IngestResult(added, decisions, localizer.timing if localizer else Timing(),
                             merged)
 
@@ -313,8 +322,12 @@ class SprintMap:
         return localizer.smoothed(), localizer.timing
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
-                    progress: ProgressCallback | None = None) -> FrameSource:
+                    progress: ProgressCallback | None = None,
+                    thumbnails: bool = False) -> FrameSource:
         """Open images, a video or a ``.npy`` as descriptors that fit this map.
+
+        With ``thumbnails`` the source also makes a small JPEG of each frame
+        (``source.thumbnails``, for :meth:`ingest`); images and video only.
 
         Raises
         ------
@@ -331,7 +344,11 @@ class SprintMap:
                 f"{src}: this map holds precomputed descriptors (dim {self.config.dim}); give a "
                 ".npy of descriptors, or create the map with --descriptor hog for images/video"
             )
-        source = open_source(src, spec, stride=stride, progress=progress)
+        if thumbnails and spec is None:
+            raise InputError(f"{src}: thumbnails need images or video, and this map holds "
+                             "precomputed descriptors")
+        source = open_source(src, spec, stride=stride, progress=progress,
+                             thumbnails=thumbnails)
         if source.dim != self.config.dim:
             raise DescriptorShapeError(
                 f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
@@ -367,6 +384,27 @@ class SprintMap:
 
     def components(self) -> list[ComponentInfo]:
         return self.store.components()
+
+    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
+        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None when the
+        drive was ingested without ``--thumbnails``. O(log n).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence, or no such frame in it.
+        """
+        return self.store.thumbnail(seq_id, image_id)
+
+    def thumbnail_count(self, seq_id: int) -> int:
+        """How many thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence.
+        """
+        return self.store.thumbnail_count(seq_id)
 
     def descriptors(self, seq_id: int) -> np.ndarray:
         return self.store.descriptors(seq_id)

@@ -87,12 +87,15 @@ class Planned:
     descriptors: np.ndarray
     positions: np.ndarray | None
     edges: tuple[EdgeSpec, ...]
+    #: one JPEG-signed byte string per frame (odd sequences), or None
+    thumbnails: tuple[bytes, ...] | None = None
 
 
 def planned_sequence(seed: int, index: int, dim: int, fixed_length: int | None = None) -> Planned:
     """Sequence ``index`` of the worker stream ``seed`` (same on every call, in every process).
 
-    Every other sequence has positions; each has 0-2 edges to earlier sequences of the stream
+    Every other sequence has positions, the others thumbnails (bytes with the JPEG signature:
+    storage never decodes them); each has 0-2 edges to earlier sequences of the stream
     (so the i-th sequence of the stream must be seq id i, which holds when only the worker
     writes the map).
     """
@@ -107,7 +110,10 @@ def planned_sequence(seed: int, index: int, dim: int, fixed_length: int | None =
         new_end = (None, int(rng.integers(length)))
         src, dst = (new_end, old_end) if rng.random() < 0.5 else (old_end, new_end)
         edges.append(EdgeSpec(src, dst, weight=float(rng.random()), frame=new_end[1]))
-    return Planned(f"w-{index}", descriptors, positions, tuple(edges))
+    thumbs = _rng(seed, index, "thumbnails")
+    thumbnails = tuple(b"\xff\xd8" + thumbs.bytes(int(thumbs.integers(4, 64))) + b"\xff\xd9"
+                       for _ in range(length)) if index % 2 else None
+    return Planned(f"w-{index}", descriptors, positions, tuple(edges), thumbnails)
 
 
 @lru_cache(maxsize=8192)
@@ -128,10 +134,10 @@ def add_planned(store: MapStore, seed: int, index: int, length: int | None = Non
         with store.begin_sequence(plan.name) as writer:
             for start in range(0, len(plan.descriptors), STREAM_BATCH):
                 writer.append(plan.descriptors[start : start + STREAM_BATCH])
-            result = writer.commit(plan.positions, plan.edges)
+            result = writer.commit(plan.positions, plan.edges, plan.thumbnails)
     else:
         result = store.add_sequence(plan.descriptors, name=plan.name, positions=plan.positions,
-                                    edges=plan.edges)
+                                    edges=plan.edges, thumbnails=plan.thumbnails)
     assert result.sequence.seq_id == index
 
 
@@ -185,7 +191,7 @@ def compact(path: str, emit: Callable[[str], None]) -> None:
 
 def logical_state(store: MapStore) -> dict[str, Any]:
     """What a map means, independent of its vertex numbering: every sequence (name, length,
-    source, descriptor and position bytes), every edge between ``(seq, image)`` endpoints with
+    source, descriptor, position and thumbnail bytes), every edge between ``(seq, image)`` endpoints with
     its provenance, the components and the counters. Asserts that the components are those
     recomputed from the edges (networkx). Equal before and after a compaction."""
     seqs = {}
@@ -193,7 +199,8 @@ def logical_state(store: MapStore) -> dict[str, Any]:
         pos = store.positions(rec.seq_id)
         seqs[rec.seq_id] = (rec.name, rec.length, rec.source,
                             np.asarray(store.descriptors(rec.seq_id)).tobytes(),
-                            None if pos is None else pos.tobytes())
+                            None if pos is None else pos.tobytes(),
+                            tuple(store.thumbnail(rec.seq_id, i) for i in range(rec.length)))
     records = store.edges()
     ends = store.locate([v for e in records for v in (e.src, e.dst)])
     edges = {(ends[2 * i], ends[2 * i + 1], e.weight, e.query_seq, e.frame, e.time)
@@ -343,9 +350,10 @@ def verify(path: Path, seed: int, acked: set[int], length: int | None = None) ->
     """Open read-only and assert the map holds exactly a prefix of the worker stream.
 
     Every acknowledged sequence is there; every sequence there is whole and bit for bit the
-    planned one (descriptors, positions, edges with their provenance); the components are those
-    of the planned edges. Descriptors and positions are compared in bulk (all shards against
-    the concatenated stream) so that re-verifying the whole map after every kill stays cheap.
+    planned one (descriptors, positions, thumbnails, edges with their provenance); the
+    components are those of the planned edges. Descriptors and positions are compared in bulk
+    (all shards against the concatenated stream) so that re-verifying the whole map after every
+    kill stays cheap.
     Returns the check report; the caller decides which violations a fresh crash may leave.
     """
     with MapStore.open(path, readonly=True) as store:
@@ -381,6 +389,10 @@ def verify(path: Path, seed: int, acked: set[int], length: int | None = None) ->
             edges.setdefault(e.query_seq, {})[(e.src, e.dst)] = (e.weight, e.frame)
         for i in range(n):
             assert edges.get(i, {}) == expected_edges(seed, i, dim, length, first)
+            thumbs = plans[i].thumbnails
+            assert store.thumbnail_count(i) == (0 if thumbs is None else len(thumbs))
+            if thumbs is not None:
+                assert tuple(store.thumbnail(i, j) for j in range(len(thumbs))) == thumbs
         assert set(edges) <= set(range(n))
         components = store.components()
         assert {frozenset(c.sequences) for c in components} == expected_components(

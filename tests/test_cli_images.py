@@ -88,3 +88,46 @@ def test_bad_sources_fail_with_one_line(tmp_path, hog_map, kind):
     assert result.exit_code != 0
     assert len(result.output.strip().splitlines()) == 1 and result.output.startswith("Error: ")
     assert json.loads(run("info", hog_map, "--json").output)["vertices"] == 0
+
+
+def test_ingest_thumbnails_kept_removed_and_compacted(tmp_path, rng, hog_map):
+    """``ingest --thumbnails``: a small JPEG per frame (images and video), the descriptors the
+    same as without; ``remove`` and ``compact`` take them along, ``check`` counts them."""
+    from sprint_map.map import SprintMap
+
+    images = frames(rng, 12)
+    folder = tmp_path / "drive-a"
+    folder.mkdir()
+    for i, img in enumerate(images):
+        cv2.imwrite(str(folder / f"{i:02d}.jpg"), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    video = tmp_path / "drive-b.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 120), False)
+    for img in images:
+        writer.write(img)
+    writer.release()
+    for source, extra in ((folder, ["--thumbnails"]), (video, ["--thumbnails"]),
+                          (folder, ["--name", "plain"])):
+        result = run("ingest", hog_map, source, "--no-merge", "-q", *extra)
+        assert result.exit_code == 0, result.output
+    with SprintMap.open(hog_map, readonly=True) as m:
+        assert [m.thumbnail_count(s) for s in (0, 1, 2)] == [12, 12, 0]
+        assert np.array_equal(m.descriptors(0), m.descriptors(2))  # thumbnails change nothing
+        assert m.thumbnail(2, 0) is None
+        for seq in (0, 1):
+            thumb = cv2.imdecode(np.frombuffer(m.thumbnail(seq, 5), np.uint8), cv2.IMREAD_COLOR)
+            assert thumb.shape == (72, 96, 3)  # 160x120 frames at 96 pixels wide
+        assert m.check().checked["thumbnails"] == 24
+    assert run("remove", hog_map, 0).exit_code == 0
+    assert run("compact", hog_map).exit_code == 0
+    result = run("check", hog_map, "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["checked"]["thumbnails"] == 12
+
+
+def test_thumbnails_of_descriptors_are_refused(tmp_path, rng):
+    path = tmp_path / "d.map"
+    assert run("init", path, "--dim", 8).exit_code == 0
+    np.save(tmp_path / "a.npy", rng.standard_normal((5, 8)).astype(np.float32))
+    result = run("ingest", path, tmp_path / "a.npy", "--thumbnails")
+    assert result.exit_code == InputError.exit_code
+    assert result.output.startswith("Error: ") and "thumbnails need images or video" in result.output

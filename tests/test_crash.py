@@ -107,7 +107,7 @@ def test_kill_at_each_write_point(three, zygote, point):
     path = three
     lines = run_child(zygote, path.parent / "ack", map=str(path), seed=SEED, count=3,
                       length=LENGTH, crash_at=point)
-    assert lines == ["ready"]  # killed inside its first add: sequence 3
+    assert lines == ["ready"]  # killed inside its first add: sequence 3 (with thumbnails)
 
     report = verify(path, SEED, {0, 1, 2}, LENGTH)
     with MapStore.open(path, readonly=True) as store:
@@ -120,7 +120,8 @@ def test_kill_at_each_write_point(three, zygote, point):
         assert report.ok, report.violations
     # Killed after the rows were written but before the commit: 8 rows (of 32 bytes) past the
     # committed end of shard 1, and an uncommitted shard 2.
-    rows_written_uncommitted = point in {"add.shards_written", "add.before_commit"}
+    rows_written_uncommitted = point in {"add.shards_written", "add.thumbnails_written",
+                                         "add.before_commit"}
     if rows_written_uncommitted:
         assert any("shard-000001.f32 has 256 uncommitted bytes" in n for n in report.notes)
         assert any("shard-000002.f32 holds no committed row" in n for n in report.notes)

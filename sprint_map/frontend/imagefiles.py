@@ -118,11 +118,15 @@ def read_image(path: Path, grayscale: bool = True, max_pixels: int = MAX_IMAGE_P
     because ``imread`` reports every failure as ``None`` and prints truncated-JPEG warnings to
     stderr without failing. ``imdecode`` releases the GIL, so threads decode in parallel.
     """
+    return decode_image(read_image_bytes(path), str(path), grayscale, max_pixels)
+
+
+def read_image_bytes(path: Path) -> bytes:
+    """The bytes of image file ``path``; InputError (naming it) if it cannot be read."""
     try:
-        data = Path(path).read_bytes()
+        return Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
-    return decode_image(data, str(path), grayscale, max_pixels)
 
 
 def decode_image(data: bytes, label: str = "image", grayscale: bool = True,

@@ -34,8 +34,15 @@ from sprint_map.errors import (
     InvalidDescriptorError,
 )
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.imagefiles import is_video_name, list_images, read_image
+from sprint_map.frontend.imagefiles import (
+    decode_image,
+    is_video_name,
+    list_images,
+    read_image,
+    read_image_bytes,
+)
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
+from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
 
 #: ``progress(frames_done, total_or_None)``, called after each batch.
 ProgressCallback = Callable[[int, int | None], None]
@@ -54,6 +61,7 @@ class _Options:
     workers: int
     executor: str
     progress: ProgressCallback | None
+    thumbnails: bool = False
 
 
 class FrameSource(ABC):
@@ -82,6 +90,10 @@ class FrameSource(ABC):
         Parallel decode/describe workers.
     progress : callable or None
         Default progress callback of :meth:`iter_batches`.
+    thumbnails : list of bytes or None
+        With ``thumbnails=True`` (images and video only), one small JPEG per frame
+        (:mod:`sprint_map.frontend.thumbnails`), appended in frame order while
+        :meth:`iter_batches` runs: complete once the iteration has ended. ``None`` otherwise.
     """
 
     kind: str
@@ -98,6 +110,7 @@ class FrameSource(ABC):
         self.workers = options.workers
         self.executor = options.executor
         self.progress = options.progress
+        self.thumbnails: list[bytes] | None = [] if options.thumbnails else None
 
     @property
     @abstractmethod
@@ -162,9 +175,36 @@ def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> np.ndarray:
     return out
 
 
+def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
+                               ) -> tuple[np.ndarray, list[bytes]]:
+    """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
+    out = np.empty((len(paths), spec.dim), dtype=np.float32)
+    thumbs = []
+    for i, path in enumerate(paths):
+        data = read_image_bytes(path)
+        gray = decode_image(data, str(path), grayscale=True)
+        out[i] = spec.describe(gray)
+        thumbs.append(thumbnail_of_file(data, str(path), gray.shape[1]))
+    return out, thumbs
+
+
 def _describe_frames(spec: DescriptorSpec, frames: list[np.ndarray]) -> np.ndarray:
     """Describe a chunk of decoded video frames (runs in a worker thread)."""
     return spec.describe_batch(frames)
+
+
+def _describe_frames_thumbnails(spec: DescriptorSpec, frames: list[np.ndarray]
+                                ) -> tuple[np.ndarray, list[bytes]]:
+    """:func:`_describe_frames` plus each frame's thumbnail."""
+    return spec.describe_batch(frames), [make_thumbnail(frame) for frame in frames]
+
+
+def _keep_thumbnails(results: Iterator[tuple[np.ndarray, list[bytes]]], sink: list[bytes]
+                     ) -> Iterator[np.ndarray]:
+    """The descriptor chunks of ``results``, their thumbnails appended to ``sink`` in order."""
+    for rows, thumbs in results:
+        sink.extend(thumbs)
+        yield rows
 
 
 def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
@@ -208,9 +248,16 @@ class ImageDirSource(FrameSource):
         assert self.spec is not None
         size = _chunk_size(len(self.files), self.batch_size, self.workers)
         chunks = [self.files[i : i + size] for i in range(0, len(self.files), size)]
-        work = functools.partial(_describe_files, self.spec)
         initializer = _single_threaded_opencv if self.executor == "process" else None
-        results = ordered_map(work, chunks, self.workers, self.executor, initializer=initializer)
+        results: Iterator[np.ndarray]
+        if self.thumbnails is None:
+            results = ordered_map(functools.partial(_describe_files, self.spec), chunks,
+                                  self.workers, self.executor, initializer=initializer)
+        else:
+            self.thumbnails.clear()
+            results = _keep_thumbnails(ordered_map(
+                functools.partial(_describe_files_thumbnails, self.spec), chunks, self.workers,
+                self.executor, initializer=initializer), self.thumbnails)
         yield from _rebatch(results, self.batch_size)
 
 
@@ -271,8 +318,16 @@ class VideoSource(FrameSource):
         capture = self._open()
         try:
             chunk = _chunk_size(None, self.batch_size, self.workers)
-            work = functools.partial(_describe_frames, self.spec)
-            results = ordered_map(work, self._frames(capture, chunk), self.workers, "thread")
+            frames = self._frames(capture, chunk)
+            results: Iterator[np.ndarray]
+            if self.thumbnails is None:
+                results = ordered_map(functools.partial(_describe_frames, self.spec), frames,
+                                      self.workers, "thread")
+            else:
+                self.thumbnails.clear()
+                results = _keep_thumbnails(ordered_map(
+                    functools.partial(_describe_frames_thumbnails, self.spec), frames,
+                    self.workers, "thread"), self.thumbnails)
             produced = 0
             for batch in _rebatch(results, self.batch_size):
                 produced += len(batch)
@@ -294,6 +349,9 @@ class NpySource(FrameSource):
     kind = "npy"
 
     def __init__(self, path: Path, spec: DescriptorSpec | None, options: _Options) -> None:
+        if options.thumbnails:
+            raise InputError(f"{path}: a .npy holds descriptors, not images: thumbnails need "
+                             "an image folder or a video")
         array = _load_npy(path)
         if spec is not None and array.shape[1] != spec.dim:
             raise DescriptorShapeError(
@@ -347,6 +405,7 @@ def open_source(
     workers: int | None = None,
     executor: str = "thread",
     progress: ProgressCallback | None = None,
+    thumbnails: bool = False,
 ) -> FrameSource:
     """Open a directory of images, a video file or a ``.npy`` of descriptors.
 
@@ -369,6 +428,9 @@ def open_source(
         default: OpenCV releases the GIL, and they start instantly.
     progress : callable, optional
         ``progress(frames_done, total_or_None)`` after each batch.
+    thumbnails : bool
+        Also make a small JPEG of each frame (:attr:`FrameSource.thumbnails`); images and
+        video only. Each image file is then decoded a second time, in colour.
 
     Returns
     -------
@@ -378,7 +440,7 @@ def open_source(
     ------
     InputError
         Missing path, a directory without images, an unsupported file type, a video that cannot
-        be opened or has no frame, an unreadable ``.npy``.
+        be opened or has no frame, an unreadable ``.npy``, thumbnails asked of a ``.npy``.
     DescriptorShapeError
         A ``.npy`` that is not 2-D float, or does not match ``spec.dim``.
     InvalidDescriptorError
@@ -396,7 +458,7 @@ def open_source(
         raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}")
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
-    options = _Options(stride, batch_size, workers, executor, progress)
+    options = _Options(stride, batch_size, workers, executor, progress, thumbnails)
     if path.is_dir():
         return ImageDirSource(path, spec or DescriptorSpec("hog"), options)
     if path.suffix.lower() == ".npy":

@@ -49,6 +49,7 @@ from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
+from sprint_map.storage.thumbnails import scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 
 #: Rows compared (index vectors with shard rows) or hashed per block: bounds check's memory.
@@ -58,9 +59,11 @@ CHECK_BLOCK = 65536
 MALFORMED = -1
 
 #: Areas ``check --repair`` rebuilds: everything derivable from the sequence records, the edges
-#: and the shards. The others hold information that exists nowhere else.
+#: and the shards. The others hold information that exists nowhere else. Thumbnails are not
+#: derivable either (the images are not kept), but they are only a view: the repair drops the
+#: ones that break the invariants, and says so.
 REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp",
-                        "removed"})
+                        "removed", "thumbnails"})
 
 
 @dataclass
@@ -202,6 +205,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
     _check_edges(records, report)
     _check_provenance(records, report)
     _check_components(records, sequence_edges(records, report), report)
+    check_thumbnails(store, records, report)
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
     live = store.readonly and writer_active(store.path)
@@ -425,6 +429,17 @@ def _check_components(records: MapRecords, edges: list[tuple[int, int, int, int]
     if records.counters["n_components"] != len(groups):
         bad(f"meta says {records.counters['n_components']} components, found {len(groups)}")
     report.checked["components"] = len(groups)
+
+
+def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport) -> None:
+    """Every thumbnail names a frame of a live sequence and is JPEG bytes; a sequence has
+    one per frame or none. O(thumbnails) reads (see
+    :func:`sprint_map.storage.thumbnails.scan_thumbnails`)."""
+    with store.env.read() as txn:
+        scan = scan_thumbnails(txn, store.env, {s.seq_id: s.length for s in records.seqs})
+    for problem in scan.problems:
+        report.violation("thumbnails", problem)
+    report.checked["thumbnails"] = sum(scan.counts.values())
 
 
 def check_digests(store: MapStore, records: MapRecords, report: CheckReport) -> None:

@@ -58,7 +58,7 @@ if TYPE_CHECKING:
 COPY_ROWS = 65536
 BATCH = 65536
 #: Databases copied unchanged: keyed by sequence id, which compaction keeps.
-SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests")
+SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests", "thumbnails")
 #: Databases whose keys are 1 or 2 big-endian vertex ids, renumbered on the way.
 VERTEX_KEYED = {"vertex_data": 1, "edges": 2, "edges_rev": 2}
 

@@ -15,6 +15,7 @@ CRASH_ENV = "SPRINT_MAP_CRASH_AT"
 #: Adding a sequence (``add_sequence``, streamed ``ingest``, ``merge``), in commit order.
 ADD_POINTS = (
     "add.shards_written",  # descriptor rows written and fsynced, LMDB not yet committed
+    "add.thumbnails_written",  # inside the LMDB write transaction: thumbnails put, not committed
     "add.before_commit",  # inside the LMDB write transaction, before it commits
     "add.committed",  # LMDB committed, in-memory index not yet updated
 )

@@ -54,6 +54,8 @@ VERTEX_VAL = RecordStruct(">dddd")
 REMOVED_VAL = RecordStruct(">QI")
 #: content digest of a sequence's descriptor rows (``digests`` database): BLAKE2b, 16 bytes
 DIGEST_BYTES = 16
+#: a frame's thumbnail (``thumbnails`` database): sequence id, image id -> JPEG bytes
+THUMB_KEY = RecordStruct(">II")
 
 NO_QUERY = 0xFFFFFFFF  # provenance query id for edges given directly, not by a localisation
 

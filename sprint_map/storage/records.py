@@ -254,6 +254,8 @@ AREAS = {
     "index": "the persisted FAISS index",
     "temp": "leftover temp files",
     "removed": "removed vertex ranges hold no positions; the removed_vertices counter",
+    "thumbnails": "thumbnails name frames of live sequences, are JPEG bytes, and a sequence "
+                  "has one per frame or none",
 }
 
 

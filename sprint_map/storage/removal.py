@@ -1,8 +1,8 @@
 """Removing sequences (forgetting stale drives) and searching around what was removed.
 
 :func:`remove_sequences` retires sequences in **one** LMDB write transaction: their records,
-names, vertex ranges and positions go, every edge to or from them goes (both directions and the
-reverse index), and the components they were in are rebuilt from the edges that remain. A
+names, vertex ranges, positions and thumbnails go, every edge to or from them goes (both
+directions and the reverse index), and the components they were in are rebuilt from the edges that remain. A
 union-find cannot split a set, so the affected components (only those) are recomputed: their
 records are deleted and the remaining members regrouped by the edges among them. The removed
 vertex ranges are recorded in the ``removed`` database (key: last vertex, value: first vertex
@@ -27,6 +27,7 @@ from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import RemoveResult, SequenceRecord
+from sprint_map.storage.thumbnails import delete_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 
 if TYPE_CHECKING:
@@ -131,9 +132,10 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
 
     Notes
     -----
-    One write transaction. O(L + E_r + S_c + E_c) LMDB operations: L positions of the removed
-    sequences, E_r edges touching them, and the S_c sequences and E_c edges of the affected
-    components (their edges are read once to regroup them). Nothing else of the map is read.
+    One write transaction. O(L + E_r + S_c + E_c) LMDB operations: L positions (and
+    thumbnails) of the removed sequences, E_r edges touching them, and the S_c sequences and
+    E_c edges of the affected components (their edges are read once to regroup them). Nothing
+    else of the map is read.
     """
     wanted = sorted(dict.fromkeys(int(s) for s in seq_ids))
     env = store.env
@@ -154,8 +156,9 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
         for src, dst in sorted(doomed):
             edges_removed += bool(txn.delete(EDGE_KEY.pack(src, dst), db=db("edges")))
             txn.delete(EDGE_KEY.pack(dst, src), db=db("edges_rev"))
-        # 2. the sequences: record, name, vertex range, positions -> a removed range
+        # 2. the sequences: record, name, vertex range, positions, thumbnails -> a removed range
         for rec in records:
+            delete_thumbnails(txn, env, rec.seq_id)
             txn.delete(u32(rec.seq_id), db=db("sequences"))
             txn.delete(rec.name.encode(), db=db("seq_names"))
             txn.delete(u64(rec.last_vertex), db=db("vrange"))

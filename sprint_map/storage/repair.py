@@ -9,7 +9,8 @@ is derived from them and can be rebuilt (:data:`sprint_map.storage.check.REPAIRA
    committed);
 3. one LMDB write transaction rebuilds the broken derived records: the name and vertex-range
    indexes and sequence counters, the shard lengths, the reverse edge index and edge counter,
-   and the union-find with its membership lists, totals and component counter;
+   and the union-find with its membership lists, totals and component counter; thumbnails
+   that break their invariants are dropped (they are not derivable: the images are not kept);
 4. if the persisted index is still unsound (or there is none: the open may have discarded a torn
    one), it is rebuilt from the shards and published atomically.
 
@@ -36,9 +37,10 @@ from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.records import RepairReport
 from sprint_map.storage.store import MapStore
+from sprint_map.storage.thumbnails import drop_broken
 
 #: Areas rebuilt by the LMDB transaction of step 3.
-RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed")
+RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails")
 
 
 def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
@@ -166,6 +168,8 @@ def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
             txn.put(b"removed_vertices", u64(removed), db=meta)
             actions.append(f"recounted {removed} removed vertices and dropped the positions of "
                            f"{len(records.stray_positions)} removed ranges")
+        if "thumbnails" in todo:
+            actions.extend(drop_broken(txn, store.env, {s.seq_id: s.length for s in records.seqs}))
         crash_point("repair.before_commit")
         return actions
 

@@ -37,6 +37,7 @@ from sprint_map.errors import (
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import DIGEST_BYTES, read_u32, u32
 from sprint_map.storage.records import SequenceRecord
+from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
 from sprint_map.storage.validation import (
     validate_descriptors,
     validate_name,
@@ -154,13 +155,20 @@ class SequenceWriter:
             raise
         self.frames += len(arr)
 
-    def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = ()) -> AddResult:
-        """Record the sequence with its positions and edges in one LMDB transaction.
+    def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
+               thumbnails: Sequence[bytes] | None = None) -> AddResult:
+        """Record the sequence with its positions, edges and thumbnails in one LMDB transaction.
+
+        ``thumbnails``, if given, are one JPEG per frame (see
+        :mod:`sprint_map.storage.thumbnails`); they are read here, at the commit, so a list a
+        frame source fills while its batches stream is complete by then.
 
         Raises
         ------
         EmptySequenceError
             If no row was appended. Any error aborts the sequence (nothing is committed).
+        InputError
+            Thumbnails not one per frame, or not JPEG bytes.
         """
         from sprint_map.storage.records import AddResult
 
@@ -171,12 +179,17 @@ class SequenceWriter:
             if self.retry_of is not None:
                 return self._finish_retry(digest)
             pos, resolved = self.prepare(positions, edges, self.frames)
+            thumbs = (None if thumbnails is None
+                      else validate_thumbnails(thumbnails, self.frames))
             record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
                                     self.source)
             crash_point("add.shards_written")
 
             def body(txn: Any) -> tuple[int, int]:
                 txn.put(u32(record.seq_id), digest, db=self.store.env.db("digests"))
+                if thumbs is not None:
+                    put_thumbnails(txn, self.store.env, record.seq_id, thumbs)
+                    crash_point("add.thumbnails_written")
                 return self.store._commit(txn, record, self._lengths, pos, resolved)
 
             component, added = self.store.env.write(body)

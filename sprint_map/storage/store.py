@@ -80,6 +80,7 @@ from sprint_map.storage.records import (
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.storage.validation import decode_text, name_key, shown, validate_descriptors
 
@@ -480,6 +481,25 @@ class MapStore:
                 out[vid - seq.first_vertex] = VERTEX_VAL.unpack(value)
         return out
 
+    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
+        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None if the
+        drive was added without thumbnails. O(log n).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence, or no such frame in it.
+        """
+        with self.env.read() as txn:
+            self.vertex_id(seq_id, image_id, txn)
+            return get_thumbnail(txn, self.env, seq_id, image_id)
+
+    def thumbnail_count(self, seq_id: int) -> int:
+        """Thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count)."""
+        with self.env.read() as txn:
+            self.sequence(seq_id, txn)
+            return count_thumbnails(txn, self.env, seq_id)
+
     # --- components --------------------------------------------------------------------------
     def component_of(self, seq_id: int, txn: lmdb.Transaction | None = None) -> int:
         """Component id (union-find root sequence) of ``seq_id``. O(alpha(n)) amortised."""
@@ -602,6 +622,7 @@ class MapStore:
         positions: np.ndarray | None = None,
         edges: Sequence[EdgeSpec] = (),
         source: str = "",
+        thumbnails: Sequence[bytes] | None = None,
     ) -> AddResult:
         """Append a sequence, its vertices and edges in one atomic commit.
 
@@ -617,6 +638,8 @@ class MapStore:
             Inter-sequence edges to commit with it; their sequences' components are merged.
         source : str
             Free text recording where the sequence came from.
+        thumbnails : sequence of bytes, optional
+            One small JPEG per frame, committed with it (:mod:`~sprint_map.storage.thumbnails`).
 
         Notes
         -----
@@ -627,7 +650,7 @@ class MapStore:
             # Everything is validated before the first row is written.
             writer.prepare(positions, edges, len(rows))
             writer.append(rows)
-            return writer.commit(positions, edges)
+            return writer.commit(positions, edges, thumbnails)
 
     def begin_sequence(self, name: str | None = None, source: str = "") -> SequenceWriter:
         """Start streaming a new sequence: ``append`` batches, then ``commit`` (atomic)."""
