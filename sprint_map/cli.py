@@ -69,7 +69,8 @@ def main() -> None:
 @click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm"]),
               default=None, help="Descriptor kind; hog/patchnorm set the dimension themselves.")
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
-              help="JSON file of further MapConfig options (see docs/architecture.md).")
+              help="JSON file of further MapConfig fields, e.g. {\"index_type\": \"flat\", "
+              "\"hmm\": {\"k\": 20}} (docs/hmm.md, \"HMMConfig\").")
 def init(map_path: str, dim: int | None, descriptor: str | None, config_json: str | None) -> None:
     """Create an empty map in MAP (which must be absent or empty).
 
@@ -599,7 +600,8 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
 @click.option("--token-file", type=click.Path(dir_okay=False),
               help="File holding the bearer token (default: $SPRINT_MAP_TOKEN, if set).")
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
-              help="JSON file of ServerConfig limits (see docs/architecture.md, Service).")
+              help="JSON file of ServerConfig limits (docs/service.md, \"Threads and "
+              "queues\").")
 def serve(map_path: str, host: str | None, port: int | None, token_file: str | None,
           config_json: str | None) -> None:
     """Serve MAP over HTTP: vehicles stream frames, get places, and commit their drives.

@@ -1,6 +1,6 @@
 """Place-recognition metrics over per-frame answers (pure numpy, no map).
 
-Conventions (also in ``docs/architecture.md``, "Evaluation"):
+Conventions (also in ``docs/frontend.md``, "Evaluation"):
 
 - *recall@k* counts the query frames that have a true match in the database and whose answer
   (the k-NN list, or SPRINT's most probable place) contains one. Frames with no true match

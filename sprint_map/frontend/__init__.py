@@ -1,6 +1,6 @@
 """Image front end: descriptors, frame sources, data sets on disk and their ground truth.
 
-Public API (see ``docs/architecture.md``, "Front end"):
+Public API (see ``docs/frontend.md``, "Front end"):
 
 - :class:`DescriptorSpec` -- the paper's HoG (``"hog"``) or a SeqSLAM-style patch-normalised
   thumbnail (``"patchnorm"``); ``describe`` / ``describe_batch``.

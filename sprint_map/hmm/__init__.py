@@ -1,7 +1,7 @@
 """The SPRINT hidden Markov model: place recognition over the active subgraphs of the map.
 
 This package knows nothing of storage or retrieval: it reads components through
-:class:`GraphSource` and takes retrieval hits as arrays. See ``docs/architecture.md`` ("The HMM").
+:class:`GraphSource` and takes retrieval hits as arrays. See ``docs/hmm.md`` ("The HMM").
 """
 
 from sprint_map.hmm.cache import ComponentCache

@@ -1,4 +1,4 @@
-"""Parameters of the SPRINT hidden Markov model (``docs/architecture.md``, "The HMM")."""
+"""Parameters of the SPRINT hidden Markov model (``docs/hmm.md``, "The HMM")."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from sprint_map import dataclass_dict
 class HMMConfig:
     """Frozen parameters of the place-recognition HMM.
 
-    Every open modelling choice of the filter is a field here; ``docs/architecture.md`` ("The
-    HMM") gives the exact equations. Defaults were chosen by small grid searches on synthetic
-    multi-traversal data and on Nordland summer -> winter HoG (``docs/architecture.md``, "The
-    HMM", "Defaults").
+    Every open modelling choice of the filter is a field here; ``docs/hmm.md`` ("The
+    model") gives the exact equations. Defaults were chosen by small grid searches on synthetic
+    multi-traversal data and on Nordland summer -> winter HoG (``docs/hmm.md``,
+    "HMMConfig"; figures in ``docs/benchmarks.md``, "HMM defaults: accuracy").
 
     Parameters
     ----------

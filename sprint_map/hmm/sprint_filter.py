@@ -1,12 +1,12 @@
 """SPRINT: the place-recognition HMM run only where the belief is.
 
-Two levels of sparsity (``docs/architecture.md``, "The HMM"). The *active set* holds the
+Two levels of sparsity (``docs/hmm.md``, "The active set"). The *active set* holds the
 components (connected by edges) that hold belief, as in the paper; inside each active component
 only the *live support* is propagated: windows of slots of its sequences
 (:mod:`sprint_map.hmm.support`). In a lifelong map every merge adds edges until most of the map
 is one component, so the second level is what keeps a step independent of the map.
 
-Per frame (``docs/architecture.md``, "Per-frame data flow"):
+Per frame (``docs/hmm.md``, "Per-frame data flow inside"):
 
 1. observe: hits -> likelihood ratios (:mod:`sprint_map.hmm.observation`);
 2. locate every hit in the active set; activate the components of the others (graph source,

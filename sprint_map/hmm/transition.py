@@ -13,7 +13,7 @@ One transition model, two implementations that must agree to rounding:
 * :func:`full_transition_matrix` builds the same operator for the whole map as one scipy sparse
   matrix (the naive baseline and the reference of the tests).
 
-The model (``docs/architecture.md``, "The HMM"): a vertex ``u`` with out-edges ``u -> v_e`` of
+The model (``docs/hmm.md``, "The model"): a vertex ``u`` with out-edges ``u -> v_e`` of
 weight ``c_e`` sends ``x_u / R_u`` into its own window and ``x_u * beta * c_e / R_u`` into the
 window of ``v_e``, ``R_u = 1 + beta * sum_e c_e``; a window sends weight ``w[t]`` (normalised)
 ``t`` images ahead, or to the sink past the sequence end. The sink keeps its mass. Rows sum to

@@ -1,6 +1,6 @@
 """The localisation service (``sprint-map serve``): vehicles stream frames, the map answers.
 
-See ``docs/architecture.md``, "Service (sprint-map serve)". Modules:
+See ``docs/service.md``. Modules:
 
 ```
 config.py     ServerConfig: limits and settings (frozen, from_dict/to_dict)
