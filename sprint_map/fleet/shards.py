@@ -13,7 +13,7 @@ query's scan of a large index in a way whose rounding depends on the index size)
 of the union of the ranges' k best are the k best of the whole. Removed sequences are hidden as
 the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
 
-Where the rows come from (see ``docs/fleet.md``): with a shared filesystem each actor opens the
+Where the rows come from: with a shared filesystem each actor opens the
 map read-only and reads its range itself (``ship=False``); otherwise the caller reads the rows
 and ships them through Ray's object store (``ship=True``).
 """
