@@ -30,12 +30,12 @@ import contextlib
 import os
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import lmdb
 import numpy as np
 
-from sprint_map.config import SCHEMA_VERSION
+from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import SprintMapError, StorageIOError
 from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
@@ -46,13 +46,49 @@ from sprint_map.storage.generation import (
     remove_generation,
     stale_generations,
 )
+from sprint_map.storage.index_store import IndexStore
 from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import CompactReport, SequenceRecord
 from sprint_map.storage.shards import ShardSet
 
-if TYPE_CHECKING:
-    from sprint_map.storage.store import MapStore
+
+class CompactableMap(Protocol):
+    """What compaction uses of a map open for writing (``MapStore`` is one): its directory
+    and live generation, records and shards to copy, a new index for the new generation, and
+    the switch of the open map onto it."""
+
+    @property
+    def path(self) -> Path: ...
+
+    @property
+    def data_path(self) -> Path: ...
+
+    @property
+    def env(self) -> LmdbEnv: ...
+
+    @property
+    def shards(self) -> ShardSet: ...
+
+    @property
+    def config(self) -> MapConfig: ...
+
+    @property
+    def warnings(self) -> list[str]: ...
+
+    @property
+    def writing(self) -> object | None: ...
+
+    def require_writer(self) -> None: ...
+
+    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
+
+    def disk_bytes(self) -> int: ...
+
+    def new_index(self, directory: Path, *, writable: bool = True) -> IndexStore: ...
+
+    def switch_generation(self, data: Path, index: IndexStore) -> None: ...
+
 
 #: Rows copied per shard append, and LMDB records per bulk put.
 COPY_ROWS = 65536
@@ -103,7 +139,7 @@ def part_bytes(data: Path) -> dict[str, int]:
     return out
 
 
-def compact_map(store: MapStore) -> CompactReport:
+def compact_map(store: CompactableMap) -> CompactReport:
     """Write the live map into a new generation, select it atomically, drop the old one.
 
     Raises
@@ -177,7 +213,7 @@ def compact_map(store: MapStore) -> CompactReport:
     )
 
 
-def _remove_old(store: MapStore, data: Path) -> bool:
+def _remove_old(store: CompactableMap, data: Path) -> bool:
     """Delete a generation that is not live; an I/O error fails nothing (the next writer's
     open tries again): it goes to ``store.warnings``."""
     try:
@@ -188,7 +224,7 @@ def _remove_old(store: MapStore, data: Path) -> bool:
         return False
 
 
-def _copy_rows(store: MapStore, shards: ShardSet, renumber: Renumbering, total: int) -> None:
+def _copy_rows(store: CompactableMap, shards: ShardSet, renumber: Renumbering, total: int) -> None:
     """Append the live rows in vertex order, ``COPY_ROWS`` at a time (each append fsynced)."""
     pending: list[np.ndarray] = []
     held = written = 0
@@ -206,7 +242,7 @@ def _copy_rows(store: MapStore, shards: ShardSet, renumber: Renumbering, total: 
     shards.close()
 
 
-def _write_lmdb(store: MapStore, new: Path, renumber: Renumbering) -> None:
+def _write_lmdb(store: CompactableMap, new: Path, renumber: Renumbering) -> None:
     """Write the renumbered records into ``new/build.lmdb``, copy it compacted into
     ``new/map.lmdb``, fsync the copy, delete the build environment."""
     build = new / "build.lmdb"
@@ -229,7 +265,7 @@ def _write_lmdb(store: MapStore, new: Path, renumber: Renumbering) -> None:
         raise StorageIOError(f"cannot sync the compacted LMDB: {exc.strerror or exc}") from exc
 
 
-def _fill(store: MapStore, env: LmdbEnv, out: lmdb.Transaction, renumber: Renumbering) -> None:
+def _fill(store: CompactableMap, env: LmdbEnv, out: lmdb.Transaction, renumber: Renumbering) -> None:
     """Every live record of ``store`` into ``out`` (an empty map's write txn), renumbered."""
     src = store.env
     with src.read() as txn:
@@ -285,4 +321,4 @@ def _copy_renumbered(cursor: lmdb.Cursor, out: lmdb.Cursor, fields: int,
     flush()
 
 
-__all__ = ["Renumbering", "compact_map", "part_bytes"]
+__all__ = ["CompactableMap", "Renumbering", "compact_map", "part_bytes"]

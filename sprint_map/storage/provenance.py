@@ -23,7 +23,6 @@ not past ``S`` (all edges for the newest drive, few for an old one).
 from __future__ import annotations
 
 import struct
-from typing import TYPE_CHECKING
 
 import lmdb
 
@@ -31,10 +30,7 @@ from sprint_map.errors import MapCorruptError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, read_u32, u32, u64
 from sprint_map.storage.records import EdgeInfo, EdgeRecord, UnmergeResult
-from sprint_map.storage.removal import edge_keys, rebuild_components
-
-if TYPE_CHECKING:
-    from sprint_map.storage.store import MapStore
+from sprint_map.storage.removal import RecordStore, edge_keys, rebuild_components
 
 #: Byte offset of the adding sequence's id (``>I``) inside an edge value, after the ``>d``
 #: weight: a scan compares these 4 bytes without decoding the value.
@@ -45,7 +41,7 @@ class _Locator:
     """``vertex -> (seq_id, image_id)`` in one transaction: one ``vrange`` seek per vertex,
     each sequence record decoded once."""
 
-    def __init__(self, store: MapStore, txn: lmdb.Transaction) -> None:
+    def __init__(self, store: RecordStore, txn: lmdb.Transaction) -> None:
         self._store = store
         self._txn = txn
         self._cursor = txn.cursor(db=store.env.db("vrange"))
@@ -63,7 +59,7 @@ class _Locator:
         return seq, vertex - first
 
 
-def edges_added_by(store: MapStore, txn: lmdb.Transaction, seq_id: int) -> list[EdgeRecord]:
+def edges_added_by(store: RecordStore, txn: lmdb.Transaction, seq_id: int) -> list[EdgeRecord]:
     """Every edge whose provenance is sequence ``seq_id`` (which must be live), by key.
 
     Raises
@@ -87,7 +83,7 @@ def edges_added_by(store: MapStore, txn: lmdb.Transaction, seq_id: int) -> list[
     return out
 
 
-def edges_touching(store: MapStore, txn: lmdb.Transaction, seq_id: int) -> list[EdgeRecord]:
+def edges_touching(store: RecordStore, txn: lmdb.Transaction, seq_id: int) -> list[EdgeRecord]:
     """Every edge from or to sequence ``seq_id``, by key.
 
     Notes
@@ -110,7 +106,7 @@ def edges_touching(store: MapStore, txn: lmdb.Transaction, seq_id: int) -> list[
     return out
 
 
-def list_edges(store: MapStore, seq: int | None = None, added_by: int | None = None
+def list_edges(store: RecordStore, seq: int | None = None, added_by: int | None = None
                ) -> list[EdgeInfo]:
     """Edges with ``(seq, image)`` endpoints and provenance, ordered by (src, dst) vertex.
 
@@ -152,7 +148,7 @@ def list_edges(store: MapStore, seq: int | None = None, added_by: int | None = N
         return out
 
 
-def unmerge_sequence(store: MapStore, seq_id: int) -> UnmergeResult:
+def unmerge_sequence(store: RecordStore, seq_id: int) -> UnmergeResult:
     """Revoke every edge sequence ``seq_id`` added when it was merged, atomically.
 
     Both directions of a match are separate edges with the same provenance: both go, each with

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import lmdb
 import numpy as np
@@ -28,10 +28,25 @@ from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, rea
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import RemoveResult, SequenceRecord
 from sprint_map.storage.thumbnails import delete_thumbnails
-from sprint_map.storage.union_find import MEMBER_KEY
+from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
 
-if TYPE_CHECKING:
-    from sprint_map.storage.store import MapStore
+
+class RecordStore(Protocol):
+    """The LMDB records of an open map that removal and unmerging rewrite (``MapStore`` is
+    one): its environment, union-find, counters and sequence records."""
+
+    @property
+    def env(self) -> LmdbEnv: ...
+
+    @property
+    def uf(self) -> UnionFindStore: ...
+
+    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
+
+    def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord: ...
+
+    def removed_vertices(self, txn: lmdb.Transaction | None = None) -> int: ...
+
 
 class RemovedRanges:
     """Sorted removed vertex ranges ``[first, last]`` with a vectorised membership test."""
@@ -122,7 +137,7 @@ def edge_keys(txn: lmdb.Transaction, db: Any, first: int, last: int) -> list[tup
     return out
 
 
-def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
+def remove_sequences(store: RecordStore, seq_ids: Iterable[int]) -> RemoveResult:
     """Retire the sequences ``seq_ids`` and everything attached to them, atomically.
 
     Raises
@@ -188,7 +203,7 @@ def remove_sequences(store: MapStore, seq_ids: Iterable[int]) -> RemoveResult:
     return result
 
 
-def rebuild_components(store: MapStore, txn: lmdb.Transaction, members: dict[int, list[int]],
+def rebuild_components(store: RecordStore, txn: lmdb.Transaction, members: dict[int, list[int]],
                        gone: set[int] | frozenset[int] = frozenset()) -> list[int]:
     """Rebuild the components ``members`` (root -> its member sequences, read before any
     change) from the edges that remain in ``txn``; return the roots of the parts, ascending.
@@ -218,7 +233,7 @@ def rebuild_components(store: MapStore, txn: lmdb.Transaction, members: dict[int
     return sorted(after)
 
 
-def regroup(store: MapStore, txn: lmdb.Transaction, seqs: list[SequenceRecord]
+def regroup(store: RecordStore, txn: lmdb.Transaction, seqs: list[SequenceRecord]
             ) -> list[list[SequenceRecord]]:
     """Connected components of ``seqs`` (one former component) by the edges among them.
 
@@ -268,5 +283,5 @@ def write_component(txn: lmdb.Transaction, env: LmdbEnv, group: list[SequenceRec
     return root
 
 
-__all__ = ["RemovedRanges", "edge_keys", "rebuild_components", "regroup",
+__all__ = ["RecordStore", "RemovedRanges", "edge_keys", "rebuild_components", "regroup",
            "remove_sequences", "search_live", "write_component"]

@@ -21,32 +21,87 @@ writer) is refused at once, as before.
 from __future__ import annotations
 
 import hashlib
+import math
 import time
 from collections.abc import Callable, Container, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+import lmdb
 import numpy as np
 
+from sprint_map.config import MapConfig
 from sprint_map.errors import (
     DuplicateNameError,
     EmptySequenceError,
+    InputError,
     MapCorruptError,
     SprintMapError,
     StorageIOError,
+    UnknownSequenceError,
 )
 from sprint_map.storage.crash import crash_point
-from sprint_map.storage.keys import DIGEST_BYTES, read_u32, u32
-from sprint_map.storage.records import SequenceRecord
+from sprint_map.storage.keys import DIGEST_BYTES, EDGE_KEY, VERTEX_VAL, read_u32, u32, u64
+from sprint_map.storage.lmdb_env import LmdbEnv
+from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
+from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
+from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.storage.validation import (
     validate_descriptors,
     validate_name,
     validate_positions,
 )
 
-if TYPE_CHECKING:
-    from sprint_map.storage.records import AddResult, EdgeSpec
-    from sprint_map.storage.store import MapStore, ResolvedEdge
+__all__ = ["ResolvedEdge", "SequenceWriter", "WritableMap", "default_name", "resolve_edge",
+           "write_sequence"]
+
+#: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
+ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
+
+
+class WritableMap(Protocol):
+    """What writing a sequence uses of a map open for writing (``MapStore`` is one).
+
+    The writer reads the counters, sequences and digests, appends rows to the shards, writes
+    one LMDB transaction (records, lookups, edges, union-find, counters) and then lets the map
+    bring its index up to date.
+    """
+
+    @property
+    def env(self) -> LmdbEnv: ...
+
+    @property
+    def uf(self) -> UnionFindStore: ...
+
+    @property
+    def shards(self) -> ShardSet: ...
+
+    @property
+    def config(self) -> MapConfig: ...
+
+    @property
+    def warnings(self) -> list[str]: ...
+
+    @property
+    def writing(self) -> object | None: ...
+
+    def require_writer(self) -> None: ...
+
+    def start_writing(self, writer: SequenceWriter) -> None: ...
+
+    def end_writing(self, writer: SequenceWriter) -> None: ...
+
+    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
+
+    def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord: ...
+
+    def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None: ...
+
+    def component_of(self, seq_id: int, txn: lmdb.Transaction | None = None) -> int: ...
+
+    def put_lookups(self, txn: lmdb.Transaction, record: SequenceRecord) -> None: ...
+
+    def after_commit(self, first: int, frames: int) -> None: ...
 
 
 def default_name(seq_id: int, taken: Callable[[str], bool]) -> str:
@@ -69,8 +124,8 @@ class SequenceWriter:
 
     Parameters
     ----------
-    store : MapStore
-        A map open for writing; one sequence may be in progress at a time.
+    store : WritableMap
+        A map open for writing (a ``MapStore``); one sequence may be in progress at a time.
     name : str, optional
         Unique sequence name; checked now, before any row is written. The default is
         ``seq-<id>``, or the first of ``seq-<id>-2``, ``seq-<id>-3``, ... that no sequence of
@@ -82,7 +137,7 @@ class SequenceWriter:
         Names a default must also avoid (e.g. the service's sessions not committed yet).
     """
 
-    def __init__(self, store: MapStore, name: str | None = None, source: str = "",
+    def __init__(self, store: WritableMap, name: str | None = None, source: str = "",
                  reserved: Container[str] = ()) -> None:
         store.require_writer()
         if store.writing is not None:
@@ -114,7 +169,7 @@ class SequenceWriter:
         self.frames = 0
         self._lengths: dict[int, int] = {}
         self._done = False
-        store._writing = self
+        store.start_writing(self)
 
     def __enter__(self) -> SequenceWriter:
         return self
@@ -133,7 +188,7 @@ class SequenceWriter:
         lengths: dict[int, tuple[int, int]] = {}  # one sequence read per distinct sequence
         with self.store.env.read() as txn:
             resolved = [
-                self.store._resolve_edge(e, self.seq_id, self.first, frames, txn, lengths)
+                resolve_edge(self.store, e, self.seq_id, self.first, frames, txn, lengths)
                 for e in edges
             ]
         return pos, resolved
@@ -170,8 +225,6 @@ class SequenceWriter:
         InputError
             Thumbnails not one per frame, or not JPEG bytes.
         """
-        from sprint_map.storage.records import AddResult
-
         try:
             if self.frames == 0:
                 raise EmptySequenceError("the sequence has no frames")
@@ -190,17 +243,17 @@ class SequenceWriter:
                 if thumbs is not None:
                     put_thumbnails(txn, self.store.env, record.seq_id, thumbs)
                     crash_point("add.thumbnails_written")
-                return self.store._commit(txn, record, self._lengths, pos, resolved)
+                return write_sequence(self.store, txn, record, self._lengths, pos, resolved)
 
             component, added = self.store.env.write(body)
         except BaseException:
             self._rollback_after_error()
             raise
         self._done = True
-        self.store._writing = None
+        self.store.end_writing(self)
         crash_point("add.committed")
         try:
-            self.store._after_commit(self.first, self.frames)
+            self.store.after_commit(self.first, self.frames)
         except Exception as exc:
             # The sequence is committed and durable; the index is a cache of it. Failing the
             # call would invite a retry (which would find the sequence committed, see the
@@ -212,8 +265,6 @@ class SequenceWriter:
     def _finish_retry(self, digest: bytes) -> AddResult:
         """Commit nothing for rows that equal the committed sequence of this name; refuse
         others (DuplicateNameError). No shard row was written (see :meth:`append`)."""
-        from sprint_map.storage.records import AddResult
-
         assert self.retry_of is not None
         record, committed = self.retry_of
         if self.frames != record.length or digest != committed:
@@ -221,7 +272,7 @@ class SequenceWriter:
                 f"a sequence named {self.name!r} already exists with other descriptors "
                 f"({record.length} frames; choose another name)")
         self._done = True
-        self.store._writing = None
+        self.store.end_writing(self)
         self.store.warnings.append(
             f"sequence {record.name!r} was already committed with these very descriptors (as "
             f"sequence {record.seq_id}): nothing added")
@@ -240,7 +291,7 @@ class SequenceWriter:
         if self._done:
             return
         self._done = True
-        self.store._writing = None
+        self.store.end_writing(self)
         if self.retry_of is None:  # a possible retry wrote no row
             self.store.shards.recover(self.first)
 
@@ -250,3 +301,95 @@ class SequenceWriter:
             self.abort()
         except (StorageIOError, MapCorruptError) as exc:
             self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")
+
+
+def resolve_edge(store: WritableMap, edge: EdgeSpec, new_seq: int, first: int, n: int,
+                 txn: lmdb.Transaction,
+                 seen: dict[int, tuple[int, int]] | None = None) -> ResolvedEdge:
+    """Global endpoints of ``edge`` for a new sequence ``new_seq`` of ``n`` frames from vertex
+    ``first``; ``seen`` caches ``seq_id -> (first vertex, length)`` across the edges of one
+    commit (a drive's edges hit few sequences, many times). O(log n_sequences) per sequence.
+
+    Raises
+    ------
+    InputError
+        An endpoint outside the new sequence, an edge within one sequence, a weight outside
+        [0, 1].
+    UnknownSequenceError
+        An endpoint in a sequence the map does not have, or past its last image.
+    """
+    ends = []
+    for seq, image in (edge.src, edge.dst):
+        if seq is None or seq == new_seq:
+            if not 0 <= image < n:
+                raise InputError(f"edge endpoint image {image} outside the new sequence")
+            ends.append((new_seq, first + image))
+            continue
+        span = seen.get(seq) if seen is not None else None
+        if span is None:
+            record = store.sequence(seq, txn)
+            span = (record.first_vertex, record.length)
+            if seen is not None:
+                seen[seq] = span
+        if not 0 <= image < span[1]:
+            raise UnknownSequenceError(
+                f"sequence {seq} has no image {image} (it has {span[1]})")
+        ends.append((seq, span[0] + image))
+    (src_seq, src), (dst_seq, dst) = ends
+    if src_seq == dst_seq:
+        raise InputError(f"edge {edge.src} -> {edge.dst} does not join two sequences")
+    if not (0 <= edge.weight <= 1 and math.isfinite(edge.weight)):
+        raise InputError(f"edge weight must be in [0, 1], got {edge.weight}")
+    return src, dst, src_seq, dst_seq, edge
+
+def write_sequence(store: WritableMap, txn: lmdb.Transaction, record: SequenceRecord,
+                   lengths: dict[int, int], pos: np.ndarray | None, edges: list[ResolvedEdge]
+                   ) -> tuple[int, int]:
+    """Record a new sequence in ``txn``: its record and lookups, positions, committed shard
+    lengths, union-find entry, ``edges`` (a repeated edge keeps its newest provenance) with
+    the unions they make, and the counters. Returns ``(component, edges added)``.
+
+    Notes
+    -----
+    O(N) LMDB puts for N positions + O(E log n) for E edges and their unions.
+    """
+    db = store.env.db
+    meta = db("meta")
+    txn.put(u32(record.seq_id), record.encode(), db=db("sequences"))
+    store.put_lookups(txn, record)
+    if pos is not None:
+        vdb = db("vertex_data")
+        txn.cursor(db=vdb).putmulti(
+            ((u64(record.first_vertex + i), VERTEX_VAL.pack(*row))
+             for i, row in enumerate(pos.tolist())),
+            append=True,
+        )
+    for shard, length in lengths.items():
+        txn.put(u32(shard), u64(length), db=db("shards"))
+    store.uf.add(txn, record.seq_id, record.length)
+    n_components = store.counter("n_components", txn) + 1
+    added = 0
+    now = time.time()
+    edges_db, rev_db = db("edges"), db("edges_rev")
+    joined: set[tuple[int, int]] = set()  # sequence pairs already united in this commit
+    for src, dst, src_seq, dst_seq, spec in edges:
+        key = EDGE_KEY.pack(src, dst)
+        value = EdgeRecord(src, dst, spec.weight, record.seq_id, spec.frame, now).encode_value()
+        if txn.get(key, db=edges_db) is None:
+            added += 1
+        txn.put(key, value, db=edges_db)  # a repeated edge keeps its newest provenance
+        txn.put(EDGE_KEY.pack(dst, src), b"", db=rev_db)
+        pair = (src_seq, dst_seq) if src_seq < dst_seq else (dst_seq, src_seq)
+        if pair in joined:
+            continue
+        joined.add(pair)
+        if store.uf.find(txn, src_seq) != store.uf.find(txn, dst_seq):
+            store.uf.union(txn, src_seq, dst_seq)
+            n_components -= 1
+    txn.put(b"next_seq_id", u64(record.seq_id + 1), db=meta)
+    txn.put(b"next_vertex_id", u64(record.first_vertex + record.length), db=meta)
+    txn.put(b"n_sequences", u64(store.counter("n_sequences", txn) + 1), db=meta)
+    txn.put(b"n_edges", u64(store.counter("n_edges", txn) + added), db=meta)
+    txn.put(b"n_components", u64(n_components), db=meta)
+    crash_point("add.before_commit")
+    return store.uf.find(txn, record.seq_id), added

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import time
 from collections.abc import Iterable, Sequence
@@ -32,7 +31,6 @@ import numpy as np
 from sprint_map.config import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
     ConfigError,
-    InputError,
     MapCorruptError,
     MapExistsError,
     NotAMapError,
@@ -88,10 +86,6 @@ LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
 INDEX_DIR = "index"
 COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
-
-
-#: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
-ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
 
 
 class MapStore:
@@ -362,6 +356,19 @@ class MapStore:
     def writing(self) -> SequenceWriter | None:
         """The sequence being written, if any (one at a time per writer)."""
         return self._writing
+
+    def start_writing(self, writer: SequenceWriter) -> None:
+        """Record ``writer`` as the one sequence in progress (:class:`SequenceWriter` calls it
+        once it has checked its name). Raises SprintMapError if another one is."""
+        self.require_writer()
+        if self._writing is not None:
+            raise SprintMapError("another sequence is already being written to this map")
+        self._writing = writer
+
+    def end_writing(self, writer: SequenceWriter) -> None:
+        """``writer`` committed or aborted: another sequence may be written."""
+        if self._writing is writer:
+            self._writing = None
 
     # --- meta -------------------------------------------------------------------------------
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
@@ -656,79 +663,6 @@ class MapStore:
         """Start streaming a new sequence: ``append`` batches, then ``commit`` (atomic)."""
         return SequenceWriter(self, name, source)
 
-    def _resolve_edge(self, edge: EdgeSpec, new_seq: int, first: int, n: int,
-                      txn: lmdb.Transaction,
-                      seen: dict[int, tuple[int, int]] | None = None) -> ResolvedEdge:
-        """Global endpoints of ``edge``; ``seen`` caches ``seq_id -> (first vertex, length)``
-        across the edges of one commit (a drive's edges hit few sequences, many times)."""
-        ends = []
-        for seq, image in (edge.src, edge.dst):
-            if seq is None or seq == new_seq:
-                if not 0 <= image < n:
-                    raise InputError(f"edge endpoint image {image} outside the new sequence")
-                ends.append((new_seq, first + image))
-                continue
-            span = seen.get(seq) if seen is not None else None
-            if span is None:
-                record = self.sequence(seq, txn)
-                span = (record.first_vertex, record.length)
-                if seen is not None:
-                    seen[seq] = span
-            if not 0 <= image < span[1]:
-                raise UnknownSequenceError(
-                    f"sequence {seq} has no image {image} (it has {span[1]})")
-            ends.append((seq, span[0] + image))
-        (src_seq, src), (dst_seq, dst) = ends
-        if src_seq == dst_seq:
-            raise InputError(f"edge {edge.src} -> {edge.dst} does not join two sequences")
-        if not (0 <= edge.weight <= 1 and math.isfinite(edge.weight)):
-            raise InputError(f"edge weight must be in [0, 1], got {edge.weight}")
-        return src, dst, src_seq, dst_seq, edge
-
-    def _commit(self, txn: lmdb.Transaction, record: SequenceRecord, lengths: dict[int, int],
-                pos: np.ndarray | None, edges: list[tuple[int, int, int, int, EdgeSpec]]
-                ) -> tuple[int, int]:
-        db = self.env.db
-        meta = db("meta")
-        txn.put(u32(record.seq_id), record.encode(), db=db("sequences"))
-        self.put_lookups(txn, record)
-        if pos is not None:
-            vdb = db("vertex_data")
-            txn.cursor(db=vdb).putmulti(
-                ((u64(record.first_vertex + i), VERTEX_VAL.pack(*row))
-                 for i, row in enumerate(pos.tolist())),
-                append=True,
-            )
-        for shard, length in lengths.items():
-            txn.put(u32(shard), u64(length), db=db("shards"))
-        self.uf.add(txn, record.seq_id, record.length)
-        n_components = self.counter("n_components", txn) + 1
-        added = 0
-        now = time.time()
-        edges_db, rev_db = db("edges"), db("edges_rev")
-        joined: set[tuple[int, int]] = set()  # sequence pairs already united in this commit
-        for src, dst, src_seq, dst_seq, spec in edges:
-            key = EDGE_KEY.pack(src, dst)
-            value = EdgeRecord(src, dst, spec.weight, record.seq_id, spec.frame, now).encode_value()
-            if txn.get(key, db=edges_db) is None:
-                added += 1
-            txn.put(key, value, db=edges_db)  # a repeated edge keeps its newest provenance
-            txn.put(EDGE_KEY.pack(dst, src), b"", db=rev_db)
-            pair = (src_seq, dst_seq) if src_seq < dst_seq else (dst_seq, src_seq)
-            if pair in joined:
-                continue
-            joined.add(pair)
-            if self.uf.find(txn, src_seq) != self.uf.find(txn, dst_seq):
-                self.uf.union(txn, src_seq, dst_seq)
-                n_components -= 1
-        txn.put(b"next_seq_id", u64(record.seq_id + 1), db=meta)
-        txn.put(b"next_vertex_id", u64(record.first_vertex + record.length), db=meta)
-        txn.put(b"n_sequences", u64(self.counter("n_sequences", txn) + 1), db=meta)
-        txn.put(b"n_edges", u64(self.counter("n_edges", txn) + added), db=meta)
-        txn.put(b"n_components", u64(n_components), db=meta)
-        crash_point("add.before_commit")
-        return self.uf.find(txn, record.seq_id), added
-
     def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None:
         """The content digest committed with sequence ``seq_id`` (None: written before digests
         were recorded). O(log n_sequences)."""
@@ -742,11 +676,13 @@ class MapStore:
         txn.put(record.name.encode(), u32(record.seq_id), db=self.env.db("seq_names"))
         txn.put(u64(record.last_vertex), u32(record.seq_id), db=self.env.db("vrange"))
 
-    def _after_commit(self, first: int, frames: int) -> None:
-        # The index catches up from the shards (page cache) and says when its files are due:
-        # the flat file on a geometric schedule, a full tail block of the segmented index.
+    def after_commit(self, first: int, frames: int) -> None:
+        """Vertices ``first .. first+frames-1`` were just committed: the index catches up from
+        the shards (page cache) and says when its files are due (the flat file on a geometric
+        schedule, a full tail block of the segmented index); they are persisted then."""
         if self.index.after_commit(first + frames, self.shards, first):
             self.flush()
+
 
 
 def _undo_create(created: list[Path]) -> None:

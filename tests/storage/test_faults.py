@@ -36,7 +36,7 @@ import pytest
 from sprint_map.config import MapConfig
 from sprint_map.errors import StorageIOError
 from sprint_map.map import SprintMap
-from sprint_map.storage import atomic
+from sprint_map.storage import atomic, sequence_writer
 from sprint_map.storage.check import check_map
 from sprint_map.storage.faults import (
     CallRecorder,
@@ -374,13 +374,13 @@ def test_lmdb_map_full_in_a_batch_grows_and_retries_once_committed(tmp_path, mon
     runs = []
     with MapStore.create(tmp_path / "m", config) as store:
         store.add_sequence(_drive(1, 5), name="first")
-        commit = store._commit
+        commit = sequence_writer.write_sequence
 
-        def counting(txn, record, *args):
+        def counting(store, txn, record, *args):
             runs.append(record.name)
-            return commit(txn, record, *args)
+            return commit(store, txn, record, *args)
 
-        monkeypatch.setattr(store, "_commit", counting)
+        monkeypatch.setattr(sequence_writer, "write_sequence", counting)
         n = 30000
         store.add_sequence(_drive(2, n), name="big", positions=np.ones((n, 2)),
                            edges=[EdgeSpec((None, 7), (0, 1), 0.7, 7)])
