@@ -27,6 +27,7 @@ from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_sour
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
 from sprint_map.merge_rule import select_merges
+from sprint_map.prepared import PreparedDrive, prepare_drive, stale_reason
 from sprint_map.storage.check import check_map
 from sprint_map.storage.provenance import list_edges
 from sprint_map.storage.records import (
@@ -224,6 +225,40 @@ class SprintMap:
             added = writer.commit(positions, edges, thumbnails)
         return IngestResult(added, decisions, localizer.timing if localizer else Timing(),
                             merged)
+
+    def prepare_ingest(self, batches: Iterable[np.ndarray], *, merge: bool = True,
+                       hmm: HMMConfig | None = None) -> PreparedDrive:
+        """Localise a drive as :meth:`ingest` would, against one snapshot, without committing
+        (read-only is enough): an ingest farm's workers do this in parallel. ``batches`` are
+        the drive's search batches (as ``ingest`` would get them). See
+        :mod:`sprint_map.prepared`."""
+        return prepare_drive(self, batches, merge=merge, hmm=hmm)
+
+    def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[np.ndarray],
+                        name: str | None = None, positions: np.ndarray | None = None, *,
+                        hmm: HMMConfig | None = None, source: str = ""
+                        ) -> tuple[IngestResult, str | None]:
+        """Commit a drive :meth:`prepare_ingest` localised, with the result :meth:`ingest`
+        would give now: if drives committed since its snapshot could have changed its
+        localisation it is localised again first (``ingest``). Returns the result and why it
+        was re-localised (None: its prepared decisions were committed).
+
+        Notes
+        -----
+        The staleness check costs O(N * M * dim) for the M vertices committed since the
+        snapshot (:func:`sprint_map.prepared.stale_reason`).
+        """
+        reason = stale_reason(self, prepared, np.concatenate(list(batches)))
+        if reason is not None:
+            return self.ingest(iter(batches), name, positions, merge=prepared.merge, hmm=hmm,
+                               source=source), reason
+        merged = self.select_merges(prepared.decisions)
+        edges = merge_edges(prepared.decisions, merged, self.config.merge_both_ways)
+        with self.store.begin_sequence(name, source) as writer:
+            for batch in batches:
+                writer.append(batch)
+            added = writer.commit(positions, edges)
+        return IngestResult(added, prepared.decisions, prepared.timing, merged), None
 
     def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
         """The map's merge rule over one drive's decisions: which would become edges.
