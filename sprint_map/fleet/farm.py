@@ -1,8 +1,9 @@
 """The ingest farm: drives described and localised as Ray tasks, committed in order by one writer.
 
 ``sprint-map ingest MAP A B C ... --ray ...`` hands each drive to a Ray task that opens the map
-read-only (a shared filesystem: see ``docs/fleet.md``), decodes and describes the drive's images
-(or reads its ``.npy``) and localises it against one snapshot of the map
+read-only (a shared filesystem: ``docs/fleet.md``, "Where the map files live"), decodes and
+describes the drive's images (or reads its ``.npy``) and localises it against one snapshot of
+the map
 (:meth:`SprintMap.prepare_ingest`). The caller is the single writer: it takes the drives back in
 the given order and commits each (:meth:`SprintMap.commit_prepared`), localising again in the
 writer any drive whose snapshot is stale for what it touched; so the map that results equals

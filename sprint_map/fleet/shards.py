@@ -13,9 +13,9 @@ query's scan of a large index in a way whose rounding depends on the index size)
 of the union of the ranges' k best are the k best of the whole. Removed sequences are hidden as
 the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
 
-Where the rows come from: with a shared filesystem each actor opens the
-map read-only and reads its range itself (``ship=False``); otherwise the caller reads the rows
-and ships them through Ray's object store (``ship=True``).
+Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
+filesystem each actor opens the map read-only and reads its range itself (``ship=False``);
+otherwise the caller reads the rows and ships them through Ray's object store (``ship=True``).
 """
 
 from __future__ import annotations
