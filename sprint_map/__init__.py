@@ -19,6 +19,7 @@ from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
 
 if TYPE_CHECKING:
+    from sprint_map.drives import Drive
     from sprint_map.localizer import FrameDecision, Localizer, Timing
     from sprint_map.map import IngestResult, SprintMap
     from sprint_map.storage.records import (
@@ -39,13 +40,14 @@ _RECORDS = ("AddResult", "CheckReport", "CompactReport", "ComponentInfo", "EdgeI
             "RemoveResult", "RepairReport", "SequenceRecord", "UnmergeResult")
 
 __all__ = ["SCHEMA_VERSION", "AddResult", "CheckReport", "CompactReport", "ComponentInfo",
-           "EdgeInfo", "EdgeSpec", "FrameDecision", "HMMConfig", "IngestResult", "Localizer",
-           "MapConfig", "RemoveResult", "RepairReport", "SequenceRecord", "SprintMap",
-           "SprintMapError", "Timing", "UnmergeResult"]
+           "Drive", "EdgeInfo", "EdgeSpec", "FrameDecision", "HMMConfig", "IngestResult",
+           "Localizer", "MapConfig", "RemoveResult", "RepairReport", "SequenceRecord",
+           "SprintMap", "SprintMapError", "Timing", "UnmergeResult"]
 __version__ = "0.1.0"
 
 #: Names imported on first use, and the module that defines each.
 _LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.map",
+         "Drive": "sprint_map.drives",
          "Localizer": "sprint_map.localizer", "FrameDecision": "sprint_map.localizer",
          "Timing": "sprint_map.localizer",
          **dict.fromkeys(_RECORDS, "sprint_map.storage.records")}

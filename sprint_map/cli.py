@@ -7,6 +7,7 @@ with the error's own code; there is never a traceback for bad input.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -17,10 +18,11 @@ import cv2
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
+from sprint_map.drives import Drive
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
-from sprint_map.map import SprintMap
+from sprint_map.map import IngestResult, SprintMap
 from sprint_map.progress import progress_display
 from sprint_map.storage.repair import repair_map
 from sprint_map.trace import TraceRecorder
@@ -166,23 +168,28 @@ def _model_options(f: Any) -> Any:
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
-@click.argument("source", type=click.Path())
-@click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name).")
+@click.argument("sources", metavar="SOURCE...", nargs=-1, required=True, type=click.Path())
+@click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name; one "
+              "SOURCE only).")
 @click.option("--positions", type=click.Path(dir_okay=False),
-              help="CSV frame,x,y[,heading_deg] with a header row.")
+              help="CSV frame,x,y[,heading_deg] with a header row (one SOURCE only).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
               "(images and video; about 2-3 KiB a frame), for viewers.")
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON (several "
+              "SOURCEs: a list, one object per drive).")
 @_trace_option
 @_model_options
-def ingest(map_path: str, source: str, name: str | None, positions: str | None,
+def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions: str | None,
            no_merge: bool, thumbnails: bool, as_json: bool, trace: str | None, stride: int,
            quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
-    """Localise the drive SOURCE against MAP, then merge it with its decisions as edges.
+    """Localise each drive SOURCE against MAP, then merge it with its decisions as edges.
 
     SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
-    drive of an empty map is added as it is.
+    drive of an empty map is added as it is. Several SOURCEs are ingested in the order given,
+    each its own sequence (named after its source) localised against the map holding the
+    earlier ones, as separate commands would, and committed in groups. A failure stops there:
+    the drives before it stay committed.
 
     \b
     Examples:
@@ -191,36 +198,65 @@ def ingest(map_path: str, source: str, name: str | None, positions: str | None,
       sprint-map ingest city.map tuesday.mp4 --stride 5 --no-merge
       sprint-map ingest city.map wednesday.npy --trace wednesday.trace.npz
       sprint-map ingest city.map drives/friday/ --thumbnails
+      sprint-map ingest city.map mon.npy tue.npy wed.npy   # three drives, in this order
     """
+    single = {"--name": name, "--positions": positions, "--trace": trace}
+    for option, value in single.items():
+        if value is not None and len(sources) > 1:
+            raise InputError(f"{option} is for one SOURCE; {len(sources)} given (each drive is "
+                             "named after its source)")
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path) as m, progress_display("ingesting", quiet) as progress:
-        src = m.open_source(source, stride=stride, progress=progress,
-                            thumbnails=thumbnails)
+    done: list[dict[str, Any]] = []
+
+    def report(results: list[IngestResult]) -> None:
+        for result in results:
+            done.append(result.to_dict())
+            if not as_json:
+                click.echo(_ingest_line(done[-1]))
+
+    with SprintMap.open(map_path) as m, contextlib.ExitStack() as stack:
+        drives = []
+        for source in sources:  # every source opened (and checked) before the first commit
+            label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
+            src = m.open_source(source, stride=stride, thumbnails=thumbnails,
+                                progress=stack.enter_context(progress_display(label, quiet)))
+            pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
+            # Streamed: each batch is described, localised and written (uncommitted) in turn.
+            # An empty --name is refused by the name rules, not replaced by the source's name.
+            drives.append(Drive(src.iter_batches(), src.name if name is None else name, pos,
+                                str(source), src.thumbnails))
         recorder = TraceRecorder(m) if trace else None
-        pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
         hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
-        # Streamed: each batch is described, localised and written (uncommitted) in turn.
-        # An empty --name is refused by the name rules, not replaced by the source's name.
-        result = m.ingest(src.iter_batches(), name=src.name if name is None else name,
-                          positions=pos,
-                          merge=not no_merge, hmm=hmm, source=str(source),
-                          thumbnails=src.thumbnails,
-                          observe=recorder.attach if recorder else None)
+        try:
+            results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
+                                      observe=recorder.attach if recorder else None)
+        except SprintMapError as exc:
+            if not done:
+                raise
+            if as_json:  # the drives that are in the map, then which one failed
+                click.echo(json.dumps(done, indent=2))
+            click.echo(f"Error: {sources[len(done)]}: {exc} ({len(done)} earlier drive(s) "
+                       "committed)", err=True)
+            sys.exit(exc.exit_code)
         if recorder is not None and trace:
+            result = results[0]
             recorder.save(trace, final=result.decisions, merged=result.merged,
-                          meta={"command": "ingest", "source": str(source), "smoothed": True,
+                          meta={"command": "ingest", "source": str(sources[0]), "smoothed": True,
                                 "seq_id": result.added.sequence.seq_id})
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)
-    out = result.to_dict()
-    matched = sum(d["seq_id"] is not None for d in out["decisions"])
+    if as_json:
+        click.echo(json.dumps(done[0] if len(sources) == 1 else done, indent=2))
+
+
+def _ingest_line(out: dict[str, Any]) -> str:
+    """One drive's ingest, in one line of text."""
     if out["already_committed"]:  # a retry: the drive is in the map already, nothing added
-        _emit(out, as_json, f"sequence {out['seq_id']} ({out['name']}) was already committed "
-                            f"with these {out['frames']} frames: nothing added")
-        return
-    _emit(out, as_json, f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
-                        f"{matched} matched, {out['edges_added']} edges, component "
-                        f"{out['component']}")
+        return (f"sequence {out['seq_id']} ({out['name']}) was already committed with these "
+                f"{out['frames']} frames: nothing added")
+    matched = sum(d["seq_id"] is not None for d in out["decisions"])
+    return (f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
+            f"{matched} matched, {out['edges_added']} edges, component {out['component']}")
 
 
 @main.command()

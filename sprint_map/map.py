@@ -22,6 +22,7 @@ import numpy as np
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
+from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.errors import DescriptorShapeError, InputError
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
@@ -259,6 +260,25 @@ class SprintMap:
                 writer.append(batch)
             added = writer.commit(positions, edges)
         return IngestResult(added, prepared.decisions, prepared.timing, merged), None
+
+    def ingest_drives(
+        self,
+        drives: Sequence[Drive],
+        *,
+        merge: bool = True,
+        hmm: HMMConfig | None = None,
+        group_drives: int = DEFAULT_GROUP_DRIVES,
+        on_committed: Callable[[list[IngestResult]], Any] | None = None,
+        observe: Callable[[Localizer], None] | None = None,
+    ) -> list[IngestResult]:
+        """Ingest several drives in order, each its own sequence and atomic commit, as
+        :meth:`ingest` one after the other would (each localised against the map holding the
+        earlier ones), committed in groups of ``group_drives``.
+
+        See :func:`sprint_map.drives.ingest_drives` (errors, costs, ``on_committed``).
+        """
+        return ingest_drives(self, drives, merge=merge, hmm=hmm, group_drives=group_drives,
+                             on_committed=on_committed, observe=observe)
 
     def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
         """The map's merge rule over one drive's decisions: which would become edges.

@@ -13,6 +13,7 @@ from sprint_map.config import SCHEMA_VERSION
 from sprint_map.errors import (
     DescriptorShapeError,
     DuplicateNameError,
+    InputError,
     InvalidDescriptorError,
     MapExistsError,
     NotAMapError,
@@ -77,6 +78,49 @@ def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
                      {"component": 2, "sequences": [2], "vertices": 60}]
     result = run("check", map_path, "--json")
     assert result.exit_code == 0 and json.loads(result.output)["ok"]
+
+
+def test_ingest_several_sources_in_order(map_path, drives, tmp_path):
+    result = run("ingest", map_path, *drives, "--json")
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output)
+    assert [(r["seq_id"], r["name"], r["frames"]) for r in out] == [
+        (0, "drive0", 60), (1, "drive1", 60), (2, "drive2", 60)]
+    assert out[0]["decisions"] == [] and out[1]["edges_added"] > 0 and out[2]["edges_added"] > 0
+    # the same drives, one command each: the same decisions
+    serial = tmp_path / "serial.map"
+    run("init", serial, "--dim", DIM)
+    one_by_one = [json.loads(run("ingest", serial, d, "--json").output) for d in drives]
+    assert [r["decisions"] for r in one_by_one] == [r["decisions"] for r in out]
+    text = run("ingest", map_path, *drives).output.strip().splitlines()
+    assert [t for t in text if not t.startswith("Warning: ")] == [f"sequence {i} (drive{i}) was already committed with these 60 frames: "
+                    "nothing added" for i in range(3)]
+
+
+@pytest.mark.parametrize("option", [("--name", "x"), ("--positions", "p.csv")])
+def test_ingest_name_and_positions_are_for_one_source(map_path, drives, option):
+    result = CliRunner().invoke(main, ["ingest", str(map_path), *map(str, drives[:2]), *option])
+    assert result.exit_code == InputError.exit_code
+    assert result.output.strip().splitlines() == [
+        f"Error: {option[0]} is for one SOURCE; 2 given (each drive is named after its source)"]
+
+
+def test_ingest_failure_names_the_drive_and_keeps_the_earlier(map_path, drives, tmp_path):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.full((4, DIM), np.nan, np.float32))
+    result = CliRunner().invoke(main, ["ingest", str(map_path), str(drives[0]), str(bad)])
+    assert result.exit_code == InvalidDescriptorError.exit_code  # checked before any commit
+    assert json.loads(run("info", map_path, "--json").output)["sequences"] == 0
+    run("ingest", map_path, drives[1], "--name", "drive2")  # drive2's name, other rows
+    result = CliRunner().invoke(main, ["ingest", str(map_path), str(drives[0]), str(drives[2]),
+                                       str(drives[1])])
+    assert result.exit_code == DuplicateNameError.exit_code
+    lines = result.output.strip().splitlines()
+    assert lines[0].startswith("added sequence 1 (drive0)")
+    assert lines[1].startswith(f"Error: {drives[2]}: ") and lines[1].endswith(
+        "(1 earlier drive(s) committed)")
+    seqs = json.loads(run("sequences", map_path, "--json").output)
+    assert [s["name"] for s in seqs] == ["drive2", "drive0"]
 
 
 def test_localize_is_read_only_and_writes_out(map_path, drives, tmp_path):

@@ -29,6 +29,7 @@ from sprint_map.storage.crash import (
     ADD_POINTS,
     COMPACT_POINTS,
     CRASH_POINTS,
+    GROUP_POINTS,
     INDEX_POINTS,
     RECOVER_POINTS,
     REMOVE_POINTS,
@@ -246,6 +247,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     tested |= set(REMOVE_POINTS) | set(COMPACT_POINTS)  # test_kill_at_each_{remove,compact}_point
     tested |= set(UNMERGE_POINTS)  # test_kill_at_each_unmerge_point
     tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
+    tested |= set(GROUP_POINTS)  # tests/test_drives.py (a real multi-drive ingest killed)
     assert tested == set(CRASH_POINTS)
 
 

@@ -38,10 +38,10 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch):
 
 def test_public_names():
     assert sorted(sprint_map.__all__) == [
-        "AddResult", "CheckReport", "CompactReport", "ComponentInfo", "EdgeInfo", "EdgeSpec",
-        "FrameDecision", "HMMConfig", "IngestResult", "Localizer", "MapConfig", "RemoveResult",
-        "RepairReport", "SCHEMA_VERSION", "SequenceRecord", "SprintMap", "SprintMapError",
-        "Timing", "UnmergeResult"]
+        "AddResult", "CheckReport", "CompactReport", "ComponentInfo", "Drive", "EdgeInfo",
+        "EdgeSpec", "FrameDecision", "HMMConfig", "IngestResult", "Localizer", "MapConfig",
+        "RemoveResult", "RepairReport", "SCHEMA_VERSION", "SequenceRecord", "SprintMap",
+        "SprintMapError", "Timing", "UnmergeResult"]
     for name in sprint_map.__all__:
         assert getattr(sprint_map, name) is not None
     assert (Path(sprint_map.__file__).parent / "py.typed").is_file()

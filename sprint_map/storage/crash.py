@@ -19,6 +19,10 @@ ADD_POINTS = (
     "add.before_commit",  # inside the LMDB write transaction, before it commits
     "add.committed",  # LMDB committed, in-memory index not yet updated
 )
+#: Several drives in one ingest (``SprintMap.ingest_drives``, ``sprint-map ingest A B ...``).
+GROUP_POINTS = (
+    "group.between_drives",  # a drive of the group committed, the next one not yet begun
+)
 #: Persisting the index (periodically while adding, on flush and close, in repair).
 INDEX_POINTS = (
     "index.partial_written",  # index file written to *.partial, not yet renamed
@@ -63,7 +67,7 @@ COMPACT_POINTS = (
 )
 
 #: Every crash point in the write paths.
-CRASH_POINTS = (ADD_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
+CRASH_POINTS = (ADD_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
                 + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS)
 
 

@@ -194,7 +194,8 @@ class SequenceWriter:
         return pos, resolved
 
     def append(self, rows: Any) -> None:
-        """Write a batch of descriptor rows (validated; fsynced; not yet visible)."""
+        """Write a batch of descriptor rows (validated; not yet visible; fsynced, all batches
+        at once, by :meth:`commit`)."""
         if self._done:
             raise SprintMapError("the sequence was already committed or aborted")
         arr = np.asarray(rows)
@@ -204,7 +205,9 @@ class SequenceWriter:
             arr = validate_descriptors(arr, self.store.config.dim, first_frame=self.frames)
             self._hash.update(arr.astype("<f4", copy=False).data)
             if self.retry_of is None:  # a possible retry writes nothing until it is decided
-                self._lengths.update(self.store.shards.append(self.first + self.frames, arr))
+                # fsynced once, at the commit: not once per batch
+                self._lengths.update(self.store.shards.append(self.first + self.frames, arr,
+                                                              sync=False))
         except BaseException:
             self._rollback_after_error()
             raise
@@ -236,6 +239,7 @@ class SequenceWriter:
                       else validate_thumbnails(thumbnails, self.frames))
             record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
                                     self.source)
+            self.store.shards.sync()  # the rows are durable before the commit that counts them
             crash_point("add.shards_written")
 
             def body(txn: Any) -> tuple[int, int]:

@@ -44,6 +44,9 @@ class ShardSet:
         self.shard_rows = shard_rows
         self.row_bytes = dim * ROW_DTYPE.itemsize
         self._maps: dict[int, tuple[int, np.memmap]] = {}
+        #: Shards written by ``append(sync=False)`` and not yet fsynced (see :meth:`sync`).
+        self._unsynced: set[int] = set()
+        self._dir_unsynced = False
 
     def path(self, shard: int) -> Path:
         return self.directory / f"shard-{shard:06d}.f32"
@@ -107,6 +110,9 @@ class ShardSet:
             If a file cannot be truncated or removed (the next writer's open tries again).
         """
         actions = []
+        # Rows written since the last sync were never committed: they are cut here.
+        self._unsynced.clear()
+        self._dir_unsynced = False
         shard, rest = divmod(total_rows, self.shard_rows)
         path = self.path(shard)
         if rest:
@@ -139,8 +145,9 @@ class ShardSet:
         return actions
 
     # --- writing ----------------------------------------------------------------------------
-    def append(self, start_row: int, rows: np.ndarray) -> dict[int, int]:
-        """Write ``rows`` at global row ``start_row`` and fsync them.
+    def append(self, start_row: int, rows: np.ndarray, *, sync: bool = True) -> dict[int, int]:
+        """Write ``rows`` at global row ``start_row`` and fsync them (``sync=False``: later,
+        by :meth:`sync`, which must run before a commit records them).
 
         Returns the new committed length of every shard touched, to be recorded in LMDB by the
         caller's commit. Nothing is visible to readers until that commit.
@@ -173,18 +180,45 @@ class ShardSet:
                     atomic.truncate(path, offset * self.row_bytes, fd)
                     view = rows[done : done + take].data.cast("B")
                     atomic.write_at(fd, path, view, offset * self.row_bytes)
-                    atomic.fsync(fd, path)  # a failure is final: the caller rolls back
+                    if sync:
+                        atomic.fsync(fd, path)  # a failure is final: the caller rolls back
+                    else:
+                        self._unsynced.add(shard)
                 finally:
                     os.close(fd)
                 lengths[shard] = offset + take
                 done += take
-            if created:
+            if created and sync:
                 atomic.fsync_dir(self.directory)
+            self._dir_unsynced |= created and not sync
         except OSError as exc:
             raise StorageIOError(
                 f"cannot write descriptor shard {path.name}: {exc.strerror or exc}"
             ) from exc
         return lengths
+
+    def sync(self) -> None:
+        """fsync the shards written by ``append(sync=False)`` since the last sync (and the
+        directory, if one was created): one fsync per shard touched, however many appends.
+
+        Raises
+        ------
+        StorageIOError
+            On an fsync error; the caller must roll back with :meth:`recover`.
+        """
+        path = self.directory
+        try:
+            for shard in sorted(self._unsynced):
+                path = self.path(shard)
+                atomic.fsync_file(path)
+            if self._dir_unsynced:
+                path = self.directory
+                atomic.fsync_dir(self.directory)
+        except OSError as exc:
+            raise StorageIOError(f"cannot write descriptor shard {path.name}: "
+                                 f"{exc.strerror or exc}") from exc
+        self._unsynced.clear()
+        self._dir_unsynced = False
 
     # --- reading ----------------------------------------------------------------------------
     def _map(self, shard: int, committed: int) -> np.memmap:

@@ -21,7 +21,7 @@ import contextlib
 import json
 import os
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -137,6 +137,8 @@ class MapStore:
         #: Problems that lost nothing and failed no operation (e.g. the index cache not saved).
         self.warnings: list[str] = []
         self._writing: SequenceWriter | None = None
+        self._grouped = 0  # depth of group_commit blocks
+        self._persist_due = False  # an index persist deferred to the end of the group
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -681,7 +683,34 @@ class MapStore:
         the shards (page cache) and says when its files are due (the flat file on a geometric
         schedule, a full tail block of the segmented index); they are persisted then."""
         if self.index.after_commit(first + frames, self.shards, first):
-            self.flush()
+            if self._grouped:
+                self._persist_due = True
+            else:
+                self.flush()
+
+    @contextlib.contextmanager
+    def group_commit(self) -> Iterator[None]:
+        """Commit several sequences as a group: each is still its own atomic, durable commit
+        (rows fsynced once, then its LMDB transaction), but the index is persisted once, at
+        the end of the group, if one of them made it due. Nests.
+
+        Notes
+        -----
+        A kill inside the group loses no committed sequence: the index is a cache that catches
+        up from the shards on the next load.
+        """
+        self.require_writer()
+        self._grouped += 1
+        try:
+            yield
+        finally:
+            self._grouped -= 1
+            if not self._grouped and self._persist_due:
+                self._persist_due = False
+                try:
+                    self.flush()
+                except StorageIOError as exc:  # the sequences are committed: a warning
+                    self.warnings.append(f"the index cache was not saved ({exc})")
 
 
 
