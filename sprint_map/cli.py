@@ -657,3 +657,28 @@ def serve(map_path: str, host: str | None, port: int | None, token_file: str | N
     given = {"host": host, "port": port, "token_file": token_file}
     options.update({key: value for key, value in given.items() if value is not None})
     serve_map(map_path, ServerConfig.from_dict(options))
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--trace", type=click.Path(dir_okay=False), metavar="OUT",
+              help="Also play back this trace (from localize/ingest --trace OUT).")
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on; beyond loopback a bearer token is required.")
+@click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True,
+              help="TCP port (0: a free one, printed at start).")
+@click.option("--token-file", type=click.Path(dir_okay=False),
+              help="File holding the bearer token (default: $SPRINT_MAP_TOKEN, if set).")
+def view(map_path: str, trace: str | None, host: str, port: int, token_file: str | None) -> None:
+    """Serve a page that shows MAP: drives, edges, match matrices, trace playback.
+
+    Open the printed address in a browser (it works offline). The map is opened read-only.
+
+    \b
+    Examples:
+      sprint-map view city.map
+      sprint-map view city.map --trace friday.trace.npz --port 8081
+    """
+    from sprint_map.viewer.run import view_map
+
+    view_map(map_path, trace=trace, host=host, port=port, token_file=token_file)

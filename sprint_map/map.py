@@ -30,7 +30,7 @@ from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing,
 from sprint_map.merge_rule import select_merges
 from sprint_map.prepared import PreparedDrive, prepare_drive, stale_reason
 from sprint_map.storage.check import check_map
-from sprint_map.storage.provenance import list_edges
+from sprint_map.storage.provenance import edge_table, list_edges
 from sprint_map.storage.records import (
     AddResult,
     CheckReport,
@@ -38,6 +38,7 @@ from sprint_map.storage.records import (
     ComponentInfo,
     EdgeInfo,
     EdgeSpec,
+    EdgeTable,
     RemoveResult,
     SequenceRecord,
     UnmergeResult,
@@ -460,6 +461,12 @@ class SprintMap:
             No such sequence.
         """
         return self.store.thumbnail_count(seq_id)
+
+    def edge_table(self) -> EdgeTable:
+        """Every edge as arrays of vertex ids, probabilities and provenance (for summaries of
+        large maps; :meth:`edges` gives ``(seq, image)`` records). O(E), one snapshot; see
+        :func:`sprint_map.storage.provenance.edge_table`."""
+        return edge_table(self.store)
 
     def descriptors(self, seq_id: int) -> np.ndarray:
         return self.store.descriptors(seq_id)

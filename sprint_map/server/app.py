@@ -123,8 +123,9 @@ def frame_body(dim: int) -> dict[str, Any]:
 BEARER = HTTPBearer(auto_error=False, description="Required when the server has a token.")
 
 
-#: Paths answered without the token (liveness, readiness, the API's documentation).
-PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/openapi.json", "/docs",
+#: Paths answered without the token (liveness, readiness, the API's documentation, the viewer's
+#: page, which holds no map data: its /viewer/api/ requests carry the token).
+PUBLIC_PATHS = frozenset({"/", "/healthz", "/readyz", "/openapi.json", "/docs",
                           "/docs/oauth2-redirect", "/redoc"})
 
 
@@ -247,6 +248,18 @@ async def _no_receive() -> Message:
     return {"type": "http.disconnect"}
 
 
+def mount_viewer(app: FastAPI, service: LocalisationService, guard: list[Any]) -> None:
+    """The viewer's page at ``/`` and its API behind ``guard`` (each read under the gate)."""
+    from sprint_map.viewer.app import viewer_router
+    from sprint_map.viewer.summary import MapSummary
+
+    def shared(fn: Any) -> Any:
+        with service.gate.shared():
+            return fn()
+
+    app.include_router(viewer_router(MapSummary(service.map, shared), None, guard))
+
+
 def create_app(service: LocalisationService, token: str | None = None) -> FastAPI:
     """The FastAPI app over ``service``; its lifespan starts and shuts the service down."""
 
@@ -341,6 +354,7 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         text = await anyio.to_thread.run_sync(service.metrics.render)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
+    mount_viewer(app, service, guard)
     app.add_middleware(RequestGuard, limit=service.config.max_request_bytes, token=token,
                        body_timeout_s=service.config.body_timeout_s)
     app.add_middleware(RequestMetrics, metrics=service.metrics)

@@ -7,7 +7,7 @@ the service, a test) can name a result without importing the operation that make
   provenance), with their LMDB codecs (the byte layouts are in :mod:`sprint_map.storage.keys`);
 - input: :class:`EdgeSpec`, an edge to commit with a new sequence;
 - results: :class:`AddResult`, :class:`ComponentInfo`, :class:`RemoveResult`,
-  :class:`EdgeInfo`, :class:`UnmergeResult`, :class:`CompactReport`, :class:`CheckReport`
+  :class:`EdgeInfo`, :class:`EdgeTable` (every edge as arrays), :class:`UnmergeResult`, :class:`CompactReport`, :class:`CheckReport`
   (with its :data:`AREAS`) and :class:`RepairReport`.
 
 Every record is a dataclass with no behaviour beyond its codec or its ``to_dict`` (the JSON
@@ -21,6 +21,8 @@ import json
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+import numpy as np
+
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, NO_QUERY, Raw, decode_json
 
@@ -33,6 +35,7 @@ __all__ = [
     "EdgeInfo",
     "EdgeRecord",
     "EdgeSpec",
+    "EdgeTable",
     "RemoveResult",
     "RepairReport",
     "SequenceRecord",
@@ -305,3 +308,17 @@ class RepairReport:
         return {"ok": self.ok, "found": self.found, "repaired": self.repaired,
                 "skipped": self.skipped, "unrepaired": self.after.violations,
                 "after": self.after.to_dict()}
+
+
+@dataclass(frozen=True)
+class EdgeTable:
+    """Every edge as parallel arrays, in (src, dst) vertex order: ``src``, ``dst`` (global
+    vertex ids, int64), ``prob`` (float64), ``added_by`` (int64, -1 for none)."""
+
+    src: np.ndarray
+    dst: np.ndarray
+    prob: np.ndarray
+    added_by: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.src)
