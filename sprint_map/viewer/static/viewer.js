@@ -95,12 +95,23 @@
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     return [ctx, w, h];
   }
+  let extent = [0, 0, 1, 1]; // grid units: what is drawn (set when the overview loads)
   function resetView() {
     const c = $("overview-canvas");
-    const w = c.clientWidth, h = c.clientHeight, g = ov.grid;
-    view.scale = 0.92 * Math.min(w, h) / g;
-    view.ox = (w - g * view.scale) / 2;
-    view.oy = h - (h - g * view.scale) / 2;
+    const w = c.clientWidth, h = c.clientHeight;
+    const ew = Math.max(extent[2] - extent[0], 1), eh = Math.max(extent[3] - extent[1], 1);
+    view.scale = 0.92 * Math.min(w / ew, h / eh);
+    view.ox = (w - ew * view.scale) / 2 - extent[0] * view.scale;
+    view.oy = h - (h - eh * view.scale) / 2 + extent[1] * view.scale;
+  }
+  function computeExtent() {
+    const pts = ov.mode === "positions" ? ov.xy : ov.layout;
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+    for (let i = 0; i + 1 < pts.length; i += 2) {
+      x0 = Math.min(x0, pts[i]); x1 = Math.max(x1, pts[i]);
+      y0 = Math.min(y0, pts[i + 1]); y1 = Math.max(y1, pts[i + 1]);
+    }
+    extent = pts.length ? [x0, y0, x1, y1] : [0, 0, ov.grid, ov.grid];
   }
   const sx = (x) => x * view.scale + view.ox;
   const sy = (y) => view.oy - y * view.scale;
@@ -249,6 +260,7 @@
     const c = ov.counts;
     $("counts").textContent = `${c.sequences} drives · ${c.vertices} vertices · ${c.edges} edges · ` +
       `${c.components} components · ${fmtBytes(c.disk_bytes)} on disk`;
+    computeExtent();
     resetView();
     drawOverview();
     performance.mark("overview-drawn");
@@ -312,6 +324,10 @@
     }
     const tmp = el("canvas", { width: cols, height: rows });
     tmp.getContext("2d").putImageData(img, 0, 0);
+    // the longer drive gets 520 pixels, the other its share (frames keep their aspect)
+    const side = 520, f0 = m.frames[0], f1 = m.frames[1];
+    canvas.width = Math.max(60, Math.round(f1 >= f0 ? side : side * f1 / f0));
+    canvas.height = Math.max(60, Math.round(f0 >= f1 ? side : side * f0 / f1));
     ctx.clearRect(0, 0, canvas.width, canvas.height);
     ctx.imageSmoothingEnabled = false;
     const W = canvas.width, H = canvas.height;
