@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
 import click
-import cv2
 
 from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
@@ -24,7 +24,6 @@ from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
 from sprint_map.map import IngestResult, SprintMap
 from sprint_map.progress import progress_display
-from sprint_map.storage.repair import repair_map
 from sprint_map.trace import TraceRecorder
 
 
@@ -62,7 +61,12 @@ def main() -> None:
       sprint-map info city.map
     """
     # OpenCV logs its own warning lines for a corrupt image; the one-line error says it all.
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    # OpenCV is imported only by the commands that decode images: it reads the variable then.
+    cv2 = sys.modules.get("cv2")
+    if cv2 is None:
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    else:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 @main.command()
@@ -385,6 +389,8 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
       sprint-map check city.map --repair
     """
     if repair:
+        from sprint_map.storage.repair import repair_map
+
         fixed = repair_map(map_path)
         report, data = fixed.after, fixed.to_dict()
         lines = [f"repaired: {r}" for r in fixed.repaired] + [f"skipped: {s}" for s in fixed.skipped]

@@ -16,7 +16,7 @@ import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,12 +24,8 @@ from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
 from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.errors import DescriptorShapeError, InputError
-from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localizer import SEARCH_BATCH, FrameDecision, Localizer, Timing, merge_edges
 from sprint_map.merge_rule import select_merges
-from sprint_map.prepared import PreparedDrive, prepare_drive, stale_reason
-from sprint_map.storage.check import check_map
 from sprint_map.storage.provenance import edge_table, list_edges
 from sprint_map.storage.records import (
     AddResult,
@@ -43,9 +39,14 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
-from sprint_map.storage.removal import RemovedRanges
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.validation import decode_text
+
+if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
+    from sprint_map.frontend.sources import FrameSource, ProgressCallback
+    from sprint_map.localizer import FrameDecision, Localizer, Timing
+    from sprint_map.prepared import PreparedDrive
+    from sprint_map.storage.removal import RemovedRanges
 
 
 @dataclass(frozen=True)
@@ -205,6 +206,8 @@ class SprintMap:
         :meth:`sprint_map.trace.TraceRecorder.attach`); it is not called when the drive is
         appended without localisation.
         """
+        from sprint_map.localizer import SEARCH_BATCH, Localizer, Timing, merge_edges
+
         batches: Iterable[np.ndarray]
         if isinstance(descriptors, np.ndarray):
             batches = (descriptors[i : i + SEARCH_BATCH]
@@ -234,6 +237,8 @@ class SprintMap:
         (read-only is enough): an ingest farm's workers do this in parallel. ``batches`` are
         the drive's search batches (as ``ingest`` would get them). See
         :mod:`sprint_map.prepared`."""
+        from sprint_map.prepared import prepare_drive
+
         return prepare_drive(self, batches, merge=merge, hmm=hmm)
 
     def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[np.ndarray],
@@ -250,6 +255,9 @@ class SprintMap:
         The staleness check costs O(N * M * dim) for the M vertices committed since the
         snapshot (:func:`sprint_map.prepared.stale_reason`).
         """
+        from sprint_map.localizer import merge_edges
+        from sprint_map.prepared import stale_reason
+
         reason = stale_reason(self, prepared, np.concatenate(list(batches)))
         if reason is not None:
             return self.ingest(iter(batches), name, positions, merge=prepared.merge, hmm=hmm,
@@ -293,6 +301,8 @@ class SprintMap:
               positions: np.ndarray | None = None, source: str = "") -> AddResult:
         """Commit a localised drive with the decisions the merge rule selects as edges,
         atomically (``decisions``: usually :meth:`localize` with ``smooth=True``)."""
+        from sprint_map.localizer import merge_edges
+
         edges = merge_edges(decisions, self.select_merges(decisions), self.config.merge_both_ways)
         return self.add_sequence(descriptors, name=name, positions=positions, edges=edges,
                                  source=source)
@@ -359,6 +369,8 @@ class SprintMap:
 
         ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``).
         """
+        from sprint_map.localizer import Localizer
+
         base = hmm or self.config.hmm
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
 
@@ -403,6 +415,8 @@ class SprintMap:
         if thumbnails and spec is None:
             raise InputError(f"{src}: thumbnails need images or video, and this map holds "
                              "precomputed descriptors")
+        from sprint_map.frontend.sources import open_source
+
         source = open_source(src, spec, stride=stride, progress=progress,
                              thumbnails=thumbnails)
         if source.dim != self.config.dim:
@@ -502,6 +516,8 @@ class SprintMap:
 
     def check(self) -> CheckReport:
         """Verify every on-disk invariant (best on a map opened read-only)."""
+        from sprint_map.storage.check import check_map
+
         return check_map(self.store)
 
     def info(self) -> dict[str, Any]:

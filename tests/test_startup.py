@@ -1,9 +1,16 @@
-"""What ``import sprint_map`` loads: the facade's configuration, not the image front end."""
+"""What start-up loads: ``import sprint_map`` its configuration, not the image front end;
+``sprint-map info`` LMDB, not the HMM, FAISS or OpenCV (``tools/bench_startup.py`` times it)."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sprint_map import MapConfig, SprintMap
 
 
 def loaded_after(statement: str) -> set[str]:
@@ -31,3 +38,51 @@ def test_nothing_imports_ray_without_ray_asked_for():
     mods = loaded_after("import sprint_map.cli, sprint_map.map, sprint_map.fleet.runtime, "
                         "sprint_map.fleet.shards")
     assert "ray" not in mods
+
+
+# --- sprint-map info reads LMDB only --------------------------------------------------------
+
+#: What a command that only reads LMDB must not import.
+HEAVY = ("scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "uvicorn")
+
+# Runs the CLI in this process, then lists what it imported (at exit: main() exits).
+CLI_MODULES = ("import atexit, sys\n"
+               "atexit.register(lambda: print(' '.join(sorted(sys.modules)), file=sys.stderr))\n"
+               "from sprint_map.cli import main\n"
+               "main()\n")
+
+
+def heavy_loaded(modules: set[str]) -> set[str]:
+    """The heavy packages among ``modules``, and the HMM's modules beyond its config."""
+    return ({m for m in modules if m.split(".")[0] in HEAVY}
+            | {m for m in modules if m.startswith("sprint_map.hmm.") and m != "sprint_map.hmm.config"})
+
+
+def cli_modules(*args: str) -> tuple[subprocess.CompletedProcess[str], set[str]]:
+    proc = subprocess.run([sys.executable, "-c", CLI_MODULES, *args], capture_output=True,
+                          text=True)
+    return proc, set(proc.stderr.split())
+
+
+@pytest.fixture(scope="module")
+def small_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A map of two drives of random descriptors (the second merged: edges, one component)."""
+    root = tmp_path_factory.mktemp("startup")
+    rng = np.random.default_rng(7)
+    road = rng.standard_normal((300, 32)).astype(np.float32)
+    path = root / "city.map"
+    with SprintMap.create(path, MapConfig(dim=32)) as m:
+        m.add_sequence(road, name="monday")
+        m.ingest(road + 0.05 * rng.standard_normal(road.shape).astype(np.float32), name="tue")
+    return path
+
+
+@pytest.mark.parametrize("args", [["info", "--json"], ["sequences"], ["components", "--json"]])
+def test_reading_commands_import_no_hmm_opencv_or_scipy(small_map, args):
+    proc, modules = cli_modules(args[0], str(small_map), *args[1:])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not heavy_loaded(modules), sorted(heavy_loaded(modules))
+
+
+def test_sprint_map_cli_imports_no_opencv():
+    assert "cv2" not in loaded_after("import sprint_map.cli")

@@ -11,7 +11,6 @@ import os
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from sprint_map.errors import InputError
@@ -145,6 +144,8 @@ def decode_image(data: bytes, label: str = "image", grayscale: bool = True,
     check_pixels(data, label, max_pixels)
     if _is_truncated(data):
         raise InputError(f"{label}: truncated image file")
+    import cv2  # OpenCV loads with the first image decoded, not with the package
+
     buffer = np.frombuffer(data, dtype=np.uint8)
     flags = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
     try:

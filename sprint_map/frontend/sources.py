@@ -23,8 +23,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from sprint_map.errors import (
@@ -42,6 +42,9 @@ from sprint_map.frontend.imagefiles import (
     read_image_bytes,
 )
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
+
+if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
+    import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
 
 #: ``progress(frames_done, total_or_None)``, called after each batch.
@@ -164,6 +167,8 @@ class FrameSource(ABC):
 def _single_threaded_opencv() -> None:
     """Worker-process initialiser: each process is already one of N parallel workers, so
     OpenCV's own thread pool (used by ``resize``) would only oversubscribe the cores."""
+    import cv2
+
     cv2.setNumThreads(1)
 
 
@@ -261,6 +266,13 @@ class ImageDirSource(FrameSource):
         yield from _rebatch(results, self.batch_size)
 
 
+def _cv2() -> Any:
+    """OpenCV, imported on first use (a source of precomputed descriptors never needs it)."""
+    import cv2
+
+    return cv2
+
+
 class VideoSource(FrameSource):
     """Frames of a video file read with ``cv2.VideoCapture``.
 
@@ -277,7 +289,7 @@ class VideoSource(FrameSource):
         try:
             if not capture.grab():
                 raise InputError(f"{path}: video has no frames")
-            frames = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+            frames = capture.get(_cv2().CAP_PROP_FRAME_COUNT)
         finally:
             capture.release()
         #: Frame count from the container header after ``stride``; only an estimate (0 if
@@ -289,7 +301,7 @@ class VideoSource(FrameSource):
         return None
 
     def _open(self) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(self.path))
+        capture = _cv2().VideoCapture(str(self.path))
         if not capture.isOpened():
             capture.release()
             raise InputError(f"{self.path}: cannot open video (unsupported or corrupt file)")

@@ -2,15 +2,38 @@
 
 This package knows nothing of storage or retrieval: it reads components through
 :class:`GraphSource` and takes retrieval hits as arrays. See ``docs/hmm.md`` ("The HMM").
+
+Its names are imported on first use (PEP 562): ``from sprint_map.hmm.config import HMMConfig``
+(what a map's configuration needs) loads neither SciPy nor the filters.
 """
 
-from sprint_map.hmm.cache import ComponentCache
-from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.decision import Decision
-from sprint_map.hmm.full_graph import FullGraphFilter
-from sprint_map.hmm.graph import ComponentGraph, GraphSource, MemoryGraphSource
-from sprint_map.hmm.observation import Observation, ObservationModel
-from sprint_map.hmm.sprint_filter import SprintFilter
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sprint_map.hmm.cache import ComponentCache
+    from sprint_map.hmm.config import HMMConfig
+    from sprint_map.hmm.decision import Decision
+    from sprint_map.hmm.full_graph import FullGraphFilter
+    from sprint_map.hmm.graph import ComponentGraph, GraphSource, MemoryGraphSource
+    from sprint_map.hmm.observation import Observation, ObservationModel
+    from sprint_map.hmm.sprint_filter import SprintFilter
+
+#: Public name -> the module defining it.
+_MODULES = {
+    "ComponentCache": "cache",
+    "ComponentGraph": "graph",
+    "Decision": "decision",
+    "FullGraphFilter": "full_graph",
+    "GraphSource": "graph",
+    "HMMConfig": "config",
+    "MemoryGraphSource": "graph",
+    "Observation": "observation",
+    "ObservationModel": "observation",
+    "SprintFilter": "sprint_filter",
+}
 
 __all__ = [
     "ComponentCache",
@@ -24,3 +47,16 @@ __all__ = [
     "ObservationModel",
     "SprintFilter",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _MODULES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
