@@ -12,7 +12,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
@@ -20,6 +20,7 @@ from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
 from sprint_map.drives import Drive
 from sprint_map.errors import InputError, SprintMapError
+from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
 from sprint_map.map import IngestResult, SprintMap
@@ -182,11 +183,14 @@ def _model_options(f: Any) -> Any:
               "(images and video; about 2-3 KiB a frame), for viewers.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON (several "
               "SOURCEs: a list, one object per drive).")
+@click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (drives "
+              "described and localised in parallel as Ray tasks, committed in order here).")
 @_trace_option
 @_model_options
 def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions: str | None,
-           no_merge: bool, thumbnails: bool, as_json: bool, trace: str | None, stride: int,
-           quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+           no_merge: bool, thumbnails: bool, as_json: bool, ray_spec: str | None,
+           trace: str | None, stride: int, quiet: bool, k: int | None, window: str | None,
+           hmm_pairs: tuple[str, ...]) -> None:
     """Localise each drive SOURCE against MAP, then merge it with its decisions as edges.
 
     SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
@@ -203,12 +207,18 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
       sprint-map ingest city.map wednesday.npy --trace wednesday.trace.npz
       sprint-map ingest city.map drives/friday/ --thumbnails
       sprint-map ingest city.map mon.npy tue.npy wed.npy   # three drives, in this order
+      sprint-map ingest city.map drives/*/ --ray auto      # on the Ray cluster joined here
     """
     single = {"--name": name, "--positions": positions, "--trace": trace}
     for option, value in single.items():
         if value is not None and len(sources) > 1:
             raise InputError(f"{option} is for one SOURCE; {len(sources)} given (each drive is "
                              "named after its source)")
+    if ray_spec is not None:
+        given = {"--positions": positions is not None, "--trace": trace is not None,
+                 "--thumbnails": thumbnails}
+        for option in (option for option, on in given.items() if on):
+            raise InputError(f"{option} is not available with --ray")
     overrides = _hmm_overrides(k, window, hmm_pairs)
     done: list[dict[str, Any]] = []
 
@@ -218,9 +228,21 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             if not as_json:
                 click.echo(_ingest_line(done[-1]))
 
+    if ray_spec is not None:  # the ingest farm: Ray is imported from here on only
+        from sprint_map.fleet.farm import farm_ingest
+        from sprint_map.fleet.runtime import connect
+
+        connect(ray_spec)
     with SprintMap.open(map_path) as m, contextlib.ExitStack() as stack:
+        hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
+        if ray_spec is not None:
+            try:
+                farm_ingest(m, sources, names=[name], stride=stride, merge=not no_merge,
+                            hmm=hmm, on_commit=lambda r: report([r.result]))
+            except SprintMapError as exc:
+                _stop_after(exc, sources, done, as_json)
         drives = []
-        for source in sources:  # every source opened (and checked) before the first commit
+        for source in sources if ray_spec is None else ():  # each opened (and checked) first
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
             src = m.open_source(source, stride=stride, thumbnails=thumbnails,
                                 progress=stack.enter_context(progress_display(label, quiet)))
@@ -230,18 +252,11 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             drives.append(Drive(src.iter_batches(), src.name if name is None else name, pos,
                                 str(source), src.thumbnails))
         recorder = TraceRecorder(m) if trace else None
-        hmm = dataclass_dict.replace(m.config.hmm, **overrides) if overrides else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
                                       observe=recorder.attach if recorder else None)
         except SprintMapError as exc:
-            if not done:
-                raise
-            if as_json:  # the drives that are in the map, then which one failed
-                click.echo(json.dumps(done, indent=2))
-            click.echo(f"Error: {sources[len(done)]}: {exc} ({len(done)} earlier drive(s) "
-                       "committed)", err=True)
-            sys.exit(exc.exit_code)
+            _stop_after(exc, sources, done, as_json)
         if recorder is not None and trace:
             result = results[0]
             recorder.save(trace, final=result.decisions, merged=result.merged,
@@ -251,6 +266,18 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
         click.echo(json.dumps(done[0] if len(sources) == 1 else done, indent=2))
+
+
+def _stop_after(exc: SprintMapError, sources: tuple[str, ...], done: list[dict[str, Any]],
+                as_json: bool) -> NoReturn:
+    """A drive of several failed: report the ones committed, then which one failed; exit."""
+    if not done:
+        raise exc
+    if as_json:  # the drives that are in the map, then which one failed
+        click.echo(json.dumps(done, indent=2))
+    click.echo(f"Error: {sources[len(done)]}: {exc} ({len(done)} earlier drive(s) "
+               "committed)", err=True)
+    sys.exit(exc.exit_code)
 
 
 def _ingest_line(out: dict[str, Any]) -> str:

@@ -48,8 +48,9 @@ def connect(spec: str, *, num_cpus: int | None = None) -> Any:
         return ray
     common: dict[str, Any] = {"log_to_driver": False, "configure_logging": True,
                               "logging_level": "ERROR"}
-    if spec == "local":
-        ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False, **common)
+    if spec == "local":  # always a new runtime, even beside a cluster running here
+        ray.init(address="local", num_cpus=num_cpus or os.cpu_count() or 1,
+                 include_dashboard=False, **common)
     else:
         try:
             ray.init(address=spec, **common)
