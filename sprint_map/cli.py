@@ -496,6 +496,42 @@ def edges(map_path: str, seq: str | None, added_by: str | None, by_name: bool,
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--graphml", type=click.Path(dir_okay=False), help="Write the graph as GraphML "
+              "(networkx, Gephi): edges with probability and provenance.")
+@click.option("--level", type=click.Choice(["vertex", "sequence"]), default=None,
+              help="GraphML nodes: one per frame or one per drive (default: vertex up to "
+                   "100,000 vertices, sequence beyond).")
+@click.option("--csv", "csv_dir", type=click.Path(file_okay=False),
+              help="Write sequences.csv, vertices.csv (with positions) and edges.csv here.")
+@click.option("--geojson", type=click.Path(dir_okay=False),
+              help="Write drives as lines and edges as segments on their positions (QGIS).")
+@click.option("--json", "as_json", is_flag=True, help="Print what was written as JSON.")
+def export(map_path: str, graphml: str | None, level: str | None, csv_dir: str | None,
+           geojson: str | None, as_json: bool) -> None:
+    """Export MAP for other tools: GraphML, CSV tables, GeoJSON (streamed, written atomically).
+
+    \b
+    Examples:
+      sprint-map export city.map --graphml city.graphml
+      sprint-map export city.map --graphml drives.graphml --level sequence --csv city-csv/
+      sprint-map export city.map --geojson city.geojson --json
+    """
+    if not (graphml or csv_dir or geojson):
+        raise InputError("nothing to export: give --graphml FILE, --csv DIR or --geojson FILE")
+    if level and not graphml:
+        raise InputError("--level is the level of the GraphML export: give --graphml FILE")
+    with SprintMap.open(map_path, readonly=True) as m:
+        reports = ([m.export_graphml(graphml, level)] if graphml else []) + (
+            [m.export_csv(csv_dir)] if csv_dir else []) + (
+            [m.export_geojson(geojson)] if geojson else [])
+    _emit([r.to_dict() for r in reports], as_json, "\n".join(
+        f"wrote {r.path}: {r.format}{f' ({r.level} level)' if r.level else ''}, {r.nodes} "
+        f"{'drives' if r.format == 'geojson' else 'nodes' if r.format == 'graphml' else 'vertices'}"
+        f", {r.edges} edges, {r.bytes} bytes" for r in reports))
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("seq", metavar="SEQ")
 @click.option("--by-name", is_flag=True, help="Read SEQ as a name, even all digits.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON: {seq_id, "

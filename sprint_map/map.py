@@ -43,6 +43,7 @@ from sprint_map.storage.store import MapStore
 from sprint_map.storage.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
+    from sprint_map.export.report import ExportReport
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.localizer import FrameDecision, Localizer, Timing
     from sprint_map.prepared import PreparedDrive
@@ -454,6 +455,39 @@ class SprintMap:
 
     def components(self) -> list[ComponentInfo]:
         return self.store.components()
+
+    # --- exports ----------------------------------------------------------------------------
+    def export_graphml(self, path: str | os.PathLike[str], level: str | None = None
+                       ) -> ExportReport:
+        """Write the map as GraphML for networkx, Gephi or Cytoscape.
+
+        ``level`` ``"vertex"`` (a node per frame, streamed) or ``"sequence"`` (a node per
+        drive); by default the vertex level up to ``VERTEX_LEVEL_LIMIT`` (100,000) vertices,
+        the sequence level beyond. Edges carry their probability and provenance. See
+        :mod:`sprint_map.export.graphml`.
+        """
+        from sprint_map.export import export_graphml
+
+        return export_graphml(self.store, path, level)
+
+    def export_csv(self, directory: str | os.PathLike[str]) -> ExportReport:
+        """Write ``sequences.csv``, ``vertices.csv`` (with positions) and ``edges.csv`` into
+        ``directory``, streamed. See :mod:`sprint_map.export.tables`."""
+        from sprint_map.export import export_csv
+
+        return export_csv(self.store, directory)
+
+    def export_geojson(self, path: str | os.PathLike[str]) -> ExportReport:
+        """Write drives as lines on their positions and edges as segments, as GeoJSON.
+
+        Raises
+        ------
+        InputError
+            No drive has positions. See :mod:`sprint_map.export.geojson`.
+        """
+        from sprint_map.export import export_geojson
+
+        return export_geojson(self.store, path)
 
     def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
         """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None when the
