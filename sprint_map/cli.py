@@ -180,7 +180,7 @@ def _model_options(f: Any) -> Any:
               help="CSV frame,x,y[,heading_deg] with a header row (one SOURCE only).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
-              "(images and video; about 2-3 KiB a frame), for viewers.")
+              "(images and video; about 2 KiB a frame), for viewers.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON (several "
               "SOURCEs: a list, one object per drive).")
 @click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (drives "

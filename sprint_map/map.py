@@ -196,7 +196,7 @@ class SprintMap:
             One small JPEG per frame, committed with the drive (``FrameSource.thumbnails`` of
             a source opened with ``thumbnails=True``: read at the commit, after the batches,
             so a list the source fills while it streams is complete by then). Held in memory
-            until the commit: about 2-3 KiB per frame.
+            until the commit: about 2 KiB per frame.
 
         Notes
         -----

@@ -6,9 +6,10 @@ exported at the vertex level by default (one node per frame), a larger one at th
 still written for any size on request (``--level vertex``) and always streams, so the *writer's*
 memory is bounded either way (``docs/benchmarks.md``, "Export"); the limit is about the *reader*:
 ``networkx.read_graphml`` (and Gephi, Cytoscape) build the whole document and graph in memory,
-about 1.5 KB per vertex with its attributes, edges apart: some 150 MB at 100k vertices, some
-1.5 GB at 1M, where a sequence-level graph of the same map is a few hundred kilobytes and shows
-what a person looks at a whole map for (which drives were merged with which).
+about 4.7 KB per vertex (573 MB to read 100k vertices back): some 5 GB at 1M, where a
+sequence-level graph of the same map is a few megabytes (2.4 MB for 1,000 drives) and shows
+what a person looks at a whole map for (which drives were merged with which). See
+``docs/export.md``.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 A thumbnail is the frame scaled to :data:`THUMBNAIL_WIDTH` pixels wide (aspect kept, never
 enlarged; ``cv2.INTER_AREA``) and encoded as a JPEG of quality :data:`THUMBNAIL_QUALITY`:
-about 2-3 KiB for a street scene, kept in the map's LMDB with the drive
-(:mod:`sprint_map.storage.thumbnails`). OpenCV is imported when the first thumbnail is made,
+about 2 KiB for a street scene (1.9-2.5 KB on the synthetic city), kept in the map's LMDB with
+the drive (:mod:`sprint_map.storage.thumbnails`). OpenCV is imported when the first thumbnail is made,
 not with this module (the start-up rule: ``tests/test_startup.py``).
 
 An image file is decoded twice when thumbnails are made: once to 8-bit gray for the descriptor,

@@ -31,7 +31,7 @@ from sprint_map.storage.lmdb_env import LmdbEnv
 THUMBNAILS_DB = "thumbnails"
 JPEG_START = b"\xff\xd8"
 JPEG_END = b"\xff\xd9"
-#: Largest thumbnail accepted: a thumbnail is small (the front end's are 1-4 KiB); this only
+#: Largest thumbnail accepted: a thumbnail is small (the front end's are about 2 KiB); this only
 #: stops a caller from filling the map with full-size images by mistake.
 MAX_THUMBNAIL_BYTES = 256 * 1024
 

@@ -1,16 +1,20 @@
-"""GraphML export: read back by networkx.read_graphml equal in vertices, edges and attributes."""
+"""GraphML export: read back by networkx.read_graphml equal in vertices, edges and attributes
+(on a small map, and on a 100k-vertex one: the issue's target)."""
 
 from __future__ import annotations
 
 import math
 
 import networkx as nx
+import numpy as np
 import pytest
 
+from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.export import graphml
 from sprint_map.export.report import VERTEX_LEVEL_LIMIT, choose_level
 from sprint_map.map import SprintMap
+from sprint_map.storage.records import EdgeSpec
 
 POSITION_KEYS = ("x", "y", "heading", "timestamp")
 
@@ -100,3 +104,25 @@ def test_a_directory_or_missing_parent_is_refused(small_map, tmp_path):
             m.export_graphml(tmp_path)
         with pytest.raises(InputError, match="not a directory"):
             m.export_graphml(tmp_path / "no" / "such.graphml")
+
+
+VERTICES, DRIVE = 100_000, 2_000
+
+
+@pytest.mark.slow
+def test_100k_vertex_graphml_reads_back_equal(tmp_path):
+    rng = np.random.default_rng(17)
+    path = tmp_path / "big.map"
+    with SprintMap.create(path, MapConfig(dim=4, index_type="flat")) as m:
+        for seq in range(VERTICES // DRIVE):
+            positions = rng.uniform(-1e4, 1e4, (DRIVE, 3)) if seq % 3 else None
+            edges = [EdgeSpec((None, i), (seq - 1, i), float(rng.random()), i if i % 2 else None)
+                     for i in range(0, DRIVE, 40)] if seq else []
+            m.add_sequence(rng.standard_normal((DRIVE, 4)).astype(np.float32),
+                           positions=positions, edges=edges)
+        report = m.export_graphml(tmp_path / "big.graphml")
+        want = expected_vertex_graph(m)
+    assert (report.level, report.nodes, report.edges) == ("vertex", VERTICES, 49 * 50)
+    got = nx.read_graphml(tmp_path / "big.graphml")
+    assert got.number_of_nodes() == VERTICES and got.number_of_edges() == 49 * 50
+    assert_same_graph(got, want)
