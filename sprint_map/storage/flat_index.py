@@ -16,18 +16,22 @@ import errno
 import re
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import faiss
 import numpy as np
 
+from sprint_map.config import MapConfig
+from sprint_map.storage import atomic
 from sprint_map.storage.atomic import fsync_dir, publish
 from sprint_map.storage.crash import crash_point
+from sprint_map.storage.retrieval_index import IndexNotLoadedError, RetrievalIndex
 from sprint_map.storage.segment_model import use_threads
 from sprint_map.storage.shards import ShardSet
 
+__all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
+
 INDEX_RE = re.compile(r"^flat\.(\d{12})\.faiss$")
-#: Rows read from the shards per batch when rebuilding or catching up.
-REBUILD_CHUNK = 65536
 
 
 def index_files(directory: Path) -> list[tuple[int, Path]]:
@@ -80,37 +84,58 @@ def _ids_dense(index: faiss.Index, upto: int) -> bool:
     return bool(np.array_equal(faiss.vector_to_array(index.id_map), np.arange(upto)))
 
 
-class FlatIndex:
+class FlatIndex(RetrievalIndex):
     """Exact L2 retrieval over all committed descriptors, as ``IndexIDMap2(IndexFlatL2)``.
 
-    Parameters
-    ----------
-    directory : Path
-        The ``index/`` directory.
-    dim : int
-        Descriptor dimension.
-    writable : bool
-        Whether this process may write files (only the writer persists or deletes files).
+    A :class:`~sprint_map.storage.retrieval_index.RetrievalIndex` (see there for the
+    parameters and the contract). Its file is rewritten whole on every persist, on a
+    geometric schedule (:meth:`after_commit`).
     """
 
-    def __init__(self, directory: Path, dim: int, *, writable: bool) -> None:
-        self.directory = directory
-        self.dim = dim
-        self.writable = writable
+    kind = "flat"
+    exact = True
+    files = "the flat file"
+
+    def __init__(self, directory: Path, config: MapConfig, *, writable: bool,
+                 events: list[str] | None = None) -> None:
+        super().__init__(directory, config, writable=writable, events=events)
         self.index: faiss.IndexIDMap2 | None = None
-        self.persisted = 0  # vertices covered by the newest file on disk that we trust
-        self.events: list[str] = []  # what loading had to do (for check/info reports)
+        self._persisted = 0  # vertices covered by the newest file on disk that we trust
+
+    # --- state -------------------------------------------------------------------------------
+    @property
+    def loaded(self) -> bool:
+        return self.index is not None
 
     @property
     def covered(self) -> int:
-        """Vertices covered by the in-memory index (0 if not loaded)."""
         return 0 if self.index is None else int(self.index.ntotal)
 
+    @property
+    def persisted(self) -> int:
+        return self._persisted
+
+    @persisted.setter
+    def persisted(self, value: int) -> None:
+        """Forget (0) or set what the trusted file covers: the next persist rewrites it."""
+        self._persisted = value
+
     def persisted_on_disk(self) -> int:
-        """Vertices covered by the newest index file on disk (without loading it)."""
+        """Vertices covered by the newest index file on disk (without loading it). One
+        directory listing."""
         files = index_files(self.directory)
         return files[-1][0] if files else 0
 
+    def has_files(self) -> bool:
+        return bool(index_files(self.directory))
+
+    def published(self) -> bool:
+        return self.has_files()
+
+    def describe(self) -> dict[str, Any]:
+        return {"type": "IndexIDMap2(IndexFlatL2)"}
+
+    # --- opening -----------------------------------------------------------------------------
     def discard_untrusted(self, committed: int) -> list[str]:
         """Delete index files ahead of ``committed`` vertices or torn (writer, at open).
 
@@ -135,11 +160,11 @@ class FlatIndex:
     def _empty(self) -> faiss.IndexIDMap2:
         return faiss.IndexIDMap2(faiss.IndexFlatL2(self.dim))
 
-    def load(self, committed: int, shards: ShardSet) -> faiss.IndexIDMap2:
+    def load(self, committed: int, shards: ShardSet) -> bool:
         """Load the newest trustworthy file and bring it up to ``committed`` vertices.
 
         A file whose vector count, dimension or ids are not the ones its stamp implies is
-        discarded (the writer deletes it) and the index rebuilt from the shards.
+        discarded (the writer deletes it) and the index rebuilt from the shards. Always True.
 
         Notes
         -----
@@ -147,7 +172,7 @@ class FlatIndex:
         """
         if self.index is not None:
             self.catch_up(committed, shards)
-            return self.index
+            return True
         index = None
         for upto, path in reversed(index_files(self.directory)):
             problem = file_problem(path, upto, committed, self.dim)
@@ -173,44 +198,63 @@ class FlatIndex:
             index = faiss.IndexIDMap2(candidate) if not isinstance(
                 candidate, faiss.IndexIDMap2
             ) else candidate
-            self.persisted = upto
+            self._persisted = upto
             break
         self.index = index if index is not None else self._empty()
+        self.shards = shards
         if index is None and committed:
             self.events.append(f"index rebuilt from the shards ({committed} vertices)")
         self.catch_up(committed, shards)
-        return self.index
+        return True
 
-    def catch_up(self, committed: int, shards: ShardSet) -> None:
-        """Add shard rows ``covered..committed-1`` to the in-memory index."""
-        assert self.index is not None
-        start = self.covered
-        while start < committed:
-            stop = min(committed, start + REBUILD_CHUNK)
-            self.add(start, shards.rows(start, stop, committed))
-            start = stop
-
-    def add(self, start: int, rows: np.ndarray) -> None:
-        """Add ``rows`` as vertex ids ``start..`` (must continue the covered range)."""
-        if self.index is None:
-            return  # not loaded: the next load catches up from the shards
-        if start != self.covered:
-            raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
-        ids = np.arange(start, start + len(rows), dtype=np.int64)
-        self.index.add_with_ids(np.ascontiguousarray(rows, dtype=np.float32), ids)
-
+    # --- reading -----------------------------------------------------------------------------
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded."""
-        assert self.index is not None, "load() first"
+        """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded.
+
+        Notes
+        -----
+        O(q * covered * d) (brute force; every core for a batch of 8 or more queries).
+        """
+        if self.index is None:
+            raise IndexNotLoadedError("the flat index is not loaded: load() first")
         queries = np.ascontiguousarray(queries, dtype=np.float32)
         use_threads(len(queries))
         distances, ids = self.index.search(queries, k)
         return distances, ids
 
+    # --- writing -----------------------------------------------------------------------------
+    def add(self, start: int, rows: np.ndarray) -> None:
+        """Add ``rows`` as vertex ids ``start..`` (must continue the covered range).
+        O(len(rows) * d)."""
+        if self.index is None:
+            raise IndexNotLoadedError("the flat index is not loaded: load() first")
+        if start != self.covered:
+            raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
+        ids = np.arange(start, start + len(rows), dtype=np.int64)
+        self.index.add_with_ids(np.ascontiguousarray(rows, dtype=np.float32), ids)
+
+    def after_commit(self, committed: int, shards: ShardSet) -> bool:
+        """Due when the map outgrew the file by ``index_persist_every`` vertices and by
+        ``index_persist_growth`` times the file's size (the file is rewritten whole on every
+        persist, so the interval grows with it: total bytes written stay O(final size), not
+        O(size^2 / interval)). Loads the index when due. O(1) but for that load."""
+        on_disk = self._persisted if self.index is not None else self.persisted_on_disk()
+        cfg = self.config
+        due = committed - on_disk >= max(cfg.index_persist_every,
+                                         cfg.index_persist_growth * on_disk)
+        if due and self.index is None:
+            self.load(committed, shards)
+        return due
+
     def persist(self) -> bool:
-        """Publish the in-memory index atomically if it covers more than the file on disk."""
+        """Publish the in-memory index atomically if it covers more than the file on disk.
+
+        Notes
+        -----
+        O(covered * d) written (the whole file), then older files removed.
+        """
         index = self.index
-        if not self.writable or index is None or self.covered <= self.persisted:
+        if not self.writable or index is None or self.covered <= self._persisted:
             return False
         upto = self.covered
         path = self.directory / f"flat.{upto:012d}.faiss"
@@ -231,7 +275,7 @@ class FlatIndex:
             if older != upto:
                 old_path.unlink(missing_ok=True)
         fsync_dir(self.directory)
-        self.persisted = upto
+        self._persisted = upto
         return True
 
     def rebuild(self, committed: int, shards: ShardSet) -> None:
@@ -244,14 +288,24 @@ class FlatIndex:
         """
         assert self.writable
         self.index = self._empty()
-        self.persisted = 0
+        self._persisted = 0
+        self.shards = shards
         self.catch_up(committed, shards)
         if not self.persist():  # an empty map: no file at all
-            for _, path in index_files(self.directory):
-                path.unlink(missing_ok=True)
-            fsync_dir(self.directory)
+            self.remove_files()
 
-    def reset(self) -> None:
-        """Forget the in-memory index (it is reloaded on the next search)."""
+    def remove_files(self) -> list[str]:
+        removed = []
+        for _, path in index_files(self.directory):
+            atomic.unlink(path)
+            removed.append(path.name)
+        if removed:
+            fsync_dir(self.directory)
+        return removed
+
+    # --- lifetime ----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Forget the in-memory index (it is reloaded on the next search). Idempotent."""
         self.index = None
-        self.persisted = 0
+        self._persisted = 0
+        self.shards = None

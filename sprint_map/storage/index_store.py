@@ -11,36 +11,36 @@ Which index a map uses follows ``MapConfig.index_type``:
   128-dimensional vertices' worth, then ``ivf-pq``, trained by the writer when the map
   crosses that size.
 
-Both are caches of the shards (LMDB is the truth): files ahead of the map or torn are dropped
-by the writer's open, the in-memory index is caught up from the shards when loaded. A writer
-switching to the segmented index publishes its manifest first and only then removes the flat
-files, so readers keep searching the old index until the new one is complete.
+Both implement :class:`~sprint_map.storage.retrieval_index.RetrievalIndex`; the store holds
+one of them, the *active* index, and switching kind (``index --train``, a map growing past
+the threshold) is replacing it. Both are caches of the shards (LMDB is the truth): files ahead
+of the map or torn are dropped by the writer's open, the in-memory index is caught up from the
+shards when loaded. A writer switching kind publishes the new index first and only then
+removes the old kind's files, so readers keep searching the old index until the new one is
+complete; a publication of a later kind in :data:`KINDS` supersedes the files of an earlier one.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sprint_map.config import MapConfig
-from sprint_map.errors import StorageIOError
-from sprint_map.storage import atomic
 from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
-from sprint_map.storage.segment_index import (
-    SegmentedIndex,
-    manifest_problems,
-    publish_manifest,
-    read_manifest,
-    remove_unlisted,
-)
+from sprint_map.storage.retrieval_index import RetrievalIndex
+from sprint_map.storage.segment_index import SegmentedIndex
 from sprint_map.storage.segment_model import MIN_TRAIN
 from sprint_map.storage.shards import ShardSet
 
-__all__ = ["IndexStore", "file_bytes", "file_problem", "index_files"]
+__all__ = ["KINDS", "IndexStore", "approximate_kind", "file_bytes", "file_problem",
+           "index_files"]
+
+#: Every kind of index, in ascending precedence: a publication of a later kind supersedes
+#: the files of the earlier ones (they are leftovers of a kill before their removal).
+KINDS: tuple[type[RetrievalIndex], ...] = (FlatIndex, SegmentedIndex)
 
 
 def approximate_kind(config: MapConfig, committed: int) -> str | None:
@@ -54,7 +54,9 @@ def approximate_kind(config: MapConfig, committed: int) -> str | None:
 
 
 class IndexStore:
-    """The map's index: a :class:`FlatIndex` or a :class:`SegmentedIndex`, chosen on load.
+    """The map's index: one active :class:`RetrievalIndex`, its kind chosen on load.
+
+    The active index is loaded, or an unloaded :class:`FlatIndex` (nothing loaded yet).
 
     Parameters
     ----------
@@ -74,135 +76,111 @@ class IndexStore:
         self.dim = dim
         self.writable = writable
         self.config = config if config is not None else MapConfig(dim=dim, index_type="flat")
-        self.flat = FlatIndex(directory, dim, writable=writable)
-        self.segmented: SegmentedIndex | None = None
-        self.events = self.flat.events  # what loading had to do (for check/info reports)
+        self.events: list[str] = []  # what loading had to do (for check/info reports)
+        self.active: RetrievalIndex = self._make(FlatIndex)
         #: Seconds spent training (and encoding the map with) new models in this process.
         self.train_s = 0.0
         self._shards: ShardSet | None = None
         self._committed = 0
 
+    def _make(self, kind: type[RetrievalIndex]) -> RetrievalIndex:
+        """A new, unloaded index of ``kind`` on this directory. O(1): nothing is read."""
+        return kind(self.directory, self.config, writable=self.writable, events=self.events)
+
+    def _replace(self, index: RetrievalIndex) -> None:
+        """Make ``index`` the active one; the old one is closed (its memory released)."""
+        old, self.active = self.active, index
+        if old is not index:
+            old.close()
+
+    def _on_disk(self) -> RetrievalIndex:
+        """An unloaded index of the kind whose files are published (flat if none)."""
+        for kind in reversed(KINDS[1:]):
+            index = self._make(kind)
+            if index.published():
+                return index
+        return self._make(KINDS[0])
+
     # --- state ------------------------------------------------------------------------------
     @property
-    def index(self) -> Any:
+    def index(self) -> RetrievalIndex | None:
         """The loaded index (None until the first search)."""
-        return self.segmented if self.segmented is not None else self.flat.index
+        return self.active if self.active.loaded else None
 
     @property
     def covered(self) -> int:
         """Vertices covered by the in-memory index (0 if not loaded)."""
-        return self.segmented.covered if self.segmented is not None else self.flat.covered
+        return self.active.covered
 
     @property
     def persisted(self) -> int:
         """Vertices the trusted files on disk cover (sealed segments, or the flat file)."""
-        if self.segmented is not None:
-            return self.segmented.manifest.sealed
-        return self.flat.persisted
-
-    @persisted.setter
-    def persisted(self, value: int) -> None:
-        self.flat.persisted = value
+        return self.active.persisted
 
     def persisted_on_disk(self) -> int:
         """Vertices covered by the index files on disk (without loading them)."""
-        try:
-            manifest = read_manifest(self.directory)
-        except ValueError:
-            manifest = None
-        if manifest is not None:
-            return manifest.sealed
-        return self.flat.persisted_on_disk()
+        return self._on_disk().persisted_on_disk()
 
     def has_files(self) -> bool:
         """Whether an index is persisted at all (a flat file, or a segment manifest)."""
-        return (self.directory / "segments.json").exists() or bool(index_files(self.directory))
+        return any(self._make(kind).has_files() for kind in KINDS)
 
     def describe(self) -> dict[str, Any]:
         """What ``info`` reports about the index (loaded or not)."""
-        if self.segmented is not None:
-            return self.segmented.describe()
-        try:
-            manifest = read_manifest(self.directory)
-        except ValueError:
-            manifest = None
-        if manifest is not None:
-            return {"type": f"segmented {manifest.kind} (IVF{manifest.nlist})",
-                    "generation": manifest.generation, "segments": len(manifest.segments),
-                    "sealed": manifest.sealed}
-        return {"type": "IndexIDMap2(IndexFlatL2)"}
+        return (self.active if self.active.loaded else self._on_disk()).describe()
 
     # --- opening ------------------------------------------------------------------------------
     def discard_untrusted(self, committed: int) -> list[str]:
-        """Drop index files ahead of ``committed`` vertices, torn, or not named (writer, open).
+        """Drop index files ahead of ``committed`` vertices, torn, not named, or superseded by
+        a later kind's publication (writer, open).
 
         Notes
         -----
         One ``stat`` per index file: O(segments), O(log map size) with tiered merging.
         """
-        actions = self.flat.discard_untrusted(committed)
-        try:
-            manifest = read_manifest(self.directory)
-        except ValueError as exc:
-            actions.append(f"removed the index manifest: {exc}")
-            manifest = None
-        if manifest is not None:
-            model_problem, good, problems = manifest_problems(self.directory, manifest,
-                                                              committed)
-            actions.extend(f"index {problem}: dropped" for problem in problems)
-            if model_problem:
-                manifest = None
-            elif good < len(manifest.segments):
-                manifest = replace(manifest, segments=manifest.segments[:good])
-                publish_manifest(self.directory, manifest)
-        actions.extend(f"removed index {name}: not in the manifest"
-                       for name in remove_unlisted(self.directory, manifest))
-        if manifest is not None and index_files(self.directory):
-            for _, path in index_files(self.directory):  # superseded by the segments
-                atomic.unlink(path)
-                actions.append(f"removed index {path.name}: superseded by the segments")
-            atomic.fsync_dir(self.directory)
+        actions = []
+        for kind in KINDS:
+            actions.extend(self._make(kind).discard_untrusted(committed))
+        winner = self._on_disk()
+        for kind in KINDS[: KINDS.index(type(winner))]:
+            actions.extend(f"removed index {name}: superseded by {winner.files}"
+                           for name in self._make(kind).remove_files())
         return actions
 
-    def load(self, committed: int, shards: ShardSet) -> Any:
+    def load(self, committed: int, shards: ShardSet) -> None:
         """Load the trusted index and bring it up to ``committed`` vertices.
 
-        A writer whose map should use the approximate index but has none trains it here.
+        A loaded index is only caught up, unless it is exact and the map (a writer's) should
+        use the approximate index now: the published segments are opened, or trained here.
+        Nothing loaded: the segments if the config allows them and they are published, else
+        the flat index.
         """
         self._shards, self._committed = shards, committed
-        if self.segmented is not None:
+        train = self.writable and approximate_kind(self.config, committed) is not None
+        active = self.active
+        if active.loaded and not (train and active.exact):
             self.catch_up(committed, shards)
-            return self.segmented
-        wants = approximate_kind(self.config, committed)
-        if self.config.index_type != "flat" and (
-                self.flat.index is None or (self.writable and wants is not None)):
-            opened = None
-            for attempt in range(3):  # a reader may race the writer replacing merged segments
-                opened = SegmentedIndex.open(self.directory, self.config, committed, self.events,
-                                             strict=not self.writable and attempt < 2)
-                if opened is not None or not (self.directory / "segments.json").exists():
-                    break
-            if opened is not None:
-                self.segmented = opened
-                self.flat.reset()
-                opened.catch_up(committed, shards)
-                return opened
-            if wants is not None and self.writable:
+            return
+        if self.config.index_type != "flat":
+            segmented = self._make(SegmentedIndex)
+            if segmented.load(committed, shards):
+                self._replace(segmented)
+                return
+            if train:
                 self.train(committed, shards)
-                return self.segmented
-        return self.flat.load(committed, shards)
+                return
+        flat = active if active.exact else self._make(FlatIndex)
+        self._replace(flat)
+        flat.load(committed, shards)
 
     def catch_up(self, committed: int, shards: ShardSet) -> None:
         """Add shard rows ``covered..committed-1`` to the in-memory index."""
         self._shards, self._committed = shards, committed
-        if self.segmented is not None:
-            if not self.writable and self.segmented.tail_len > 2 * self.config.index_segment_rows:
-                self.reset()  # a reader far behind the writer's segments: reopen them
-                self.load(committed, shards)
-                return
-            self.segmented.catch_up(committed, shards)
-        else:
-            self.flat.catch_up(committed, shards)
+        if self.active.outdated():  # a reader far behind the writer's segments: reopen them
+            self.reset()
+            self.load(committed, shards)
+            return
+        self.active.catch_up(committed, shards)
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k nearest vertices of each query row: ``(squared L2 distances, vertex_ids)``.
@@ -211,45 +189,23 @@ class IndexStore:
         rows are -1 padded. Asking for a larger ``k`` (e.g. to filter removed vertices) costs
         ``max(k, index_rerank)`` candidates, not another search.
         """
-        if self.segmented is not None:
-            assert self._shards is not None
-            # Every covered row was committed, even when the last load() was an older
-            # snapshot's (storage/snapshot.py): its re-ranking may read them all.
-            committed = max(self._committed, self.covered)
-            return self.segmented.search(queries, k, self._shards, committed)
-        return self.flat.search(queries, k)
+        return self.active.search(queries, k)
 
     # --- writing ------------------------------------------------------------------------------
     def after_commit(self, committed: int, shards: ShardSet, first: int) -> bool:
         """Update the index after a commit of vertices ``first..committed-1``; True if the
-        caller should persist (flat: on the geometric schedule; segmented: a tail to seal)."""
-        if self.index is not None:
+        caller should persist (flat: on the geometric schedule; segmented: never, a full
+        tail block is sealed in the background)."""
+        if self.active.loaded:
             if self.covered == first:
                 # The rows are in the page cache: read them back from the shards' memory map.
                 self.catch_up(committed, shards)
             else:  # cannot happen with one writer; reload rather than guess
                 self.reset()
         self._shards, self._committed = shards, committed
-        kind = approximate_kind(self.config, committed)
-        if kind is not None and self.segmented is None:
+        if approximate_kind(self.config, committed) is not None and self.active.exact:
             self.load(committed, shards)  # the published segments, or train them now
-        if self.segmented is not None:
-            try:  # sealing runs in a worker thread: the commit path does not wait for it
-                self.segmented.seal_ready(shards, committed, background=True)
-            except OSError as exc:
-                raise StorageIOError(f"cannot seal an index segment in {self.directory}: "
-                                     f"{exc.strerror or exc}") from exc
-            return False
-        on_disk = self.flat.persisted if self.flat.index is not None else (
-            self.flat.persisted_on_disk())
-        # A flat index file is rewritten whole on every persist, so the interval grows with the
-        # file (geometric): total bytes written stay O(final size), not O(size^2 / interval).
-        cfg = self.config
-        due = committed - on_disk >= max(cfg.index_persist_every,
-                                         cfg.index_persist_growth * on_disk)
-        if due and self.flat.index is None:
-            self.flat.load(committed, shards)
-        return due
+        return self.active.after_commit(committed, shards)
 
     def persist(self) -> bool:
         """Make the files cover what they should: seal full tail blocks (segmented), train
@@ -259,13 +215,9 @@ class IndexStore:
         shards, committed = self._shards, self._committed
         if shards is None:
             return False  # nothing added or searched since the open: nothing to persist
-        if approximate_kind(self.config, committed) is not None:
-            if self.segmented is None:
-                self.load(committed, shards)  # opens the published segments, or trains
-            if self.segmented is not None:
-                self.segmented.wait()  # the worker's block first, then every full one
-                return self.segmented.seal_ready(shards, committed)
-        return self.flat.persist()
+        if approximate_kind(self.config, committed) is not None and self.active.exact:
+            self.load(committed, shards)  # opens the published segments, or trains
+        return self.active.persist()
 
     def train(self, committed: int, shards: ShardSet) -> list[str]:
         """Train a new model on a fresh sample and re-encode every vertex (``index --train``).
@@ -280,26 +232,11 @@ class IndexStore:
         Training plus O(committed * dim) to re-encode.
         """
         assert self.writable
-        if self.segmented is not None:
-            self.segmented.wait()
-        kind = approximate_kind(self.config, committed)
-        if kind is None:
+        if approximate_kind(self.config, committed) is None:
             self.rebuild(committed, shards)
             return [f"rebuilt the flat index ({committed} vertices)"]
-        self._shards, self._committed = shards, committed
-        generation = 1 + max([int(p.name.split(".")[1]) for p in
-                              self.directory.glob("model.*.faiss")] + [0])
-        started = time.perf_counter()
-        self.segmented = SegmentedIndex.train(self.directory, self.config, kind, committed,
-                                              shards, generation)
-        self.train_s += time.perf_counter() - started
-        self.flat.index = None
-        self.flat.persisted = 0
-        remove_unlisted(self.directory, self.segmented.manifest)
-        for _, path in index_files(self.directory):
-            atomic.unlink(path)
-        atomic.fsync_dir(self.directory)
-        desc = self.segmented.describe()
+        self.train_s += self._rebuild_as(SegmentedIndex, committed, shards)
+        desc = self.active.describe()
         self.events.append(f"index trained: {desc['type']}, {desc['segments']} segments")
         return [f"trained {desc['type']} on {committed} vertices: {desc['segments']} "
                 f"segments, {desc['tail']} tail vertices searched exactly"]
@@ -313,11 +250,23 @@ class IndexStore:
         if approximate_kind(self.config, committed) is not None:
             self.train(committed, shards)
             return
-        if self.segmented is not None:
-            self.segmented.wait()
-        self.segmented = None
-        self.flat.rebuild(committed, shards)
-        remove_unlisted(self.directory, None)
+        self._rebuild_as(FlatIndex, committed, shards)
+
+    def _rebuild_as(self, kind: type[RetrievalIndex], committed: int, shards: ShardSet
+                    ) -> float:
+        """Make a rebuilt index of ``kind`` the active one, then delete every other kind's
+        files; returns the seconds the rebuild took. A failure leaves nothing loaded."""
+        self._shards, self._committed = shards, committed
+        self.reset()  # a sealing in flight finishes first
+        fresh = self._make(kind)
+        started = time.perf_counter()
+        fresh.rebuild(committed, shards)
+        elapsed = time.perf_counter() - started
+        self.active = fresh
+        for other in KINDS:
+            if other is not kind:
+                self._make(other).remove_files()
+        return elapsed
 
     def merge_segments(self) -> bool:
         """Merge every sealed segment into one (``compact``); False if nothing to merge.
@@ -326,22 +275,17 @@ class IndexStore:
         or the merged one. O(sealed codes) read and written.
         """
         assert self.writable
-        if self.segmented is None:
-            return False
-        return self.segmented.merge_all()
+        return self.active.merge()
 
     def close(self) -> None:
         """Finish a sealing in flight before this index is dropped (e.g. its generation's
         directory removed by ``compact``); its error, if any, only loses that seal."""
-        if self.segmented is not None:
-            try:
-                self.segmented.wait()
-            except OSError as exc:
-                self.events.append(f"segment sealing in flight failed ({exc}); sealed later")
+        try:
+            self.reset()
+        except OSError as exc:
+            self.events.append(f"segment sealing in flight failed ({exc}); sealed later")
 
     def reset(self) -> None:
         """Forget the in-memory index (it is reloaded on the next search)."""
-        if self.segmented is not None:
-            self.segmented.wait()
-        self.flat.reset()
-        self.segmented = None
+        old, self.active = self.active, self._make(FlatIndex)
+        old.close()

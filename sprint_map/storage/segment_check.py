@@ -28,7 +28,7 @@ import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.storage.flat_index import index_files
-from sprint_map.storage.segment_index import (
+from sprint_map.storage.segment_manifest import (
     MANIFEST,
     Manifest,
     checksum_problems,

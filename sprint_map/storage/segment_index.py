@@ -15,25 +15,19 @@ of them: their inverted lists are stacked, ``HStackInvertedLists``) and of the t
 their true float32 rows from the memory-mapped shards and returns the k best by exact squared
 L2 distance: the distances are the flat index's, only the candidate set is approximate.
 
-``segments.json`` (the manifest, published atomically) names the model, its PCA and the
-segments with their byte sizes and checksums (BLAKE2b-128 of the file's bytes; a manifest
-written before checksums has none, and its files are trusted on their sizes alone); it is the
-only thing a reader trusts. Files it does not name are leftovers of an interrupted publication.
-Like the flat index this is a cache of the shards: a segment ahead of LMDB, whose size is not
-its recorded size or whose bytes fail their checksum is dropped with every segment after it
-(the tail then starts earlier: its rows are searched exactly, and the writer seals them again),
-a bad model drops the whole index (the writer retrains it). The checksums are verified when an
-index is loaded (O(index bytes), read sequentially once per process) and by ``check``; the
-writer's open only compares sizes (O(1)).
+``segments.json``, the manifest (:mod:`~sprint_map.storage.segment_manifest`), names the
+model and the segments with their sizes and checksums; it is the only thing a reader trusts.
+Like the flat index this is a cache of the shards: a segment ahead of LMDB, torn or failing
+its checksum is dropped with every segment after it (the tail then starts earlier: its rows
+are searched exactly, and the writer seals them again), a bad model drops the whole index (the
+writer retrains it). The checksums are verified when an index is loaded (O(index bytes), read
+sequentially once per process) and by ``check``; the writer's open only compares sizes (O(1)).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import re
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +35,30 @@ import faiss
 import numpy as np
 
 from sprint_map.config import MapConfig
-from sprint_map.storage import atomic
+from sprint_map.errors import StorageIOError
 from sprint_map.storage.crash import crash_point
+from sprint_map.storage.retrieval_index import (
+    CHUNK,
+    IndexNotLoadedError,
+    RetrievalIndex,
+    padded_results,
+)
+from sprint_map.storage.segment_manifest import (
+    MANIFEST,
+    Manifest,
+    SegmentEntry,
+    checksum_bytes,
+    checksum_file,
+    checksum_problems,
+    manifest_problems,
+    publish_manifest,
+    read_manifest,
+    remove_unlisted,
+    segment_name,
+)
 from sprint_map.storage.segment_model import (
+    APPROX_KINDS,
+    MIN_TRAIN,
     Model,
     RowReader,
     gather_rows,
@@ -58,210 +73,7 @@ from sprint_map.storage.segment_model import (
 )
 from sprint_map.storage.shards import ShardSet
 
-MANIFEST = "segments.json"
-SEGMENT_RE = re.compile(r"^seg\.(\d{6})\.(\d{12})-(\d{12})\.faiss$")
-MODEL_RE = re.compile(r"^(model|pca)\.(\d{6})\.faiss$")
-#: Rows read from the shards per batch when filling the tail or encoding a segment.
-CHUNK = 65536
-#: FAISS's padding distance (``FLT_MAX``), returned with id -1 when fewer than k hits exist.
-PAD_DISTANCE = np.finfo(np.float32).max
-
-
-def segment_name(generation: int, start: int, stop: int) -> str:
-    return f"seg.{generation:06d}.{start:012d}-{stop:012d}.faiss"
-
-
-def is_segment_file(name: str) -> bool:
-    """Whether ``name`` belongs to the segmented index (manifest, model, PCA or segment)."""
-    return name == MANIFEST or bool(SEGMENT_RE.match(name) or MODEL_RE.match(name))
-
-
-#: Bytes of a file's checksum (BLAKE2b), hex in the manifest.
-CHECKSUM_BYTES = 16
-#: Bytes read at a time when checksumming a file.
-CHECKSUM_CHUNK = 1 << 20
-
-
-def checksum_bytes(data: bytes | memoryview) -> str:
-    """The manifest checksum of ``data``: BLAKE2b-128, hex. O(len(data))."""
-    return hashlib.blake2b(data, digest_size=CHECKSUM_BYTES).hexdigest()
-
-
-def checksum_file(path: Path) -> str:
-    """The manifest checksum of the file ``path`` (read in 1 MiB blocks). O(file size)."""
-    digest = hashlib.blake2b(digest_size=CHECKSUM_BYTES)
-    with open(path, "rb") as fh:
-        while block := fh.read(CHECKSUM_CHUNK):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-@dataclass(frozen=True)
-class SegmentEntry:
-    start: int
-    stop: int
-    file: str
-    bytes: int
-    checksum: str = ""  # "": a manifest written before checksums
-
-
-@dataclass(frozen=True)
-class Manifest:
-    """What ``segments.json`` records: the model of one generation and its sealed segments."""
-
-    generation: int
-    kind: str
-    nlist: int
-    model_bytes: int
-    pca_bytes: int  # 0: no PCA
-    trained_on: int  # vertices in the map when the model was trained
-    segments: tuple[SegmentEntry, ...] = field(default_factory=tuple)
-    model_checksum: str = ""  # "": a manifest written before checksums
-    pca_checksum: str = ""
-
-    @property
-    def sealed(self) -> int:
-        """Vertices covered by the segments (ids ``0..sealed-1``)."""
-        return self.segments[-1].stop if self.segments else 0
-
-    def files(self) -> list[tuple[str, int]]:
-        """Every file the manifest names, with its recorded size."""
-        return [(name, size) for name, size, _ in self.checksummed()]
-
-    def checksummed(self) -> list[tuple[str, int, str]]:
-        """Every file the manifest names with its recorded size and checksum ("" if none)."""
-        out = [(model_name(self.generation), self.model_bytes, self.model_checksum)]
-        if self.pca_bytes:
-            out.append((pca_name(self.generation), self.pca_bytes, self.pca_checksum))
-        return out + [(s.file, s.bytes, s.checksum) for s in self.segments]
-
-    def encode(self) -> bytes:
-        data = asdict(self)
-        data["format"] = 1
-        return json.dumps(data, indent=1).encode()
-
-    @classmethod
-    def decode(cls, raw: bytes) -> Manifest:
-        """Parse a manifest; ValueError if it is not one (garbled, torn, another format)."""
-        try:
-            data: dict[str, Any] = json.loads(raw)
-            if data.pop("format") != 1:
-                raise ValueError("unknown manifest format")
-            segments = tuple(SegmentEntry(**s) for s in data.pop("segments"))
-            manifest = cls(**data, segments=segments)
-        except (TypeError, KeyError, AttributeError, RecursionError,
-                UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"not a segment manifest: {exc}") from exc
-        ints = [manifest.generation, manifest.nlist, manifest.model_bytes, manifest.pca_bytes,
-                manifest.trained_on] + [v for s in manifest.segments
-                                        for v in (s.start, s.stop, s.bytes)]
-        texts = [manifest.kind, manifest.model_checksum, manifest.pca_checksum] + [
-            v for s in manifest.segments for v in (s.file, s.checksum)]
-        if not all(type(v) is int and 0 <= v < 1 << 63 for v in ints) or not all(
-                isinstance(v, str) for v in texts):
-            raise ValueError("not a segment manifest: a field has the wrong type")
-        if any(not SEGMENT_RE.match(seg.file) for seg in manifest.segments):
-            raise ValueError("not a segment manifest: a segment file name is not one")
-        start = 0
-        for seg in manifest.segments:
-            if seg.start != start or seg.stop <= seg.start:
-                raise ValueError(f"segment {seg.file} does not continue at vertex {start}")
-            start = seg.stop
-        return manifest
-
-
-def read_manifest(directory: Path) -> Manifest | None:
-    """The manifest in ``directory``, None if there is none; ValueError if it is garbled."""
-    try:
-        raw = (directory / MANIFEST).read_bytes()
-    except FileNotFoundError:
-        return None
-    return Manifest.decode(raw)
-
-
-def manifest_problems(directory: Path, manifest: Manifest, committed: int
-                      ) -> tuple[str | None, int, list[str]]:
-    """Check the files of ``manifest`` against their recorded sizes and the map. One ``stat``
-    per file.
-
-    Returns ``(model problem or None, number of trustworthy leading segments, problems)``.
-    """
-
-    def problem(name: str, size: int) -> str | None:
-        try:
-            actual = (directory / name).stat().st_size
-        except FileNotFoundError:
-            return f"{name} is missing"
-        return None if actual == size else f"{name} is torn: {actual} bytes, recorded {size}"
-
-    model_problem = None
-    for name, size in manifest.files()[: 2 if manifest.pca_bytes else 1]:
-        model_problem = model_problem or problem(name, size)
-    problems = [model_problem] if model_problem else []
-    good = 0
-    for seg in manifest.segments:
-        why = (f"{seg.file} is ahead of the map ({committed} vertices)" if seg.stop > committed
-               else problem(seg.file, seg.bytes))
-        if why:
-            problems.append(why)
-            break
-        good += 1
-    return model_problem, good, problems
-
-
-#: Files this process verified: (path, inode, size, mtime_ns) -> checksum. Published index files
-#: are never rewritten in place (a change is a new name), so a reader that reopens the index
-#: (it fell behind the writer's segments) re-reads only the new files.
-_VERIFIED: dict[tuple[str, int, int, int], str] = {}
-
-
-def checksum_problems(directory: Path, manifest: Manifest, *, cached: bool = True
-                      ) -> tuple[str | None, int, list[str]]:
-    """Verify the checksum of every file ``manifest`` records one for (call after
-    :func:`manifest_problems`, on the files it trusts).
-
-    Returns ``(model problem or None, number of leading segments whose bytes are sound,
-    problems)``, like :func:`manifest_problems`. ``cached``: skip files this process already
-    verified, unchanged since (``check`` passes False: it reads every byte).
-
-    Notes
-    -----
-    O(bytes of the files): each is read once, sequentially (1 MiB blocks).
-    """
-
-    def problem(name: str, checksum: str) -> str | None:
-        if not checksum:
-            return None
-        path = directory / name
-        try:
-            info = path.stat()
-            key = (str(path), info.st_ino, info.st_size, info.st_mtime_ns)
-            if cached and _VERIFIED.get(key) == checksum:
-                return None
-            actual = checksum_file(path)
-        except FileNotFoundError:
-            return f"{name} is missing"
-        except OSError as exc:
-            return f"{name} is unreadable ({exc.strerror or exc})"
-        if actual != checksum:
-            return f"{name} fails its checksum (corrupt bytes)"
-        _VERIFIED[key] = checksum
-        return None
-
-    files = manifest.checksummed()
-    model_problem = None
-    for name, _, checksum in files[: 2 if manifest.pca_bytes else 1]:
-        model_problem = model_problem or problem(name, checksum)
-    problems = [model_problem] if model_problem else []
-    good = 0
-    for seg in manifest.segments:
-        why = problem(seg.file, seg.checksum)
-        if why:
-            problems.append(why)
-            break
-        good += 1
-    return model_problem, good, problems
-
+__all__ = ["SegmentedIndex", "tier_plan"]
 
 def tier_plan(committed: int, rows: int, factor: int) -> list[tuple[int, int]]:
     """The segments sealing ``[0, committed)`` one ``rows`` block at a time would leave after
@@ -279,46 +91,25 @@ def tier_plan(committed: int, rows: int, factor: int) -> list[tuple[int, int]]:
     return plan
 
 
-def publish_manifest(directory: Path, manifest: Manifest) -> None:
-    publish_bytes(directory / MANIFEST, manifest.encode())
-    crash_point("index.manifest_published")
+class SegmentedIndex(RetrievalIndex):
+    """The segmented approximate index of one map (see the module docstring).
 
-
-def remove_unlisted(directory: Path, manifest: Manifest | None, keep_flat: bool = True
-                    ) -> list[str]:
-    """Delete segmented-index files ``manifest`` does not name (all of them if None)."""
-    listed = {name for name, _ in manifest.files()} | {MANIFEST} if manifest else set()
-    removed = []
-    for entry in sorted(directory.iterdir()) if directory.is_dir() else []:
-        if is_segment_file(entry.name) and entry.name not in listed:
-            atomic.unlink(entry)
-            removed.append(entry.name)
-    if removed:
-        atomic.fsync_dir(directory)
-    return removed
-
-
-class SegmentedIndex:
-    """The loaded segmented index of one map (see the module docstring).
-
-    Parameters
-    ----------
-    directory : Path
-        The ``index/`` directory.
-    config : MapConfig
-        The map's config (segment size, merge factor, nprobe, rerank).
-    manifest : Manifest
-        What is published (its segments are opened memory-mapped).
-    model : Model
-        The trained model of ``manifest.generation``.
+    A :class:`~sprint_map.storage.retrieval_index.RetrievalIndex` (see there for the
+    parameters and the contract). :meth:`load` opens the published manifest (False if there
+    is none usable: it cannot be built without training, which is :meth:`rebuild`);
+    :meth:`rebuild` trains a new generation. Searches re-rank their candidates by exact
+    distance, so the distances are exact; only the candidate set is approximate.
     """
 
-    def __init__(self, directory: Path, config: MapConfig, manifest: Manifest,
-                 model: Model) -> None:
-        self.directory = directory
-        self.config = config
-        self.manifest = manifest
-        self.model = model
+    kind = "segmented"
+    exact = False
+    files = "the segments"
+
+    def __init__(self, directory: Path, config: MapConfig, *, writable: bool,
+                 events: list[str] | None = None) -> None:
+        super().__init__(directory, config, writable=writable, events=events)
+        self._manifest: Manifest | None = None
+        self._model: Model | None = None
         self._segments: list[Any] = []
         self._opened: dict[str, Any] = {}  # segment file -> its memory-mapped index
         self._reader = RowReader()  # re-ranking reads rows with pread, not the memory maps
@@ -326,52 +117,176 @@ class SegmentedIndex:
         self._pool: ThreadPoolExecutor | None = None
         self._stacked: Any | None = None
         self._stack_refs: list[Any] = []
-        self.tail_start = manifest.sealed
+        self.tail_start = 0
         self._tail = np.empty((0, config.index_dim), dtype=np.float32)
         self.tail_len = 0
-        self._open_segments()
 
-    # --- opening ----------------------------------------------------------------------------
-    @classmethod
-    def open(cls, directory: Path, config: MapConfig, committed: int, events: list[str], *,
-             strict: bool = False) -> SegmentedIndex | None:
-        """Open the published index, trusting only what the manifest and the map vouch for.
+    # --- state --------------------------------------------------------------------------------
+    @property
+    def loaded(self) -> bool:
+        return self._manifest is not None
 
-        Segments ahead of ``committed`` or torn are left out (with every segment after them:
-        their range joins the tail); None if there is no manifest or its model is unusable.
-        ``strict`` (a reader, which may have read a manifest the writer has just replaced):
-        None on any problem, so that the caller reads the manifest again.
-        """
+    @property
+    def manifest(self) -> Manifest:
+        """The manifest of the loaded index (what is published)."""
+        if self._manifest is None:
+            raise IndexNotLoadedError("the segmented index is not loaded: load() first")
+        return self._manifest
+
+    @property
+    def model(self) -> Model:
+        """The trained model of the loaded index's generation."""
+        if self._model is None:
+            raise IndexNotLoadedError("the segmented index is not loaded: load() first")
+        return self._model
+
+    @property
+    def covered(self) -> int:
+        return self.tail_start + self.tail_len if self.loaded else 0
+
+    @property
+    def persisted(self) -> int:
+        return self._manifest.sealed if self._manifest is not None else 0
+
+    def _published_manifest(self) -> Manifest | None:
         try:
-            manifest = read_manifest(directory)
+            return read_manifest(self.directory)
+        except ValueError:
+            return None
+
+    def persisted_on_disk(self) -> int:
+        """Vertices the published segments cover (one manifest read; 0 if none usable)."""
+        manifest = self._published_manifest()
+        return manifest.sealed if manifest is not None else 0
+
+    def has_files(self) -> bool:
+        """Whether a manifest is there (usable or not). One ``stat``."""
+        return (self.directory / MANIFEST).exists()
+
+    def published(self) -> bool:
+        """Whether a manifest that parses is there. One small file read."""
+        return self._published_manifest() is not None
+
+    def describe(self) -> dict[str, Any]:
+        """Kind, model, segments; loaded, also the tail, training size and code bytes."""
+        if self._manifest is None:
+            m = self._published_manifest()
+            if m is None:
+                return {"type": "segmented (none published)"}
+            return {"type": f"segmented {m.kind} (IVF{m.nlist})", "generation": m.generation,
+                    "segments": len(m.segments), "sealed": m.sealed}
+        m = self._manifest
+        return {"type": f"segmented {m.kind} (IVF{m.nlist}"
+                        f"{', PCA ' + str(self.config.index_dim) if m.pca_bytes else ''})",
+                "generation": m.generation, "segments": len(m.segments), "sealed": m.sealed,
+                "tail": self.tail_len, "trained_on": m.trained_on,
+                "code_bytes": sum(s.bytes for s in m.segments)}
+
+    # --- opening ------------------------------------------------------------------------------
+    def discard_untrusted(self, committed: int) -> list[str]:
+        """Drop segments ahead of ``committed`` vertices or torn (with every one after them),
+        the whole index if its model is, and files the manifest does not name (writer, open).
+
+        Notes
+        -----
+        One ``stat`` per file: O(segments), O(log map size) with tiered merging.
+        """
+        actions = []
+        try:
+            manifest = read_manifest(self.directory)
         except ValueError as exc:
-            events.append(f"index manifest unusable ({exc}); discarded")
-            return None
+            actions.append(f"removed the index manifest: {exc}")
+            manifest = None
+        if manifest is not None:
+            model_problem, good, problems = manifest_problems(self.directory, manifest,
+                                                              committed)
+            actions.extend(f"index {problem}: dropped" for problem in problems)
+            if model_problem:
+                manifest = None
+            elif good < len(manifest.segments):
+                manifest = replace(manifest, segments=manifest.segments[:good])
+                publish_manifest(self.directory, manifest)
+        actions.extend(f"removed index {name}: not in the manifest"
+                       for name in remove_unlisted(self.directory, manifest))
+        return actions
+
+    def load(self, committed: int, shards: ShardSet) -> bool:
+        """Open the published index, trusting only what the manifest and the map vouch for,
+        and catch its tail up to ``committed``; False if there is no usable manifest or model.
+
+        Segments ahead of ``committed``, torn or failing their checksum are left out (with
+        every segment after them: their range joins the tail). A reader may race the writer
+        replacing merged segments: it reads the manifest again (three attempts, the last one
+        taking what it can).
+
+        Notes
+        -----
+        O(bytes of the files) to verify their checksums (once per process and file), the
+        segments memory-mapped, plus :meth:`catch_up`.
+        """
+        if self._manifest is None:
+            opened = False
+            for attempt in range(3):
+                opened = self._open(committed, strict=not self.writable and attempt < 2)
+                if opened or not (self.directory / MANIFEST).exists():
+                    break
+            if not opened:
+                return False
+        self.shards = shards
+        self.catch_up(committed, shards)
+        return True
+
+    def _open(self, committed: int, *, strict: bool) -> bool:
+        """Open the manifest's trusted part; ``strict`` (a reader, which may have read a
+        manifest the writer has just replaced): give up on any problem."""
+        try:
+            manifest = read_manifest(self.directory)
+        except ValueError as exc:
+            self.events.append(f"index manifest unusable ({exc}); discarded")
+            return False
         if manifest is None:
-            return None
-        model_problem, good, problems = manifest_problems(directory, manifest, committed)
+            return False
+        model_problem, good, problems = manifest_problems(self.directory, manifest, committed)
         if not model_problem:
             # Bytes corrupted in place (size unchanged): a cache event, like a torn file.
             model_bad, sound, bad_bytes = checksum_problems(
-                directory, replace(manifest, segments=manifest.segments[:good]))
+                self.directory, replace(manifest, segments=manifest.segments[:good]))
             model_problem = model_problem or model_bad
             good = min(good, sound)
             problems = bad_bytes + problems
         if strict and problems:
-            return None
-        events.extend(f"index {p}; left out (its vertices are searched exactly from the "
-                      "shards and indexed again by the writer)" for p in problems)
+            return False
+        self.events.extend(f"index {p}; left out (its vertices are searched exactly from the "
+                           "shards and indexed again by the writer)" for p in problems)
         if model_problem:
-            return None
+            return False
         manifest = replace(manifest, segments=manifest.segments[:good])
         try:
-            model = Model.read(directory, manifest.generation, manifest.kind,
+            model = Model.read(self.directory, manifest.generation, manifest.kind,
                                bool(manifest.pca_bytes))
-            return cls(directory, config, manifest, model)
+            self._start(manifest, model)
         except OSError as exc:
+            self._forget()
             if not strict:
-                events.append(f"index unreadable ({exc}); discarded")
-            return None
+                self.events.append(f"index unreadable ({exc}); discarded")
+            return False
+        return True
+
+    def _start(self, manifest: Manifest, model: Model) -> None:
+        """Hold ``model`` and open the segments of ``manifest``; an empty tail after them."""
+        self._manifest, self._model = manifest, model
+        self.tail_start, self.tail_len = manifest.sealed, 0
+        self._tail = np.empty((0, self.config.index_dim), dtype=np.float32)
+        self._opened = {}
+        self._open_segments()
+
+    def _forget(self) -> None:
+        self._manifest = self._model = None
+        self._segments, self._opened, self._stacked, self._stack_refs = [], {}, None, []
+        self.tail_start = self.tail_len = 0
+        self._tail = np.empty((0, self.config.index_dim), dtype=np.float32)
+        self.shards = None
+        self._reader.close()
 
     def _open_segments(self) -> None:
         segments = []
@@ -405,18 +320,19 @@ class SegmentedIndex:
             self._stacked = stacked
             self._stack_refs = [lists, hstack]  # the stacked index does not own them
 
-    # --- the tail -----------------------------------------------------------------------------
-    @property
-    def covered(self) -> int:
-        return self.tail_start + self.tail_len
+    def outdated(self) -> bool:
+        """A reader whose tail grew past two segments: the writer has sealed them since."""
+        return (self.loaded and not self.writable
+                and self.tail_len > 2 * self.config.index_segment_rows)
 
-    def catch_up(self, committed: int, shards: ShardSet) -> None:
-        """Add shard rows ``covered..committed-1`` to the tail. O(rows * dim)."""
-        start = self.covered
-        while start < committed:
-            stop = min(committed, start + CHUNK)
-            self._append_tail(self.model.transform(shards.rows(start, stop, committed)))
-            start = stop
+    # --- the tail -----------------------------------------------------------------------------
+    def add(self, start: int, rows: np.ndarray) -> None:
+        """Append ``rows`` (in the indexed space) to the exact tail. O(len(rows) * dim * d)
+        for the PCA, amortised O(len(rows) * d) to append."""
+        self.require_loaded()
+        if start != self.covered:
+            raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
+        self._append_tail(self.model.transform(rows))
 
     def _append_tail(self, rows: np.ndarray) -> None:
         need = self.tail_len + len(rows)
@@ -435,8 +351,7 @@ class SegmentedIndex:
         self.tail_start += n
 
     # --- search -------------------------------------------------------------------------------
-    def search(self, queries: np.ndarray, k: int, shards: ShardSet, committed: int
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k nearest vertices by exact squared L2, among the re-ranked candidates.
 
         Notes
@@ -444,6 +359,10 @@ class SegmentedIndex:
         IVF: one coarse quantization plus ``nprobe`` lists of codes over all segments; tail:
         O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards.
         """
+        shards = self.require_loaded()
+        # Every covered row was committed, even when the last load() was an older
+        # snapshot's (storage/snapshot.py): re-ranking may read them all.
+        committed = self.covered
         queries = np.ascontiguousarray(queries, dtype=np.float32)
         nq = len(queries)
         use_threads(nq)
@@ -456,8 +375,7 @@ class SegmentedIndex:
         if self.tail_len:
             i = faiss.knn(reduced, self._tail[: self.tail_len], min(n_cand, self.tail_len))[1]
             ids.append(np.where(i >= 0, i + self.tail_start, -1))
-        out_d = np.full((nq, k), PAD_DISTANCE, dtype=np.float32)
-        out_i = np.full((nq, k), -1, dtype=np.int64)
+        out_d, out_i = padded_results(nq, k)
         if not ids:
             return out_d, out_i
         # Every candidate of the segments and of the tail is re-ranked: their approximate
@@ -478,6 +396,22 @@ class SegmentedIndex:
         return out_d, out_i
 
     # --- writing (the writer only) ------------------------------------------------------------
+    def after_commit(self, committed: int, shards: ShardSet) -> bool:
+        """Start sealing full tail blocks in the background (never due for the caller)."""
+        try:  # sealing runs in a worker thread: the commit path does not wait for it
+            self.seal_ready(shards, committed, background=True)
+        except OSError as exc:
+            raise StorageIOError(f"cannot seal an index segment in {self.directory}: "
+                                 f"{exc.strerror or exc}") from exc
+        return False
+
+    def persist(self) -> bool:
+        """Seal every full tail block now (the worker's block first). O(tail * encode)."""
+        if not self.writable or self.shards is None or not self.loaded:
+            return False
+        self.wait()
+        return self.seal_ready(self.shards, self.covered)
+
     def seal_ready(self, shards: ShardSet, committed: int, *, background: bool = False
                    ) -> bool:
         """Seal full ``index_segment_rows`` blocks of the tail, merging tiers after each.
@@ -496,6 +430,7 @@ class SegmentedIndex:
         O(segment_rows * nlist * d) to encode a block (the coarse assignment dominates);
         merges copy codes: O(log N) rewrites per vertex.
         """
+        self.require_loaded()
         done = self._collect(wait=not background)
         rows = self.config.index_segment_rows
         if background:
@@ -575,7 +510,7 @@ class SegmentedIndex:
     def _publish(self, manifest: Manifest) -> None:
         """Publish ``manifest``, open its new segments, delete the files it no longer names."""
         publish_manifest(self.directory, manifest)
-        self.manifest = manifest
+        self._manifest = manifest
         self._open_segments()
         remove_unlisted(self.directory, manifest)
 
@@ -588,8 +523,10 @@ class SegmentedIndex:
         crash_point("index.segment_written")
         return entry
 
-    def merge_all(self) -> bool:
+    def merge(self) -> bool:
         """Merge every sealed segment into one (``compact``). O(sealed codes)."""
+        if not self.loaded:
+            return False
         self.wait()
         if len(self.manifest.segments) < 2:
             return False
@@ -598,19 +535,33 @@ class SegmentedIndex:
         return True
 
     # --- building -----------------------------------------------------------------------------
-    @classmethod
-    def train(cls, directory: Path, config: MapConfig, kind: str, committed: int,
-              shards: ShardSet, generation: int) -> SegmentedIndex:
-        """Train a model on a seeded sample, seal ``[0, committed)`` in full segments, publish.
+    def rebuild(self, committed: int, shards: ShardSet) -> None:
+        """Train a new generation's model on a seeded sample, seal ``[0, committed)`` in full
+        segments, publish it, then delete the files of older generations.
 
-        Nothing is visible until the manifest is replaced (the last step), so readers keep the
-        previous index until then; the caller removes what the new manifest does not name.
+        The kind is the config's (``ivf-pq`` for ``auto``). Nothing is visible until the
+        manifest is replaced, so readers keep the previous index until then; a kill leaves
+        the old one (its files named by the old manifest) or the new one.
+
+        Raises
+        ------
+        ValueError
+            Fewer than ``MIN_TRAIN`` vertices (too few to train on).
 
         Notes
         -----
         O(train_sample) rows sampled from the shards, training (see ``train_model``), then
         O(committed) rows encoded.
         """
+        assert self.writable
+        if committed < MIN_TRAIN:
+            raise ValueError(f"an approximate index needs {MIN_TRAIN} vertices to train on, "
+                             f"the map has {committed}")
+        kind = self.config.index_type if self.config.index_type in APPROX_KINDS else "ivf-pq"
+        self.close()
+        generation = 1 + max([int(p.name.split(".")[1]) for p in
+                              self.directory.glob("model.*.faiss")] + [0])
+        config, directory = self.config, self.directory
         sample = gather_rows(shards, sample_ids(committed, config.index_train_sample,
                                                 generation), committed)
         model = train_model(config, kind, sample)
@@ -620,22 +571,22 @@ class SegmentedIndex:
             generation, kind, model.nlist, model_bytes, pca_bytes, committed,
             model_checksum=checksum_file(directory / model_name(generation)),
             pca_checksum=checksum_file(directory / pca_name(generation)) if pca_bytes else "")
-        index = cls(directory, config, manifest, model)
+        self._start(manifest, model)
         entries = []
         for start, stop in tier_plan(committed, config.index_segment_rows,
                                      config.index_merge_factor):
-            entries.append(index._publish_segment(index._encode(shards, start, stop, committed),
-                                                  start, stop))
+            entries.append(self._publish_segment(self._encode(shards, start, stop, committed),
+                                                 start, stop))
             crash_point("index.segment_written")
-        index.manifest = replace(manifest, segments=tuple(entries))
-        index.tail_start = index.manifest.sealed
-        publish_manifest(directory, index.manifest)
-        index._open_segments()
-        index.catch_up(committed, shards)
-        return index
+        self._manifest = replace(manifest, segments=tuple(entries))
+        self.tail_start = self.manifest.sealed
+        publish_manifest(directory, self.manifest)
+        self._open_segments()
+        self.shards = shards
+        self.catch_up(committed, shards)
+        remove_unlisted(directory, self.manifest)
 
-    def _encode(self, shards: ShardSet, start: int, stop: int, committed: int
-                ) -> Any:
+    def _encode(self, shards: ShardSet, start: int, stop: int, committed: int) -> Any:
         segment = faiss.clone_index(self.model.ivf)
         for lo in range(start, stop, CHUNK):
             hi = min(stop, lo + CHUNK)
@@ -643,10 +594,14 @@ class SegmentedIndex:
                                  np.arange(lo, hi, dtype=np.int64))
         return segment
 
-    def describe(self) -> dict[str, Any]:
-        m = self.manifest
-        return {"type": f"segmented {m.kind} (IVF{m.nlist}"
-                        f"{', PCA ' + str(self.config.index_dim) if m.pca_bytes else ''})",
-                "generation": m.generation, "segments": len(m.segments), "sealed": m.sealed,
-                "tail": self.tail_len, "trained_on": m.trained_on,
-                "code_bytes": sum(s.bytes for s in m.segments)}
+    def remove_files(self) -> list[str]:
+        """Delete the manifest, models and segments (every generation)."""
+        return remove_unlisted(self.directory, None)
+
+    # --- lifetime -----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Finish a sealing in flight, then forget the in-memory index. Idempotent."""
+        try:
+            self.wait()
+        finally:
+            self._forget()

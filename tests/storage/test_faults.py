@@ -125,7 +125,7 @@ def op_persist(path: Path) -> None:
         store.search(_drive(6, 1), k=2)
         for stale in (path / INDEX_DIR).iterdir():  # make the persist rewrite the file
             stale.unlink()
-        store.index.persisted = 0
+        store.index.active.persisted = 0
         store.flush()
 
 

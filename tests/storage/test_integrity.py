@@ -40,7 +40,7 @@ from sprint_map.storage.flat_index import file_bytes, index_files
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL
 from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.lock import writer_active
-from sprint_map.storage.segment_index import MANIFEST
+from sprint_map.storage.segment_manifest import MANIFEST
 from sprint_map.storage.store import LMDB_DIR, MapStore
 
 DIM = 16

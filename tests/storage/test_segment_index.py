@@ -22,7 +22,8 @@ from sprint_map.storage.check import check_map
 from sprint_map.storage.crash import CRASH_ENV, SEGMENT_POINTS
 from sprint_map.storage.index_store import index_files
 from sprint_map.storage.repair import repair_map
-from sprint_map.storage.segment_index import MANIFEST, read_manifest, tier_plan
+from sprint_map.storage.segment_index import tier_plan
+from sprint_map.storage.segment_manifest import MANIFEST, read_manifest
 from sprint_map.storage.store import INDEX_DIR, MapStore
 
 DIM = 32
@@ -126,7 +127,7 @@ def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres):
                            + [s.file for s in manifest.segments])
     with MapStore.open(tmp_path / "m", readonly=True) as store:
         store.search(rows[:1], 5)
-        seg = store.index.segmented
+        seg = store.index.active
         assert seg is not None and seg.tail_len == 28
         for index in seg._segments:
             lists = faiss.downcast_InvertedLists(index.invlists)
@@ -158,7 +159,7 @@ def test_auto_switches_from_flat_when_the_map_grows(tmp_path, rng, centres):
     with MapStore.open(path) as store:
         rows = np.concatenate([rows, clustered(rng, 1200, centres)])
         store.add_sequence(rows[3000:])
-        assert store.index.segmented is not None
+        assert not store.index.active.exact
         assert any("index trained" in e for e in store.index.events)
     assert not index_files(path / INDEX_DIR)  # the flat file went once the segments were named
     assert read_manifest(path / INDEX_DIR).trained_on == 4200
