@@ -93,8 +93,10 @@ class MapGraphSource:
         snap = self._snapshot
         if snap is None:
             with MapSnapshot(self.store) as now:
-                return (ids >= 0) & (ids < now.vertices) & ~now.removed.contains(ids)
-        return (ids >= 0) & (ids < snap.vertices) & ~snap.removed.contains(ids)
+                live: np.ndarray = (ids >= 0) & (ids < now.vertices) & ~now.removed.contains(ids)
+                return live
+        held: np.ndarray = (ids >= 0) & (ids < snap.vertices) & ~snap.removed.contains(ids)
+        return held
 
     @contextmanager
     def _txn(self) -> Iterator[lmdb.Transaction]:

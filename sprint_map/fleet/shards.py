@@ -211,7 +211,7 @@ class ShardedIndex:
                                                                     else min(b, vertices))))
             self.actors.append(remote.options(**options).remote(
                 None if ship else path, a, b, self.dim, rows))
-        self.covered = max(ray.get([actor.covered.remote() for actor in self.actors]))
+        self.covered: int = max(ray.get([actor.covered.remote() for actor in self.actors]))
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k nearest vertices, every range searched: ``(squared L2, vertex ids)``, -1 padded.

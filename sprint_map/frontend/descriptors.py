@@ -117,7 +117,7 @@ class DescriptorSpec:
     @property
     def dim(self) -> int:
         """Number of dimensions of one descriptor."""
-        p = self.params
+        p: dict[str, int] = self.params
         if self.kind == "hog":
             windows_per_side = (p["size"] - p["block"]) // p["stride"] + 1
             cells_per_block = (p["block"] // p["cell"]) ** 2

@@ -139,13 +139,15 @@ class GroundTruth:
         q = np.asarray(query_frames, dtype=np.int64)
         d = np.asarray(db_frames, dtype=np.int64)
         if self.spec.alignment == "frame":
-            return np.abs(q - d) * self.stride <= self.spec.tolerance_frames
+            near: np.ndarray = np.abs(q - d) * self.stride <= self.spec.tolerance_frames
+            return near
         qp, dp = self._table(query), self._table(db)
         a, b = qp[q], dp[d]
-        close = np.hypot(a[..., 1] - b[..., 1], a[..., 2] - b[..., 2]) <= self.spec.radius_m
+        close: np.ndarray = np.hypot(a[..., 1] - b[..., 1], a[..., 2] - b[..., 2]) <= self.spec.radius_m
         if self.spec.heading_deg is None:
             return close
-        return close & (_angle_between(a[..., 3], b[..., 3]) <= self.spec.heading_deg)
+        out: np.ndarray = close & (_angle_between(a[..., 3], b[..., 3]) <= self.spec.heading_deg)
+        return out
 
     def matches(self, query: str, query_frame: int, db: str) -> np.ndarray:
         """Indices of all database frames of ``db`` that are correct for ``query_frame``.
@@ -209,4 +211,5 @@ class GroundTruth:
 def _angle_between(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:
     """Absolute difference of two headings in degrees, in [0, 180]."""
     diff = np.abs((np.asarray(a) - np.asarray(b)) % 360.0)
-    return np.minimum(diff, 360.0 - diff)
+    out: np.ndarray = np.minimum(diff, 360.0 - diff)
+    return out

@@ -12,6 +12,7 @@ refused too: their size cannot be known without decoding them.
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 from sprint_map.errors import InputError
 
@@ -76,7 +77,7 @@ def check_pixels(data: bytes, label: str, max_pixels: int = MAX_IMAGE_PIXELS) ->
                          f"the limit of {max_pixels} pixels (refused before decoding)")
 
 
-def _unpack(fmt: str, data: bytes, offset: int) -> tuple[int, ...]:
+def _unpack(fmt: str, data: bytes, offset: int) -> tuple[Any, ...]:
     try:
         return struct.unpack_from(fmt, data, offset)
     except struct.error:
@@ -123,7 +124,8 @@ def _jpeg(data: bytes) -> tuple[int, int]:
 def _bmp(data: bytes) -> tuple[int, int]:
     (header,) = _unpack("<I", data, 14)
     if header == 12:  # BITMAPCOREHEADER: unsigned 16-bit sizes
-        return _unpack("<HH", data, 18)  # type: ignore[return-value]
+        width, height = _unpack("<HH", data, 18)
+        return width, height
     if header < 40:
         raise HeaderError("BMP with an unknown header")
     width, height = _unpack("<ii", data, 18)

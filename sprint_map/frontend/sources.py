@@ -301,7 +301,7 @@ class VideoSource(FrameSource):
         return None
 
     def _open(self) -> cv2.VideoCapture:
-        capture = _cv2().VideoCapture(str(self.path))
+        capture: cv2.VideoCapture = _cv2().VideoCapture(str(self.path))
         if not capture.isOpened():
             capture.release()
             raise InputError(f"{self.path}: cannot open video (unsupported or corrupt file)")

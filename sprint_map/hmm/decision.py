@@ -225,7 +225,8 @@ def _csr_gather(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray) -> np
     lengths = indptr[rows + 1] - starts
     offsets = np.cumsum(lengths) - lengths
     flat = np.arange(int(lengths.sum()), dtype=np.int64) + np.repeat(starts - offsets, lengths)
-    return indices[flat]
+    out: np.ndarray = indices[flat]
+    return out
 
 
 def place_mass(view: BeliefView, slot: int, radius: int, hops: int = 1) -> float:

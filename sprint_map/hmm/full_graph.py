@@ -97,7 +97,8 @@ class FullGraphFilter:
         ok = (pos >= 0) & (vids < self._firsts[np.maximum(pos, 0)] + self._lens[np.maximum(pos, 0)])
         if not np.all(ok):
             raise ValueError("vertex id not in the map")
-        return self._state0[pos] + (vids - self._firsts[pos])
+        out: np.ndarray = self._state0[pos] + (vids - self._firsts[pos])
+        return out
 
     def posterior(self) -> tuple[np.ndarray, np.ndarray, float]:
         """``(vertex_ids ascending, probs, sink_prob)`` over the whole map."""

@@ -241,7 +241,8 @@ class ComponentGraph:
         seq = self.seq_index(vids)
         if seq.size and seq.min() < 0:
             raise ValueError(f"vertex ids not in component {self.component_id}")
-        return self.local_first[seq] + (vids - self.seq_first[seq])
+        out: np.ndarray = self.local_first[seq] + (vids - self.seq_first[seq])
+        return out
 
     def global_index(self, local: np.ndarray) -> np.ndarray:
         """Global vertex id of each compact local index.
@@ -252,7 +253,8 @@ class ComponentGraph:
         """
         loc = np.asarray(local, dtype=_I64)
         seq = np.searchsorted(self.local_first, loc, side="right") - 1
-        return self.seq_first[seq] + (loc - self.local_first[seq])
+        out: np.ndarray = self.seq_first[seq] + (loc - self.local_first[seq])
+        return out
 
     def vertex_ids(self) -> np.ndarray:
         """All global vertex ids, in compact local order (O(n_vertices))."""
@@ -387,7 +389,8 @@ class MemoryGraphSource:
             return self.seq_comp[s:s + 1]
         if vids.size and (vids.min() < 0 or vids.max() >= self.n_vertices):
             raise ValueError("vertex id not in the map")
-        return self.seq_comp[self._seq_of(vids)]
+        out: np.ndarray = self.seq_comp[self._seq_of(vids)]
+        return out
 
     def load_component(self, component_id: int) -> ComponentGraph:
         """The compact arrays of component ``component_id`` (ValueError if unknown)."""

@@ -45,7 +45,8 @@ def ranges(starts: np.ndarray, lengths: np.ndarray, total: int | None = None) ->
     if total is None:
         total = int(lengths.sum())
     ends = lengths.cumsum()
-    return np.arange(total, dtype=_I64) + (starts - (ends - lengths)).repeat(lengths)
+    out: np.ndarray = np.arange(total, dtype=_I64) + (starts - (ends - lengths)).repeat(lengths)
+    return out
 
 
 def insert_sorted(idx: np.ndarray, extra: np.ndarray) -> np.ndarray:

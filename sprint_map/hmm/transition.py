@@ -193,7 +193,8 @@ class ComponentTransition:
         seq = self.graph.seq_index(vids)
         if seq.size and seq.min() < 0:
             raise ValueError(f"vertex ids not in component {self.graph.component_id}")
-        return self.slot_first[seq] + (vids - self.graph.seq_first[seq])
+        out: np.ndarray = self.slot_first[seq] + (vids - self.graph.seq_first[seq])
+        return out
 
     def vertex_slots(self) -> np.ndarray:
         """Slots of all vertices, in compact local order (O(n_vertices))."""
@@ -205,7 +206,8 @@ class ComponentTransition:
         """Global vertex id of each (vertex) slot (O(m log S))."""
         sl = np.asarray(slots, dtype=_I64)
         seq = np.searchsorted(self.slot_first, sl, side="right") - 1
-        return self.graph.seq_first[seq] + (sl - self.slot_first[seq])
+        out: np.ndarray = self.graph.seq_first[seq] + (sl - self.slot_first[seq])
+        return out
 
     def seq_end_of(self, slot: int) -> int:
         """One past the last slot of the sequence holding ``slot`` (O(log S), pure Python)."""

@@ -243,7 +243,7 @@ class LocalisationService:
         m.frame_seconds.observe(elapsed, payload=payload)
         m.retrieval_seconds.observe(timing[0] / 1e3)
         m.hmm_seconds.observe(timing[1] / 1e3)
-        out = decision.to_dict()
+        out: dict[str, Any] = decision.to_dict()
         out["timing"] = {"retrieval_ms": round(timing[0], 4), "hmm_ms": round(timing[1], 4),
                          "server_ms": round(elapsed * 1e3, 4)}
         return out

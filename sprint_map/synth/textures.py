@@ -112,7 +112,8 @@ def draw_facade(
     # Grime: low-frequency stains plus texel noise, so blank wall still has some gradient.
     stains = cv2.resize(rng.normal(0, 1, (max(2, h // 24), max(2, w // 24))), (w, h))
     noise = rng.normal(0, style.noise, (h, w, 1)) + 8.0 * stains[:, :, None]
-    return np.clip(img + noise, 0, 255).astype(np.uint8)
+    out: np.ndarray = np.clip(img + noise, 0, 255).astype(np.uint8)
+    return out
 
 
 def _base_front(

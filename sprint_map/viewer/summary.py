@@ -83,7 +83,7 @@ class MapSummary:
     vectorised); later calls O(S) to check the map has not changed.
     """
 
-    def __init__(self, smap: SprintMap, read: Reader = direct, *,
+    def __init__(self, smap: SprintMap, read: Reader[Any] = direct, *,
                  point_budget: int = POINT_BUDGET, edge_budget: int = EDGE_BUDGET) -> None:
         self.map = smap
         self.read = read
@@ -195,7 +195,8 @@ class MapSummary:
         span = float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-9))
 
         def q(xy: np.ndarray) -> np.ndarray:
-            return np.rint((xy - lo) / span * GRID).astype(np.int64)
+            out: np.ndarray = np.rint((xy - lo) / span * GRID).astype(np.int64)
+            return out
 
         total = sum(len(p) for p in xy_all)
         counts, xs = [], []
