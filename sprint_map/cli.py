@@ -707,8 +707,12 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
               help="JSON file of ServerConfig limits (docs/service.md, \"Threads and "
               "queues\").")
+@click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (the "
+              "sessions' localisers in Ray actors; commits here; the API is the same).")
+@click.option("--replicas", type=click.IntRange(min=1), default=2, show_default=True,
+              help="Localiser replicas with --ray (spread over the cluster's nodes).")
 def serve(map_path: str, host: str | None, port: int | None, token_file: str | None,
-          config_json: str | None) -> None:
+          config_json: str | None, ray_spec: str | None, replicas: int) -> None:
     """Serve MAP over HTTP: vehicles stream frames, get places, and commit their drives.
 
     Stops gracefully on SIGTERM/Ctrl-C (open sessions discarded unless configured to commit).
@@ -718,6 +722,7 @@ def serve(map_path: str, host: str | None, port: int | None, token_file: str | N
     Examples:
       sprint-map serve city.map --port 8000
       SPRINT_MAP_TOKEN=s3cret sprint-map serve city.map --host 0.0.0.0
+      sprint-map serve city.map --ray auto --replicas 4
     """
     from sprint_map.server.config import ServerConfig
     from sprint_map.server.run import serve_map
@@ -725,7 +730,7 @@ def serve(map_path: str, host: str | None, port: int | None, token_file: str | N
     options = _read_json_config(config_json)
     given = {"host": host, "port": port, "token_file": token_file}
     options.update({key: value for key, value in given.items() if value is not None})
-    serve_map(map_path, ServerConfig.from_dict(options))
+    serve_map(map_path, ServerConfig.from_dict(options), ray=ray_spec, replicas=replicas)
 
 
 @main.command()

@@ -112,3 +112,10 @@ class ListenError(SprintMapError):
     """``serve`` cannot listen on the address (in use, not an address of this host)."""
 
     exit_code = 19
+
+
+class ReplicaLostError(SprintMapError):
+    """A Ray worker the command relied on died (``--ray``: a localiser replica of ``serve``,
+    whose sessions end with it; the service answers their requests 503)."""
+
+    exit_code = 20

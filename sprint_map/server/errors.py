@@ -15,6 +15,7 @@ from sprint_map.errors import (
     InvalidDescriptorError,
     MapLockedError,
     ReadOnlyMapError,
+    ReplicaLostError,
     SprintMapError,
     StorageIOError,
     UnknownSequenceError,
@@ -48,6 +49,7 @@ _STATUS: list[tuple[type[SprintMapError], int, str]] = [
     (StorageIOError, 503, "storage_error"),
     (MapLockedError, 503, "map_locked"),
     (ReadOnlyMapError, 503, "read_only"),
+    (ReplicaLostError, 503, "replica_lost"),
 ]
 
 

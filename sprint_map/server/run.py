@@ -49,8 +49,12 @@ def bind(host: str, port: int) -> socket.socket:
 
 
 def serve_map(path: str | os.PathLike[str], config: ServerConfig,
-              announce: Callable[[str], None] | None = None) -> None:
+              announce: Callable[[str], None] | None = None, *, ray: str | None = None,
+              replicas: int = 2) -> None:
     """Serve the map at ``path`` until a shutdown signal.
+
+    With ``ray`` (``local``, ``auto`` or an address) the sessions' localisers run in
+    ``replicas`` Ray actors (:mod:`sprint_map.fleet.replicas`); commits stay in this process.
 
     ``announce`` receives one line once the socket listens (default: printed to stdout):
     ``serving MAP on http://HOST:PORT``; with port 0 it names the port picked.
@@ -76,7 +80,19 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
     except BaseException:
         sock.close()
         raise
-    service = LocalisationService(smap, config)
+    pool = None
+    try:
+        if ray is not None:  # Ray is imported from here on only
+            from sprint_map.fleet.replicas import ReplicaPool
+            from sprint_map.fleet.runtime import connect
+
+            connect(ray)
+            pool = ReplicaPool(str(smap.path), replicas)
+    except BaseException:
+        sock.close()
+        smap.close()
+        raise
+    service = LocalisationService(smap, config, localizers=pool.localizer if pool else None)
     app = create_app(service, token)
     # The connection limits uvicorn's httptools protocol lacks (header deadline and size, a
     # connection limit that never refuses /healthz): see server/guard.py. The token and the
@@ -105,6 +121,8 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         sock.close()
+        if pool is not None:
+            pool.close()
         if smap.store.env is not None:  # the lifespan did not run (start-up failed)
             smap.close()
         for warning in smap.warnings:

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
@@ -60,8 +61,12 @@ class LocalisationService:
         Limits and settings.
     """
 
-    def __init__(self, smap: SprintMap, config: ServerConfig, *, owns_map: bool = True) -> None:
+    def __init__(self, smap: SprintMap, config: ServerConfig, *, owns_map: bool = True,
+                 localizers: Callable[[], Any] | None = None) -> None:
         self.map = smap
+        #: Makes each session's localiser (default: in this process; ``serve --ray``: a proxy
+        #: of one in a Ray replica, see sprint_map/fleet/replicas.py).
+        self.localizers = localizers
         self.config = config
         self.owns_map = owns_map
         self.gate = MapGate()
@@ -171,7 +176,12 @@ class LocalisationService:
                 else:
                     raise ApiError(409, "duplicate_name",
                                    f"the map already has a sequence named {name!r}")
-            return Session(name, Localizer(self.map, cache=self.cache, record=True), self.dim)
+            try:
+                localizer = (self.localizers() if self.localizers is not None
+                             else Localizer(self.map, cache=self.cache, record=True))
+            except SprintMapError as exc:  # e.g. no replica could take the session
+                raise from_library(exc) from None
+            return Session(name, localizer, self.dim)
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)

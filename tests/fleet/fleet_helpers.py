@@ -71,3 +71,61 @@ def snapshot(path: Path) -> dict[str, Any]:
                        e.frame) for e in m.edges()],
             "components": sorted((c.component, tuple(c.sequences)) for c in m.components()),
         }
+
+
+class Server:
+    """A ``sprint-map serve MAP --port 0 ...`` subprocess, ready when constructed."""
+
+    def __init__(self, map_path: Path, log: Path, *args: str, timeout: float = 120.0) -> None:
+        import subprocess
+        import sys
+        import time
+
+        import httpx
+
+        cmd = [sys.executable, "-c", "from sprint_map.cli import main; main()", "serve",
+               str(map_path), "--port", "0", *args]
+        self.log = log
+        self._err = log.open("w")
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._err, text=True)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        assert line.startswith("serving "), f"no announcement: {line!r} {log.read_text()}"
+        self.client = httpx.Client(base_url=line.split(" on ", 1)[1].strip(), timeout=60)
+        deadline = time.monotonic() + timeout
+        while self.client.get("/readyz").status_code != 200:
+            assert time.monotonic() < deadline and self.proc.poll() is None, log.read_text()
+            time.sleep(0.05)
+
+    def session(self) -> str:
+        response = self.client.post("/v1/sessions", json={})
+        assert response.status_code in (200, 201), response.text
+        return str(response.json()["session_id"])
+
+    def frame(self, session: str, row: np.ndarray) -> Any:
+        return self.client.post(f"/v1/sessions/{session}/frames",
+                                content=np.asarray(row, np.float32).tobytes(),
+                                headers={"content-type": "application/octet-stream"})
+
+    def close(self) -> None:
+        self.client.close()
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(60)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        self._err.close()
+
+
+def processes_titled(title: str) -> list[int]:
+    """Pids of this machine's processes whose command line starts with ``title``."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmd = (entry / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if cmd.startswith(title.encode()):
+                pids.append(int(entry.name))
+    return pids

@@ -13,7 +13,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleet_helpers import base_map, copy_map, drive, save_drives, serial_ingest, snapshot, world
+from fleet_helpers import (
+    base_map,
+    copy_map,
+    drive,
+    processes_titled,
+    save_drives,
+    serial_ingest,
+    snapshot,
+    world,
+)
 
 from sprint_map.fleet.farm import farm_ingest
 from sprint_map.map import SprintMap
@@ -22,20 +31,6 @@ from sprint_map.storage.crash import CRASH_ENV
 pytestmark = pytest.mark.ray
 
 TASK_TITLE = "ray::localise_drive"
-
-
-def processes_titled(title: str) -> list[int]:
-    """Pids of this machine's processes whose command line starts with ``title``."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                cmd = (entry / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if cmd.startswith(title.encode()):
-                pids.append(int(entry.name))
-    return pids
 
 
 class Killer(threading.Thread):
