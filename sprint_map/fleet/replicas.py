@@ -111,6 +111,7 @@ class RemoteLocalizer:
 
     def step(self, row: np.ndarray) -> FrameDecision:
         changed = sorted(self._changed) if self._changed is not None else None
+        decision: FrameDecision
         decision, retrieval_ms, hmm_ms = self._call(
             self._actor.step.remote(self.session, np.asarray(row, np.float32), changed))
         self._changed = None
