@@ -250,10 +250,13 @@ class IndexContract:
                                              centres: np.ndarray) -> None:
         """Rows committed after the files were published: a later load covers them."""
         persisted = built.persisted_on_disk()
+        files = {p.name: p.stat().st_mtime_ns for p in directory.iterdir()}
         data.commit(clustered(rng, 120, centres))
         reader = self.make(directory, writable=False)
         assert reader.load(data.total, data.shards)
         assert reader.covered == data.total and reader.persisted <= persisted
+        assert not reader.persist()  # a reader ahead of the files still writes none
+        assert {p.name: p.stat().st_mtime_ns for p in directory.iterdir()} == files
         _, ids = reader.search(data.rows[-120:], 1)
         assert (ids[:, 0] == np.arange(data.total - 120, data.total)).mean() >= (
             self.min_self_recall)
