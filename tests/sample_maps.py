@@ -16,7 +16,7 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 
-__all__ = ["DIM", "Road", "build_road_map"]
+__all__ = ["DIM", "Road", "build_road_map", "thumbnails"]
 
 DIM = 32
 PLACES = 200
@@ -54,16 +54,32 @@ class Road:
         return desc, self.xy[idx] + rng.normal(0, 0.5, (frames, 2))
 
 
+def thumbnails(xy: np.ndarray) -> list[bytes]:
+    """A small JPEG per frame, its colour following the frame's position."""
+    import cv2
+
+    out = []
+    for x, y in xy:
+        img = np.zeros((48, 64, 3), np.uint8)
+        img[:] = (int(x) % 256, int(y) % 256, 128)
+        cv2.circle(img, (32, 24), 10, (255, 255, 255), -1)
+        out.append(cv2.imencode(".jpg", img)[1].tobytes())
+    return out
+
+
 def build_road_map(path: Path, rng: np.random.Generator, drives: int = 4,
-                   frames: int = 150) -> tuple[Road, list[int]]:
+                   frames: int = 150, *, with_thumbnails: bool = False
+                   ) -> tuple[Road, list[int]]:
     """Create the map at ``path``; return the road and the sequence ids, in order."""
     road = Road.make(rng)
     other = Road.make(rng, origin=(0.0, 600.0))
     ids = []
     with SprintMap.create(path, MapConfig(dim=DIM)) as m:
-        for i in range(drives):
-            desc, xy = road.drive(rng, frames, start=5 * i)
-            ids.append(m.ingest(desc, name=f"drive-{i}", positions=xy).added.sequence.seq_id)
-        desc, xy = other.drive(rng, frames)
-        ids.append(m.ingest(desc, name="elsewhere", positions=xy).added.sequence.seq_id)
+        for i in range(drives + 1):
+            desc, xy = road.drive(rng, frames, start=5 * i) if i < drives else \
+                other.drive(rng, frames)
+            ids.append(m.ingest(desc, name=f"drive-{i}" if i < drives else "elsewhere",
+                                positions=xy,
+                                thumbnails=thumbnails(xy) if with_thumbnails else None
+                                ).added.sequence.seq_id)
     return road, ids

@@ -72,7 +72,8 @@ def drive_detail(summary: MapSummary, seq_id: int) -> dict[str, Any] | None:
     -----
     O(log E + edges touching the drive) plus a KD-tree per matched drive with positions.
     """
-    seq = summary.sequence(seq_id)
+    st = summary.state()
+    seq = st.sequence(seq_id)
     if seq is None:
         return None
     edges = summary.read(lambda: summary.map.edges(seq_id))
@@ -80,13 +81,14 @@ def drive_detail(summary: MapSummary, seq_id: int) -> dict[str, Any] | None:
     for e in edges:
         o = e.dst_seq if e.src_seq == seq_id else e.src_seq
         others[o] = others.get(o, 0) + 1
-    names = {s.seq_id: s.name for s in summary.state().seqs}
     matched = []
-    ps = summary.positions(seq_id)
+    ps = st.positions(seq_id)
     total = {"decisions": 0, "correct": 0}
     for o, n in sorted(others.items(), key=lambda kv: -kv[1]):
-        row: dict[str, Any] = {"seq_id": o, "name": names.get(o, str(o)), "edges": n}
-        pt = summary.positions(o)
+        other = st.sequence(o)
+        row: dict[str, Any] = {"seq_id": o, "name": other.name if other else str(o),
+                               "edges": n}
+        pt = st.positions(o)
         if ps is not None and pt is not None:
             dec = pair_decisions(edges, seq_id, o)
             row["pr"] = _precision_recall(dec, ps, pt)
@@ -95,7 +97,7 @@ def drive_detail(summary: MapSummary, seq_id: int) -> dict[str, Any] | None:
         matched.append(row)
     return {
         "seq_id": seq.seq_id, "name": seq.name, "frames": seq.length,
-        "component": summary.component(seq_id), "source": seq.source,
+        "component": st.component(seq_id), "source": seq.source,
         "has_positions": ps is not None, "edges": len(edges), "matched": matched,
         "precision": round(total["correct"] / total["decisions"], 4)
         if total["decisions"] else None,
@@ -112,8 +114,9 @@ def match_matrix(summary: MapSummary, seq_id: int, other: int, size: int = MATRI
     O(size^2 * dim) for the distances, plus reading the two drives' sampled descriptors and
     the edges touching ``seq_id``.
     """
-    s_len = summary.sequence(seq_id)
-    o_len = summary.sequence(other)
+    st = summary.state()
+    s_len = st.sequence(seq_id)
+    o_len = st.sequence(other)
     if s_len is None or o_len is None:
         raise KeyError(seq_id if s_len is None else other)
     rows = np.unique(np.linspace(0, s_len.length - 1, min(size, s_len.length)).astype(int))
@@ -126,7 +129,7 @@ def match_matrix(summary: MapSummary, seq_id: int, other: int, size: int = MATRI
     pixels = np.rint(sim * 255).astype(np.uint8)
     edges = summary.read(lambda: summary.map.edges(seq_id))
     dec = pair_decisions(edges, seq_id, other)
-    ps, pt = summary.positions(seq_id), summary.positions(other)
+    ps, pt = st.positions(seq_id), st.positions(other)
     return {
         "seq_id": seq_id, "other": other, "rows": rows.tolist(), "cols": cols.tolist(),
         "frames": [s_len.length, o_len.length],

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from sprint_map.trace import Trace
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.summary import MapState, MapSummary
 
 __all__ = ["PAGE", "frames", "timeline"]
 
@@ -50,6 +50,7 @@ def frames(trace: Trace, summary: MapSummary | None, start: int, count: int
     start = max(0, start)
     stop = min(trace.frames, start + max(0, min(count, PAGE)))
     out = []
+    st = summary.state() if summary is not None else None
     for t in range(start, stop):
         comps, mass = trace.active(t)
         top = trace["top_seq"][t] >= 0
@@ -68,8 +69,8 @@ def frames(trace: Trace, summary: MapSummary | None, start: int, count: int
                 "novel_prob": round(float(trace["novel_prob"][t]), 4)},
             "final": _decision(trace, "final", t) | {"merged": bool(trace["merged"][t])},
         }
-        if summary is not None:
-            row["top"]["xy"] = _positions(summary, ts, ti)
+        if st is not None:
+            row["top"]["xy"] = _positions(st, ts, ti)
         out.append(row)
     return out
 
@@ -81,11 +82,11 @@ def _decision(trace: Trace, prefix: str, t: int) -> dict[str, Any]:
             "prob": round(float(trace[f"{prefix}_prob"][t]), 4)}
 
 
-def _positions(summary: MapSummary, seqs: np.ndarray, images: np.ndarray
+def _positions(st: MapState, seqs: np.ndarray, images: np.ndarray
                ) -> list[list[float] | None]:
     out: list[list[float] | None] = []
     for s, i in zip(seqs.tolist(), images.tolist(), strict=True):
-        pos = summary.positions(s)
+        pos = st.positions(s)
         out.append(None if pos is None or i >= len(pos) else
                    [round(float(pos[i, 0]), 2), round(float(pos[i, 1]), 2)])
     return out

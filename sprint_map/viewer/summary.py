@@ -12,8 +12,8 @@ Level of detail, so that the page stays responsive at a million vertices:
   ``spring_layout`` weighted by the edges between sequences; components apart on a grid when
   there are too many sequences for it): each drive a node, each pair one segment.
 
-The overview is computed once per map state (``MapSnapshotKey``: the counts and sequence ids)
-and kept; reading goes through a ``read`` callable so a server can run each short read under
+The overview is computed once per map state (the map's counts, which every change moves) and
+kept; reading goes through a ``read`` callable so a server can run each short read under
 its map gate.
 """
 
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from sprint_map.map import SprintMap
     from sprint_map.storage.records import SequenceRecord
 
-__all__ = ["EDGE_BUDGET", "POINT_BUDGET", "MapSummary", "Reader", "direct"]
+__all__ = ["EDGE_BUDGET", "POINT_BUDGET", "MapState", "MapSummary", "Reader", "direct"]
 
 T = TypeVar("T")
 #: Runs one short read of the map (``direct``: just calls it; the server: under its gate).
@@ -60,12 +60,31 @@ def direct(fn: Callable[[], T]) -> T:
 
 
 @dataclass
-class _State:
+class MapState:
+    """The map as the viewer last read it: its drives, their components and positions.
+
+    Take it once per request (:meth:`MapSummary.state`) and look drives up here: O(1) each.
+    """
+
     key: tuple[Any, ...]
     seqs: list[SequenceRecord]
-    component: dict[int, int]
-    positions: dict[int, np.ndarray]  # seq id -> (n, 2) x, y (drives with positions)
+    components: dict[int, int]  # seq id -> component
+    xy: dict[int, np.ndarray]  # seq id -> (n, 2) x, y (drives with positions)
     overview: dict[str, Any] = field(default_factory=dict)
+    by_id: dict[int, SequenceRecord] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.by_id = {s.seq_id: s for s in self.seqs}
+
+    def sequence(self, seq_id: int) -> SequenceRecord | None:
+        return self.by_id.get(seq_id)
+
+    def positions(self, seq_id: int) -> np.ndarray | None:
+        """``(n, 2)`` positions of a drive, or None."""
+        return self.xy.get(seq_id)
+
+    def component(self, seq_id: int) -> int:
+        return self.components[seq_id]
 
 
 class MapSummary:
@@ -89,24 +108,26 @@ class MapSummary:
         self.read = read
         self.point_budget = point_budget
         self.edge_budget = edge_budget
-        self._state: _State | None = None
+        self._state: MapState | None = None
         self._lock = threading.Lock()
 
     # --- state ---------------------------------------------------------------------------------
     def _key(self) -> tuple[Any, ...]:
-        stats = self.read(self.map.stats)
-        seqs = self.read(self.map.sequences)
-        return (tuple(sorted(stats.items())), tuple((s.seq_id, s.length) for s in seqs))
+        """What changes whenever what the viewer shows does: the map's counts. A commit adds
+        vertices (ids are never reused), a removal takes sequences, an unmerge edges; a
+        compaction renumbers vertices (fewer), which changes nothing shown but is seen too.
+        O(1)."""
+        return tuple(sorted(self.read(self.map.stats).items()))
 
-    def state(self) -> _State:
-        """The cached state, re-read if the map changed since."""
+    def state(self) -> MapState:
+        """The cached state, re-read if the map changed since (O(1) to check)."""
         key = self._key()
         with self._lock:
             if self._state is None or self._state.key != key:
                 self._state = self._load(key)
             return self._state
 
-    def _load(self, key: tuple[Any, ...]) -> _State:
+    def _load(self, key: tuple[Any, ...]) -> MapState:
         seqs = self.read(self.map.sequences)
         component = {}
         for comp in self.read(self.map.components):
@@ -117,17 +138,7 @@ class MapSummary:
             pos = self.read(functools.partial(self.map.positions, s.seq_id))
             if pos is not None and np.isfinite(pos[:, :2]).all():
                 positions[s.seq_id] = np.ascontiguousarray(pos[:, :2])
-        return _State(key, seqs, component, positions)
-
-    def sequence(self, seq_id: int) -> SequenceRecord | None:
-        return next((s for s in self.state().seqs if s.seq_id == seq_id), None)
-
-    def positions(self, seq_id: int) -> np.ndarray | None:
-        """``(n, 2)`` positions of a drive, or None."""
-        return self.state().positions.get(seq_id)
-
-    def component(self, seq_id: int) -> int:
-        return self.state().component[seq_id]
+        return MapState(key, seqs, component, positions)
 
     # --- the overview --------------------------------------------------------------------------
     def overview(self) -> dict[str, Any]:
@@ -138,7 +149,7 @@ class MapSummary:
                 state.overview = self._overview(state)
             return state.overview
 
-    def _overview(self, st: _State) -> dict[str, Any]:
+    def _overview(self, st: MapState) -> dict[str, Any]:
         info = self.read(self.map.info)
         table = self.read(self.map.edge_table)
         seqs = st.seqs
@@ -153,7 +164,7 @@ class MapSummary:
 
         si, sim = locate(table.src) if len(seqs) else (table.src, table.src)
         di, dim_ = locate(table.dst) if len(seqs) else (table.dst, table.dst)
-        mode = "positions" if st.positions else "layout"
+        mode = "positions" if st.xy else "layout"
         out: dict[str, Any] = {
             "version": 1,
             "mode": mode,
@@ -163,8 +174,8 @@ class MapSummary:
             "sequences": {
                 "id": ids.tolist(), "name": [s.name for s in seqs],
                 "frames": [s.length for s in seqs],
-                "component": [st.component[s.seq_id] for s in seqs],
-                "positions": [s.seq_id in st.positions for s in seqs],
+                "component": [st.components[s.seq_id] for s in seqs],
+                "positions": [s.seq_id in st.xy for s in seqs],
             },
         }
         # sequence pairs (unordered) and their edge counts
@@ -186,10 +197,10 @@ class MapSummary:
             out |= self._drawn_layout(st, seqs, uniq, counts, n)
         return out
 
-    def _drawn_positions(self, st: _State, seqs: list[SequenceRecord], ids: np.ndarray,
+    def _drawn_positions(self, st: MapState, seqs: list[SequenceRecord], ids: np.ndarray,
                          ends: tuple[np.ndarray, ...], inverse: np.ndarray, rank: np.ndarray
                          ) -> dict[str, Any]:
-        xy_all = [p for p in st.positions.values()]
+        xy_all = [p for p in st.xy.values()]
         lo = np.min([p.min(axis=0) for p in xy_all], axis=0)
         hi = np.max([p.max(axis=0) for p in xy_all], axis=0)
         span = float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-9))
@@ -201,7 +212,7 @@ class MapSummary:
         total = sum(len(p) for p in xy_all)
         counts, xs = [], []
         for s in seqs:
-            p = st.positions.get(s.seq_id)
+            p = st.xy.get(s.seq_id)
             if p is None:
                 counts.append(0)
                 continue
@@ -227,7 +238,7 @@ class MapSummary:
                 seg_mask[order[starts[p] + picks]] = True
         segs = []
         for e in np.flatnonzero(seg_mask).tolist():
-            ps, pd = st.positions.get(int(ids[si[e]])), st.positions.get(int(ids[di[e]]))
+            ps, pd = st.xy.get(int(ids[si[e]])), st.xy.get(int(ids[di[e]]))
             if ps is None or pd is None:
                 continue
             segs.append(np.r_[ps[sim[e]], pd[dim_[e]]])
@@ -240,7 +251,7 @@ class MapSummary:
             "edges": {"level": level, "xy": seg_xy.tolist(), "drawn": len(segs)},
         }
 
-    def _drawn_layout(self, st: _State, seqs: list[SequenceRecord], pairs: np.ndarray,
+    def _drawn_layout(self, st: MapState, seqs: list[SequenceRecord], pairs: np.ndarray,
                       counts: np.ndarray, n: int) -> dict[str, Any]:
         import networkx as nx
 
@@ -255,7 +266,7 @@ class MapSummary:
         else:  # components on a grid, each a circle of its sequences
             comps: dict[int, list[int]] = {}
             for i, s in enumerate(seqs):
-                comps.setdefault(st.component[s.seq_id], []).append(i)
+                comps.setdefault(st.components[s.seq_id], []).append(i)
             side = math.ceil(math.sqrt(len(comps)))
             xy = np.zeros((len(seqs), 2))
             for c, (_, members) in enumerate(sorted(comps.items(), key=lambda kv: -len(kv[1]))):

@@ -15,7 +15,7 @@ from sprint_map.viewer.summary import MapSummary
 
 @pytest.fixture
 def built(tmp_path, rng):
-    road, _ = build_road_map(tmp_path / "m", rng, drives=3, frames=80)
+    road, _ = build_road_map(tmp_path / "m", rng, drives=3, frames=80, with_thumbnails=True)
     query, _ = road.drive(rng, 60, start=3)
     with SprintMap.open(tmp_path / "m", readonly=True) as m:
         loc = m.localizer()
@@ -43,7 +43,12 @@ def test_the_page_and_its_api(built):
         frames = client.get("/viewer/api/trace/frames?start=58&count=10").json()["frames"]
         assert [f["frame"] for f in frames] == [58, 59]
         assert len(frames[0]["top"]["xy"]) == len(frames[0]["top"]["seq"]) > 0
-        assert client.get("/viewer/api/thumbnails/1/0").status_code == 404  # none kept
+        assert client.get("/viewer/api/sequences/1").json()["thumbnails"] == 80
+        jpeg = client.get("/viewer/api/thumbnails/1/7")
+        assert jpeg.headers["content-type"] == "image/jpeg"
+        assert jpeg.content == m.thumbnail(1, 7)
+        assert client.get("/viewer/api/thumbnails/1/80").status_code == 404
+        assert client.get("/viewer/api/thumbnails/9/0").status_code == 404
 
 
 def test_without_a_trace_its_routes_answer_404(built):

@@ -42,7 +42,7 @@ def shown(tmp_path_factory: pytest.TempPathFactory) -> Any:
     and a browser on it."""
     tmp = tmp_path_factory.mktemp("viewer")
     rng = np.random.default_rng(20200531)
-    road, ids = build_road_map(tmp / "m", rng, drives=4, frames=150)
+    road, ids = build_road_map(tmp / "m", rng, drives=4, frames=150, with_thumbnails=True)
     query, _ = road.drive(rng, 90, start=12)
     with SprintMap.open(tmp / "m", readonly=True) as m:
         loc = m.localizer()
@@ -113,6 +113,14 @@ def test_a_drive_opens_with_its_matrix_and_decisions(shown):
     buttons[1].click()
     other = int(buttons[1].get_attribute("data-other"))
     wait_for(driver, f"window.sprintViewer.matrixShown === {other}")
+    # the map keeps thumbnails: the frames under the pointer are shown
+    from selenium.webdriver import ActionChains
+
+    ActionChains(driver).move_to_element_with_offset(
+        driver.find_element("id", "matrix-canvas"), 10, 20).perform()
+    wait_for(driver, "document.getElementById('thumb-b').naturalWidth > 0", 30)
+    assert driver.execute_script("return document.getElementById('thumb-a').naturalWidth") == 64
+    assert f"sequence {other}" in driver.find_element("id", "thumb-b-cap").text
     shoot(driver, tmp / "drive.png")
     assert console_errors(driver) == []
 
