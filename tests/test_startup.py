@@ -43,7 +43,7 @@ def test_nothing_imports_ray_without_ray_asked_for():
 # --- sprint-map info reads LMDB only --------------------------------------------------------
 
 #: What a command that only reads LMDB must not import.
-HEAVY = ("scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "uvicorn")
+HEAVY = ("faiss", "scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "uvicorn")
 
 # Runs the CLI in this process, then lists what it imported (at exit: main() exits).
 CLI_MODULES = ("import atexit, sys\n"
@@ -86,3 +86,16 @@ def test_reading_commands_import_no_hmm_opencv_or_scipy(small_map, args):
 
 def test_sprint_map_cli_imports_no_opencv():
     assert "cv2" not in loaded_after("import sprint_map.cli")
+
+
+def test_faiss_loads_with_the_first_search(small_map):
+    code = ("import sys\n"
+            "from sprint_map import SprintMap\n"
+            f"with SprintMap.open({str(small_map)!r}, readonly=True) as m:\n"
+            "    m.info()\n"
+            "    before = 'faiss' in sys.modules\n"
+            "    m.search(m.descriptors(0)[:3], 2)\n"
+            "print(before, 'faiss' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "True"]

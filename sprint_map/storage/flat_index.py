@@ -16,9 +16,8 @@ import errno
 import re
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import faiss
 import numpy as np
 
 from sprint_map.config import MapConfig
@@ -28,6 +27,11 @@ from sprint_map.storage.crash import crash_point
 from sprint_map.storage.retrieval_index import IndexNotLoadedError, RetrievalIndex
 from sprint_map.storage.segment_model import use_threads
 from sprint_map.storage.shards import ShardSet
+
+if TYPE_CHECKING:
+    import faiss
+else:  # imported on first use: commands that only read LMDB never load it
+    from sprint_map.storage.lazy_faiss import faiss
 
 __all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
 

@@ -29,9 +29,8 @@ from __future__ import annotations
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import faiss
 import numpy as np
 
 from sprint_map.config import MapConfig
@@ -72,6 +71,11 @@ from sprint_map.storage.segment_model import (
     use_threads,
 )
 from sprint_map.storage.shards import ShardSet
+
+if TYPE_CHECKING:
+    import faiss
+else:  # imported on first use: commands that only read LMDB never load it
+    from sprint_map.storage.lazy_faiss import faiss
 
 __all__ = ["SegmentedIndex", "tier_plan"]
 

@@ -16,15 +16,19 @@ import errno
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import faiss
 import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.atomic import publish
 from sprint_map.storage.shards import ShardSet
+
+if TYPE_CHECKING:
+    import faiss
+else:  # imported on first use: commands that only read LMDB never load it
+    from sprint_map.storage.lazy_faiss import faiss
 
 #: Fewest vertices an approximate index is trained on (8-bit PQ codebooks have 256 centroids).
 MIN_TRAIN = 256
