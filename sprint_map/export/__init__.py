@@ -44,10 +44,11 @@ def _publish(path: Path, fill: Callable[[Path], None]) -> None:
 
 
 def _publish_text(path: Path, write: Callable[[IO[str]], None]) -> None:
-    """Publish ``path`` atomically, its text written by ``write(stream)`` (UTF-8)."""
+    """Publish ``path`` atomically, its text written by ``write(stream)`` (UTF-8; a character
+    UTF-8 cannot encode, a lone surrogate in a drive's free-text ``source``, becomes ``?``)."""
 
     def fill(partial: Path) -> None:
-        with open(partial, "w", encoding="utf-8", newline="") as out:
+        with open(partial, "w", encoding="utf-8", errors="replace", newline="") as out:
             write(out)
 
     _publish(path, fill)

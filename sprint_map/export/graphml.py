@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any, cast
@@ -46,6 +47,16 @@ NODE_KEYS: dict[str, type] = {"seq_id": int, "image_id": int, "component": int, 
                               "y": float, "heading": float, "timestamp": float}
 EDGE_KEYS: dict[str, type] = {"prob": float, "added_by": int, "frame": int, "time": float}
 _POSITION_KEYS = ("x", "y", "heading", "timestamp")
+
+
+#: Characters XML 1.0 cannot hold (C0 controls but tab and newlines, lone surrogates, U+FFFE/F).
+_NOT_XML = re.compile("[^\t\n\r\u0020-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
+
+
+def xml_text(text: str) -> str:
+    """``text`` with every character XML cannot hold replaced by U+FFFD (a drive's ``source``
+    is free text). O(len)."""
+    return _NOT_XML.sub("\ufffd", text)
 
 
 def node_id(seq_id: int, image_id: int) -> str:
@@ -181,8 +192,9 @@ def sequence_graph(scan: MapScan) -> nx.DiGraph:
     graph = nx.DiGraph(level="sequence", sequences=len(scan.sequences), vertices=scan.vertices,
                        edges=scan.edge_count)
     for seq, has_pos in _has_positions(scan):
-        graph.add_node(str(seq.seq_id), seq_id=seq.seq_id, name=seq.name, frames=seq.length,
-                       component=scan.component.get(seq.seq_id, seq.seq_id), source=seq.source,
+        graph.add_node(str(seq.seq_id), seq_id=seq.seq_id, name=xml_text(seq.name),
+                       frames=seq.length, component=scan.component.get(seq.seq_id, seq.seq_id),
+                       source=xml_text(seq.source),
                        created=float(seq.created), positions=has_pos)
     pairs: dict[tuple[int, int], list[Any]] = {}
     for _, _, e in scan.edges():
@@ -214,4 +226,5 @@ def write_sequence_graphml(scan: MapScan, path: Path) -> tuple[int, int]:
 
 
 __all__ = ["CHUNK", "EDGE_KEYS", "GRAPH_KEYS", "NODE_KEYS", "edge_data", "graph_data", "node_id",
-           "sequence_graph", "vertex_graph", "write_sequence_graphml", "write_vertex_graphml"]
+           "sequence_graph", "vertex_graph", "write_sequence_graphml", "write_vertex_graphml",
+           "xml_text"]

@@ -126,3 +126,11 @@ def test_100k_vertex_graphml_reads_back_equal(tmp_path):
     got = nx.read_graphml(tmp_path / "big.graphml")
     assert got.number_of_nodes() == VERTICES and got.number_of_edges() == 49 * 50
     assert_same_graph(got, want)
+
+
+def test_text_xml_cannot_hold_is_replaced(tmp_path, rng):
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=4)) as m:
+        m.add_sequence(rng.standard_normal((3, 4)).astype(np.float32), name="ok",
+                       source="cam\x01era \udcff/x")
+        m.export_graphml(tmp_path / "s.graphml", "sequence")
+    assert nx.read_graphml(tmp_path / "s.graphml").nodes["0"]["source"] == "cam\ufffdera \ufffd/x"

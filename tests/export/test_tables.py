@@ -78,3 +78,15 @@ def test_a_failure_half_way_leaves_the_old_file_and_no_temp_file(small_map, tmp_
     assert (out / "edges.csv").read_bytes() == before
     assert sorted(p.name for p in out.iterdir()) == ["edges.csv", "sequences.csv",
                                                      "vertices.csv"]
+
+
+def test_text_utf8_cannot_encode_is_replaced(tmp_path, rng):
+    import numpy as np
+
+    from sprint_map.config import MapConfig
+
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=4)) as m:
+        m.add_sequence(rng.standard_normal((3, 4)).astype(np.float32), name="ok",
+                       source="drive \udcff")
+        m.export_csv(tmp_path / "c")
+    assert read(tmp_path / "c" / "sequences.csv")[0]["source"] == "drive ?"
