@@ -117,15 +117,25 @@ class Server:
         self._err.close()
 
 
-def processes_titled(title: str) -> list[int]:
-    """Pids of this machine's processes whose command line starts with ``title``."""
+def raylets(cluster: Any) -> set[int]:
+    """Pids of the raylets of ``cluster`` (a ``ray.cluster_utils.Cluster``): its workers are
+    their children."""
+    return {p.process.pid for node in cluster.list_all_nodes()
+            for p in node.all_processes.get("raylet", [])}
+
+
+def processes_titled(title: str, parents: set[int]) -> list[int]:
+    """Pids of the children of ``parents`` whose command line starts with ``title`` (the
+    title Ray gives a worker running a task or an actor: other Ray sessions on the machine
+    are left alone)."""
     pids = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             try:
                 cmd = (entry / "cmdline").read_bytes()
-            except OSError:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
                 continue
-            if cmd.startswith(title.encode()):
+            if cmd.startswith(title.encode()) and ppid in parents:
                 pids.append(int(entry.name))
     return pids

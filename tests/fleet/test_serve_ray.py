@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from fleet_helpers import Server, base_map, drive, processes_titled, world
+from fleet_helpers import Server, base_map, drive, processes_titled, raylets, world
 
 from sprint_map.map import SprintMap
 
@@ -43,11 +43,12 @@ def test_replicas_answer_as_in_process_and_a_lost_one_ends_its_sessions_only(
         assert sum(s is not None for s, _ in answers) > len(rows) // 2
         assert server.frame(b, other[0]).status_code == 200
 
-        replicas = processes_titled("ray::ReplicaWorker")
+        parents = raylets(cluster)
+        replicas = processes_titled("ray::ReplicaWorker", parents)
         assert len(replicas) == 2, replicas
         os.kill(replicas[0], signal.SIGKILL)
         deadline = time.monotonic() + 30
-        while replicas[0] in processes_titled("ray::ReplicaWorker"):
+        while replicas[0] in processes_titled("ray::ReplicaWorker", parents):
             assert time.monotonic() < deadline
             time.sleep(0.05)
         status = {}
