@@ -8,9 +8,12 @@ every command alike:
 * ``sprint-map --version``;
 * ``sprint-map info MAP --json`` on a map of ``--vertices`` (default 1,000,000) vertices.
 
-and prints each one's median and best wall time with its ratio to the two baselines, plus the
-heavy modules ``info`` loaded (it should load no FAISS, SciPy, OpenCV, matplotlib, networkx, nor
-the HMM: it only reads LMDB). The map is built once from precomputed random descriptors with
+and prints each one's median and best wall time, its median CPU time (user + system: what the
+process costs, less sensitive than wall time to other jobs on the machine) and the ratio of its
+median wall time to the two baselines, plus the heavy modules ``info`` loaded (it should load no
+FAISS, SciPy, OpenCV, matplotlib, networkx, nor the HMM: it only reads LMDB). With
+``--before DIR`` (a checkout of an older commit, e.g. ``git worktree add --detach DIR REV``)
+the same ``info --json`` is also timed with that code (``PYTHONPATH=DIR``), in the same rounds. The map is built once from precomputed random descriptors with
 ``tools/bench_scale.py``'s lifelong builder (drives of 1,000 frames, an edge every 10 frames;
 ``--dim`` 128) and cached under ``--cache`` (default ``/tmp/sprint-map-bench-startup``), so later
 runs only measure::
@@ -24,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -65,26 +69,39 @@ def map_path(cache: Path, vertices: int, dim: int) -> Path:
     return final
 
 
-def commands(path: Path) -> dict[str, list[str]]:
+def commands(path: Path, before: Path | None) -> dict[str, tuple[list[str], Path | None]]:
+    """Each timed command's argv and the PYTHONPATH it runs with (None: inherited)."""
     py = sys.executable
-    return {
-        "python -c pass": [py, "-c", "pass"],
-        "python -c 'import numpy, lmdb, click'": [py, "-c", "import numpy, lmdb, click"],
-        "sprint-map --version": [py, "-c", CLI, "--version"],
-        "sprint-map info --json": [py, "-c", CLI, "info", str(path), "--json"],
+    cmds: dict[str, tuple[list[str], Path | None]] = {
+        "python -c pass": ([py, "-c", "pass"], None),
+        "python -c 'import numpy, lmdb, click'": ([py, "-c", "import numpy, lmdb, click"], None),
+        "sprint-map --version": ([py, "-c", CLI, "--version"], None),
+        "sprint-map info --json": ([py, "-c", CLI, "info", str(path), "--json"], None),
     }
+    if before is not None:
+        cmds[f"sprint-map info --json ({before.name})"] = (
+            [py, "-c", CLI, "info", str(path), "--json"], before)
+    return cmds
 
 
-def time_once(argv: list[str]) -> float:
+def time_once(argv: list[str], pythonpath: Path | None = None) -> tuple[float, float]:
+    """Wall time and CPU time (user + system) of one run of ``argv``. CPU time is what the
+    process itself costs; on a loaded machine wall time also counts waiting for a core."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    env = None if pythonpath is None else dict(os.environ, PYTHONPATH=str(pythonpath))
+    # From a neutral directory: ``python -c`` puts the working directory first on sys.path,
+    # which would shadow PYTHONPATH from inside a checkout.
+    subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env, cwd=Path.home())
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def heavy_modules_loaded(path: Path) -> list[str]:
     """The heavy modules a real ``info --json`` imports."""
     out = subprocess.run([sys.executable, "-c", LOADED, "info", str(path), "--json"],
-                         check=True, capture_output=True, text=True)
+                         check=True, capture_output=True, text=True, cwd=Path.home())
     loaded = out.stderr.split()
     # The HMM's configuration is part of a map's (MapConfig.hmm); its machinery is not.
     return [h for h in HEAVY if any(
@@ -98,32 +115,40 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dim", type=int, default=128)
     parser.add_argument("--repeat", type=int, default=15, help="rounds (each times every command)")
     parser.add_argument("--cache", type=Path, default=Path("/tmp/sprint-map-bench-startup"))
+    parser.add_argument("--before", type=Path, help="also time info --json with this checkout")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
 
-    path = map_path(args.cache, args.vertices, args.dim)
-    cmds = commands(path)
-    for argv_ in cmds.values():  # warm the page cache and the bytecode caches
-        time_once(argv_)
+    path = map_path(args.cache, args.vertices, args.dim).resolve()
+    cmds = commands(path, args.before)
+    for argv_, pythonpath in cmds.values():  # warm the page cache and the bytecode caches
+        time_once(argv_, pythonpath)
     times: dict[str, list[float]] = {name: [] for name in cmds}
+    cpu: dict[str, list[float]] = {name: [] for name in cmds}
     for _ in range(args.repeat):
-        for name, argv_ in cmds.items():
-            times[name].append(time_once(argv_))
+        for name, (argv_, pythonpath) in cmds.items():
+            wall, used = time_once(argv_, pythonpath)
+            times[name].append(wall)
+            cpu[name].append(used)
 
     median = {name: statistics.median(t) for name, t in times.items()}
     base, imports = median["python -c pass"], median["python -c 'import numpy, lmdb, click'"]
     rows: list[dict[str, Any]] = [
         {"command": name, "median_s": median[name], "best_s": min(t),
+         "cpu_median_s": statistics.median(cpu[name]),
          "ratio_to_python": median[name] / base, "ratio_to_imports": median[name] / imports}
         for name, t in times.items()]
     heavy = heavy_modules_loaded(path)
     info_s = median["sprint-map info --json"]
 
-    print(f"{'command':<40} {'median s':>9} {'best s':>8} {'/ pass':>7} {'/ imports':>9}")
+    print(f"{'command':<40} {'median s':>9} {'best s':>8} {'cpu s':>7} {'/ pass':>7} "
+          f"{'/ imports':>9}")
     for r in rows:
         print(f"{r['command']:<40} {r['median_s']:>9.3f} {r['best_s']:>8.3f} "
-              f"{r['ratio_to_python']:>7.2f} {r['ratio_to_imports']:>9.2f}")
-    print(f"map: {args.vertices:,} vertices x {args.dim}; {args.repeat} rounds; "
+              f"{r['cpu_median_s']:>7.3f} {r['ratio_to_python']:>7.2f} "
+              f"{r['ratio_to_imports']:>9.2f}")
+    print(f"map: {args.vertices:,} vertices x {args.dim}; {args.repeat} rounds; load average "
+          f"{os.getloadavg()[0]:.1f}; "
           f"info --json {'within' if info_s < TARGET_S else 'ABOVE'} the {TARGET_S} s target; "
           f"heavy modules info loaded: {', '.join(heavy) or 'none'}")
     if args.json:
