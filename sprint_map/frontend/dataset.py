@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.arrays import Float64Array
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
@@ -118,7 +119,7 @@ class Traversal:
         source.name = self.name
         return source
 
-    def positions(self, stride: int = 1) -> np.ndarray | None:
+    def positions(self, stride: int = 1) -> Float64Array | None:
         """Positions of the frames kept with ``stride``, or ``None`` without ``positions.csv``.
 
         For a video, whose frame count is unknown before decoding, the CSV's own row count is
@@ -253,15 +254,15 @@ class Dataset:
         return f"Dataset({str(self.path)!r}, traversals={self.names}, ground_truth={self.gt_spec})"
 
 
-class _LazyPositions(Mapping[str, np.ndarray]):
+class _LazyPositions(Mapping[str, Float64Array]):
     """Traversal name -> positions array, read from CSV on first access."""
 
     def __init__(self, dataset: Dataset, stride: int) -> None:
         self._dataset = dataset
         self._stride = stride
-        self._cache: dict[str, np.ndarray] = {}
+        self._cache: dict[str, Float64Array] = {}
 
-    def __getitem__(self, name: str) -> np.ndarray:
+    def __getitem__(self, name: str) -> Float64Array:
         if name not in self._cache:
             traversal = self._dataset[name]
             rows = traversal.positions(self._stride)

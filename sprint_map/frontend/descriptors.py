@@ -30,10 +30,12 @@ import json
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
+from sprint_map.arrays import Descriptors, Float32Array, Image
 from sprint_map.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -124,7 +126,7 @@ class DescriptorSpec:
             return windows_per_side**2 * cells_per_block * p["bins"]
         return p["width"] * p["height"]
 
-    def describe(self, image: np.ndarray) -> np.ndarray:
+    def describe(self, image: Image) -> Descriptors:
         """Describe one image.
 
         Parameters
@@ -143,7 +145,7 @@ class DescriptorSpec:
             return _hog(gray, self.params)
         return _patchnorm(gray, self.params)
 
-    def describe_batch(self, images: Iterable[np.ndarray]) -> np.ndarray:
+    def describe_batch(self, images: Iterable[Image]) -> Descriptors:
         """Describe several images (a sequence, or an array stacked along axis 0).
 
         Returns
@@ -209,7 +211,7 @@ def _validate(kind: str, p: dict[str, int]) -> None:
         raise ConfigError("patchnorm: width and height must be multiples of patch")
 
 
-def to_gray(image: np.ndarray) -> np.ndarray:
+def to_gray(image: Image) -> Image:
     """Return an 8-bit single-channel view/copy of a gray, BGR or BGRA image.
 
     Raises
@@ -220,7 +222,7 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     if not isinstance(image, np.ndarray) or image.size == 0:
         raise ValueError("expected a non-empty image array")
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = (cast("NDArray[np.uint16]", image) >> 8).astype(np.uint8)
     elif image.dtype != np.uint8:
         raise ValueError(f"expected a uint8 or uint16 image, got {image.dtype}")
     if image.ndim == 2:
@@ -240,7 +242,7 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     raise ValueError(f"expected a (H, W), (H, W, 3) or (H, W, 4) image, got shape {image.shape}")
 
 
-def _l2_normalise(vector: np.ndarray) -> np.ndarray:
+def _l2_normalise(vector: Float32Array) -> Descriptors:
     norm = float(np.linalg.norm(vector))
     if norm < _ZERO_NORM:
         return np.zeros_like(vector, dtype=np.float32)
@@ -267,7 +269,7 @@ def _hog_object(p: dict[str, int]) -> cv2.HOGDescriptor:
     return hog
 
 
-def _hog(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
+def _hog(gray: Image, p: dict[str, int]) -> Descriptors:
     size = p["size"]
     if gray.shape != (size, size):
         import cv2
@@ -278,7 +280,7 @@ def _hog(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
     return _l2_normalise(np.asarray(vector, dtype=np.float32).reshape(-1))
 
 
-def _patchnorm(gray: np.ndarray, p: dict[str, int]) -> np.ndarray:
+def _patchnorm(gray: Image, p: dict[str, int]) -> Descriptors:
     width, height, patch = p["width"], p["height"], p["patch"]
     if gray.shape != (height, width):
         import cv2

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sprint_map.arrays import Image
 from sprint_map.errors import InputError
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS, check_pixels
 
@@ -85,7 +86,7 @@ def list_images(directory: Path) -> list[Path]:
 
 
 def read_image(path: Path, grayscale: bool = True, max_pixels: int = MAX_IMAGE_PIXELS
-               ) -> np.ndarray:
+               ) -> Image:
     """Read and decode one image file.
 
     Parameters
@@ -129,7 +130,7 @@ def read_image_bytes(path: Path) -> bytes:
 
 
 def decode_image(data: bytes, label: str = "image", grayscale: bool = True,
-                 max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+                 max_pixels: int = MAX_IMAGE_PIXELS) -> Image:
     """Decode encoded image bytes (PNG, JPEG, BMP, WebP, TIFF) as :func:`read_image` does.
 
     ``label`` starts the error message (the file name, or what the bytes are). Raises

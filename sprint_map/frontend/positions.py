@@ -15,13 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
+from sprint_map.arrays import Float64Array
 from sprint_map.errors import InputError
 
 REQUIRED_COLUMNS = ("frame", "x", "y")
 OPTIONAL_COLUMNS = ("heading_deg",)
 
 
-def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> np.ndarray:
+def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Float64Array:
     """Read the positions of the ``n_frames`` frames a source yielded.
 
     Parameters

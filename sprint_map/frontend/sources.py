@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, DescriptorsLike, Image
 from sprint_map.errors import (
     DescriptorShapeError,
     EmptySequenceError,
@@ -121,10 +122,10 @@ class FrameSource(ABC):
         """Frames the source yields, or ``None`` if unknown until read."""
 
     @abstractmethod
-    def _batches(self) -> Iterator[np.ndarray]:
+    def _batches(self) -> Iterator[Descriptors]:
         """Yield the float32 batches (without progress reporting)."""
 
-    def iter_batches(self, progress: ProgressCallback | None = None) -> Iterator[np.ndarray]:
+    def iter_batches(self, progress: ProgressCallback | None = None) -> Iterator[Descriptors]:
         """Yield ``(n, dim)`` float32 descriptor batches in frame order.
 
         Parameters
@@ -146,7 +147,7 @@ class FrameSource(ABC):
                 report(done, self.count)
             yield batch
 
-    def read_all(self, progress: ProgressCallback | None = None) -> np.ndarray:
+    def read_all(self, progress: ProgressCallback | None = None) -> Descriptors:
         """Return all descriptors as one ``(count, dim)`` float32 array.
 
         Holds the whole sequence in memory (``count * dim * 4`` bytes); prefer
@@ -172,7 +173,7 @@ def _single_threaded_opencv() -> None:
     cv2.setNumThreads(1)
 
 
-def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> np.ndarray:
+def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
     """Decode and describe a chunk of image files (runs in a worker)."""
     out = np.empty((len(paths), spec.dim), dtype=np.float32)
     for i, path in enumerate(paths):
@@ -181,7 +182,7 @@ def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> np.ndarray:
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
-                               ) -> tuple[np.ndarray, list[bytes]]:
+                               ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
     out = np.empty((len(paths), spec.dim), dtype=np.float32)
     thumbs = []
@@ -193,19 +194,19 @@ def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
     return out, thumbs
 
 
-def _describe_frames(spec: DescriptorSpec, frames: list[np.ndarray]) -> np.ndarray:
+def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
     """Describe a chunk of decoded video frames (runs in a worker thread)."""
     return spec.describe_batch(frames)
 
 
-def _describe_frames_thumbnails(spec: DescriptorSpec, frames: list[np.ndarray]
-                                ) -> tuple[np.ndarray, list[bytes]]:
+def _describe_frames_thumbnails(spec: DescriptorSpec, frames: list[Image]
+                                ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_frames` plus each frame's thumbnail."""
     return spec.describe_batch(frames), [make_thumbnail(frame) for frame in frames]
 
 
-def _keep_thumbnails(results: Iterator[tuple[np.ndarray, list[bytes]]], sink: list[bytes]
-                     ) -> Iterator[np.ndarray]:
+def _keep_thumbnails(results: Iterator[tuple[Descriptors, list[bytes]]], sink: list[bytes]
+                     ) -> Iterator[Descriptors]:
     """The descriptor chunks of ``results``, their thumbnails appended to ``sink`` in order."""
     for rows, thumbs in results:
         sink.extend(thumbs)
@@ -219,9 +220,9 @@ def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
     return max(1, min(_MAX_CHUNK, batch_size, math.ceil(n_frames / (4 * workers))))
 
 
-def _rebatch(chunks: Iterator[np.ndarray], batch_size: int) -> Iterator[np.ndarray]:
+def _rebatch(chunks: Iterator[Descriptors], batch_size: int) -> Iterator[Descriptors]:
     """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer)."""
-    buffer: list[np.ndarray] = []
+    buffer: list[Descriptors] = []
     held = 0
     for chunk in chunks:
         buffer.append(chunk)
@@ -249,12 +250,12 @@ class ImageDirSource(FrameSource):
     def count(self) -> int:
         return len(self.files)
 
-    def _batches(self) -> Iterator[np.ndarray]:
+    def _batches(self) -> Iterator[Descriptors]:
         assert self.spec is not None
         size = _chunk_size(len(self.files), self.batch_size, self.workers)
         chunks = [self.files[i : i + size] for i in range(0, len(self.files), size)]
         initializer = _single_threaded_opencv if self.executor == "process" else None
-        results: Iterator[np.ndarray]
+        results: Iterator[Descriptors]
         if self.thumbnails is None:
             results = ordered_map(functools.partial(_describe_files, self.spec), chunks,
                                   self.workers, self.executor, initializer=initializer)
@@ -307,9 +308,9 @@ class VideoSource(FrameSource):
             raise InputError(f"{self.path}: cannot open video (unsupported or corrupt file)")
         return capture
 
-    def _frames(self, capture: cv2.VideoCapture, chunk: int) -> Iterator[list[np.ndarray]]:
+    def _frames(self, capture: cv2.VideoCapture, chunk: int) -> Iterator[list[Image]]:
         index = 0
-        frames: list[np.ndarray] = []
+        frames: list[Image] = []
         while True:
             if index % self.stride == 0:
                 ok, frame = capture.read()
@@ -325,13 +326,13 @@ class VideoSource(FrameSource):
         if frames:
             yield frames
 
-    def _batches(self) -> Iterator[np.ndarray]:
+    def _batches(self) -> Iterator[Descriptors]:
         assert self.spec is not None
         capture = self._open()
         try:
             chunk = _chunk_size(None, self.batch_size, self.workers)
             frames = self._frames(capture, chunk)
-            results: Iterator[np.ndarray]
+            results: Iterator[Descriptors]
             if self.thumbnails is None:
                 results = ordered_map(functools.partial(_describe_frames, self.spec), frames,
                                       self.workers, "thread")
@@ -376,14 +377,14 @@ class NpySource(FrameSource):
     def count(self) -> int:
         return int(self.array.shape[0])
 
-    def _batches(self) -> Iterator[np.ndarray]:
+    def _batches(self) -> Iterator[Descriptors]:
         for start in range(0, self.count, self.batch_size):
             yield np.ascontiguousarray(
                 self.array[start : start + self.batch_size], dtype=np.float32
             )
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def _load_npy(path: Path) -> DescriptorsLike:
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:

@@ -14,8 +14,12 @@ a quarter to a sixty-fourth of the pixels to decode) when the image is large eno
 
 from __future__ import annotations
 
-import numpy as np
+from typing import cast
 
+import numpy as np
+from numpy.typing import NDArray
+
+from sprint_map.arrays import Image
 from sprint_map.errors import InputError
 
 #: Width of a thumbnail in pixels (its height follows the frame's aspect ratio).
@@ -24,7 +28,7 @@ THUMBNAIL_WIDTH = 96
 THUMBNAIL_QUALITY = 75
 
 
-def make_thumbnail(image: np.ndarray, width: int = THUMBNAIL_WIDTH,
+def make_thumbnail(image: Image, width: int = THUMBNAIL_WIDTH,
                    quality: int = THUMBNAIL_QUALITY) -> bytes:
     """Encode ``image`` (gray, BGR or BGRA; uint8 or uint16) as a small JPEG.
 
@@ -36,7 +40,7 @@ def make_thumbnail(image: np.ndarray, width: int = THUMBNAIL_WIDTH,
     import cv2  # OpenCV loads with the first thumbnail made, not with the package
 
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = (cast("NDArray[np.uint16]", image) >> 8).astype(np.uint8)
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     height, wide = image.shape[:2]
