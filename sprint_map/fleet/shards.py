@@ -9,7 +9,8 @@ every shard at once, gets each one's k best and merges them into the k best over
 The answer equals the in-process exact search, ids and distances: each distance is computed by
 the same FAISS kernel on the same two rows (one OpenMP thread below 8 queries, as in
 :func:`~sprint_map.storage.segment_model.use_threads`: with more threads, FAISS splits a single
-query's scan of a large index in a way whose rounding depends on the index size), and the k best
+query's scan of a large index in a way whose rounding depends on the index size; from 8 queries
+on the threads split the queries, whatever their number), and the k best
 of the union of the ranges' k best are the k best of the whole. Removed sequences are hidden as
 the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
 
@@ -28,7 +29,6 @@ import numpy as np
 
 from sprint_map.map import SprintMap
 from sprint_map.storage.removal import RemovedRanges, search_live
-from sprint_map.storage.segment_model import use_threads
 from sprint_map.storage.validation import validate_descriptors
 
 __all__ = ["ALIGN", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk", "plan_ranges",
@@ -100,8 +100,9 @@ class ShardWorker:
     """
 
     def __init__(self, path: str | None, start: int, stop: int | None, dim: int,
-                 rows: np.ndarray | None = None) -> None:
+                 rows: np.ndarray | None = None, threads: int = 1) -> None:
         self.start = start
+        self.threads = threads
         self.stop = stop
         self.index = faiss.IndexFlatL2(dim)
         self.map: SprintMap | None = None
@@ -143,7 +144,9 @@ class ShardWorker:
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
-        use_threads(len(queries))
+        # One thread below 8 queries (as in process: see the module docstring); above, the
+        # threads split the queries, which leaves every distance as it is.
+        faiss.omp_set_num_threads(1 if len(queries) < 8 else self.threads)
         if not self.index.ntotal:
             return (np.full((len(queries), k), PAD_DISTANCE, dtype=np.float32),
                     np.full((len(queries), k), -1, dtype=np.int64))
@@ -178,6 +181,9 @@ class ShardedIndex:
     ship : bool
         Read the rows here and send them to the actors (no shared filesystem); default: each
         actor reads its range from the map's files.
+    threads : int
+        OpenMP threads of each shard's search of 8 queries or more (default 1: one shard per
+        core; a node of c cores runs c shards best).
     actor_options : dict, optional
         Ray options of the actors (default ``num_cpus=0``, placed round robin over the
         cluster's nodes: one actor per node while there are nodes).
@@ -189,7 +195,7 @@ class ShardedIndex:
     """
 
     def __init__(self, smap: SprintMap, shards: int = 3, *, ship: bool = False,
-                 actor_options: dict[str, Any] | None = None) -> None:
+                 threads: int = 1, actor_options: dict[str, Any] | None = None) -> None:
         from sprint_map.fleet.runtime import require_ray
 
         ray = require_ray()
@@ -210,7 +216,7 @@ class ShardedIndex:
                 rows = ray.put(np.ascontiguousarray(smap.vertex_rows(a, vertices if b is None
                                                                     else min(b, vertices))))
             self.actors.append(remote.options(**options).remote(
-                None if ship else path, a, b, self.dim, rows))
+                None if ship else path, a, b, self.dim, rows, threads))
         self.covered: int = max(ray.get([actor.covered.remote() for actor in self.actors]))
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
