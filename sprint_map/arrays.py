@@ -23,6 +23,7 @@ __all__ = [
     "Int32Array",
     "Int64Array",
     "IntArray",
+    "SearchResult",
     "UInt8Array",
 ]
 
@@ -49,3 +50,7 @@ UInt8Array: TypeAlias = NDArray[np.uint8]
 #: A decoded image: ``(h, w)`` gray or ``(h, w, 3|4)`` BGR(A), uint8 in practice (uint16 is
 #: accepted on input); typed as OpenCV's own stubs type the images it returns.
 Image: TypeAlias = NDArray[np.integer[Any] | np.floating[Any]]
+#: What a k-NN search returns: ``(distances, ids)``, each ``(n_queries, k)``: squared L2
+#: distances (float32) and vertex ids (int64; ``-1`` with an infinite distance pads a row
+#: with fewer than ``k`` hits).
+SearchResult: TypeAlias = tuple[Float32Array, Int64Array]

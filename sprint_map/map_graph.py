@@ -19,6 +19,7 @@ from typing import Any
 import lmdb
 import numpy as np
 
+from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.errors import MapCorruptError
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.storage.keys import read_u32, u64
@@ -107,7 +108,7 @@ class MapGraphSource:
             with self.store.env.read() as txn:
                 yield txn
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest live vertices of each query (pinned snapshot, else now), -1 padded."""
         if self._snapshot is not None:
             return self._snapshot.search(queries, k)

@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.arrays import Float32Array, Int64Array
 from sprint_map.errors import InputError
 from sprint_map.storage.atomic import publish
 
@@ -109,7 +110,7 @@ class TraceRecorder:
     def frames(self) -> int:
         return len(self._decisions)
 
-    def observe(self, decision: FrameDecision, ids: np.ndarray, dists: np.ndarray) -> None:
+    def observe(self, decision: FrameDecision, ids: Int64Array, dists: Float32Array) -> None:
         """The localizer's per-frame hook: keep the frame's hits, belief and decision."""
         loc = self._localizer
         if loc is None:

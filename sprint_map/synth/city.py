@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from sprint_map import dataclass_dict
+from sprint_map.arrays import Float64Array, Image
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.parallel import default_workers
@@ -200,8 +201,8 @@ class SyntheticTraversal:
 
     name: str
     condition: str
-    images: np.ndarray
-    positions: np.ndarray
+    images: Image
+    positions: Float64Array
     plan: TraversalPlan
 
 
@@ -310,7 +311,7 @@ class _World:
         assert best is not None
         return best[1]
 
-    def frames(self, plan: TraversalPlan) -> Iterator[np.ndarray]:
+    def frames(self, plan: TraversalPlan) -> Iterator[Image]:
         """Render the traversal's images, in order."""
         renderer = Renderer(self.layout, self.atlas, self.camera)  # one per thread: it caches
         appearance = Appearance(plan.condition, np.random.default_rng(list(plan.seed)))
@@ -339,7 +340,7 @@ class _World:
         return SyntheticTraversal(plan.name, preset, images, self.positions(plan), plan)
 
     @staticmethod
-    def positions(plan: TraversalPlan) -> np.ndarray:
+    def positions(plan: TraversalPlan) -> Float64Array:
         traj = plan.trajectory
         frames = np.arange(len(traj.xy), dtype=np.float64)
         return np.column_stack([frames, traj.xy, traj.heading_deg])

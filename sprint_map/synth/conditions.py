@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from sprint_map.arrays import Image
 from sprint_map.synth.render import BGR, View
 
 
@@ -168,10 +169,10 @@ class Appearance:
         self._vehicles: list[_Vehicle] = []
         self._noise_bank: np.ndarray | None = None
 
-    def apply(self, view: View, heading_deg: float) -> np.ndarray:
+    def apply(self, view: View, heading_deg: float) -> Image:
         """Return the view's image under this condition (uint8 BGR, same size)."""
         c = self.condition
-        out: np.ndarray = view.image.copy()  # the drawing below works in place
+        out: Image = view.image.copy()  # the drawing below works in place
         glare = 0.0
         if c.glare and c.sun_deg is not None:
             glare = c.glare * max(0.0, float(np.cos(np.radians(heading_deg - c.sun_deg)))) ** 3

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from sprint_map.arrays import Float32Array, Image
 from sprint_map.synth.atlas import Atlas
 from sprint_map.synth.layout import CityLayout
 
@@ -50,10 +51,10 @@ class Camera:
 class View:
     """A rendered view: the image plus per-pixel depth (for fog) and sky/ground fractions."""
 
-    image: np.ndarray  # (H, W, 3) uint8 BGR
-    depth: np.ndarray  # (H, W) float32 metres along the optical axis; sky: 1e4
-    sky: np.ndarray  # (H, W) float32 in [0, 1], fraction of the pixel that is sky
-    ground: np.ndarray  # (H, W) float32 in [0, 1], fraction of the pixel that is ground
+    image: Image  # (H, W, 3) uint8 BGR
+    depth: Float32Array  # (H, W) float32 metres along the optical axis; sky: 1e4
+    sky: Float32Array  # (H, W) float32 in [0, 1], fraction of the pixel that is sky
+    ground: Float32Array  # (H, W) float32 in [0, 1], fraction of the pixel that is ground
 
 
 class Renderer:

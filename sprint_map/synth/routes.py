@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sprint_map.arrays import Float64Array
 from sprint_map.synth.layout import CityLayout, Node
 
 Edge = tuple[Node, Node]
@@ -122,8 +123,8 @@ class Drive:
 class Trajectory:
     """Per-frame camera poses."""
 
-    xy: np.ndarray  # (N, 2) metres
-    heading_deg: np.ndarray  # (N,) direction of travel, degrees CCW from +x, in [0, 360)
+    xy: Float64Array  # (N, 2) metres
+    heading_deg: Float64Array  # (N,) direction of travel, degrees CCW from +x, in [0, 360)
     route: tuple[Node, ...]  # intersections actually reached or approached
 
 
