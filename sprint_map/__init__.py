@@ -19,9 +19,10 @@ from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
 
 if TYPE_CHECKING:
+    from sprint_map.commit import IngestResult
     from sprint_map.drives import Drive
     from sprint_map.localizer import FrameDecision, Localizer, Timing
-    from sprint_map.map import IngestResult, SprintMap
+    from sprint_map.map import SprintMap
     from sprint_map.storage.records import (
         AddResult,
         CheckReport,
@@ -46,7 +47,7 @@ __all__ = ["SCHEMA_VERSION", "AddResult", "CheckReport", "CompactReport", "Compo
 __version__ = "0.1.0"
 
 #: Names imported on first use, and the module that defines each.
-_LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.map",
+_LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.commit",
          "Drive": "sprint_map.drives",
          "Localizer": "sprint_map.localizer", "FrameDecision": "sprint_map.localizer",
          "Timing": "sprint_map.localizer",

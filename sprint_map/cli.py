@@ -416,9 +416,7 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
       sprint-map check city.map --repair
     """
     if repair:
-        from sprint_map.storage.repair import repair_map
-
-        fixed = repair_map(map_path)
+        fixed = SprintMap.repair(map_path)
         report, data = fixed.after, fixed.to_dict()
         lines = [f"repaired: {r}" for r in fixed.repaired] + [f"skipped: {s}" for s in fixed.skipped]
     else:

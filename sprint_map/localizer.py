@@ -1,4 +1,4 @@
-"""Localising a query sequence against a map, and turning its decisions into merge edges.
+"""Localising a query sequence against a map.
 
 Per frame: k-NN retrieval over the whole map (FAISS) gives the observations; the SPRINT filter
 updates the belief over the active set only; the most probable place is the decision. The
@@ -12,28 +12,61 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
+from sprint_map.config import MapConfig
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision
+from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
-from sprint_map.map_graph import MapGraphSource
 from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
-from sprint_map.storage.records import EdgeSpec
-from sprint_map.storage.validation import validate_descriptors
+from sprint_map.validation import validate_descriptors
 
-if TYPE_CHECKING:
-    from sprint_map.map import SprintMap
+__all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "MapView", "Timing",
+           "local_quantiles"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
+
+
+class MapView(GraphSource, Protocol):
+    """What a :class:`Localizer` reads of a map, through a view of its own
+    (:class:`sprint_map.map_graph.MapGraphSource` is one).
+
+    Besides the HMM's :class:`~sprint_map.hmm.graph.GraphSource` (components of vertices, a
+    component's arrays): k-NN search, vertex -> ``(seq_id, image_id)``, the vertex count and
+    which vertices are live, all read from one pinned snapshot during a ``localize``.
+    """
+
+    @property
+    def vertices(self) -> int: ...
+
+    def pinned(self) -> AbstractContextManager[bool]: ...
+
+    def mark_current(self) -> None: ...
+
+    def visible(self, vertex_ids: np.ndarray) -> np.ndarray: ...
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def locate(self, vertex_ids: Any) -> list[tuple[int, int]]: ...
+
+
+class LocalizableMap(Protocol):
+    """A map a :class:`Localizer` can read (:class:`sprint_map.map.SprintMap` is one): its
+    config and a new :class:`MapView` for each localizer."""
+
+    @property
+    def config(self) -> MapConfig: ...
+
+    def view(self) -> MapView: ...
 
 
 @dataclass(frozen=True)
@@ -112,8 +145,9 @@ class Localizer:
 
     Parameters
     ----------
-    smap : SprintMap
-        The map (read-only is enough); its state is read through LMDB snapshots.
+    smap : LocalizableMap
+        The map (a :class:`~sprint_map.map.SprintMap`; read-only is enough); its state is read
+        through its :meth:`~LocalizableMap.view`, from LMDB snapshots.
     hmm : HMMConfig, optional
         Model parameters; default the map's own (``smap.config.hmm``).
     cache : ComponentCache, optional
@@ -127,16 +161,16 @@ class Localizer:
     components only, plus loading components that join the active set (LRU-cached).
     """
 
-    def __init__(self, smap: SprintMap, hmm: HMMConfig | None = None,
+    def __init__(self, smap: LocalizableMap, hmm: HMMConfig | None = None,
                  cache: ComponentCache | None = None, *, record: bool = False) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
-        self.source = MapGraphSource(smap.store)
+        self.source = smap.view()
         # A cache may be shared by localizers over the same map (the server's sessions).
         self.cache = cache if cache is not None else ComponentCache(self.config.cache_budget_bytes)
         self.filter = SprintFilter(self.config, self.source, self.cache)
         self.timing = Timing()
-        self._empty = smap.stats()["vertices"] == 0
+        self._empty = self.source.vertices == 0
         self._frame = 0
         #: Keep every frame's retrieval hits, for :meth:`smoothed` (O(k) per frame).
         self.record = record
@@ -354,24 +388,3 @@ def _nearest(ids: np.ndarray, dists: np.ndarray) -> float:
     """A frame's best-hit distance (squared L2; inf without a valid hit)."""
     d = np.asarray(dists, dtype=np.float64).ravel()[np.asarray(ids).ravel() >= 0]
     return float(d.min()) if d.size else math.inf
-
-
-def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_ways: bool
-                ) -> list[EdgeSpec]:
-    """The edges that merging a localised drive adds: one per merged decision.
-
-    ``merged`` is the merge rule's verdict per decision
-    (:func:`sprint_map.merge_rule.select_merges`). A merged decision on frame ``i`` matched to
-    ``(s, j)`` gives the edge ``(new, i) -> (s, j)`` with weight ``min(prob, 1)``, and with
-    ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can later cross from the old drive
-    into the new one as well as back.
-    """
-    edges = []
-    for d, keep in zip(decisions, np.asarray(merged, dtype=bool).tolist(), strict=True):
-        if not keep or d.seq_id is None or d.image_id is None:
-            continue
-        weight = min(1.0, float(d.prob))
-        edges.append(EdgeSpec((None, d.frame), (d.seq_id, d.image_id), weight, d.frame))
-        if both_ways:
-            edges.append(EdgeSpec((d.seq_id, d.image_id), (None, d.frame), weight, d.frame))
-    return edges

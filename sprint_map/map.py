@@ -13,17 +13,23 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Container, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sprint_map import dataclass_dict
+from sprint_map.commit import DriveWriter, IngestResult
 from sprint_map.config import MapConfig
 from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
-from sprint_map.errors import DescriptorShapeError, InputError
+from sprint_map.errors import (
+    ConfigError,
+    DescriptorShapeError,
+    InputError,
+    MapCorruptError,
+    SprintMapError,
+)
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge_rule import select_merges
 from sprint_map.storage.provenance import edge_table, list_edges
@@ -36,45 +42,40 @@ from sprint_map.storage.records import (
     EdgeSpec,
     EdgeTable,
     RemoveResult,
+    RepairReport,
     SequenceRecord,
     UnmergeResult,
 )
+from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import MapStore
-from sprint_map.storage.validation import decode_text
+from sprint_map.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
     from sprint_map.export.report import ExportReport
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
-    from sprint_map.localizer import FrameDecision, Localizer, Timing
+    from sprint_map.hmm.cache import ComponentCache
+    from sprint_map.localizer import FrameDecision, Localizer, MapView, Timing
     from sprint_map.prepared import PreparedDrive
     from sprint_map.storage.removal import RemovedRanges
 
 
-@dataclass(frozen=True)
-class IngestResult:
-    """What :meth:`SprintMap.ingest` did: the commit, the decisions that made its edges."""
+__all__ = ["SprintMap", "stored_config"]
 
-    added: AddResult
-    decisions: list[FrameDecision]
-    timing: Timing
-    #: The merge rule's verdict per decision: which became edges (empty without a merge).
-    merged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
-    def to_dict(self) -> dict[str, Any]:
-        seq = self.added.sequence
-        merged = self.merged.tolist() if len(self.merged) else [False] * len(self.decisions)
-        return {
-            "seq_id": seq.seq_id,
-            "name": seq.name,
-            "frames": seq.length,
-            "component": self.added.component,
-            "edges_added": self.added.edges_added,
-            # a retry of a drive committed under this name with these very descriptors
-            "already_committed": self.added.already_committed,
-            "decisions": [{**d.to_dict(), "merged": m}
-                          for d, m in zip(self.decisions, merged, strict=True)],
-            "timing": self.timing.to_dict(),
-        }
+def stored_config(record: dict[str, Any]) -> MapConfig:
+    """The configuration a map stores (its meta record, decoded JSON), or MapCorruptError if
+    it is not a valid config: values the config refuses (of the wrong type or out of range: a
+    map is only ever created with a valid one). The store checks its own fields of it when it
+    opens (:func:`sprint_map.storage.store.decode_config`); this checks the rest. O(fields).
+    """
+    try:
+        return MapConfig.from_dict(record)
+    except ConfigError as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
+    except SprintMapError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
 
 
 class SprintMap:
@@ -86,6 +87,7 @@ class SprintMap:
 
     def __init__(self, store: MapStore) -> None:
         self.store = store
+        self._config = stored_config(store.config_record)
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -109,7 +111,7 @@ class SprintMap:
         shard that may hold uncommitted rows. Raises ``MapLockedError`` at once if another
         process is writing.
         """
-        return cls(MapStore.open(path, readonly=readonly))
+        return cls(MapStore.open(path, readonly=readonly, check_config=stored_config))
 
     def close(self) -> None:
         """Persist the index (writer) and release the map."""
@@ -131,11 +133,16 @@ class SprintMap:
 
     @property
     def config(self) -> MapConfig:
-        return self.store.config
+        return self._config
 
     @property
     def readonly(self) -> bool:
         return self.store.readonly
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called (nothing can be read any more)."""
+        return self.store.env is None
 
     @property
     def warnings(self) -> list[str]:
@@ -207,7 +214,7 @@ class SprintMap:
         :meth:`sprint_map.trace.TraceRecorder.attach`); it is not called when the drive is
         appended without localisation.
         """
-        from sprint_map.localizer import SEARCH_BATCH, Localizer, Timing, merge_edges
+        from sprint_map.localizer import SEARCH_BATCH, Localizer, Timing
 
         batches: Iterable[np.ndarray]
         if isinstance(descriptors, np.ndarray):
@@ -219,18 +226,31 @@ class SprintMap:
                      else None)
         if localizer is not None and observe is not None:
             observe(localizer)
-        with self.store.begin_sequence(name, source) as writer:
+        with self.begin_drive(name, source) as drive:
             for batch in batches:
                 if localizer is not None:
                     for _ in localizer.iter_localize(iter([batch])):
                         pass
-                writer.append(batch)
+                drive.append(batch)
             decisions = localizer.smoothed() if localizer is not None else []
-            merged = self.select_merges(decisions)
-            edges = merge_edges(decisions, merged, self.config.merge_both_ways)
-            added = writer.commit(positions, edges, thumbnails)
-        return IngestResult(added, decisions, localizer.timing if localizer else Timing(),
-                            merged)
+            done = drive.commit(decisions, positions, thumbnails=thumbnails)
+        return IngestResult(done.added, decisions, localizer.timing if localizer else Timing(),
+                            done.merged)
+
+    def begin_drive(self, name: str | None = None, source: str = "",
+                    reserved: Container[str] = ()) -> DriveWriter:
+        """Start committing a localised drive: append its rows, then
+        :meth:`~sprint_map.commit.DriveWriter.commit` it with its decisions (the one commit
+        path of ``ingest``, ``merge``, ``commit_prepared`` and the service; see
+        :mod:`sprint_map.commit`).
+
+        ``name`` is checked now, before any row is written; without one the sequence is named
+        ``seq-<id>`` (or ``seq-<id>-2``, ...), avoiding the map's names and ``reserved``. One
+        drive at a time per writer.
+        """
+        return DriveWriter(SequenceWriter(self.store, name, source, reserved),
+                           self.config.merge_rule, self.config.merge_both_ways,
+                           self.store.component_of)
 
     def prepare_ingest(self, batches: Iterable[np.ndarray], *, merge: bool = True,
                        hmm: HMMConfig | None = None) -> PreparedDrive:
@@ -256,20 +276,17 @@ class SprintMap:
         The staleness check costs O(N * M * dim) for the M vertices committed since the
         snapshot (:func:`sprint_map.prepared.stale_reason`).
         """
-        from sprint_map.localizer import merge_edges
         from sprint_map.prepared import stale_reason
 
         reason = stale_reason(self, prepared, np.concatenate(list(batches)))
         if reason is not None:
             return self.ingest(iter(batches), name, positions, merge=prepared.merge, hmm=hmm,
                                source=source), reason
-        merged = self.select_merges(prepared.decisions)
-        edges = merge_edges(prepared.decisions, merged, self.config.merge_both_ways)
-        with self.store.begin_sequence(name, source) as writer:
+        with self.begin_drive(name, source) as drive:
             for batch in batches:
-                writer.append(batch)
-            added = writer.commit(positions, edges)
-        return IngestResult(added, prepared.decisions, prepared.timing, merged), None
+                drive.append(batch)
+            done = drive.commit(prepared.decisions, positions)
+        return IngestResult(done.added, prepared.decisions, prepared.timing, done.merged), None
 
     def ingest_drives(
         self,
@@ -302,11 +319,8 @@ class SprintMap:
               positions: np.ndarray | None = None, source: str = "") -> AddResult:
         """Commit a localised drive with the decisions the merge rule selects as edges,
         atomically (``decisions``: usually :meth:`localize` with ``smooth=True``)."""
-        from sprint_map.localizer import merge_edges
-
-        edges = merge_edges(decisions, self.select_merges(decisions), self.config.merge_both_ways)
-        return self.add_sequence(descriptors, name=name, positions=positions, edges=edges,
-                                 source=source)
+        with self.begin_drive(name, source) as drive:
+            return drive.commit(decisions, positions, rows=descriptors).added
 
     def remove_sequences(self, sequences: Iterable[int | str]) -> RemoveResult:
         """Forget whole drives: each ``int`` is a sequence id, each ``str`` a sequence name.
@@ -364,6 +378,22 @@ class SprintMap:
         :meth:`sprint_map.storage.index_store.IndexStore.train`.
         """
         return self.store.rebuild_index(train=train)
+
+    def view(self) -> MapView:
+        """A new view of the map for one :class:`~sprint_map.localizer.Localizer` (what it
+        reads: k-NN search, vertex locations, components and their edges, from pinned LMDB
+        snapshots)."""
+        from sprint_map.map_graph import MapGraphSource
+
+        return MapGraphSource(self.store)
+
+    def shared_cache(self) -> ComponentCache:
+        """A thread-safe component cache of the map's ``hmm.cache_budget_bytes``, for
+        localizers that run in several threads over this map (``Localizer(..., cache=)``):
+        each component is loaded once for all of them."""
+        from sprint_map.hmm.cache import SharedComponentCache
+
+        return SharedComponentCache(self.config.hmm.cache_budget_bytes)
 
     def localizer(self, hmm: HMMConfig | None = None, **overrides: Any) -> Localizer:
         """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
@@ -432,6 +462,15 @@ class SprintMap:
 
     def sequences(self) -> list[SequenceRecord]:
         return self.store.sequences()
+
+    def sequence_by_name(self, name: str) -> SequenceRecord:
+        """The sequence named ``name`` (UnknownSequenceError if none). O(log n_sequences)."""
+        return self.store.sequence_by_name(name)
+
+    def locate(self, vertex_ids: Iterable[int]) -> list[tuple[int, int]]:
+        """``(seq_id, image_id)`` of each vertex id (as :meth:`search` returns them).
+        O(log n_sequences) per vertex."""
+        return self.store.locate(vertex_ids)
 
     def component_of(self, seq_id: int) -> int:
         return self.store.component_of(seq_id)
@@ -547,6 +586,15 @@ class SprintMap:
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
         return self.store.search(queries, k)
+
+    @staticmethod
+    def repair(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
+        """Repair the map at ``path`` as far as its own data allows, then check it (``sprint-map
+        check --repair``; takes the writer lock). See :func:`sprint_map.storage.repair.repair_map`.
+        """
+        from sprint_map.storage.repair import repair_map
+
+        return repair_map(path, seed=seed, check_config=stored_config)
 
     def check(self) -> CheckReport:
         """Verify every on-disk invariant (best on a map opened read-only)."""

@@ -35,12 +35,12 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map import HMMConfig
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
 from sprint_map.frontend.dataset import Dataset, Traversal
 from sprint_map.frontend.groundtruth import GroundTruth
-from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 
@@ -209,7 +209,7 @@ def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
     frames = np.arange(len(rows))
     kmax = max(ks)
     _, ids = m.search(rows, kmax)
-    located = m.store.locate(ids[ids >= 0].ravel())
+    located = m.locate(ids[ids >= 0].ravel())
     seq = np.full(ids.shape, -1)
     img = np.full(ids.shape, -1)
     seq[ids >= 0] = [s for s, _ in located]
@@ -258,7 +258,7 @@ def _correct(query: str, places: list[tuple[int, int] | None], gt: GroundTruth,
 
 
 def _edges_per_decision(config: MapConfig) -> int:
-    """Edges one merged decision makes (:func:`sprint_map.localizer.merge_edges`)."""
+    """Edges one merged decision makes (:func:`sprint_map.commit.merge_edges`)."""
     return 2 if config.merge_both_ways else 1
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from sprint_map.map import SprintMap
 from sprint_map.storage.removal import RemovedRanges, search_live
-from sprint_map.storage.validation import validate_descriptors
+from sprint_map.validation import validate_descriptors
 
 __all__ = ["ALIGN", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk", "plan_ranges",
            "spread"]

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 
 from sprint_map.hmm.graph import ComponentGraph
+
+__all__ = ["ComponentCache", "SharedComponentCache"]
 
 
 class ComponentCache:
@@ -91,3 +94,31 @@ class ComponentCache:
         """Forget every component."""
         self._items.clear()
         self._nbytes = 0
+
+
+class SharedComponentCache(ComponentCache):
+    """A :class:`ComponentCache` shared by filters in several threads (the service's
+    sessions), so a component is loaded (and held) once.
+
+    A lock serialises the cache's bookkeeping and the loads (two filters asking for the same
+    component load it once). Components are immutable (read-only arrays), so filters share
+    them safely. Whoever changes the map invalidates the changed components here before a
+    filter can see the change (the service's commit writer, under its exclusive gate).
+    """
+
+    def __init__(self, budget_bytes: int) -> None:
+        super().__init__(budget_bytes)
+        self._lock = threading.RLock()
+
+    def get(self, component_id: int,
+            loader: Callable[[int], ComponentGraph]) -> ComponentGraph:
+        with self._lock:
+            return super().get(component_id, loader)
+
+    def invalidate(self, component_ids: Iterable[int]) -> None:
+        with self._lock:
+            super().invalidate(component_ids)
+
+    def clear(self) -> None:
+        with self._lock:
+            super().clear()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from sprint_map.errors import InputError, UnsafeServeError
 from sprint_map.server.config import ServerConfig
-from sprint_map.storage.validation import decode_text
+from sprint_map.validation import decode_text
 
 
 def load_token(config: ServerConfig) -> str | None:

@@ -18,7 +18,7 @@ from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import decode_image
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
-from sprint_map.storage.validation import validate_descriptors, validate_name
+from sprint_map.validation import validate_descriptors, validate_name
 
 JSON_TYPES = ("application/json",)
 #: Raw little-endian float32 values, ``4 * dim`` bytes: no JSON parsing (~1 ms per HoG frame).
@@ -112,7 +112,7 @@ def session_name(name: str | None) -> str | None:
     """A session's sequence name, checked by the store's one name check, or a 422 ``bad_input``.
 
     JSON can carry a lone surrogate (``"\\udcff"``): a Python ``str`` but not UTF-8 text, which
-    :func:`~sprint_map.storage.validation.validate_name` refuses (it was a 500).
+    :func:`~sprint_map.validation.validate_name` refuses (it was a 500).
     """
     if name is not None:
         try:

@@ -123,7 +123,7 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
         sock.close()
         if pool is not None:
             pool.close()
-        if smap.store.env is not None:  # the lifespan did not run (start-up failed)
+        if not smap.closed:  # the lifespan did not run (start-up failed)
             smap.close()
         for warning in smap.warnings:
             print(f"Warning: {warning}", file=sys.stderr)

@@ -43,7 +43,6 @@ from sprint_map.server.sessions import (
     OPEN,
     Session,
     SessionRegistry,
-    SharedComponentCache,
 )
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
 
@@ -73,7 +72,7 @@ class LocalisationService:
         self.metrics = Metrics()
         self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
                                         config.max_buffered_bytes)
-        self.cache = SharedComponentCache(smap.config.hmm.cache_budget_bytes)
+        self.cache = smap.shared_cache()
         self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
                                    self.registry)
         self.spec = smap.config.descriptor_spec()
@@ -152,7 +151,7 @@ class LocalisationService:
         self.registry.notify_changed(component_ids)
 
     def _stats(self) -> dict[str, int]:
-        if self.map.store.env is None:
+        if self.map.closed:
             return {}
         with self.gate.shared():
             return self.map.stats()
@@ -170,7 +169,7 @@ class LocalisationService:
         with self.gate.shared():
             if name is not None:
                 try:
-                    self.map.store.sequence_by_name(name)
+                    self.map.sequence_by_name(name)
                 except SprintMapError:
                     pass
                 else:

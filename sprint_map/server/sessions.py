@@ -21,43 +21,14 @@ from collections.abc import Callable, Container, Iterable
 
 import numpy as np
 
-from sprint_map.hmm.cache import ComponentCache
-from sprint_map.hmm.graph import ComponentGraph
+from sprint_map.commit import DriveWriter
 from sprint_map.localizer import FrameDecision, Localizer
 from sprint_map.server.errors import ApiError, busy, unknown_session
-from sprint_map.storage.sequence_writer import SequenceWriter
 
 OPEN, COMMITTING, CLOSED = "open", "committing", "closed"
 
 #: How many default names of recent unnamed commits stay claimed (see ``begin_default``).
 CLAIMED_NAMES = 64
-
-
-class SharedComponentCache(ComponentCache):
-    """One component cache for every session, so a component is loaded (and held) once.
-
-    A lock serialises the cache's bookkeeping and the loads (two sessions asking for the same
-    component load it once). Components are immutable (read-only arrays), so filters share
-    them safely. The commit writer invalidates the changed components here, under the
-    exclusive gate, so a session created after a commit never gets a stale one.
-    """
-
-    def __init__(self, budget_bytes: int) -> None:
-        super().__init__(budget_bytes)
-        self._lock = threading.RLock()
-
-    def get(self, component_id: int,
-            loader: Callable[[int], ComponentGraph]) -> ComponentGraph:
-        with self._lock:
-            return super().get(component_id, loader)
-
-    def invalidate(self, component_ids: Iterable[int]) -> None:
-        with self._lock:
-            super().invalidate(component_ids)
-
-    def clear(self) -> None:
-        with self._lock:
-            super().clear()
 
 
 class Session:
@@ -184,8 +155,8 @@ class SessionRegistry:
                                f"{session.name!r} (its default name) just now")
             self._sessions[session.id] = session
 
-    def begin_default(self, begin: Callable[[Container[str]], SequenceWriter]
-                      ) -> SequenceWriter:
+    def begin_default(self, begin: Callable[[Container[str]], DriveWriter]
+                      ) -> DriveWriter:
         """Begin an unnamed drive's sequence, its default name avoiding every session's name.
 
         ``begin(taken)`` chooses the name (:func:`~sprint_map.storage.sequence_writer.

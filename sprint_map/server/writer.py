@@ -1,8 +1,9 @@
 """CommitWriter: the single writer thread through which every commit goes, in order.
 
-A commit is what ``SprintMap.ingest`` does at the end of a drive: the drive's descriptors and
-its confident decisions as edges (:func:`~sprint_map.localizer.merge_edges`), in one LMDB
-transaction. It is acknowledged (its future resolves) only after that transaction returned,
+A commit is what ``SprintMap.ingest`` does at the end of a drive, through the same path
+(:meth:`SprintMap.begin_drive <sprint_map.map.SprintMap.begin_drive>`,
+:meth:`DriveWriter.commit <sprint_map.commit.DriveWriter.commit>`): the drive's descriptors and
+the decisions the merge rule selects as edges, in one LMDB transaction. It is acknowledged (its future resolves) only after that transaction returned,
 i.e. once durable (LMDB ``sync=True``). The slow part, writing and fsyncing the shard rows,
 runs beside the frames (the rows are invisible until the transaction); only the transaction and
 the index update hold the map gate exclusively.
@@ -13,19 +14,20 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable, Container
+from collections.abc import Callable, Container, Iterator
 from concurrent.futures import Future
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-from sprint_map.localizer import FrameDecision, merge_edges
+from sprint_map.commit import DriveWriter
+from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
 from sprint_map.storage.records import AddResult
-from sprint_map.storage.sequence_writer import SequenceWriter
 
 
 @dataclass(frozen=True)
@@ -58,8 +60,8 @@ class CommitOutcome:
 class NameClaims(Protocol):
     """Where an unnamed drive's default name is chosen (the service's session registry)."""
 
-    def begin_default(self, begin: Callable[[Container[str]], SequenceWriter]
-                      ) -> SequenceWriter:
+    def begin_default(self, begin: Callable[[Container[str]], DriveWriter]
+                      ) -> DriveWriter:
         """``begin(names in use)``, atomically with claiming the name it chose."""
 
     def release(self, name: str) -> None:
@@ -149,30 +151,32 @@ class CommitWriter:
     def commit(self, job: CommitJob) -> CommitOutcome:
         """Commit one drive (in the writer thread; also usable directly when no thread runs)."""
         smap = self.smap
-        config = smap.config
         # The map changes only in this thread: the smoothing sees the map the commit extends.
         decisions = job.smoothed() if job.smoothed is not None else job.decisions
-        edges = merge_edges(decisions, smap.select_merges(decisions), config.merge_both_ways)
-        touched = {seq for e in edges for seq, _ in (e.src, e.dst) if seq is not None}
-        # Only this thread changes the union-find, so these roots hold until the commit.
-        before = {smap.component_of(seq) for seq in touched}
         if job.name is not None or self.names is None:
-            begun = SequenceWriter(smap.store, job.name, job.source)
+            begun = smap.begin_drive(job.name, job.source)
         else:
             begun = self.names.begin_default(
-                lambda taken: SequenceWriter(smap.store, None, job.source, taken))
+                lambda taken: smap.begin_drive(None, job.source, taken))
+        held = 0.0
+
+        @contextmanager
+        def exclusive() -> Iterator[None]:
+            nonlocal held
+            with self.gate.exclusive():
+                start = time.perf_counter()
+                yield
+                held = time.perf_counter() - start
+
         try:
-            with begun as writer:
-                writer.append(job.descriptors)  # shards written and fsynced; not yet visible
-                with self.gate.exclusive():
-                    start = time.perf_counter()
-                    # The commit point (durable on return).
-                    added = writer.commit(job.positions, edges)
-                    changed = before | {added.component}
-                    self.on_commit(changed)
-                    held = time.perf_counter() - start
+            with begun as drive:
+                drive.append(job.descriptors)  # shards written and fsynced; not yet visible
+                # The commit point (durable on return), then the registry is told, both under
+                # the exclusive gate.
+                done = drive.commit(decisions, job.positions, exclusive=exclusive,
+                                    on_commit=self.on_commit)
         except BaseException:
             if job.name is None and self.names is not None:
                 self.names.release(begun.name)  # nothing was committed under it
             raise
-        return CommitOutcome(added, frozenset(changed), held)
+        return CommitOutcome(done.added, done.changed, held)

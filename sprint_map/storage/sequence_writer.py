@@ -46,7 +46,7 @@ from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, Sequence
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
 from sprint_map.storage.union_find import UnionFindStore
-from sprint_map.storage.validation import (
+from sprint_map.validation import (
     validate_descriptors,
     validate_name,
     validate_positions,

@@ -28,7 +28,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.storage.removal import RemovedRanges, search_live
-from sprint_map.storage.validation import validate_descriptors
+from sprint_map.validation import validate_descriptors
 
 if TYPE_CHECKING:
     from sprint_map.storage.store import MapStore

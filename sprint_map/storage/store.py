@@ -80,7 +80,7 @@ from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
-from sprint_map.storage.validation import decode_text, name_key, shown, validate_descriptors
+from sprint_map.validation import decode_text, name_key, shown, validate_descriptors
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"

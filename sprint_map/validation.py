@@ -1,6 +1,9 @@
-"""Validation of what callers hand the store: descriptors and positions.
+"""The map's input rules: descriptors, positions, sequence names and text.
 
-Bad input is refused with a specific error before anything is written.
+Bad input is refused with a specific error before anything is written. The store applies these
+rules to everything it is handed; the service applies the same ones to a request before it
+reaches the map (so both refuse the same input with the same message). Depends on nothing of
+the package but its errors.
 """
 
 from __future__ import annotations
@@ -15,6 +18,9 @@ from sprint_map.errors import (
     InputError,
     InvalidDescriptorError,
 )
+
+__all__ = ["decode_text", "name_key", "shown", "validate_descriptors", "validate_name",
+           "validate_positions"]
 
 
 def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> np.ndarray:
