@@ -1,27 +1,30 @@
-"""The map's frozen configuration, stored in its meta record at creation."""
+"""The map's frozen configuration, stored in its meta record at creation.
+
+The storage layer reads its own fields of it (:class:`sprint_map.storage.store_config.
+StoreConfig`, which also checks them); the rest (descriptor, merge rule, HMM) is decoded here.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from sprint_map import dataclass_dict
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge_rule import MergeRule
+from sprint_map.storage.store_config import (
+    INDEX_TYPES,
+    READABLE_SCHEMA_VERSIONS,
+    SCHEMA_VERSION,
+    StoreConfig,
+)
 
-#: On-disk schema version written into every map; maps of another version are refused.
-#: 2 added removed vertex ranges (``remove``) and generation directories (``compact``); a
-#: schema-1 map is read as it is and upgraded by the first writer's open.
-SCHEMA_VERSION = 2
-#: Versions this code opens.
-READABLE_SCHEMA_VERSIONS = (1, 2)
+__all__ = ["DESCRIPTOR_KINDS", "INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION",
+           "HMMConfig", "MapConfig"]
 
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
 DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm")
-
-#: Retrieval index kinds (``MapConfig.index_type``).
-INDEX_TYPES = ("flat", "ivf-pq", "ivf-sq8", "auto")
 
 
 @dataclass(frozen=True)
@@ -141,32 +144,8 @@ class MapConfig:
         spec = self.descriptor_spec()
         if spec is not None and spec.dim != self.dim:
             raise ValueError(f"{self.descriptor} descriptors have {spec.dim} dimensions, not {self.dim}")
-        if self.shard_rows < 1:
-            raise ValueError("shard_rows must be >= 1")
-        if self.index_type not in INDEX_TYPES:
-            raise ValueError(f"index_type must be one of {', '.join(INDEX_TYPES)}")
-        for name in ("index_nlist", "index_nprobe", "index_rerank", "index_segment_rows"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
-                raise ValueError(f"{name} must be a positive integer")
-        if self.index_nprobe > self.index_nlist:
-            raise ValueError("index_nprobe must be <= index_nlist")
-        if self.index_pca_dim < 0 or self.index_pq_m < 0:
-            raise ValueError("index_pca_dim and index_pq_m must be >= 0")
-        if self.index_pq_m and self.index_dim % self.index_pq_m:
-            raise ValueError(f"index_pq_m ({self.index_pq_m}) must divide the indexed "
-                             f"dimension ({self.index_dim})")
-        if self.index_merge_factor < 2:
-            raise ValueError("index_merge_factor must be >= 2")
-        if self.index_auto_vertices < 1:
-            raise ValueError("index_auto_vertices must be >= 1")
-        if self.index_train_sample < self.index_nlist:
-            raise ValueError("index_train_sample must be >= index_nlist")
-        if self.index_persist_every < 1:
-            raise ValueError("index_persist_every must be >= 1")
-        if not self.index_persist_growth >= 0:
-            raise ValueError("index_persist_growth must be >= 0")
-        if self.initial_map_size < 1 << 20:
-            raise ValueError("initial_map_size must be at least 1 MiB")
+        # The storage fields are checked by the storage layer's view of them.
+        _ = self.storage
         if not 0 <= self.merge_threshold <= 1:
             raise ValueError("merge_threshold must be in [0, 1]")
         if not 0 <= self.merge_max_novel <= 1:
@@ -192,18 +171,21 @@ class MapConfig:
                          self.merge_dist_quantile, self.merge_min_advance)
 
     @property
+    def storage(self) -> StoreConfig:
+        """The fields the storage layer reads (:class:`~sprint_map.storage.store_config.
+        StoreConfig`); ValueError if one is out of range. O(fields)."""
+        return StoreConfig(**{f.name: getattr(self, f.name) for f in fields(StoreConfig)})
+
+    @property
     def index_dim(self) -> int:
         """Dimension the approximate index quantizes: after PCA when ``dim > index_pca_dim``."""
-        return self.index_pca_dim if 0 < self.index_pca_dim < self.dim else self.dim
+        return self.storage.index_dim
 
     @property
     def pq_m(self) -> int:
         """PQ sub-quantizers: ``index_pq_m``, or the largest divisor of :attr:`index_dim` with
         at least 8 dimensions each (1 if none)."""
-        if self.index_pq_m:
-            return self.index_pq_m
-        d = self.index_dim
-        return max([m for m in range(1, d // 8 + 1) if d % m == 0] or [1])
+        return self.storage.pq_m
 
     def descriptor_spec(self) -> DescriptorSpec | None:
         """The front end's descriptor for images and video, or None for precomputed ones."""

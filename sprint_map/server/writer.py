@@ -22,12 +22,12 @@ from typing import Protocol
 
 import numpy as np
 
+from sprint_map import AddResult
 from sprint_map.commit import DriveWriter
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
-from sprint_map.storage.records import AddResult
 
 
 @dataclass(frozen=True)

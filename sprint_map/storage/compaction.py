@@ -35,7 +35,6 @@ from typing import Protocol
 import lmdb
 import numpy as np
 
-from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import SprintMapError, StorageIOError
 from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
@@ -51,6 +50,7 @@ from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import CompactReport, SequenceRecord
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import SCHEMA_VERSION, StoreConfig
 
 
 class CompactableMap(Protocol):
@@ -71,7 +71,7 @@ class CompactableMap(Protocol):
     def shards(self) -> ShardSet: ...
 
     @property
-    def config(self) -> MapConfig: ...
+    def config(self) -> StoreConfig: ...
 
     @property
     def warnings(self) -> list[str]: ...

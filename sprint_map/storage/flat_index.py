@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage import atomic
 from sprint_map.storage.atomic import fsync_dir, publish
 from sprint_map.storage.crash import crash_point
@@ -100,7 +100,7 @@ class FlatIndex(RetrievalIndex):
     exact = True
     files = "the flat file"
 
-    def __init__(self, directory: Path, config: MapConfig, *, writable: bool,
+    def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
                  events: list[str] | None = None) -> None:
         super().__init__(directory, config, writable=writable, events=events)
         self.index: faiss.IndexIDMap2 | None = None

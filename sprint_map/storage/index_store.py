@@ -1,6 +1,6 @@
 """The retrieval index of a map: exact flat while small, segmented and approximate when large.
 
-Which index a map uses follows ``MapConfig.index_type``:
+Which index a map uses follows ``StoreConfig.index_type``:
 
 * ``"flat"``: :class:`~sprint_map.storage.flat_index.FlatIndex`, exact, one file
   ``flat.<upto>.faiss`` rewritten geometrically (every map created before the approximate
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
 from sprint_map.storage.retrieval_index import RetrievalIndex
 from sprint_map.storage.segment_index import SegmentedIndex
@@ -43,7 +43,7 @@ __all__ = ["KINDS", "IndexStore", "approximate_kind", "file_bytes", "file_proble
 KINDS: tuple[type[RetrievalIndex], ...] = (FlatIndex, SegmentedIndex)
 
 
-def approximate_kind(config: MapConfig, committed: int) -> str | None:
+def approximate_kind(config: StoreConfig, committed: int) -> str | None:
     """The approximate index kind a map of ``committed`` vertices should use, or None (flat)."""
     if committed < MIN_TRAIN or config.index_type == "flat":
         return None
@@ -66,16 +66,16 @@ class IndexStore:
         Descriptor dimension.
     writable : bool
         Whether this process may write files (only the writer persists, trains or deletes).
-    config : MapConfig, optional
+    config : StoreConfig, optional
         The map's config (default: a flat index of ``dim``).
     """
 
     def __init__(self, directory: Path, dim: int, *, writable: bool,
-                 config: MapConfig | None = None) -> None:
+                 config: StoreConfig | None = None) -> None:
         self.directory = directory
         self.dim = dim
         self.writable = writable
-        self.config = config if config is not None else MapConfig(dim=dim, index_type="flat")
+        self.config = config if config is not None else StoreConfig(dim=dim, index_type="flat")
         self.events: list[str] = []  # what loading had to do (for check/info reports)
         self.active: RetrievalIndex = self._make(FlatIndex)
         #: Seconds spent training (and encoding the map with) new models in this process.

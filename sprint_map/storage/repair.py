@@ -28,6 +28,8 @@ repair again.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from typing import Any
 
 import lmdb
 
@@ -43,10 +45,13 @@ from sprint_map.storage.thumbnails import drop_broken
 RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails")
 
 
-def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
+def repair_map(path: str | os.PathLike[str], *, seed: int = 0,
+               check_config: Callable[[dict[str, Any]], object] | None = None) -> RepairReport:
     """Repair the map at ``path`` as far as its own data allows, then check it.
 
-    Takes the writer lock (``MapLockedError`` while another process writes).
+    Takes the writer lock (``MapLockedError`` while another process writes). ``check_config``
+    is called with the stored configuration record before anything is touched (see
+    :meth:`MapStore.open <sprint_map.storage.store.MapStore.open>`).
 
     Notes
     -----
@@ -56,7 +61,7 @@ def repair_map(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
     report = RepairReport()
     # Even a writer's open truncates the open shard at next_vertex_id: first make sure the
     # records it trusts are sound (LMDB snapshots are consistent: no lock needed to read).
-    with MapStore.open(path, readonly=True) as store:
+    with MapStore.open(path, readonly=True, check_config=check_config) as store:
         tiling = check_sequences(store)
         lost = [] if "sequences" in tiling.areas else lost_rows(store)
     if "sequences" in tiling.areas:

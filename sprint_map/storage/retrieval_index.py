@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.shards import ShardSet
 
 __all__ = ["CHUNK", "PAD_DISTANCE", "IndexNotLoadedError", "RetrievalIndex", "padded_results"]
@@ -59,7 +59,7 @@ class RetrievalIndex(ABC):
     directory : Path
         The ``index/`` directory its files live in (shared by every kind: each kind's file
         names are its own).
-    config : MapConfig
+    config : StoreConfig
         The map's config (dimension, and the kind's parameters).
     writable : bool
         Whether this process may write or delete files (the map's writer).
@@ -75,7 +75,7 @@ class RetrievalIndex(ABC):
     #: What this kind's published files are called in reports ("the segments").
     files: ClassVar[str]
 
-    def __init__(self, directory: Path, config: MapConfig, *, writable: bool,
+    def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
                  events: list[str] | None = None) -> None:
         self.directory = directory
         self.config = config

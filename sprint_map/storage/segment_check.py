@@ -26,7 +26,6 @@ from typing import Any
 import faiss
 import numpy as np
 
-from sprint_map.config import MapConfig
 from sprint_map.storage.flat_index import index_files
 from sprint_map.storage.segment_manifest import (
     MANIFEST,
@@ -38,6 +37,7 @@ from sprint_map.storage.segment_manifest import (
 )
 from sprint_map.storage.segment_model import Model, gather_rows, read_faiss
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 #: Vertices per segment whose codes are compared with their shard rows re-encoded.
 CODE_SAMPLE = 8
@@ -65,7 +65,7 @@ def segment_ids(index: Any) -> np.ndarray:
     return np.concatenate(parts) if parts else np.empty(0, np.int64)
 
 
-def check_segments(directory: Path, config: MapConfig, shards: ShardSet, total: int,
+def check_segments(directory: Path, config: StoreConfig, shards: ShardSet, total: int,
                    bad: Callable[[str], None], notes: list[str], checked: dict[str, int],
                    seed: int = 0, live: bool = False) -> None:
     """Check the segmented index in ``directory`` against a map of ``total`` vertices.

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.errors import StorageIOError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.retrieval_index import (
@@ -109,7 +109,7 @@ class SegmentedIndex(RetrievalIndex):
     exact = False
     files = "the segments"
 
-    def __init__(self, directory: Path, config: MapConfig, *, writable: bool,
+    def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
                  events: list[str] | None = None) -> None:
         super().__init__(directory, config, writable=writable, events=events)
         self._manifest: Manifest | None = None

@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.atomic import publish
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 if TYPE_CHECKING:
     import faiss
@@ -198,7 +198,7 @@ class Model:
         return cls(kind, pca, ivf)
 
 
-def train_model(config: MapConfig, kind: str, sample: np.ndarray) -> Model:
+def train_model(config: StoreConfig, kind: str, sample: np.ndarray) -> Model:
     """Train PCA (when ``dim > index_pca_dim``) and the IVF quantizer on ``sample`` rows.
 
     The number of lists is ``index_nlist`` but at most ``len(sample) / 39`` (FAISS's minimum

@@ -29,7 +29,6 @@ from typing import Any, Protocol
 import lmdb
 import numpy as np
 
-from sprint_map.config import MapConfig
 from sprint_map.errors import (
     DuplicateNameError,
     EmptySequenceError,
@@ -44,6 +43,7 @@ from sprint_map.storage.keys import DIGEST_BYTES, EDGE_KEY, VERTEX_VAL, read_u32
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
 from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.validation import (
@@ -77,7 +77,7 @@ class WritableMap(Protocol):
     def shards(self) -> ShardSet: ...
 
     @property
-    def config(self) -> MapConfig: ...
+    def config(self) -> StoreConfig: ...
 
     @property
     def warnings(self) -> list[str]: ...

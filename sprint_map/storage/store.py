@@ -21,14 +21,13 @@ import contextlib
 import json
 import os
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import lmdb
 import numpy as np
 
-from sprint_map.config import READABLE_SCHEMA_VERSIONS, SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
     ConfigError,
     MapCorruptError,
@@ -54,7 +53,6 @@ from sprint_map.storage.index_store import IndexStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
-    Raw,
     decode_json,
     decode_number,
     read_u32,
@@ -78,6 +76,12 @@ from sprint_map.storage.records import (
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import (
+    READABLE_SCHEMA_VERSIONS,
+    SCHEMA_VERSION,
+    ConfigRecord,
+    StoreConfig,
+)
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.validation import decode_text, name_key, shown, validate_descriptors
@@ -124,7 +128,10 @@ class MapStore:
             raw_config = txn.get(b"config", db=meta)
             if raw_config is None:
                 raise MapCorruptError(f"map has no config record: {path}")
-            self.config = decode_config(raw_config)
+            #: The whole configuration as stored (the facade decodes what is not storage's).
+            self.config_record = decode_json(raw_config, "config")
+            #: The storage layer's fields of it.
+            self.config = decode_config(self.config_record)
             raw_created = txn.get(b"created", db=meta)
             self.created = 0.0 if raw_created is None else decode_number(raw_created, "created",
                                                                          float)
@@ -142,11 +149,15 @@ class MapStore:
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
-    def create(cls, path: str | os.PathLike[str], config: MapConfig) -> MapStore:
+    def create(cls, path: str | os.PathLike[str], config: ConfigRecord) -> MapStore:
         """Create a new, empty map at ``path`` (absent or an empty directory) and open it.
 
-        A ``path`` that is not UTF-8 text is refused (InputError) before anything is made.
+        ``config`` (a ``MapConfig``) is stored as the JSON object its ``to_dict`` gives; the
+        store reads its own fields of it (:class:`StoreConfig`). A ``path`` that is not UTF-8
+        text is refused (InputError) before anything is made.
         """
+        record = config.to_dict()
+        settings = StoreConfig.from_record(record)
         root = Path(decode_text(os.fspath(path), "map path"))
         if root.exists() and (not root.is_dir() or any(root.iterdir())):
             raise MapExistsError(f"refusing to create a map in non-empty path: {root}")
@@ -166,7 +177,7 @@ class MapStore:
                 created.append(root / sub)
             created.append(lock.path)
             lock.acquire()
-            env = LmdbEnv(root / LMDB_DIR, readonly=False, map_size=config.initial_map_size,
+            env = LmdbEnv(root / LMDB_DIR, readonly=False, map_size=settings.initial_map_size,
                           create=True)
 
             def body(txn: lmdb.Transaction) -> None:
@@ -175,7 +186,7 @@ class MapStore:
                 # without it is "not a map", never a half map.
                 for name in COUNTERS:
                     txn.put(name.encode(), u64(0), db=meta)
-                txn.put(b"config", json.dumps(config.to_dict()).encode(), db=meta)
+                txn.put(b"config", json.dumps(record).encode(), db=meta)
                 txn.put(b"created", repr(time.time()).encode(), db=meta)
                 txn.put(b"schema_version", str(SCHEMA_VERSION).encode(), db=meta)
 
@@ -192,10 +203,14 @@ class MapStore:
             raise
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> MapStore:
+    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False,
+             check_config: Callable[[dict[str, Any]], object] | None = None) -> MapStore:
         """Open an existing map. A writer takes the map's lock and recovers interrupted writes.
 
-        A ``path`` that is not UTF-8 text is refused (InputError).
+        ``check_config``, if given, is called with the stored configuration record
+        (:attr:`config_record`) before a writer changes anything; whatever it raises fails the
+        open (the facade checks the fields that are not storage's). A ``path`` that is not
+        UTF-8 text is refused (InputError).
         """
         root = Path(decode_text(os.fspath(path), "map path"))
         if not root.is_dir() or not (current_data(root) / LMDB_DIR / "data.mdb").is_file():
@@ -220,6 +235,8 @@ class MapStore:
             env = LmdbEnv(data / LMDB_DIR, readonly=readonly, map_root=root)
             store = cls(root, env, lock, readonly, data)
             store._pin = pin
+            if check_config is not None:
+                check_config(store.config_record)
         except BaseException:
             # py-lmdb refuses a second open of an environment that is still open in this
             # process, so a refused open (e.g. SchemaVersionError) must not leave it open.
@@ -729,15 +746,15 @@ def _undo_create(created: list[Path]) -> None:
                 path.unlink()
 
 
-def decode_config(raw: Raw) -> MapConfig:
-    """The map's stored config record, or MapCorruptError if it is not a valid config: not
-    JSON, not an object, or values the config refuses (of the wrong type or out of range: a
-    map is only ever created with a valid one). O(len(raw))."""
-    data = decode_json(raw, "config")
+def decode_config(data: Any) -> StoreConfig:
+    """The storage fields of the map's stored config record (decoded JSON), or
+    MapCorruptError if it is not a valid config: not an object, or storage values the config
+    refuses (of the wrong type or out of range: a map is only ever created with a valid one).
+    The facade checks the other fields the same way (``sprint_map.map``). O(fields)."""
     if not isinstance(data, dict):
         raise MapCorruptError("corrupt map record config: not a JSON object")
     try:
-        return MapConfig.from_dict(data)
+        return StoreConfig.from_record(data)
     except ConfigError as exc:
         raise MapCorruptError(f"corrupt map record config: {exc}") from exc
     except SprintMapError:

@@ -1,0 +1,123 @@
+"""What the storage layer reads of a map's configuration, and the on-disk schema versions.
+
+A map stores its whole configuration (:class:`sprint_map.config.MapConfig`, HMM parameters
+included) as one JSON object in its meta record. The storage layer needs only part of it: the
+descriptor dimension, the shard size, the retrieval index's parameters and the LMDB size.
+:class:`StoreConfig` is that part, read from the stored record by picking its keys; the rest
+(descriptor kind, merge rule, HMM) is the facade's to decode. So storage knows nothing of HMMs
+or images: it stores the record as given and checks only its own fields.
+
+The field names, types, defaults and checks here are those of the same fields of ``MapConfig``,
+which validates them through this class.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
+
+from sprint_map import dataclass_dict
+
+__all__ = ["INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
+           "StoreConfig"]
+
+#: On-disk schema version written into every map; maps of another version are refused.
+#: 2 added removed vertex ranges (``remove``) and generation directories (``compact``); a
+#: schema-1 map is read as it is and upgraded by the first writer's open.
+SCHEMA_VERSION = 2
+#: Versions this code opens.
+READABLE_SCHEMA_VERSIONS = (1, 2)
+
+#: Retrieval index kinds (``index_type``).
+INDEX_TYPES = ("flat", "ivf-pq", "ivf-sq8", "auto")
+
+
+class ConfigRecord(Protocol):
+    """A map's whole configuration as handed to :meth:`MapStore.create
+    <sprint_map.storage.store.MapStore.create>` (``MapConfig`` is one): stored as the JSON
+    object :meth:`to_dict` returns."""
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True)
+class StoreConfig:
+    """The storage layer's fields of a map's configuration (see ``MapConfig`` for each).
+
+    Raises ``ValueError`` for a value out of range, with the message ``MapConfig`` gives.
+    """
+
+    dim: int
+    shard_rows: int = 65536
+    index_type: str = "auto"
+    index_nlist: int = 1024
+    index_nprobe: int = 16
+    index_pq_m: int = 0
+    index_pca_dim: int = 128
+    index_rerank: int = 100
+    index_segment_rows: int = 16384
+    index_merge_factor: int = 8
+    index_auto_vertices: int = 200_000
+    index_train_sample: int = 65536
+    index_persist_every: int = 200_000
+    index_persist_growth: float = 1.0
+    initial_map_size: int = 1 << 30
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.dim, int) or self.dim < 1:
+            raise ValueError("dim must be a positive integer")
+        if self.shard_rows < 1:
+            raise ValueError("shard_rows must be >= 1")
+        if self.index_type not in INDEX_TYPES:
+            raise ValueError(f"index_type must be one of {', '.join(INDEX_TYPES)}")
+        for name in ("index_nlist", "index_nprobe", "index_rerank", "index_segment_rows"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name} must be a positive integer")
+        if self.index_nprobe > self.index_nlist:
+            raise ValueError("index_nprobe must be <= index_nlist")
+        if self.index_pca_dim < 0 or self.index_pq_m < 0:
+            raise ValueError("index_pca_dim and index_pq_m must be >= 0")
+        if self.index_pq_m and self.index_dim % self.index_pq_m:
+            raise ValueError(f"index_pq_m ({self.index_pq_m}) must divide the indexed "
+                             f"dimension ({self.index_dim})")
+        if self.index_merge_factor < 2:
+            raise ValueError("index_merge_factor must be >= 2")
+        if self.index_auto_vertices < 1:
+            raise ValueError("index_auto_vertices must be >= 1")
+        if self.index_train_sample < self.index_nlist:
+            raise ValueError("index_train_sample must be >= index_nlist")
+        if self.index_persist_every < 1:
+            raise ValueError("index_persist_every must be >= 1")
+        if not self.index_persist_growth >= 0:
+            raise ValueError("index_persist_growth must be >= 0")
+        if self.initial_map_size < 1 << 20:
+            raise ValueError("initial_map_size must be at least 1 MiB")
+
+    @property
+    def index_dim(self) -> int:
+        """Dimension the approximate index quantizes: after PCA when ``dim > index_pca_dim``."""
+        return self.index_pca_dim if 0 < self.index_pca_dim < self.dim else self.dim
+
+    @property
+    def pq_m(self) -> int:
+        """PQ sub-quantizers: ``index_pq_m``, or the largest divisor of :attr:`index_dim` with
+        at least 8 dimensions each (1 if none)."""
+        if self.index_pq_m:
+            return self.index_pq_m
+        d = self.index_dim
+        return max([m for m in range(1, d // 8 + 1) if d % m == 0] or [1])
+
+    @classmethod
+    def from_record(cls, record: Mapping[str, Any]) -> StoreConfig:
+        """The storage fields of a stored configuration record (other keys are not storage's
+        and are left alone; a missing one takes its default). O(fields).
+
+        Raises
+        ------
+        ConfigError
+            A storage field of the wrong type or out of range, named as ``MapConfig`` names it.
+        """
+        names = {f.name for f in fields(cls)}
+        return dataclass_dict.from_dict(cls, {k: v for k, v in record.items() if k in names},
+                                        where="MapConfig")
