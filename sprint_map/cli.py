@@ -724,11 +724,13 @@ def serve(map_path: str, host: str | None, port: int | None, token_file: str | N
     """
     from sprint_map.server.config import ServerConfig
     from sprint_map.server.run import serve_map
+    from sprint_map.viewer.app import mount_viewer
 
     options = _read_json_config(config_json)
     given = {"host": host, "port": port, "token_file": token_file}
     options.update({key: value for key, value in given.items() if value is not None})
-    serve_map(map_path, ServerConfig.from_dict(options), ray=ray_spec, replicas=replicas)
+    serve_map(map_path, ServerConfig.from_dict(options), ray=ray_spec, replicas=replicas,
+              extensions=[mount_viewer])
 
 
 @main.command()

@@ -12,8 +12,9 @@ group. A crash between two drives leaves the earlier ones committed and the late
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -22,10 +23,10 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.storage.crash import crash_point
 
 if TYPE_CHECKING:
+    from sprint_map.commit import IngestResult
     from sprint_map.localizer import Localizer
-    from sprint_map.map import IngestResult, SprintMap
 
-__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "ingest_drives"]
+__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "ingest_drives"]
 
 #: Drives whose durability (fsyncs) is paid together, by default.
 DEFAULT_GROUP_DRIVES = 16
@@ -48,8 +49,28 @@ class Drive:
     thumbnails: Sequence[bytes] | None = None
 
 
+class IngestingMap(Protocol):
+    """What :func:`ingest_drives` uses of a map open for writing
+    (:class:`sprint_map.map.SprintMap` is one)."""
+
+    def ingest(
+        self,
+        descriptors: np.ndarray | Iterable[np.ndarray],
+        name: str | None = None,
+        positions: np.ndarray | None = None,
+        *,
+        merge: bool = True,
+        hmm: HMMConfig | None = None,
+        source: str = "",
+        observe: Callable[[Localizer], None] | None = None,
+        thumbnails: Sequence[bytes] | None = None,
+    ) -> IngestResult: ...
+
+    def group_commit(self) -> AbstractContextManager[None]: ...
+
+
 def ingest_drives(
-    smap: SprintMap,
+    smap: IngestingMap,
     drives: Sequence[Drive],
     *,
     merge: bool = True,
@@ -96,7 +117,7 @@ def ingest_drives(
     for start in range(0, len(drives), group_drives):
         group: list[IngestResult] = []
         try:
-            with smap.store.group_commit():
+            with smap.group_commit():
                 for i, drive in enumerate(drives[start : start + group_drives]):
                     if i:
                         crash_point("group.between_drives")

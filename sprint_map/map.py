@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Container, Iterable, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -120,6 +121,12 @@ class SprintMap:
     def flush(self) -> None:
         """Persist the index now (it is a cache; LMDB is already durable)."""
         self.store.flush()
+
+    def group_commit(self) -> AbstractContextManager[None]:
+        """Commit several drives as a group: each is still its own atomic, durable commit, but
+        the index is persisted once, at the end (see
+        :meth:`sprint_map.storage.store.MapStore.group_commit`)."""
+        return self.store.group_commit()
 
     def __enter__(self) -> SprintMap:
         return self

@@ -22,18 +22,16 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import faiss
 import numpy as np
 
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localizer import FrameDecision, Localizer, Timing
+from sprint_map.localizer import FrameDecision, LocalizableMap, Localizer, Timing
+from sprint_map.storage.store import MapStore
 
-if TYPE_CHECKING:
-    from sprint_map.map import SprintMap
-
-__all__ = ["PreparedDrive", "prepare_drive", "stale_reason"]
+__all__ = ["PreparableMap", "PreparedDrive", "prepare_drive", "stale_reason"]
 
 #: Relative margin under which a new vertex's distance counts as reaching a frame's k-th hit.
 TIE_MARGIN = 1e-4
@@ -70,14 +68,27 @@ class PreparedDrive:
     removed: int = 0
 
 
-def index_state(smap: SprintMap) -> str:
+class PreparableMap(LocalizableMap, Protocol):
+    """What preparing and checking a drive read of a map (:class:`sprint_map.map.SprintMap`
+    is one): its counts, the rows committed since a snapshot, and its store's removed
+    vertices, index and components."""
+
+    @property
+    def store(self) -> MapStore: ...
+
+    def stats(self) -> dict[str, int]: ...
+
+    def vertex_rows(self, start: int, stop: int | None = None) -> np.ndarray: ...
+
+
+def index_state(smap: PreparableMap) -> str:
     """The index's kind and sealed extent: equal strings, equal search over the old vertices
     (exact flat: always; segmented: only if nothing was sealed or retrained)."""
     described = smap.store.index.describe()
     return f"{described.get('type', '')}/{described.get('sealed', '')}"
 
 
-def prepare_drive(smap: SprintMap, batches: Iterable[np.ndarray], *, merge: bool = True,
+def prepare_drive(smap: PreparableMap, batches: Iterable[np.ndarray], *, merge: bool = True,
                   hmm: HMMConfig | None = None) -> PreparedDrive:
     """Localise a drive (its search batches, as ``ingest`` would get them) against one
     snapshot of ``smap`` (read-only is enough), as ``SprintMap.ingest`` would.
@@ -113,7 +124,7 @@ def prepare_drive(smap: SprintMap, batches: Iterable[np.ndarray], *, merge: bool
                          state, removed)
 
 
-def stale_reason(smap: SprintMap, drive: PreparedDrive, rows: np.ndarray) -> str | None:
+def stale_reason(smap: PreparableMap, drive: PreparedDrive, rows: np.ndarray) -> str | None:
     """Why ``drive`` (whose descriptors are ``rows``) must be localised again before its
     commit to ``smap`` as it now is, or None if its decisions are those serial ingest would
     make now.
@@ -147,7 +158,7 @@ def stale_reason(smap: SprintMap, drive: PreparedDrive, rows: np.ndarray) -> str
     return None
 
 
-def component_sequences(smap: SprintMap, root: int) -> list[Any]:
+def component_sequences(smap: PreparableMap, root: int) -> list[Any]:
     """The sequences of component ``root`` as of now."""
     with smap.store.env.read() as txn:
         return smap.store.component_sequences(root, txn)

@@ -8,7 +8,7 @@ Paths (a contract): ``POST /v1/sessions``, ``POST /v1/sessions/{id}/frames``,
 from __future__ import annotations
 
 import json
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
@@ -248,20 +248,18 @@ async def _no_receive() -> Message:
     return {"type": "http.disconnect"}
 
 
-def mount_viewer(app: FastAPI, service: LocalisationService, guard: list[Any]) -> None:
-    """The viewer's page at ``/`` and its API behind ``guard`` (each read under the gate)."""
-    from sprint_map.viewer.app import viewer_router
-    from sprint_map.viewer.summary import MapSummary
-
-    def shared(fn: Any) -> Any:
-        with service.gate.shared():
-            return fn()
-
-    app.include_router(viewer_router(MapSummary(service.map, shared), None, guard))
+#: Adds routes to the service's app: ``extension(app, service, guard)``; ``guard`` is the
+#: dependency list that checks the bearer token (e.g. :func:`sprint_map.viewer.app.mount_viewer`).
+AppExtension = Callable[[FastAPI, LocalisationService, list[Any]], None]
 
 
-def create_app(service: LocalisationService, token: str | None = None) -> FastAPI:
-    """The FastAPI app over ``service``; its lifespan starts and shuts the service down."""
+def create_app(service: LocalisationService, token: str | None = None,
+               extensions: Sequence[AppExtension] = ()) -> FastAPI:
+    """The FastAPI app over ``service``; its lifespan starts and shuts the service down.
+
+    ``extensions`` add their routes after the service's (``sprint-map serve`` adds the
+    viewer's page at ``/``).
+    """
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -354,7 +352,8 @@ def create_app(service: LocalisationService, token: str | None = None) -> FastAP
         text = await anyio.to_thread.run_sync(service.metrics.render)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
-    mount_viewer(app, service, guard)
+    for extend in extensions:
+        extend(app, service, guard)
     app.add_middleware(RequestGuard, limit=service.config.max_request_bytes, token=token,
                        body_timeout_s=service.config.body_timeout_s)
     app.add_middleware(RequestMetrics, metrics=service.metrics)

@@ -13,14 +13,18 @@ import os
 import signal
 import socket
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
 from sprint_map.errors import ListenError
 from sprint_map.map import SprintMap
 from sprint_map.server.auth import check_bind, load_token
 from sprint_map.server.config import ServerConfig
+
+if TYPE_CHECKING:  # FastAPI loads with the app, when serving starts
+    from sprint_map.server.app import AppExtension
 
 
 def bind(host: str, port: int) -> socket.socket:
@@ -50,8 +54,9 @@ def bind(host: str, port: int) -> socket.socket:
 
 def serve_map(path: str | os.PathLike[str], config: ServerConfig,
               announce: Callable[[str], None] | None = None, *, ray: str | None = None,
-              replicas: int = 2) -> None:
-    """Serve the map at ``path`` until a shutdown signal.
+              replicas: int = 2, extensions: Sequence[AppExtension] = ()) -> None:
+    """Serve the map at ``path`` until a shutdown signal; ``extensions`` add routes to the
+    app (:func:`sprint_map.server.app.create_app`).
 
     With ``ray`` (``local``, ``auto`` or an address) the sessions' localisers run in
     ``replicas`` Ray actors (:mod:`sprint_map.fleet.replicas`); commits stay in this process.
@@ -93,7 +98,7 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
         smap.close()
         raise
     service = LocalisationService(smap, config, localizers=pool.localizer if pool else None)
-    app = create_app(service, token)
+    app = create_app(service, token, extensions)
     # The connection limits uvicorn's httptools protocol lacks (header deadline and size, a
     # connection limit that never refuses /healthz): see server/guard.py. The token and the
     # body's size and time are checked by the app's RequestGuard, before the body is read.

@@ -22,7 +22,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi.params import Depends
@@ -34,7 +34,10 @@ from sprint_map.viewer import playback
 from sprint_map.viewer.matrix import MATRIX_SIZE, drive_detail, match_matrix
 from sprint_map.viewer.summary import MapSummary
 
-__all__ = ["API_PREFIX", "create_view_app", "page_html", "viewer_router"]
+if TYPE_CHECKING:
+    from sprint_map.server.service import LocalisationService
+
+__all__ = ["API_PREFIX", "create_view_app", "mount_viewer", "page_html", "viewer_router"]
 
 API_PREFIX = "/viewer/api"
 
@@ -126,6 +129,18 @@ def _thumbnail(summary: MapSummary, seq_id: int, image_id: int) -> bytes | None:
     except UnknownSequenceError:
         return None
     return None if data is None else bytes(data)
+
+
+def mount_viewer(app: FastAPI, service: LocalisationService, guard: list[Any]) -> None:
+    """The viewer's page at ``/`` of the localisation service and its API behind ``guard``
+    (each read under the service's map gate): an extension of
+    :func:`sprint_map.server.app.create_app`, as ``sprint-map serve`` mounts it."""
+
+    def shared(fn: Any) -> Any:
+        with service.gate.shared():
+            return fn()
+
+    app.include_router(viewer_router(MapSummary(service.map, shared), None, guard))
 
 
 def create_view_app(summary: MapSummary, trace: Trace | None = None,

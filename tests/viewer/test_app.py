@@ -9,7 +9,7 @@ from sample_maps import build_road_map
 
 from sprint_map.map import SprintMap
 from sprint_map.trace import TraceRecorder, read_trace
-from sprint_map.viewer.app import create_view_app
+from sprint_map.viewer.app import create_view_app, mount_viewer
 from sprint_map.viewer.summary import MapSummary
 
 
@@ -75,7 +75,7 @@ def test_serve_shows_the_page_at_root_behind_its_token(built, monkeypatch):
 
     path, _ = built
     service = LocalisationService(SprintMap.open(path), ServerConfig())
-    with TestClient(create_app(service, token="s3cret")) as client:
+    with TestClient(create_app(service, token="s3cret", extensions=[mount_viewer])) as client:
         assert client.get("/").status_code == 200
         assert client.get("/viewer/api/overview").status_code == 401
         auth = {"Authorization": "Bearer s3cret"}
