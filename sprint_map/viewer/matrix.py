@@ -22,7 +22,7 @@ import numpy as np
 from sprint_map.viewer.summary import MapSummary
 
 if TYPE_CHECKING:
-    from sprint_map.storage.records import EdgeInfo
+    from sprint_map import EdgeInfo
 
 __all__ = ["MATRIX_SIZE", "RADIUS_M", "drive_detail", "match_matrix", "pair_decisions"]
 

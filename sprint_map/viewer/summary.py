@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 if TYPE_CHECKING:
+    from sprint_map import SequenceRecord
     from sprint_map.map import SprintMap
-    from sprint_map.storage.records import SequenceRecord
 
 __all__ = ["EDGE_BUDGET", "POINT_BUDGET", "MapState", "MapSummary", "Reader", "direct"]
 
