@@ -29,9 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.commit import IngestResult
 from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.map import IngestResult, SprintMap
+from sprint_map.map import SprintMap
 from sprint_map.prepared import PreparedDrive
 
 __all__ = ["FarmResult", "LocalisedDrive", "farm_ingest", "localise_drive"]

@@ -20,13 +20,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage import atomic
 from sprint_map.storage.atomic import fsync_dir, publish
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.retrieval_index import IndexNotLoadedError, RetrievalIndex
 from sprint_map.storage.segment_model import use_threads
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 if TYPE_CHECKING:
     import faiss

@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
 from sprint_map.storage.retrieval_index import RetrievalIndex
 from sprint_map.storage.segment_index import SegmentedIndex
 from sprint_map.storage.segment_model import MIN_TRAIN
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 __all__ = ["KINDS", "IndexStore", "approximate_kind", "file_bytes", "file_problem",
            "index_files"]

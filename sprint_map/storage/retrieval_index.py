@@ -29,8 +29,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 __all__ = ["CHUNK", "PAD_DISTANCE", "IndexNotLoadedError", "RetrievalIndex", "padded_results"]
 

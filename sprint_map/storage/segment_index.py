@@ -33,7 +33,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.storage.store_config import StoreConfig
 from sprint_map.errors import StorageIOError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.retrieval_index import (
@@ -71,6 +70,7 @@ from sprint_map.storage.segment_model import (
     use_threads,
 )
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 if TYPE_CHECKING:
     import faiss
