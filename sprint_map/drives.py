@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from sprint_map.arrays import DescriptorsLike
 from sprint_map.errors import InputError
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.storage.crash import crash_point
@@ -41,7 +42,7 @@ class Drive:
     ``seq-<id>``); ``positions`` per-frame ``x, y[, heading]``; ``source`` free text.
     """
 
-    descriptors: np.ndarray | Iterable[np.ndarray]
+    descriptors: DescriptorsLike | Iterable[DescriptorsLike]
     name: str | None = None
     positions: np.ndarray | None = None
     source: str = ""
@@ -55,7 +56,7 @@ class IngestingMap(Protocol):
 
     def ingest(
         self,
-        descriptors: np.ndarray | Iterable[np.ndarray],
+        descriptors: DescriptorsLike | Iterable[DescriptorsLike],
         name: str | None = None,
         positions: np.ndarray | None = None,
         *,

@@ -19,6 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.config import MapConfig
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
@@ -54,7 +55,7 @@ class MapView(GraphSource, Protocol):
 
     def visible(self, vertex_ids: np.ndarray) -> np.ndarray: ...
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]: ...
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult: ...
 
     def locate(self, vertex_ids: Any) -> list[tuple[int, int]]: ...
 
@@ -282,7 +283,7 @@ class Localizer:
                     self.filter.reset()
             yield changed
 
-    def step(self, descriptor: np.ndarray) -> FrameDecision:
+    def step(self, descriptor: DescriptorsLike) -> FrameDecision:
         """Localise one frame (a vehicle streaming its images)."""
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim)
         with self._pinned():
@@ -292,11 +293,11 @@ class Localizer:
             dists, ids = self.source.search(row, self.config.k)
             return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
 
-    def localize(self, descriptors: np.ndarray | Iterable[np.ndarray]) -> list[FrameDecision]:
+    def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]) -> list[FrameDecision]:
         """Localise a whole sequence (array, or an iterable of row batches), batching searches."""
         return list(self.iter_localize(descriptors))
 
-    def iter_localize(self, descriptors: np.ndarray | Iterable[np.ndarray]
+    def iter_localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]
                       ) -> Iterator[FrameDecision]:
         """Like :meth:`localize`, yielding decisions as batches are searched.
 

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map import dataclass_dict
+from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
 from sprint_map.commit import DriveWriter, IngestResult
 from sprint_map.config import MapConfig
 from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
@@ -178,7 +179,7 @@ class SprintMap:
 
     def ingest(
         self,
-        descriptors: np.ndarray | Iterable[np.ndarray],
+        descriptors: DescriptorsLike | Iterable[DescriptorsLike],
         name: str | None = None,
         positions: np.ndarray | None = None,
         *,
@@ -223,7 +224,7 @@ class SprintMap:
         """
         from sprint_map.localizer import SEARCH_BATCH, Localizer, Timing
 
-        batches: Iterable[np.ndarray]
+        batches: Iterable[DescriptorsLike]
         if isinstance(descriptors, np.ndarray):
             batches = (descriptors[i : i + SEARCH_BATCH]
                        for i in range(0, len(descriptors), SEARCH_BATCH))
@@ -259,7 +260,7 @@ class SprintMap:
                            self.config.merge_rule, self.config.merge_both_ways,
                            self.store.component_of)
 
-    def prepare_ingest(self, batches: Iterable[np.ndarray], *, merge: bool = True,
+    def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
                        hmm: HMMConfig | None = None) -> PreparedDrive:
         """Localise a drive as :meth:`ingest` would, against one snapshot, without committing
         (read-only is enough): an ingest farm's workers do this in parallel. ``batches`` are
@@ -269,7 +270,7 @@ class SprintMap:
 
         return prepare_drive(self, batches, merge=merge, hmm=hmm)
 
-    def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[np.ndarray],
+    def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[DescriptorsLike],
                         name: str | None = None, positions: np.ndarray | None = None, *,
                         hmm: HMMConfig | None = None, source: str = ""
                         ) -> tuple[IngestResult, str | None]:
@@ -562,13 +563,13 @@ class SprintMap:
         :func:`sprint_map.storage.provenance.edge_table`."""
         return edge_table(self.store)
 
-    def descriptors(self, seq_id: int) -> np.ndarray:
+    def descriptors(self, seq_id: int) -> Descriptors:
         return self.store.descriptors(seq_id)
 
-    def positions(self, seq_id: int) -> np.ndarray | None:
+    def positions(self, seq_id: int) -> Float64Array | None:
         return self.store.positions(seq_id)
 
-    def vertex_rows(self, start: int, stop: int | None = None) -> np.ndarray:
+    def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
         """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the
         last committed vertex), removed sequences' rows included (their ids stay until
         ``compact``). A read-only view when the range lies in one shard file.
@@ -590,7 +591,7 @@ class SprintMap:
         """Counts of sequences, vertices, edges and components. O(1)."""
         return self.store.stats()
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
         return self.store.search(queries, k)
 

@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import faiss
 import numpy as np
 
+from sprint_map.arrays import Descriptors, DescriptorsLike
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import FrameDecision, LocalizableMap, Localizer, Timing
 from sprint_map.storage.store import MapStore
@@ -78,7 +79,7 @@ class PreparableMap(LocalizableMap, Protocol):
 
     def stats(self) -> dict[str, int]: ...
 
-    def vertex_rows(self, start: int, stop: int | None = None) -> np.ndarray: ...
+    def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors: ...
 
 
 def index_state(smap: PreparableMap) -> str:
@@ -88,7 +89,7 @@ def index_state(smap: PreparableMap) -> str:
     return f"{described.get('type', '')}/{described.get('sealed', '')}"
 
 
-def prepare_drive(smap: PreparableMap, batches: Iterable[np.ndarray], *, merge: bool = True,
+def prepare_drive(smap: PreparableMap, batches: Iterable[DescriptorsLike], *, merge: bool = True,
                   hmm: HMMConfig | None = None) -> PreparedDrive:
     """Localise a drive (its search batches, as ``ingest`` would get them) against one
     snapshot of ``smap`` (read-only is enough), as ``SprintMap.ingest`` would.
@@ -124,7 +125,7 @@ def prepare_drive(smap: PreparableMap, batches: Iterable[np.ndarray], *, merge: 
                          state, removed)
 
 
-def stale_reason(smap: PreparableMap, drive: PreparedDrive, rows: np.ndarray) -> str | None:
+def stale_reason(smap: PreparableMap, drive: PreparedDrive, rows: DescriptorsLike) -> str | None:
     """Why ``drive`` (whose descriptors are ``rows``) must be localised again before its
     commit to ``smap`` as it now is, or None if its decisions are those serial ingest would
     make now.

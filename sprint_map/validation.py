@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, Float64Array
 from sprint_map.errors import (
     DescriptorShapeError,
     EmptySequenceError,
@@ -23,7 +24,7 @@ __all__ = ["decode_text", "name_key", "shown", "validate_descriptors", "validate
            "validate_positions"]
 
 
-def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> np.ndarray:
+def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> Descriptors:
     """Return ``descriptors`` as a C-contiguous float32 (N, dim) array or raise a clear error."""
     arr = np.asarray(descriptors)
     if arr.dtype.kind not in "fiu":
@@ -46,7 +47,7 @@ def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> np
     return arr
 
 
-def validate_positions(positions: Any, n: int) -> np.ndarray | None:
+def validate_positions(positions: Any, n: int) -> Float64Array | None:
     """Positions as an (n, 4) float64 array ``x, y, heading_deg, timestamp`` (NaN if not given)."""
     if positions is None:
         return None

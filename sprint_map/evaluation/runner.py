@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from sprint_map import HMMConfig
+from sprint_map.arrays import Descriptors
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
@@ -184,7 +185,7 @@ def config_for(dataset: Dataset, descriptor: str = "auto") -> MapConfig:
     return MapConfig.for_descriptor(descriptor)
 
 
-def describe(m: SprintMap, traversal: Traversal, stride: int) -> np.ndarray:
+def describe(m: SprintMap, traversal: Traversal, stride: int) -> Descriptors:
     """Descriptors of a traversal, in the map's descriptor kind."""
     source = traversal.open(m.config.descriptor_spec(), stride=stride)
     rows = source.read_all()
@@ -194,7 +195,7 @@ def describe(m: SprintMap, traversal: Traversal, stride: int) -> np.ndarray:
     return rows
 
 
-def evaluate_query(m: SprintMap, query: str, rows: np.ndarray, gt: GroundTruth,
+def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
                    ks: tuple[int, ...], hmm: HMMConfig | None, *, smooth: bool = False
                    ) -> tuple[QueryResult, list[FrameDecision]]:
     """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both.

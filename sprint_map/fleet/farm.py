@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors
 from sprint_map.commit import IngestResult
 from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
@@ -47,7 +48,7 @@ class LocalisedDrive:
 
     source: str
     name: str
-    batches: list[np.ndarray]
+    batches: list[Descriptors]
     prepared: PreparedDrive
     worker_pid: int
 

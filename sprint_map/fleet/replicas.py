@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet.shards import alive_nodes, spread
 from sprint_map.hmm.config import HMMConfig
@@ -52,7 +53,7 @@ class ReplicaWorker:
     def open(self, session: str) -> None:
         self.sessions[session] = Localizer(self.map, self.hmm, record=True)
 
-    def step(self, session: str, row: np.ndarray, changed: list[int] | None
+    def step(self, session: str, row: Descriptors, changed: list[int] | None
              ) -> tuple[FrameDecision, float, float]:
         """One frame of ``session``; ``changed``: components commits changed since its last."""
         localizer = self.sessions[session]
@@ -109,7 +110,7 @@ class RemoteLocalizer:
             self._changed = set()
         self._changed.update(int(c) for c in component_ids or ())
 
-    def step(self, row: np.ndarray) -> FrameDecision:
+    def step(self, row: Descriptors) -> FrameDecision:
         changed = sorted(self._changed) if self._changed is not None else None
         decision: FrameDecision
         decision, retrieval_ms, hmm_ms = self._call(

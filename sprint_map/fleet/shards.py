@@ -27,6 +27,7 @@ from typing import Any
 import faiss
 import numpy as np
 
+from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.map import SprintMap
 from sprint_map.storage.removal import RemovedRanges, search_live
 from sprint_map.validation import validate_descriptors
@@ -100,7 +101,7 @@ class ShardWorker:
     """
 
     def __init__(self, path: str | None, start: int, stop: int | None, dim: int,
-                 rows: np.ndarray | None = None, threads: int = 1) -> None:
+                 rows: Descriptors | None = None, threads: int = 1) -> None:
         self.start = start
         self.threads = threads
         self.stop = stop
@@ -126,7 +127,7 @@ class ShardWorker:
         """One past the last vertex id this shard holds."""
         return self.start + int(self.index.ntotal)
 
-    def append(self, first: int, rows: np.ndarray) -> int:
+    def append(self, first: int, rows: Descriptors) -> int:
         """Add ``rows`` as vertex ids ``first..`` (must continue the covered range)."""
         if first != self.covered():
             raise ValueError(f"shard covers up to {self.covered()}, cannot add at {first}")
@@ -142,7 +143,7 @@ class ShardWorker:
             self._load(self.map, end)
         return self.covered()
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
         # One thread below 8 queries (as in process: see the module docstring); above, the
         # threads split the queries, which leaves every distance as it is.
@@ -219,7 +220,7 @@ class ShardedIndex:
                 None if ship else path, a, b, self.dim, rows, threads))
         self.covered: int = max(ray.get([actor.covered.remote() for actor in self.actors]))
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest vertices, every range searched: ``(squared L2, vertex ids)``, -1 padded.
         Removed vertices included (see :meth:`search_live`)."""
         queries = validate_descriptors(queries, self.dim)
@@ -227,7 +228,7 @@ class ShardedIndex:
         parts = self._ray.get([actor.search.remote(ref, k) for actor in self.actors])
         return merge_topk([p[0] for p in parts], [p[1] for p in parts], k)
 
-    def search_live(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search_live(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest *live* vertices (removed sequences hidden), as ``SprintMap.search``."""
         if not self.removed.count:
             return self.search(queries, k)

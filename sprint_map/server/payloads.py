@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, DescriptorsLike
 from sprint_map.errors import SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import decode_image
@@ -55,7 +56,7 @@ def position_from_json(data: Any) -> tuple[float, ...] | None:
     return out
 
 
-def descriptor_from_json(data: Any, dim: int) -> np.ndarray:
+def descriptor_from_json(data: Any, dim: int) -> Descriptors:
     """The ``(1, dim)`` float32 row of ``{"descriptor": [numbers]}``."""
     if not isinstance(data, dict) or "descriptor" not in data:
         raise ApiError(422, "bad_payload", 'expected a JSON object {"descriptor": [numbers]}')
@@ -79,7 +80,7 @@ def descriptor_from_json(data: Any, dim: int) -> np.ndarray:
     return _validated(row, dim)
 
 
-def descriptor_from_raw(body: bytes, dim: int) -> np.ndarray:
+def descriptor_from_raw(body: bytes, dim: int) -> Descriptors:
     """The ``(1, dim)`` row of ``4 * dim`` bytes of little-endian float32."""
     if len(body) != 4 * dim:
         raise ApiError(422, "descriptor_shape", f"expected {4 * dim} bytes ({dim} little-endian "
@@ -88,7 +89,7 @@ def descriptor_from_raw(body: bytes, dim: int) -> np.ndarray:
 
 
 def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int,
-                          max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+                          max_pixels: int = MAX_IMAGE_PIXELS) -> Descriptors:
     """Decode image bytes and describe them as the map's own images are described.
 
     An image whose header declares more than ``max_pixels`` pixels is refused (422
@@ -122,7 +123,7 @@ def session_name(name: str | None) -> str | None:
     return name
 
 
-def _validated(row: np.ndarray, dim: int) -> np.ndarray:
+def _validated(row: DescriptorsLike, dim: int) -> Descriptors:
     try:
         return validate_descriptors(row, dim)
     except SprintMapError as exc:

@@ -21,6 +21,7 @@ from collections.abc import Callable, Container, Iterable
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors
 from sprint_map.commit import DriveWriter
 from sprint_map.localizer import FrameDecision, Localizer
 from sprint_map.server.errors import ApiError, busy, unknown_session
@@ -43,7 +44,7 @@ class Session:
         self.name = name
         self.localizer = localizer
         self.dim = dim
-        self.rows: list[np.ndarray] = []
+        self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
         self.positions: list[tuple[float, ...]] = []
         self.decisions: list[FrameDecision] = []
@@ -86,7 +87,7 @@ class Session:
             raise ApiError(422, "bad_payload", f"the session's earlier frames {given} a "
                            "position: give one for every frame or for none")
 
-    def step(self, row: np.ndarray, position: tuple[float, ...] | None = None) -> FrameDecision:
+    def step(self, row: Descriptors, position: tuple[float, ...] | None = None) -> FrameDecision:
         """Localise one frame and keep it for the commit (called under the shared gate)."""
         self.check_position(position)
         self.apply_changes()
@@ -106,7 +107,7 @@ class Session:
             out[i, : len(pos)] = pos
         return out
 
-    def descriptors(self) -> np.ndarray:
+    def descriptors(self) -> Descriptors:
         """The drive's descriptors, ``(frames, dim)`` float32."""
         return np.stack(self.rows) if self.rows else np.empty((0, self.dim), np.float32)
 

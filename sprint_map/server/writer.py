@@ -23,6 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from sprint_map import AddResult
+from sprint_map.arrays import Descriptors
 from sprint_map.commit import DriveWriter
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
@@ -40,7 +41,7 @@ class CommitJob:
     """
 
     name: str | None
-    descriptors: np.ndarray
+    descriptors: Descriptors
     decisions: list[FrameDecision]
     source: str = ""
     positions: np.ndarray | None = None  # (frames, 2..4) as ``ingest`` takes them

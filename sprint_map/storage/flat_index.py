@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.storage import atomic
 from sprint_map.storage.atomic import fsync_dir, publish
 from sprint_map.storage.crash import crash_point
@@ -212,7 +213,7 @@ class FlatIndex(RetrievalIndex):
         return True
 
     # --- reading -----------------------------------------------------------------------------
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded.
 
         Notes
@@ -227,7 +228,7 @@ class FlatIndex(RetrievalIndex):
         return distances, ids
 
     # --- writing -----------------------------------------------------------------------------
-    def add(self, start: int, rows: np.ndarray) -> None:
+    def add(self, start: int, rows: Descriptors) -> None:
         """Add ``rows`` as vertex ids ``start..`` (must continue the covered range).
         O(len(rows) * d)."""
         if self.index is None:

@@ -26,8 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
 from sprint_map.storage.retrieval_index import RetrievalIndex
 from sprint_map.storage.segment_index import SegmentedIndex
@@ -182,7 +181,7 @@ class IndexStore:
             return
         self.active.catch_up(committed, shards)
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest vertices of each query row: ``(squared L2 distances, vertex_ids)``.
 
         Distances are exact for both kinds (the segmented index re-ranks from the shards);

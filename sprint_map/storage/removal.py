@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import lmdb
 import numpy as np
 
+from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
@@ -86,9 +87,9 @@ class RemovedRanges:
         return out
 
 
-def search_live(search: Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray]],
-                queries: np.ndarray, k: int, removed: RemovedRanges, indexed: int
-                ) -> tuple[np.ndarray, np.ndarray]:
+def search_live(search: Callable[[Descriptors, int], SearchResult],
+                queries: Descriptors, k: int, removed: RemovedRanges, indexed: int
+                ) -> SearchResult:
     """k nearest *live* vertices: ``search`` over-fetches and hits in removed ranges are dropped.
 
     Each query is first asked for ``k`` plus as many candidates again (at least 16); the

@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 
@@ -44,7 +45,7 @@ class IndexNotLoadedError(RuntimeError):
     """An operation that needs the in-memory index was called before :meth:`load`."""
 
 
-def padded_results(n_queries: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+def padded_results(n_queries: int, k: int) -> SearchResult:
     """The answer to ``n_queries`` queries with no hit: distances ``PAD_DISTANCE`` (float32),
     ids -1 (int64), both of shape ``(n_queries, k)``."""
     return (np.full((n_queries, k), PAD_DISTANCE, dtype=np.float32),
@@ -167,7 +168,7 @@ class RetrievalIndex(ABC):
 
     # --- reading -----------------------------------------------------------------------------
     @abstractmethod
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: Descriptors, k: int) -> SearchResult:
         """The ``k`` nearest covered vertices of each query row.
 
         Parameters
@@ -192,7 +193,7 @@ class RetrievalIndex(ABC):
 
     # --- writing -----------------------------------------------------------------------------
     @abstractmethod
-    def add(self, start: int, rows: np.ndarray) -> None:
+    def add(self, start: int, rows: Descriptors) -> None:
         """Add ``rows`` as vertices ``start..start+len(rows)-1`` (``start`` must be
         :attr:`covered`; ValueError otherwise). The rows must be those vertices' committed
         shard rows: an approximate index re-ranks its candidates from the shards.

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.errors import StorageIOError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.retrieval_index import (
@@ -330,7 +331,7 @@ class SegmentedIndex(RetrievalIndex):
                 and self.tail_len > 2 * self.config.index_segment_rows)
 
     # --- the tail -----------------------------------------------------------------------------
-    def add(self, start: int, rows: np.ndarray) -> None:
+    def add(self, start: int, rows: Descriptors) -> None:
         """Append ``rows`` (in the indexed space) to the exact tail. O(len(rows) * dim * d)
         for the PCA, amortised O(len(rows) * d) to append."""
         self.require_loaded()
@@ -338,7 +339,7 @@ class SegmentedIndex(RetrievalIndex):
             raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
         self._append_tail(self.model.transform(rows))
 
-    def _append_tail(self, rows: np.ndarray) -> None:
+    def _append_tail(self, rows: Descriptors) -> None:
         need = self.tail_len + len(rows)
         if need > len(self._tail):
             grown = np.empty((max(need, 2 * len(self._tail), 1024), self._tail.shape[1]),
@@ -355,7 +356,7 @@ class SegmentedIndex(RetrievalIndex):
         self.tail_start += n
 
     # --- search -------------------------------------------------------------------------------
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest vertices by exact squared L2, among the re-ranked candidates.
 
         Notes
@@ -456,7 +457,7 @@ class SegmentedIndex(RetrievalIndex):
             done = True
         return done
 
-    def _seal(self, segments: tuple[SegmentEntry, ...], blocks: list[np.ndarray], start: int,
+    def _seal(self, segments: tuple[SegmentEntry, ...], blocks: list[Descriptors], start: int,
               worker: bool = False) -> tuple[SegmentEntry, ...]:
         """Encode and publish each of ``blocks`` (ids from ``start`` on) as a segment, merging
         full tiers after each (their files published, not yet named): the segments the next

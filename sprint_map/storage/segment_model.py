@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, Int64Array
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.atomic import publish
 from sprint_map.storage.shards import ShardSet
@@ -60,7 +61,7 @@ def pca_name(generation: int) -> str:
     return f"pca.{generation:06d}.faiss"
 
 
-def gather_rows(shards: ShardSet, ids: np.ndarray, committed: int) -> np.ndarray:
+def gather_rows(shards: ShardSet, ids: Int64Array, committed: int) -> Descriptors:
     """Shard rows of ``ids`` (any order, no -1), copied; one memory-map view per shard touched.
 
     Notes
@@ -93,7 +94,7 @@ class RowReader:
         self._fds: dict[int, int] = {}  # shard number -> descriptor, for ``_directory``
         self._directory: Path | None = None
 
-    def rows(self, shards: ShardSet, ids: np.ndarray, committed: int) -> np.ndarray:
+    def rows(self, shards: ShardSet, ids: Int64Array, committed: int) -> Descriptors:
         """Rows of the committed vertex ``ids``. O(len(ids)) reads of one row each."""
         if shards.directory != self._directory:
             self.close()
@@ -126,7 +127,7 @@ class RowReader:
         self.close()
 
 
-def sample_ids(committed: int, size: int, generation: int) -> np.ndarray:
+def sample_ids(committed: int, size: int, generation: int) -> Int64Array:
     """A seeded sample of ``min(size, committed)`` distinct vertex ids, sorted."""
     rng = np.random.default_rng([SAMPLE_SEED, generation])
     if size >= committed:
@@ -174,7 +175,7 @@ class Model:
     def nlist(self) -> int:
         return int(self.ivf.nlist)
 
-    def transform(self, rows: np.ndarray) -> np.ndarray:
+    def transform(self, rows: Descriptors) -> Descriptors:
         """Rows in the indexed space (PCA applied if any), C-contiguous float32."""
         rows = np.ascontiguousarray(rows, dtype=np.float32)
         return rows if self.pca is None else self.pca.apply(rows)
@@ -198,7 +199,7 @@ class Model:
         return cls(kind, pca, ivf)
 
 
-def train_model(config: StoreConfig, kind: str, sample: np.ndarray) -> Model:
+def train_model(config: StoreConfig, kind: str, sample: Descriptors) -> Model:
     """Train PCA (when ``dim > index_pca_dim``) and the IVF quantizer on ``sample`` rows.
 
     The number of lists is ``index_nlist`` but at most ``len(sample) / 39`` (FAISS's minimum

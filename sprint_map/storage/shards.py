@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sprint_map.arrays import Descriptors, Int64Array
 from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage import atomic
 
@@ -145,7 +146,7 @@ class ShardSet:
         return actions
 
     # --- writing ----------------------------------------------------------------------------
-    def append(self, start_row: int, rows: np.ndarray, *, sync: bool = True) -> dict[int, int]:
+    def append(self, start_row: int, rows: Descriptors, *, sync: bool = True) -> dict[int, int]:
         """Write ``rows`` at global row ``start_row`` and fsync them (``sync=False``: later,
         by :meth:`sync`, which must run before a commit records them).
 
@@ -237,7 +238,7 @@ class ShardSet:
         self._maps[shard] = (committed, mm)
         return mm
 
-    def rows(self, start: int, stop: int, total_rows: int) -> np.ndarray:
+    def rows(self, start: int, stop: int, total_rows: int) -> Descriptors:
         """Rows ``start..stop-1`` (global vertex ids) of a map holding ``total_rows`` rows.
 
         A range inside one shard is a zero-copy read-only view of the memory map; a range that
@@ -257,7 +258,7 @@ class ShardSet:
             return np.empty((0, self.dim), dtype=ROW_DTYPE)
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
-    def take(self, vertex_ids: np.ndarray, total_rows: int) -> np.ndarray:
+    def take(self, vertex_ids: Int64Array, total_rows: int) -> Descriptors:
         """Rows of arbitrary vertex ids (copied)."""
         out = np.empty((len(vertex_ids), self.dim), dtype=ROW_DTYPE)
         for i, vid in enumerate(np.asarray(vertex_ids, dtype=np.int64)):

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import lmdb
 import numpy as np
 
+from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.storage.removal import RemovedRanges, search_live
 from sprint_map.validation import validate_descriptors
 
@@ -78,7 +79,7 @@ class MapSnapshot:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest vertices of this snapshot: ``(squared L2 distances, vertex ids)``.
 
         Rows are -1 padded (distance ``float32`` max) like FAISS pads them. Hits past the

@@ -28,6 +28,7 @@ from typing import Any
 import lmdb
 import numpy as np
 
+from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
 from sprint_map.errors import (
     ConfigError,
     MapCorruptError,
@@ -483,14 +484,14 @@ class MapStore:
             )
         return seq.first_vertex + image_id
 
-    def descriptors(self, seq_id: int) -> np.ndarray:
+    def descriptors(self, seq_id: int) -> Descriptors:
         """The descriptors of a sequence (a read-only memory-mapped view when in one shard)."""
         with self.env.read() as txn:
             seq = self.sequence(seq_id, txn)
             total = self.counter("next_vertex_id", txn)
         return self.shards.rows(seq.first_vertex, seq.first_vertex + seq.length, total)
 
-    def positions(self, seq_id: int) -> np.ndarray | None:
+    def positions(self, seq_id: int) -> Float64Array | None:
         """Per-vertex ``(x, y, heading, timestamp)`` of a sequence, or None if none were given."""
         with self.env.read() as txn:
             seq = self.sequence(seq_id, txn)
@@ -568,7 +569,7 @@ class MapStore:
             return [EdgeRecord.decode(k, v) for k, v in txn.cursor(db=self.env.db("edges"))]
 
     # --- retrieval ---------------------------------------------------------------------------
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k-NN over every live descriptor: ``(squared L2 distances, vertex ids)``, -1 padded.
 
         Hits in the vertex ranges of removed sequences (still in the shards and the index until
