@@ -293,7 +293,8 @@ class Localizer:
             dists, ids = self.source.search(row, self.config.k)
             return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
 
-    def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]) -> list[FrameDecision]:
+    def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]
+                 ) -> list[FrameDecision]:
         """Localise a whole sequence (array, or an iterable of row batches), batching searches."""
         return list(self.iter_localize(descriptors))
 

@@ -55,7 +55,8 @@ CLI_MODULES = ("import atexit, sys\n"
 def heavy_loaded(modules: set[str]) -> set[str]:
     """The heavy packages among ``modules``, and the HMM's modules beyond its config."""
     return ({m for m in modules if m.split(".")[0] in HEAVY}
-            | {m for m in modules if m.startswith("sprint_map.hmm.") and m != "sprint_map.hmm.config"})
+            | {m for m in modules
+               if m.startswith("sprint_map.hmm.") and m != "sprint_map.hmm.config"})
 
 
 def cli_modules(*args: str) -> tuple[subprocess.CompletedProcess[str], set[str]]:

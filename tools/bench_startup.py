@@ -13,8 +13,9 @@ process costs, less sensitive than wall time to other jobs on the machine) and t
 median wall time to the two baselines, plus the heavy modules ``info`` loaded (it should load no
 FAISS, SciPy, OpenCV, matplotlib, networkx, nor the HMM: it only reads LMDB). With
 ``--before DIR`` (a checkout of an older commit, e.g. ``git worktree add --detach DIR REV``)
-the same ``info --json`` is also timed with that code (``PYTHONPATH=DIR``), in the same rounds. The map is built once from precomputed random descriptors with
-``tools/bench_scale.py``'s lifelong builder (drives of 1,000 frames, an edge every 10 frames;
+the same ``info --json`` is also timed with that code (``PYTHONPATH=DIR``), in the same rounds.
+The map is built once from precomputed random descriptors with ``tools/bench_scale.py``'s
+lifelong builder (drives of 1,000 frames, an edge every 10 frames;
 ``--dim`` 128) and cached under ``--cache`` (default ``/tmp/sprint-map-bench-startup``), so later
 runs only measure::
 

@@ -143,7 +143,8 @@ class GroundTruth:
             return near
         qp, dp = self._table(query), self._table(db)
         a, b = qp[q], dp[d]
-        close: np.ndarray = np.hypot(a[..., 1] - b[..., 1], a[..., 2] - b[..., 2]) <= self.spec.radius_m
+        close: np.ndarray = (np.hypot(a[..., 1] - b[..., 1], a[..., 2] - b[..., 2])
+                             <= self.spec.radius_m)
         if self.spec.heading_deg is None:
             return close
         out: np.ndarray = close & (_angle_between(a[..., 3], b[..., 3]) <= self.spec.heading_deg)
