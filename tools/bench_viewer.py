@@ -111,8 +111,7 @@ def build(path: Path, n_vertices: int, args: argparse.Namespace) -> dict[str, An
 
 def measure(path: Path, args: argparse.Namespace) -> dict[str, Any]:
     trace = path.parent / f"{path.name}.trace.npz"
-    with ViewProcess(path, trace, path.parent / f"{path.name}.view.log",
-                     timeout_s=3600) as view:
+    with ViewProcess(path, trace, path.parent / f"{path.name}.view.log") as view:
         out: dict[str, Any] = {"summarise_s": round(view.start_s, 2)}
         with httpx.Client(base_url=view.url, timeout=600) as client:
             ov = client.get("/viewer/api/overview")

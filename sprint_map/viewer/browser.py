@@ -40,13 +40,14 @@ class ViewProcess:
     """``sprint-map view MAP [--trace OUT] --port 0`` as a subprocess, until :meth:`stop`."""
 
     def __init__(self, map_path: Path, trace: Path | None = None, log: Path | None = None,
-                 timeout_s: float = 300.0) -> None:
+                 env: dict[str, str] | None = None) -> None:
         cmd = [sys.executable, "-c", "from sprint_map.cli import main; main()", "view",
                str(map_path), "--port", "0"]
         if trace is not None:
             cmd += ["--trace", str(trace)]
         self._log = open(log, "w") if log is not None else subprocess.DEVNULL  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, text=True)
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, text=True,
+                                     env={**os.environ, **(env or {})})
         assert self.proc.stdout is not None
         start = time.monotonic()
         line = self.proc.stdout.readline()

@@ -159,3 +159,18 @@ def test_a_map_without_positions_is_drawn_as_a_graph(tmp_path, rng):
         # the trace tab stays hidden without a trace, and nothing failed
         assert not driver.find_element("css selector", 'nav .tab[data-tab="trace"]').is_displayed()
         assert console_errors(driver) == []
+
+
+def test_with_a_token_the_page_asks_for_it(tmp_path, rng):
+    build_road_map(tmp_path / "m", rng, drives=2, frames=40)
+    with ViewProcess(tmp_path / "m", env={"SPRINT_MAP_TOKEN": "s3cret"}) as view, \
+            chromium() as driver:
+        driver.get(view.url)
+        wait_for(driver, "!document.getElementById('login').hidden")
+        assert not driver.execute_script("return window.sprintViewer.ready")
+        driver.find_element("id", "token").send_keys("s3cret")
+        driver.find_element("css selector", "#login button").click()
+        wait_for(driver, "window.sprintViewer.ready")
+        assert len(driver.execute_script("return window.sprintViewer.drawn")) == 3
+        # the 401 answers before the token are the only console errors
+        assert all("401" in e for e in console_errors(driver))
