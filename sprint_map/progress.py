@@ -38,8 +38,10 @@ class ProgressBar:
     """One rich progress line; call it as ``bar(frames_done, total_or_None)``.
 
     The line appears at the first call (so nothing is drawn for work that never starts) and is
-    refreshed about ten times a second by rich's own thread; :meth:`close` draws its final
-    state and ends the line. Cost per call O(1).
+    refreshed about ten times a second by rich's own thread. It ends, showing its final state,
+    when ``frames_done`` reaches a known total (so that the next drive of a multi-drive ingest
+    gets a line of its own, and its result is printed below a finished bar) or at
+    :meth:`close`; later calls draw nothing. Cost per call O(1).
 
     Parameters
     ----------
@@ -54,16 +56,22 @@ class ProgressBar:
         self.stream = stream
         self._progress: Progress | None = None
         self._task: TaskID | None = None
+        self._ended = False
 
     def __call__(self, done: int, total: int | None) -> None:
+        if self._ended:
+            return
         if self._progress is None or self._task is None:
             self._progress = _new_progress(self.stream)
             self._progress.start()
             self._task = self._progress.add_task(self.label, total=total)
         self._progress.update(self._task, completed=done, total=total)
+        if total is not None and done >= total:
+            self.close()
 
     def close(self) -> None:
         """Draw the final state and end the line (idempotent)."""
+        self._ended = True
         if self._progress is not None:
             self._progress.stop()
             self._progress = None

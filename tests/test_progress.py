@@ -56,18 +56,20 @@ def run_cli(args: list[str], tmp_path: Path, stderr_tty: bool) -> tuple[int, str
     """Run the CLI in a subprocess: (exit code, stdout, stderr with escape codes removed).
 
     With ``stderr_tty`` its stderr is a 24 x 100 pseudo-terminal, read until the child
-    closes it; otherwise a pipe. stdout goes to a file (never a terminal).
+    closes it; otherwise a pipe. stdout goes to a file (never a terminal). It runs in
+    ``tmp_path``, so relative source names keep the bar's label short.
     """
     out_path = tmp_path / "stdout.txt"
     with open(out_path, "wb") as out:
         if not stderr_tty:
             proc = subprocess.run(CLI + args, stdout=out, stderr=subprocess.PIPE, env=_env(),
-                                  timeout=300)
+                                  timeout=300, cwd=tmp_path)
             code, err = proc.returncode, proc.stderr
         else:
             master, slave = pty.openpty()
             fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
-            child = subprocess.Popen(CLI + args, stdout=out, stderr=slave, env=_env())
+            child = subprocess.Popen(CLI + args, stdout=out, stderr=slave, env=_env(),
+                                     cwd=tmp_path)
             os.close(slave)
             chunks = []
             while True:
@@ -118,6 +120,36 @@ def test_unknown_total_shows_the_count_and_rate_without_eta():
     bar.close()  # idempotent
     last = ANSI.sub("", stream.getvalue()).rstrip().splitlines()[-1]
     assert "700/?" in last and re.search(r"[\d,]+ frames/s", last) and "eta" not in last
+
+
+def test_a_bar_ends_at_its_total_so_the_next_drive_gets_its_own_line():
+    stream = _FakeTerminal()
+    first, second = ProgressBar("ingesting a", stream), ProgressBar("ingesting b", stream)
+    for done in (256, 300):
+        first(done, 300)
+    assert first._progress is None  # ended at its total: no live line left behind
+    first(300, 300)  # a late call draws nothing
+    for done in (100, 200):
+        second(done, 200)
+    second.close()
+    text = ANSI.sub("", stream.getvalue())
+    assert "ingesting a" not in text[text.index("ingesting b"):]  # a ended before b began
+    assert re.search(r"ingesting a \S+ 300/300", text)
+    assert re.search(r"ingesting b \S+ 200/200", text)
+
+
+def test_several_drives_on_a_terminal_each_end_their_bar(drive_and_map, tmp_path):
+    map_path, drive = drive_and_map
+    other = tmp_path / "third.npy"
+    np.save(other, np.load(drive)[::-1].copy())
+    code, out, err = run_cli(["ingest", str(map_path), drive.name, other.name], tmp_path,
+                             stderr_tty=True)
+    assert code == 0, err
+    finals = [line for line in re.split(r"[\r\n]+", err) if f"{FRAMES}/{FRAMES}" in line]
+    assert any(f"ingesting {drive.name} " in line for line in finals), err[-2000:]
+    assert any(f"ingesting {other.name} " in line for line in finals), err[-2000:]
+    assert f"ingesting {drive.name} " not in err[err.index(f"ingesting {other.name} "):]
+    assert out.count("added sequence") == 2
 
 
 def test_no_bar_object_without_a_terminal_or_when_quiet():
