@@ -57,8 +57,9 @@ def areas(rng: np.random.Generator, n: int) -> list[np.ndarray]:
     return out
 
 
-def traverse(places: np.ndarray, rng: np.random.Generator, noise: float = 0.35) -> np.ndarray:
-    return unit(places + noise * rng.standard_normal(places.shape) / np.sqrt(DIM) * 4)
+def traverse(places: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarray:
+    """A drive over ``places``: noise of norm ~``noise`` per frame (places are unit-norm)."""
+    return unit(places + noise * rng.standard_normal(places.shape) / np.sqrt(DIM))
 
 
 def timed(fn: Any, repeat: int) -> list[float]:
@@ -79,8 +80,8 @@ def map_state(path: Path) -> tuple[Any, ...]:
 
 
 # --- ingest ---------------------------------------------------------------------------------
-def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: int
-                 ) -> dict[str, Any]:
+def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: int,
+                 noise: float) -> dict[str, Any]:
     from sprint_map.fleet.farm import farm_ingest
     from sprint_map.fleet.runtime import connect
 
@@ -90,13 +91,14 @@ def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: i
     base = work / "base.map"
     with SprintMap.create(base, MapConfig(dim=DIM, index_type="flat")) as m:
         for a in range(n_areas):
-            m.add_sequence(traverse(world[a], rng), name=f"base{a}")
+            m.add_sequence(traverse(world[a], rng, noise), name=f"base{a}")
     # each drive revisits its own area, but the last two revisit the first two drives' areas
+    # (the farm localised them before those drives were committed: stale, localised again)
     order = [a % max(drives - 2, 1) for a in range(drives)]
     sources = []
     for n, a in enumerate(order):
         p = work / f"drive{n:03d}.npy"
-        np.save(p, traverse(world[a], rng))
+        np.save(p, traverse(world[a], rng, noise))
         sources.append(str(p))
     frames = drives * AREA
 
@@ -116,11 +118,8 @@ def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: i
     with SprintMap.open(farmed) as m:
         results = farm_ingest(m, sources)
     farm_s = time.perf_counter() - start
-    import ray
-
-    ray.shutdown()
     relocalised = sum(r.relocalised is not None for r in results)
-    return {"base_vertices": n_areas * AREA, "drives": drives, "frames": frames,
+    return {"noise": noise, "base_vertices": n_areas * AREA, "drives": drives, "frames": frames,
             "ray_cpus": cpus, "ray_start_s": round(ray_start_s, 2),
             "serial_s": round(serial_s, 3), "farm_s": round(farm_s, 3),
             "serial_frames_per_s": round(frames / serial_s),
@@ -237,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--base", type=int, default=100_000, help="base map vertices (ingest)")
     parser.add_argument("--drives", type=int, default=10)
     parser.add_argument("--ray-cpus", type=int, default=2)
+    parser.add_argument("--noise", type=float, nargs="+", default=[0.5, 1.4],
+                        help="drive noise (norm per frame, places unit-norm): 0.5 keeps a "
+                        "frame's k nearest in its own area, 1.4 puts most at the noise floor, "
+                        "in any area")
     parser.add_argument("--vertices", type=int, default=300_000, help="search map vertices")
     parser.add_argument("--shards", type=int, default=3)
     parser.add_argument("--segment-sizes", type=int, nargs="+", default=[250_000, 1_000_000])
@@ -254,9 +257,16 @@ def main(argv: list[str] | None = None) -> int:
     out: dict[str, Any] = {}
     try:
         if "ingest" in only:
-            out["ingest"] = bench_ingest(work / "ingest", args.base, args.drives, args.ray_cpus,
-                                         args.seed) if (work / "ingest").mkdir() is None else {}
-            table("Ray ingest farm vs serial ingest", [out["ingest"]])
+            out["ingest"] = []
+            for noise in args.noise:
+                sub = work / f"ingest-{noise}"
+                sub.mkdir()
+                out["ingest"].append(bench_ingest(sub, args.base, args.drives, args.ray_cpus,
+                                                  args.seed, noise))
+            import ray
+
+            ray.shutdown()
+            table("Ray ingest farm vs serial ingest", out["ingest"])
         if "search" in only:
             (work / "search").mkdir()
             out["search"] = bench_search(work / "search", args.vertices, args.shards,
