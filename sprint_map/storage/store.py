@@ -501,11 +501,21 @@ class MapStore:
             out = np.full((seq.length, 4), np.nan)
             cursor = txn.cursor(db=db)
             cursor.set_range(u64(seq.first_vertex))
+            # raw records gathered, then decoded at once (per record: ~10x less Python)
+            last, size = u64(seq.last_vertex), VERTEX_VAL.size
+            keys, values = [], []
             for key, value in cursor:
-                vid = read_u64(key)
-                if vid > seq.last_vertex:
+                if len(key) != 8 or bytes(key) > last:  # fixed-width big-endian: as the ids
+                    if len(key) != 8:
+                        read_u64(key)  # a corrupt key: its error
                     break
-                out[vid - seq.first_vertex] = VERTEX_VAL.unpack(value)
+                if len(value) != size:
+                    VERTEX_VAL.unpack(value)  # a corrupt record: its error
+                keys.append(key)
+                values.append(value)
+            vids = np.frombuffer(b"".join(keys), dtype=">u8").astype(np.int64)
+            out[vids - seq.first_vertex] = np.frombuffer(b"".join(values), dtype=">f8"
+                                                         ).reshape(-1, 4)
         return out
 
     def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
