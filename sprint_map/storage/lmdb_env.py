@@ -82,7 +82,6 @@ def check_data_file(path: Path) -> None:
     except OSError as exc:
         raise StorageIOError(f"cannot open {path}: {exc.strerror or exc}") from exc
     try:
-        size = os.fstat(fd).st_size
         first = os.pread(fd, _META_BYTES, 0)
         metas = []
         if len(first) == _META_BYTES and _META_HEAD.unpack_from(first, 16)[0] == _META_MAGIC:
@@ -94,6 +93,9 @@ def check_data_file(path: Path) -> None:
                 if len(raw) == _META_BYTES and _META_HEAD.unpack_from(raw, 16)[0] == _META_MAGIC:
                     last_pg, txnid = _META_TAIL.unpack_from(raw, 136)
                     metas.append((txnid, last_pg))
+        # The size after the metas: a writer appending pages and then writing the meta that
+        # counts them between an earlier fstat and these reads would look like a truncation.
+        size = os.fstat(fd).st_size
         if not metas:
             raise MapCorruptError(f"LMDB file {path} is corrupt: no valid meta page "
                                   f"({size} bytes)")
