@@ -6,7 +6,7 @@ how many rows (``tests/storage/test_index_contract.py``)::
 
     class TestFlatIndex(IndexContract):
         index_cls = FlatIndex
-        config = MapConfig(dim=DIM, index_type="flat")
+        config = StoreConfig(dim=DIM, index_type="flat")
 
 Imported by name (``from index_contract import IndexContract``) like ``serve_helpers`` and
 ``hmm_synth``: pytest puts this directory on ``sys.path``. Its name does not start with
@@ -26,13 +26,13 @@ from typing import ClassVar
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
 from sprint_map.storage.retrieval_index import (
     PAD_DISTANCE,
     IndexNotLoadedError,
     RetrievalIndex,
 )
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 
 __all__ = ["Committed", "IndexContract", "brute_force", "clustered"]
 
@@ -78,7 +78,7 @@ class IndexContract:
     #: The kind under test.
     index_cls: ClassVar[type[RetrievalIndex]]
     #: Its map config (dimension and the kind's parameters).
-    config: ClassVar[MapConfig]
+    config: ClassVar[StoreConfig]
     #: Rows of the index most tests build (at least what the kind can be built on).
     size: ClassVar[int] = 700
     #: Fewest rows :meth:`RetrievalIndex.rebuild` accepts.
@@ -260,6 +260,29 @@ class IndexContract:
         _, ids = reader.search(data.rows[-120:], 1)
         assert (ids[:, 0] == np.arange(data.total - 120, data.total)).mean() >= (
             self.min_self_recall)
+        reader.close()
+
+    def test_commits_scheduled_by_after_commit_reach_the_files(
+            self, built: RetrievalIndex, directory: Path, data: Committed,
+            rng: np.random.Generator, centres: np.ndarray) -> None:
+        """The writer's commit path: catch up, ``after_commit`` (persist when it says so),
+        a final ``persist`` (close): a reader then answers like the writer."""
+        for _ in range(5):
+            data.commit(clustered(rng, 130, centres))
+            built.catch_up(data.total, data.shards)
+            due = built.after_commit(data.total, data.shards)
+            assert isinstance(due, bool)
+            if due:
+                assert built.persist()
+        built.persist()
+        assert built.covered == data.total and built.persisted > self.size
+        assert built.persisted_on_disk() == built.persisted
+        reader = self.make(directory, writable=False)
+        assert reader.load(data.total, data.shards)
+        queries = clustered(rng, 15, centres)
+        want, got = built.search(queries, 10), reader.search(queries, 10)
+        np.testing.assert_array_equal(got[1], want[1])
+        np.testing.assert_array_equal(got[0], want[0])
         reader.close()
 
     def test_persist_then_load_answers_the_same(self, built: RetrievalIndex, directory: Path,

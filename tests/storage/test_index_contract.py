@@ -4,24 +4,24 @@ from __future__ import annotations
 
 from index_contract import IndexContract
 
-from sprint_map.config import MapConfig
 from sprint_map.storage.flat_index import FlatIndex
 from sprint_map.storage.segment_index import SegmentedIndex
 from sprint_map.storage.segment_model import MIN_TRAIN
+from sprint_map.storage.store_config import StoreConfig
 
 DIM = 32
 
 
 class TestFlatIndex(IndexContract):
     index_cls = FlatIndex
-    config = MapConfig(dim=DIM, index_type="flat")
+    config = StoreConfig(dim=DIM, index_type="flat")
 
 
 class TestSegmentedIndex(IndexContract):
     """Small segments and quantizer: sealed segments, a merge and a tail on 700 rows."""
 
     index_cls = SegmentedIndex
-    config = MapConfig(dim=DIM, index_type="ivf-pq", index_nlist=16, index_nprobe=8,
+    config = StoreConfig(dim=DIM, index_type="ivf-pq", index_nlist=16, index_nprobe=8,
                        index_segment_rows=256, index_merge_factor=3, index_train_sample=2000,
                        index_rerank=50)
     min_rows = MIN_TRAIN
@@ -32,6 +32,6 @@ class TestSegmentedIndex(IndexContract):
 class TestSegmentedSQ8Index(TestSegmentedIndex):
     """The scalar-quantized variant, with a PCA (dim 32 -> 16)."""
 
-    config = MapConfig(dim=DIM, index_type="ivf-sq8", index_nlist=16, index_nprobe=8,
+    config = StoreConfig(dim=DIM, index_type="ivf-sq8", index_nlist=16, index_nprobe=8,
                        index_pca_dim=16, index_segment_rows=256, index_merge_factor=3,
                        index_train_sample=2000, index_rerank=50)

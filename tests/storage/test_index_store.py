@@ -3,21 +3,22 @@ kind replaces it and removes the other kind's files after the new ones are publi
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from index_contract import Committed, clustered
 
-from sprint_map.config import MapConfig
 from sprint_map.storage.flat_index import FlatIndex, index_files
 from sprint_map.storage.index_store import KINDS, IndexStore
 from sprint_map.storage.segment_index import SegmentedIndex
 from sprint_map.storage.segment_manifest import MANIFEST
+from sprint_map.storage.store_config import StoreConfig
 
 DIM = 32
 #: auto switches to ivf-pq at 1000 * 128 / 32 = 4000 vertices of dim 32.
-AUTO = MapConfig(dim=DIM, index_type="auto", index_auto_vertices=1000, index_nlist=16,
+AUTO = StoreConfig(dim=DIM, index_type="auto", index_auto_vertices=1000, index_nlist=16,
                  index_nprobe=8, index_segment_rows=256, index_merge_factor=3,
                  index_train_sample=2000, index_rerank=50, index_persist_every=100)
 
@@ -38,7 +39,7 @@ def centres(rng: np.random.Generator) -> np.ndarray:
     return rng.standard_normal((40, DIM)).astype(np.float32)
 
 
-def store(directory: Path, config: MapConfig = AUTO, writable: bool = True) -> IndexStore:
+def store(directory: Path, config: StoreConfig = AUTO, writable: bool = True) -> IndexStore:
     return IndexStore(directory, DIM, writable=writable, config=config)
 
 
@@ -109,7 +110,7 @@ def test_a_flat_config_never_opens_segments(directory: Path, data: Committed,
     segmented = SegmentedIndex(directory, AUTO, writable=True)
     segmented.rebuild(data.total, data.shards)
     segmented.close()
-    index = store(directory, MapConfig(dim=DIM, index_type="flat"), writable=False)
+    index = store(directory, StoreConfig(dim=DIM, index_type="flat"), writable=False)
     index.load(data.total, data.shards)
     assert isinstance(index.active, FlatIndex) and index.covered == data.total
 
@@ -117,7 +118,7 @@ def test_a_flat_config_never_opens_segments(directory: Path, data: Committed,
 def test_train_on_a_map_too_small_rebuilds_flat_and_drops_segments(
         directory: Path, data: Committed, rng: np.random.Generator,
         centres: np.ndarray) -> None:
-    config = MapConfig(**{**AUTO.to_dict(), "index_type": "ivf-pq"})
+    config = replace(AUTO, index_type="ivf-pq")
     data.commit(clustered(rng, 600, centres))
     index = store(directory, config)
     index.load(data.total, data.shards)  # ivf-pq and 600 >= MIN_TRAIN: trained on load
@@ -134,7 +135,7 @@ def test_a_reader_far_behind_the_writer_reopens_the_segments(
         directory: Path, data: Committed, rng: np.random.Generator,
         centres: np.ndarray) -> None:
     data.commit(clustered(rng, 600, centres))
-    writer = store(directory, MapConfig(**{**AUTO.to_dict(), "index_type": "ivf-pq"}))
+    writer = store(directory, replace(AUTO, index_type="ivf-pq"))
     writer.load(data.total, data.shards)
     reader = store(directory, writable=False)
     reader.load(data.total, data.shards)
