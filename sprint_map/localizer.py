@@ -293,6 +293,22 @@ class Localizer:
             dists, ids = self.source.search(row, self.config.k)
             return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
 
+    def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0
+                  ) -> FrameDecision:
+        """Localise one frame from its retrieval hits, searched by the caller (the service
+        searches the frames of many sessions in one batch).
+
+        The map's search answers a query the same alone or in a batch (bit for bit, see
+        :func:`sprint_map.storage.exact_search.certified_search`), so with the hits of
+        ``smap.search(rows, config.k)`` made against the same map state this equals
+        :meth:`step` of the row. The caller keeps the map from changing between the search and
+        this call (the service's map gate).
+        """
+        with self._pinned():
+            if self._empty:
+                return self._no_map_decision()
+            return self._update(ids, dists, retrieval_ms)
+
     def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]
                  ) -> list[FrameDecision]:
         """Localise a whole sequence (array, or an iterable of row batches), batching searches."""

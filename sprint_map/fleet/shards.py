@@ -6,12 +6,11 @@ as a Ray actor, holds the rows of one range in an exact flat index; the last one
 and catches up with commits. :class:`ShardedIndex` (in the caller) sends each query batch to
 every shard at once, gets each one's k best and merges them into the k best overall.
 
-The answer equals the in-process exact search, ids and distances: each distance is computed by
-the same FAISS kernel on the same two rows (one OpenMP thread below 8 queries, as in
-:func:`~sprint_map.storage.segment_model.use_threads`: with more threads, FAISS splits a single
-query's scan of a large index in a way whose rounding depends on the index size; from 8 queries
-on the threads split the queries, whatever their number), and the k best
-of the union of the ranges' k best are the k best of the whole. Removed sequences are hidden as
+The answer equals the in-process exact search, ids and distances: each shard searches its
+rows as the map's flat index does (:class:`~sprint_map.storage.exact_search.ExactFlat`: every
+distance a function of its two rows alone, ties ordered by vertex id), and the k best of the
+union of the ranges' k best (ranges in vertex order, so equal distances keep id order) are the
+k best of the whole. Removed sequences are hidden as
 the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
 
 Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
@@ -29,6 +28,7 @@ import numpy as np
 
 from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.map import SprintMap
+from sprint_map.storage.exact_search import ExactFlat
 from sprint_map.storage.removal import RemovedRanges, search_live
 from sprint_map.validation import validate_descriptors
 
@@ -106,6 +106,7 @@ class ShardWorker:
         self.threads = threads
         self.stop = stop
         self.index = faiss.IndexFlatL2(dim)
+        self._exact: ExactFlat | None = None
         self.map: SprintMap | None = None
         if rows is None:
             if path is None:
@@ -145,13 +146,14 @@ class ShardWorker:
 
     def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
-        # One thread below 8 queries (as in process: see the module docstring); above, the
-        # threads split the queries, which leaves every distance as it is.
+        # One thread below 8 queries (latency-bound); the answer does not depend on it.
         faiss.omp_set_num_threads(1 if len(queries) < 8 else self.threads)
         if not self.index.ntotal:
             return (np.full((len(queries), k), PAD_DISTANCE, dtype=np.float32),
                     np.full((len(queries), k), -1, dtype=np.int64))
-        d, i = self.index.search(np.ascontiguousarray(queries, dtype=np.float32), k)
+        if self._exact is None:
+            self._exact = ExactFlat(self.index)
+        d, i = self._exact.search(queries, k)  # certified: as the in-process search
         return d, np.where(i >= 0, i + self.start, -1)
 
     def pid(self) -> int:

@@ -24,6 +24,7 @@ from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.storage import atomic
 from sprint_map.storage.atomic import fsync_dir, publish
 from sprint_map.storage.crash import crash_point
+from sprint_map.storage.exact_search import ExactFlat
 from sprint_map.storage.retrieval_index import IndexNotLoadedError, RetrievalIndex
 from sprint_map.storage.segment_model import use_threads
 from sprint_map.storage.shards import ShardSet
@@ -37,6 +38,11 @@ else:  # imported on first use: commands that only read LMDB never load it
 __all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
 
 INDEX_RE = re.compile(r"^flat\.(\d{12})\.faiss$")
+#: Queries from which FAISS's flat search computes distances by matrix product (its default,
+#: 20, searches smaller batches pair by pair, reading the whole index once per query). Any
+#: threshold gives the same answers: every search is certified exact (``exact_search``).
+BLAS_FROM_QUERIES = 4
+faiss.cvar.distance_compute_blas_threshold = BLAS_FROM_QUERIES
 
 
 def index_files(directory: Path) -> list[tuple[int, Path]]:
@@ -105,6 +111,7 @@ class FlatIndex(RetrievalIndex):
                  events: list[str] | None = None) -> None:
         super().__init__(directory, config, writable=writable, events=events)
         self.index: faiss.IndexIDMap2 | None = None
+        self._exact: ExactFlat | None = None  # the certified search over self.index
         self._persisted = 0  # vertices covered by the newest file on disk that we trust
 
     # --- state -------------------------------------------------------------------------------
@@ -216,16 +223,23 @@ class FlatIndex(RetrievalIndex):
     def search(self, queries: Descriptors, k: int) -> SearchResult:
         """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded.
 
+        Exact and independent of the batch: a query gets the same ids and distances, bit for
+        bit, searched alone or among others (:func:`~sprint_map.storage.exact_search.
+        certified_search`: FAISS for candidates, each re-measured by a function of the two
+        vectors alone, ties ordered by vertex id).
+
         Notes
         -----
-        O(q * covered * d) (brute force; every core for a batch of 8 or more queries).
+        O(q * covered * d) (brute force; every core for a batch of 8 or more queries), plus
+        O(q * (k + 8) * d) to certify.
         """
         if self.index is None:
             raise IndexNotLoadedError("the flat index is not loaded: load() first")
         queries = np.ascontiguousarray(queries, dtype=np.float32)
         use_threads(len(queries))
-        distances, ids = self.index.search(queries, k)
-        return distances, ids
+        if self._exact is None or self._exact.index is not self.index:
+            self._exact = ExactFlat(self.index)
+        return self._exact.search(queries, k)
 
     # --- writing -----------------------------------------------------------------------------
     def add(self, start: int, rows: Descriptors) -> None:

@@ -1,0 +1,125 @@
+"""Exact search whose answer for a query does not depend on its batch (storage/exact_search.py).
+
+The map's flat search must give a query the same ids and distances, bit for bit, searched
+alone, in a small batch or in a large one (the service batches sessions' frames, offline
+``localize`` searches 256 at a time): these tests compare every batch split with the brute
+force of :func:`pair_distances` ordered by (distance, id), exact ties included.
+"""
+
+from __future__ import annotations
+
+import faiss
+import numpy as np
+import pytest
+
+from sprint_map.config import MapConfig
+from sprint_map.map import SprintMap
+from sprint_map.storage.exact_search import (
+    certified_search,
+    distance_error_bound,
+    pair_distances,
+    row_norm_max,
+)
+
+
+def brute(vectors: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The specification: top k by pair_distances over every row, ties by id."""
+    d_out, i_out = [], []
+    ids = np.arange(len(vectors))
+    for q in queries:
+        dist = pair_distances(q, vectors)
+        order = np.lexsort((ids, dist))[:k]
+        d_out.append(dist[order])
+        i_out.append(ids[order])
+    return np.array(d_out), np.array(i_out)
+
+
+@pytest.fixture
+def world(rng):
+    """400 rows of dim 48 with exact duplicates (ties) and queries near and on them."""
+    vectors = rng.standard_normal((400, 48)).astype(np.float32)
+    vectors[200:260] = vectors[100:160]  # 60 exact duplicates: tied distances
+    queries = np.concatenate([vectors[rng.choice(400, 40)] + 0.05 * rng.standard_normal(
+        (40, 48)).astype(np.float32), vectors[100:110]]).astype(np.float32)
+    return vectors, queries
+
+
+def flat_fast(vectors: np.ndarray):
+    index = faiss.IndexFlatL2(vectors.shape[1])
+    index.add(vectors)
+    return index.search
+
+
+@pytest.mark.parametrize("k", [1, 10, 30])
+@pytest.mark.parametrize("split", [1, 3, 7, 50])
+def test_any_batch_split_gives_the_brute_force_answer(world, k, split):
+    vectors, queries = world
+    fast, norm = flat_fast(vectors), row_norm_max(vectors)
+    want = brute(vectors, queries, k)
+    parts = [certified_search(fast, vectors, norm, queries[i : i + split], k)
+             for i in range(0, len(queries), split)]
+    got = (np.concatenate([d for d, _ in parts]), np.concatenate([i for _, i in parts]))
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[0], want[0])
+
+
+def test_a_perturbed_fast_search_is_caught_by_the_certificate(world, monkeypatch):
+    """A fast search whose distances err (within the bound) and whose list misses the true
+    neighbours still gives the exact answer: the uncertified queries are recomputed."""
+    vectors, queries = world
+    norm = row_norm_max(vectors)
+    exact_fast = flat_fast(vectors)
+
+    def wrong(q, n):  # right distances for the wrong (the farthest) candidates
+        d, i = exact_fast(q, len(vectors))
+        return d[:, ::-1][:, :n].copy(), i[:, ::-1][:, :n].copy()
+
+    from sprint_map.storage import exact_search
+
+    calls = []
+    original = exact_search._everything
+    monkeypatch.setattr(exact_search, "_everything",
+                        lambda q, v: calls.append(1) or original(q, v))
+    got = certified_search(wrong, vectors, norm, queries, 5)
+    want = brute(vectors, queries, 5)
+    np.testing.assert_array_equal(got[1], want[1])
+    assert len(calls) == len(queries)
+
+
+@pytest.fixture
+def blas_always():
+    """FAISS's matrix-product distances for any batch size, for the test's duration."""
+    before = faiss.cvar.distance_compute_blas_threshold
+    faiss.cvar.distance_compute_blas_threshold = 1
+    yield
+    faiss.cvar.distance_compute_blas_threshold = before
+
+
+@pytest.mark.usefixtures("blas_always")
+def test_matrix_product_distances_are_within_the_bound(rng):
+    for dim in (16, 256, 1764):
+        vectors = (3 * rng.standard_normal((300, dim))).astype(np.float32)
+        queries = (3 * rng.standard_normal((16, dim))).astype(np.float32)
+        d, i = flat_fast(vectors)(queries, 300)
+        norm = row_norm_max(vectors)
+        for q in range(len(queries)):
+            exact = pair_distances(queries[q], vectors[i[q]])
+            bound = distance_error_bound(dim, float(np.linalg.norm(queries[q])), norm)
+            assert np.abs(d[q] - exact).max() <= bound
+
+
+def test_map_search_and_localize_agree_frame_by_frame(tmp_path, rng):
+    """Through the map: searching frames one by one, in batches, and offline localize vs
+    Localizer.step give identical ids, distances and decisions."""
+    places = rng.standard_normal((300, 24)).astype(np.float32)
+    query = (places[50:170] + 0.3 * rng.standard_normal((120, 24))).astype(np.float32)
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=24)) as m:
+        m.ingest(places, name="a")
+        m.ingest(places + 0.2 * rng.standard_normal(places.shape).astype(np.float32), name="b")
+        alone = [m.search(row[None], 10) for row in query]
+        batch = m.search(query, 10)
+        np.testing.assert_array_equal(np.concatenate([i for _, i in alone]), batch[1])
+        np.testing.assert_array_equal(np.concatenate([d for d, _ in alone]), batch[0])
+        offline, _ = m.localize(query)
+        streamed = m.localizer()
+        assert [streamed.step(row) for row in query] == offline
