@@ -23,6 +23,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from sprint_map.server.auth import token_matches
 from sprint_map.server.errors import ApiError
+from sprint_map.server.fastpath import FRAME_PATH, FrameFastPath
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.service import LocalisationService
 
@@ -354,6 +355,9 @@ def create_app(service: LocalisationService, token: str | None = None,
 
     for extend in extensions:
         extend(app, service, guard)
+    # Frames skip FastAPI's request cycle (server/fastpath.py); inside the guard and metrics.
+    app.add_middleware(FrameFastPath, service=service, route=next(
+        r for r in app.routes if getattr(r, "path", None) == FRAME_PATH))
     app.add_middleware(RequestGuard, limit=service.config.max_request_bytes, token=token,
                        body_timeout_s=service.config.body_timeout_s)
     app.add_middleware(RequestMetrics, metrics=service.metrics)

@@ -63,6 +63,14 @@ class ServerConfig:
         An idle keep-alive connection is closed after this (uvicorn ``timeout_keep_alive``).
     shutdown_grace_s : float
         How long a graceful shutdown waits for requests in progress.
+    batch_window_ms : float
+        Frames of all sessions arriving within this of the oldest waiting one are searched in
+        one index search (:mod:`.batcher`); 0 searches what is waiting without waiting more.
+    batch_max_frames : int
+        Most frames per batched search; 0 turns batching off (each frame searched alone by a
+        frame worker, as before batching: the benchmark's baseline).
+    search_threads : int
+        OpenMP threads of the batched search (1: the other core answers HTTP).
     max_image_pixels : int
         Largest image frame, read from the image's header before it is decoded
         (:func:`sprint_map.frontend.imageheader.check_pixels`): a decompression bomb is
@@ -90,6 +98,9 @@ class ServerConfig:
     keep_alive_s: float = 5.0
     shutdown_grace_s: float = 10.0
     max_image_pixels: int = 1 << 26
+    batch_window_ms: float = 2.0
+    batch_max_frames: int = 64
+    search_threads: int = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
@@ -107,6 +118,16 @@ class ServerConfig:
             if (isinstance(value, bool) or not isinstance(value, int | float)
                     or not 0 < value < math.inf):
                 raise ValueError(f"{name} must be a number > 0")
+        for name, value in (("batch_window_ms", self.batch_window_ms),
+                            ("batch_max_frames", self.batch_max_frames),
+                            ("search_threads", self.search_threads)):
+            if (isinstance(value, bool) or not isinstance(value, int | float)
+                    or not 0 <= value < math.inf or (name != "batch_window_ms"
+                                                      and not isinstance(value, int))):
+                raise ValueError(f"{name} must be a number >= 0" if name == "batch_window_ms"
+                                 else f"{name} must be an integer >= 0")
+        if self.search_threads < 1:
+            raise ValueError("search_threads must be a positive integer")
         if self.on_shutdown not in SHUTDOWN_MODES:
             raise ValueError(f"on_shutdown must be one of {', '.join(SHUTDOWN_MODES)}")
 

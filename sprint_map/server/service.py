@@ -22,6 +22,7 @@ import numpy as np
 from sprint_map.errors import SprintMapError
 from sprint_map.localizer import Localizer
 from sprint_map.map import SprintMap
+from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig
 from sprint_map.server.errors import ApiError, busy, from_library, unknown_session
 from sprint_map.server.gate import MapGate
@@ -75,6 +76,11 @@ class LocalisationService:
         self.cache = smap.shared_cache()
         self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
                                    self.registry)
+        #: Frames of all sessions searched together; None: each alone (batch_max_frames 0).
+        self.batcher = (FrameBatcher(smap, self.gate, smap.config.hmm.k,
+                                     config.batch_window_ms / 1e3, config.batch_max_frames,
+                                     config.search_threads)
+                        if config.batch_max_frames else None)
         self.spec = smap.config.descriptor_spec()
         self.dim = smap.config.dim
         self.ready = False
@@ -92,6 +98,10 @@ class LocalisationService:
                 lambda: self.registry.buffered_bytes)
         m.gauge("sprint_map_component_cache_bytes", "Bytes of components in the shared cache.",
                 lambda: self.cache.nbytes)
+        m.gauge("sprint_map_frame_batches", "Batched searches of frames so far.",
+                lambda: self.batcher.stats.batches if self.batcher else 0)
+        m.gauge("sprint_map_frame_batch_size", "Frames in the latest batched search.",
+                lambda: self.batcher.stats.last_size if self.batcher else 0)
         m.gauge("sprint_map_map_vertices", "Vertices in the map.",
                 lambda: self._stats().get("vertices", 0))
         m.gauge("sprint_map_map_sequences", "Sequences in the map.",
@@ -103,6 +113,8 @@ class LocalisationService:
         self._limiter = anyio.CapacityLimiter(self.config.frame_workers)
         await anyio.to_thread.run_sync(self._warm)
         self.writer.start()
+        if self.batcher is not None:
+            self.batcher.start()
         self._expiry = asyncio.create_task(self._expire_loop())
         self.ready = True
 
@@ -140,6 +152,8 @@ class LocalisationService:
         await anyio.to_thread.run_sync(self._close)
 
     def _close(self) -> None:
+        if self.batcher is not None:
+            self.batcher.stop()
         self.writer.stop()
         if self.owns_map:
             with self.gate.exclusive():
@@ -236,9 +250,7 @@ class LocalisationService:
                     raise ApiError(409, "committing", "the session is being committed")
                 self.registry.reserve_frame(session)
                 try:
-                    assert self._limiter is not None
-                    decision, timing = await anyio.to_thread.run_sync(
-                        self._step, session, payload, body, limiter=self._limiter)
+                    decision, timing = await self._answer(session, payload, body)
                 except BaseException:
                     self.registry.release_frame(session)
                     raise
@@ -257,18 +269,37 @@ class LocalisationService:
                          "server_ms": round(elapsed * 1e3, 4)}
         return out
 
-    def _step(self, session: Session, payload: str, body: bytes
-              ) -> tuple[Any, tuple[float, float]]:
-        """Worker thread: body -> row (outside the gate) -> filter step (shared gate)."""
-        position = None
+    async def _answer(self, session: Session, payload: str, body: bytes
+                      ) -> tuple[Any, tuple[float, float]]:
+        """Decode the frame and localise it: batched with other sessions' frames
+        (:mod:`.batcher`), or alone in a frame worker when batching is off."""
+        assert self._limiter is not None
+        if self.batcher is None:
+            return await anyio.to_thread.run_sync(self._step, session, payload, body,
+                                                  limiter=self._limiter)
+        if payload == "raw":  # a few microseconds: no thread hop
+            row, position = descriptor_from_raw(body, self.dim), None
+        else:  # JSON parsing, image decoding and description: in a worker
+            row, position = await anyio.to_thread.run_sync(self._decode, payload, body,
+                                                           limiter=self._limiter)
+        return await asyncio.wrap_future(self.batcher.submit(session, row, position))
+
+    def _decode(self, payload: str, body: bytes
+                ) -> tuple[np.ndarray, tuple[float, ...] | None]:
+        """A frame's body as a validated row, and its position if given."""
         if payload == "descriptor":
             data = parse_json(body)
-            row = descriptor_from_json(data, self.dim)
-            position = position_from_json(data)
-        elif payload == "raw":
-            row = descriptor_from_raw(body, self.dim)
-        else:
-            row = descriptor_from_image(body, self.spec, self.dim, self.config.max_image_pixels)
+            return descriptor_from_json(data, self.dim), position_from_json(data)
+        if payload == "raw":
+            return descriptor_from_raw(body, self.dim), None
+        return (descriptor_from_image(body, self.spec, self.dim, self.config.max_image_pixels),
+                None)
+
+    def _step(self, session: Session, payload: str, body: bytes
+              ) -> tuple[Any, tuple[float, float]]:
+        """Worker thread (batching off): body -> row (outside the gate) -> filter step
+        (shared gate)."""
+        row, position = self._decode(payload, body)
         with self.gate.shared():
             try:
                 decision = session.step(row, position)

@@ -87,11 +87,17 @@ class Session:
             raise ApiError(422, "bad_payload", f"the session's earlier frames {given} a "
                            "position: give one for every frame or for none")
 
-    def step(self, row: Descriptors, position: tuple[float, ...] | None = None) -> FrameDecision:
-        """Localise one frame and keep it for the commit (called under the shared gate)."""
+    def step(self, row: Descriptors, position: tuple[float, ...] | None = None,
+             hits: tuple[np.ndarray, np.ndarray, float] | None = None) -> FrameDecision:
+        """Localise one frame and keep it for the commit (called under the shared gate).
+
+        ``hits`` are the frame's ``(ids, distances, retrieval_ms)`` when the caller searched
+        it (in a batch with other sessions' frames); otherwise it is searched here.
+        """
         self.check_position(position)
         self.apply_changes()
-        decision = self.localizer.step(row)
+        decision = (self.localizer.step(row) if hits is None
+                    else self.localizer.step_hits(*hits))
         self.rows.append(row.reshape(-1))
         if position is not None:
             self.positions.append(position)

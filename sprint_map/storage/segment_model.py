@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import os
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -47,10 +48,21 @@ APPROX_KINDS = ("ivf-pq", "ivf-sq8")
 CORES = os.cpu_count() or 1
 
 
+_LOCAL = threading.local()
+
+
 def use_threads(n_queries: int) -> None:
     """One OpenMP thread for a few queries (latency-bound; threads only add overhead), every
-    core for batches, training and encoding."""
-    faiss.omp_set_num_threads(1 if n_queries < 8 else CORES)
+    core for batches, training and encoding (at most the calling thread's
+    :func:`cap_threads`)."""
+    faiss.omp_set_num_threads(1 if n_queries < 8 else min(CORES, getattr(_LOCAL, "cap", CORES)))
+
+
+def cap_threads(n: int) -> None:
+    """Use at most ``n`` OpenMP threads for the searches of the calling thread from now on
+    (e.g. the service's batch searcher, whose other core answers HTTP: a second OpenMP
+    thread there waits on a busy core at every barrier)."""
+    _LOCAL.cap = max(1, int(n))
 
 
 def model_name(generation: int) -> str:

@@ -7,17 +7,24 @@ HTTP with httpx. (A module of its own, not ``conftest``: ``tests/conftest.py`` h
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
+
+from sprint_map.map import SprintMap
+from sprint_map.server.app import create_app
+from sprint_map.server.config import ServerConfig
+from sprint_map.server.service import LocalisationService
 
 DIM = 32
 PLACES = 80
@@ -105,3 +112,23 @@ def stream(client: httpx.Client, session: str, rows: np.ndarray) -> list[dict[st
 
 def decisions(answers: list[dict[str, Any]]) -> list[tuple[int | None, int | None]]:
     return [(a["seq_id"], a["image_id"]) for a in answers]
+
+
+Body = Callable[[LocalisationService, httpx.AsyncClient], Awaitable[Any]]
+
+
+def run_service(map_path: Path, body: Body, token: str | None = None, **config: Any) -> Any:
+    """Open the map, run the service in process, run ``body(service, client)``, close."""
+
+    async def main() -> Any:
+        service = LocalisationService(SprintMap.open(map_path), ServerConfig(**config))
+        app = create_app(service, token)
+        await service.start()
+        try:
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                         base_url="http://service", timeout=60) as client:
+                return await body(service, client)
+        finally:
+            await service.shutdown()
+
+    return asyncio.run(main())

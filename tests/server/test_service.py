@@ -7,8 +7,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Awaitable, Callable
-from pathlib import Path
+from collections.abc import Awaitable
 from typing import Any
 
 import cv2
@@ -16,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from serve_helpers import DIM, drive
+from serve_helpers import DIM, drive, run_service
 
 from sprint_map.cli import main
 from sprint_map.config import MapConfig
@@ -24,31 +23,11 @@ from sprint_map.errors import ConfigError, UnsafeServeError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import decode_image
 from sprint_map.map import SprintMap
-from sprint_map.server.app import create_app
 from sprint_map.server.auth import check_bind, is_loopback, load_token, token_matches
 from sprint_map.server.config import ServerConfig
 from sprint_map.server.gate import MapGate
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.service import LocalisationService
-
-Body = Callable[[LocalisationService, httpx.AsyncClient], Awaitable[Any]]
-
-
-def run_service(map_path: Path, body: Body, token: str | None = None, **config: Any) -> Any:
-    """Open the map, run the service in process, run ``body(service, client)``, close."""
-
-    async def main() -> Any:
-        service = LocalisationService(SprintMap.open(map_path), ServerConfig(**config))
-        app = create_app(service, token)
-        await service.start()
-        try:
-            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
-                                         base_url="http://service", timeout=60) as client:
-                return await body(service, client)
-        finally:
-            await service.shutdown()
-
-    return asyncio.run(main())
 
 
 async def frames(client: httpx.AsyncClient, sid: str, rows: np.ndarray) -> list[dict[str, Any]]:

@@ -1,0 +1,93 @@
+"""Frames of many sessions searched together (server/batcher.py), in process.
+
+Concurrent sessions streaming at once are answered from batched searches, and every answer
+equals the offline ``localize`` of the same frames, field for field; with batching off
+(``batch_max_frames`` 0) the same. The frame fast path (server/fastpath.py) answers what the
+FastAPI route documents.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from serve_helpers import drive, run_service
+
+from sprint_map.map import SprintMap
+from sprint_map.server.config import ServerConfig
+from sprint_map.server.service import LocalisationService
+
+SESSIONS = 6
+
+
+async def stream_raw(client: httpx.AsyncClient, rows: np.ndarray) -> list[dict[str, Any]]:
+    sid = (await client.post("/v1/sessions")).json()["session_id"]
+    out = []
+    for row in rows:
+        response = await client.post(f"/v1/sessions/{sid}/frames",
+                                     content=row.astype("<f4").tobytes(),
+                                     headers={"content-type": "application/octet-stream"})
+        assert response.status_code == 200, response.text
+        out.append(response.json())
+    return out
+
+
+@pytest.mark.parametrize("max_frames", [64, 0])
+def test_concurrent_sessions_get_the_offline_answers(one_drive_map: Path, places, rng,
+                                                     max_frames):
+    drives = [drive(places, rng) for _ in range(SESSIONS)]
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> Any:
+        answers = await asyncio.gather(*(stream_raw(client, d) for d in drives))
+        stats = service.batcher.stats if service.batcher else None
+        return answers, stats
+
+    answers, stats = run_service(one_drive_map, body, batch_max_frames=max_frames,
+                                 batch_window_ms=5.0)
+    with SprintMap.open(one_drive_map, readonly=True) as m:
+        for rows, got in zip(drives, answers, strict=True):
+            found, _ = m.localize(rows)
+            assert [{k: a[k] for k in ("frame", "seq_id", "image_id", "prob")} for a in got] \
+                == [{k: d.to_dict()[k] for k in ("frame", "seq_id", "image_id", "prob")}
+                    for d in found]
+            assert set(got[0]) == {"frame", "seq_id", "image_id", "prob", "timing"}
+    if max_frames:
+        assert stats.frames == SESSIONS * len(drives[0])
+        assert stats.batches < stats.frames  # frames of several sessions shared searches
+    else:
+        assert stats is None
+
+
+def test_fast_path_answers_errors_like_the_api(one_drive_map: Path):
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> Any:
+        sid = (await client.post("/v1/sessions")).json()["session_id"]
+        path = f"/v1/sessions/{sid}/frames"
+        unknown = await client.post("/v1/sessions/nope/frames", content=b"\0" * 8,
+                                    headers={"content-type": "application/octet-stream"})
+        short = await client.post(path, content=b"\0" * 8,
+                                  headers={"content-type": "application/octet-stream"})
+        kind = await client.post(path, content=b"x", headers={"content-type": "text/plain"})
+        wrong_method = await client.put(path, content=b"")
+        metrics = (await client.get("/metrics")).text
+        return unknown, short, kind, wrong_method, metrics
+
+    unknown, short, kind, wrong_method, metrics = run_service(one_drive_map, body)
+    assert unknown.status_code == 404 and unknown.json()["error"] == "unknown_session"
+    assert short.status_code == 422 and short.json()["error"] == "descriptor_shape"
+    assert kind.status_code == 415 and kind.json()["error"] == "unsupported_media_type"
+    assert wrong_method.status_code == 405  # FastAPI still answers every other request
+    assert ('sprint_map_http_requests_total{method="POST",route="/v1/sessions/{session_id}/'
+            'frames",status="422"} 1') in metrics
+
+
+@pytest.mark.parametrize(("field", "value"), [("batch_window_ms", -1.0),
+                                              ("batch_max_frames", -1),
+                                              ("batch_max_frames", 2.5),
+                                              ("search_threads", 0)])
+def test_batch_settings_are_checked(field, value):
+    with pytest.raises(ValueError, match=field):
+        ServerConfig(**{field: value})
