@@ -76,11 +76,12 @@ class LocalisationService:
         self.cache = smap.shared_cache()
         self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
                                    self.registry)
-        #: Frames of all sessions searched together; None: each alone (batch_max_frames 0).
+        #: Frames of all sessions searched together; None: each alone (batch_max_frames 0,
+        #: or the sessions' localisers live in Ray replicas, which search their own frames).
         self.batcher = (FrameBatcher(smap, self.gate, smap.config.hmm.k,
                                      config.batch_window_ms / 1e3, config.batch_max_frames,
                                      config.search_threads)
-                        if config.batch_max_frames else None)
+                        if config.batch_max_frames and localizers is None else None)
         self.spec = smap.config.descriptor_spec()
         self.dim = smap.config.dim
         self.ready = False
