@@ -94,14 +94,16 @@ async def _drive(v: Vehicle, host: str, port: int, opened: list[int], start: asy
             path = f"/v1/sessions/{json.loads(body)['session_id']}/frames"
             await start.wait()
             for row in v.rows:
+                if time.monotonic() >= deadline:  # bounded run: the rest is not sent
+                    break
                 frame = row.astype("<f4").tobytes()
-                while time.monotonic() < deadline:
+                while True:
                     t0 = time.perf_counter()
                     status, body = await _request(reader, writer, "POST", path, frame,
                                                   "application/octet-stream")
                     v.latency_ms.append((time.perf_counter() - t0) * 1e3)
                     v.statuses[status] = v.statuses.get(status, 0) + 1
-                    if status not in (429, 503):
+                    if status not in (429, 503) or time.monotonic() >= deadline:
                         break
                     await asyncio.sleep(0.02)  # shed: back off, send the same frame again
                 if status != 200:
@@ -159,6 +161,15 @@ def start_server(map_path: Path, config: dict[str, Any], log: Path
             pass
         time.sleep(0.05)
     raise SystemExit(f"server not ready: {log.read_text()}")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` so far (Linux ``/proc``; 0 elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def stop_server(proc: subprocess.Popen[str]) -> int:
@@ -231,12 +242,18 @@ def bench_service(map_path: Path, rows: np.ndarray, args: argparse.Namespace, wo
         proc, url = start_server(map_path, conf, work / f"serve-{len(out)}.log")
         try:
             vehicles = make_vehicles(n, args.frames, rows)
+            cpu0, client0 = cpu_seconds(proc.pid), time.process_time()
             seconds = drive_fleet(vehicles, url, args.duration)
+            cpu1, client1 = cpu_seconds(proc.pid), time.process_time()
         finally:
             code = stop_server(proc)
         row = service_row(mode, n, vehicles, seconds, base_fps, offline_equal(map_path,
                                                                               vehicles))
         row["server_exit"] = code
+        served = max(row["frames"], 1)
+        # CPU per frame: what the load on the machine does not change much (wall time does)
+        row["server_cpu_ms"] = round((cpu1 - cpu0) / served * 1e3, 3)
+        row["client_cpu_ms"] = round((client1 - client0) / served * 1e3, 3)
         out.append(row)
         print(f"  {mode}, {n} vehicles: {row['frames_per_s']} frames/s, p99 "
               f"{row['p99_ms']} ms", file=sys.stderr)
@@ -352,8 +369,8 @@ def main(argv: list[str] | None = None) -> int:
             result["step_frames_per_s"] = round(base_fps, 1)
             print(f"in-process Localizer.step, same run: {base_fps:.1f} frames/s")
             print(table(service, ("mode", "vehicles", "frames", "frames_per_s", "p50_ms",
-                                  "p99_ms", "vs_step", "statuses", "errors",
-                                  "offline_equal")))
+                                  "p99_ms", "vs_step", "server_cpu_ms", "client_cpu_ms",
+                                  "statuses", "errors", "offline_equal")))
             for r in service:
                 five = sum(n for code, n in r["statuses"].items() if code.startswith("5")
                            and code != "503")

@@ -4,10 +4,13 @@ One k-NN search of B frames costs far less than B searches of one (the index is 
 batch, and the matrix product runs at BLAS speed): on the Nordland HoG map, ~0.2-0.5 ms per
 frame in a batch of 16-64 against ~1-1.5 ms alone. So frames do not search one by one: the
 event loop hands each decoded frame to :meth:`FrameBatcher.submit`, and one thread takes every
-frame waiting (up to ``max_frames``), waiting for more until ``window_s`` after the oldest one
-arrived (a batch that took longer than that finds the next one ready), searches them in one
-call under the map gate's shared side, and steps each frame's session with its hits
-(:meth:`sprint_map.server.sessions.Session.step`), in arrival order.
+frame waiting (up to ``max_frames``), searches them in one call under the map gate's shared
+side, and steps each frame's session with its hits
+(:meth:`sprint_map.server.sessions.Session.step`), in arrival order. While fewer frames wait
+than the previous batch held, it waits for more, until ``window_s`` after the oldest one
+arrived: sessions that were just answered send their next frames at about the same time, so
+the batch they made is expected again; a lone vehicle's frame (previous batch: 1) is searched
+at once, and a batch that took longer than the window finds the next one ready.
 
 Answers equal offline ``localize`` frame for frame: the map's search gives a query the same
 ids and distances, bit for bit, whatever else is in its batch
@@ -95,6 +98,7 @@ class FrameBatcher:
         self._cond = threading.Condition()
         self._stopping = False
         self._thread: threading.Thread | None = None
+        self._expect = 1  # frames the previous batch held: the next one waits for as many
 
     @property
     def alive(self) -> bool:
@@ -122,7 +126,7 @@ class FrameBatcher:
             if self._stopping:
                 raise ApiError(503, "shutting_down", "the server is shutting down")
             self._queue.append(pending)
-            if len(self._queue) == 1 or len(self._queue) >= self.max_frames:
+            if len(self._queue) == 1 or len(self._queue) >= min(self._expect, self.max_frames):
                 self._cond.notify()
         return pending.future
 
@@ -141,10 +145,12 @@ class FrameBatcher:
                     return None
                 self._cond.wait()
             deadline = self._queue[0].arrived + self.window_s
-            while (len(self._queue) < self.max_frames and not self._stopping
+            expect = min(self._expect, self.max_frames)
+            while (len(self._queue) < expect and not self._stopping
                    and (left := deadline - time.perf_counter()) > 0):
                 self._cond.wait(left)
             n = min(len(self._queue), self.max_frames)
+            self._expect = n
             return [self._queue.popleft() for _ in range(n)]
 
     def _answer(self, batch: list[Pending]) -> None:
