@@ -35,8 +35,9 @@ def test_the_front_end_loads_opencv_when_an_image_is_described():
 
 def test_nothing_imports_ray_without_ray_asked_for():
     """Ray (the optional extra) loads only with ``--ray`` or sprint_map.fleet's functions."""
-    mods = loaded_after("import sprint_map.cli, sprint_map.map, sprint_map.fleet.runtime, "
-                        "sprint_map.fleet.shards")
+    mods = loaded_after("import sprint_map.cli, sprint_map.map, sprint_map.server.run, "
+                        "sprint_map.fleet.runtime, sprint_map.fleet.shards, "
+                        "sprint_map.fleet.farm, sprint_map.fleet.replicas")
     assert "ray" not in mods
 
 
