@@ -28,6 +28,9 @@ from sprint_map.map import SprintMap
 from sprint_map.progress import progress_display
 from sprint_map.trace import TraceRecorder
 
+__all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
+           "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
+
 
 class _Group(click.Group):
     """Turns library errors into one line on stderr and a distinct exit code."""

@@ -23,6 +23,8 @@ from typing import Any, TypeVar
 
 from sprint_map.errors import ConfigError
 
+__all__ = ["from_dict", "replace", "to_dict"]
+
 T = TypeVar("T")
 
 

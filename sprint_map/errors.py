@@ -8,6 +8,12 @@ finding violations, 2 for command-line usage errors reported by click).
 
 from __future__ import annotations
 
+__all__ = ["ConfigError", "DescriptorShapeError", "DuplicateNameError", "EmptySequenceError",
+           "InputError", "InvalidDescriptorError", "ListenError", "MapCorruptError",
+           "MapExistsError", "MapLockedError", "NotAMapError", "ReadOnlyMapError",
+           "ReplicaLostError", "SchemaVersionError", "SprintMapError", "StorageIOError",
+           "UnknownSequenceError", "UnsafeServeError"]
+
 
 class SprintMapError(Exception):
     """Base class of every error raised on purpose by sprint-map.

@@ -27,6 +27,8 @@ from sprint_map.storage.records import SequenceRecord
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
 
+__all__ = ["MapGraphSource"]
+
 
 class MapGraphSource:
     """GraphSource over a :class:`MapStore`.

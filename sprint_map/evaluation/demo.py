@@ -22,6 +22,9 @@ from sprint_map.evaluation.report import write_report
 from sprint_map.evaluation.runner import EvalOptions, Log, run_evaluation
 from sprint_map.frontend.dataset import Dataset
 
+__all__ = ["CITY_FRAMES", "CITY_TRAVERSALS", "DATASETS", "NORDLAND_ENV", "find_nordland",
+           "run_demo"]
+
 NORDLAND_ENV = "SPRINT_MAP_NORDLAND"
 #: Demo city: small enough to render, map and evaluate well within the two-minute budget.
 CITY_TRAVERSALS = 6

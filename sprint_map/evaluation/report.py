@@ -10,6 +10,8 @@ import numpy as np
 
 from sprint_map.storage.atomic import publish
 
+__all__ = ["COLUMNS", "markdown_table", "write_report"]
+
 #: The table's columns: (key of a results row, title). ``edges (wrong)`` joins two keys.
 COLUMNS = (
     ("query", "query"),

@@ -45,6 +45,9 @@ from sprint_map.frontend.groundtruth import GroundTruth
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 
+__all__ = ["EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
+           "evaluate_query", "run_evaluation"]
+
 PROTOCOLS = ("lifelong", "pairs")
 Log = Callable[[str], None]
 

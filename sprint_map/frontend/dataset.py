@@ -37,6 +37,8 @@ from sprint_map.frontend.imagefiles import is_image_name, is_video_name, list_im
 from sprint_map.frontend.positions import read_positions
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 
+__all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal"]
+
 DATASET_FILE = "dataset.json"
 POSITIONS_FILE = "positions.csv"
 DESCRIPTORS_FILE = "descriptors.npy"

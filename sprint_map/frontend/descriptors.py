@@ -41,6 +41,8 @@ from sprint_map.errors import ConfigError
 if TYPE_CHECKING:
     import cv2
 
+__all__ = ["DEFAULT_PARAMS", "DESCRIPTOR_KINDS", "DescriptorSpec", "to_gray"]
+
 #: Parameter defaults per kind; a spec always carries every parameter of its kind, so two specs
 #: that describe the same computation compare (and serialise) equal.
 DEFAULT_PARAMS: dict[str, dict[str, int]] = {

@@ -27,6 +27,8 @@ from scipy.spatial import cKDTree
 from sprint_map import dataclass_dict
 from sprint_map.errors import ConfigError, InputError
 
+__all__ = ["ALIGNMENTS", "GroundTruth", "GroundTruthSpec"]
+
 ALIGNMENTS = ("frame", "position")
 
 

@@ -17,6 +17,9 @@ from sprint_map.arrays import Image
 from sprint_map.errors import InputError
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS, check_pixels
 
+__all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "is_image_name",
+           "is_video_name", "list_images", "natural_key", "read_image", "read_image_bytes"]
+
 #: File extensions read as images (compared case-insensitively).
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"})
 

@@ -16,6 +16,8 @@ from typing import Any
 
 from sprint_map.errors import InputError
 
+__all__ = ["FORMATS", "HeaderError", "MAX_IMAGE_PIXELS", "check_pixels", "image_size"]
+
 #: Largest image decoded by default (64 Mpx: 8192 x 8192; a 50 MP camera frame fits).
 MAX_IMAGE_PIXELS = 1 << 26
 

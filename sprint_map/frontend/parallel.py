@@ -20,6 +20,8 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from typing import TypeVar
 
+__all__ = ["EXECUTORS", "default_workers", "ordered_map"]
+
 T = TypeVar("T")
 R = TypeVar("R")
 

@@ -18,6 +18,8 @@ import numpy as np
 from sprint_map.arrays import Float64Array
 from sprint_map.errors import InputError
 
+__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_positions"]
+
 REQUIRED_COLUMNS = ("frame", "x", "y")
 OPTIONAL_COLUMNS = ("heading_deg",)
 

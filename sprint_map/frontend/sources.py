@@ -48,6 +48,9 @@ if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
 
+__all__ = ["FrameSource", "ImageDirSource", "NpySource", "ProgressCallback", "SOURCE_KINDS",
+           "VideoSource", "open_source"]
+
 #: ``progress(frames_done, total_or_None)``, called after each batch.
 ProgressCallback = Callable[[int, int | None], None]
 

@@ -14,6 +14,8 @@ from sprint_map.hmm.decision import BeliefView
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.hmm.transition import ComponentTransition, correlate
 
+__all__ = ["ActiveComponent", "ActiveSet"]
+
 _I64 = np.int64
 _EMPTY = np.empty(0, dtype=_I64)
 _add = np.add.reduce

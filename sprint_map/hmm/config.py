@@ -8,6 +8,8 @@ from typing import Any
 
 from sprint_map import dataclass_dict
 
+__all__ = ["HMMConfig"]
+
 
 @dataclass(frozen=True)
 class HMMConfig:

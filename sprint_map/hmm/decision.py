@@ -24,6 +24,9 @@ import numpy as np
 
 from sprint_map.hmm.graph import ComponentGraph
 
+__all__ = ["BeliefView", "CANDIDATE_FLOOR", "Decision", "decide", "place_mass", "place_runs",
+           "top_candidates"]
+
 #: Relative belief below which a vertex is not a decision candidate (see top_candidates).
 CANDIDATE_FLOOR = 1e-6
 

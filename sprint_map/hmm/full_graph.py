@@ -19,6 +19,8 @@ from sprint_map.hmm.graph import ComponentGraph, MemoryGraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, full_transition_matrix
 
+__all__ = ["FullGraphFilter"]
+
 _I64 = np.int64
 
 

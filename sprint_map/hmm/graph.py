@@ -16,6 +16,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+__all__ = ["ComponentGraph", "EMPTY_IDS", "EMPTY_WEIGHTS", "GraphSource", "MemoryGraphSource"]
+
 _I64 = np.int64
 
 

@@ -30,6 +30,8 @@ import numpy as np
 
 from sprint_map.hmm.config import HMMConfig
 
+__all__ = ["Observation", "ObservationModel"]
+
 _CLIP = 200.0
 _MIN_SCALE = 1e-12
 _NDARRAY = np.ndarray

@@ -43,6 +43,8 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.support import TRIM_EVERY, runs
 from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, ComponentTransition
 
+__all__ = ["RESCALE_AT", "SprintFilter", "TRANSITION_MEMO"]
+
 #: Lazy normalisation: the raw belief is rescaled in place when its normaliser leaves
 #: [1 / RESCALE_AT, RESCALE_AT] (a frame's likelihood ratios are at most e**200 ~ 1e87, so raw
 #: values stay far from float64 overflow and underflow).

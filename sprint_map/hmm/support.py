@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["TRIM_EVERY", "insert_sorted", "merge", "merge_gap", "ranges", "runs", "trim"]
+
 _I64 = np.int64
 _EMPTY = np.empty(0, dtype=_I64)
 

@@ -37,6 +37,9 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
 from sprint_map.hmm.support import merge, merge_gap, ranges
 
+__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "correlate",
+           "full_transition_matrix", "window_kernel"]
+
 _I64 = np.int64
 
 

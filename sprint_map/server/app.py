@@ -27,6 +27,9 @@ from sprint_map.server.fastpath import FRAME_PATH, FrameFastPath
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.service import LocalisationService
 
+__all__ = ["AppExtension", "BEARER", "CommitAnswer", "Discarded", "Error", "FrameAnswer",
+           "FrameTiming", "PUBLIC_PATHS", "RequestGuard", "RequestMetrics", "SafeJSONResponse",
+           "SessionCreate", "SessionCreated", "Status", "create_app", "frame_body"]
 
 # --- schemas (documentation of the contract) ---------------------------------------------------
 class Error(BaseModel):

@@ -11,6 +11,8 @@ from sprint_map.errors import InputError, UnsafeServeError
 from sprint_map.server.config import ServerConfig
 from sprint_map.validation import decode_text
 
+__all__ = ["check_bind", "is_loopback", "load_token", "token_matches"]
+
 
 def load_token(config: ServerConfig) -> str | None:
     """The configured bearer token: ``config.token_file`` if set, else ``$token_env``, else None.

@@ -8,6 +8,8 @@ from typing import Any
 
 from sprint_map import dataclass_dict
 
+__all__ = ["SHUTDOWN_MODES", "ServerConfig"]
+
 #: What graceful shutdown does with sessions still open: drop them, or commit those with frames.
 SHUTDOWN_MODES = ("discard", "commit")
 

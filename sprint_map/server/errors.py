@@ -21,6 +21,8 @@ from sprint_map.errors import (
     UnknownSequenceError,
 )
 
+__all__ = ["ApiError", "busy", "from_library", "unknown_session"]
+
 
 class ApiError(Exception):
     """An error answer: HTTP ``status``, a stable machine-readable ``code``, a message."""

@@ -15,6 +15,8 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+__all__ = ["MapGate"]
+
 
 class MapGate:
     """A writer-preferring readers-writer lock (a waiting commit stops new frames entering).

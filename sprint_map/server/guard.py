@@ -42,6 +42,8 @@ from typing import Any
 import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+__all__ = ["ALWAYS_ANSWERED", "ConnectionLimits", "error_response", "guarded_protocol"]
+
 log = logging.getLogger("sprint_map.server")
 
 #: Paths answered even when every connection is busy (they read nothing of the map).

@@ -13,6 +13,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from typing import TypeVar
 
+__all__ = ["Counter", "Gauge", "Histogram", "LATENCY_BUCKETS", "Labels", "Metrics"]
+
 #: Latency buckets in seconds (0.5 ms .. 10 s).
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0,
                    10.0)

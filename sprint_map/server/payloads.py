@@ -21,6 +21,9 @@ from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.validation import validate_descriptors, validate_name
 
+__all__ = ["JSON_TYPES", "RAW_TYPE", "descriptor_from_image", "descriptor_from_json",
+           "descriptor_from_raw", "media_type", "parse_json", "position_from_json", "session_name"]
+
 JSON_TYPES = ("application/json",)
 #: Raw little-endian float32 values, ``4 * dim`` bytes: no JSON parsing (~1 ms per HoG frame).
 RAW_TYPE = "application/octet-stream"

@@ -27,6 +27,9 @@ if TYPE_CHECKING:  # FastAPI loads with the app, when serving starts
     from sprint_map.server.app import AppExtension
 
 
+__all__ = ["bind", "serve_map"]
+
+
 def bind(host: str, port: int) -> socket.socket:
     """A listening TCP socket on ``host:port`` (port 0: a free one).
 

@@ -47,6 +47,8 @@ from sprint_map.server.sessions import (
 )
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
 
+__all__ = ["LocalisationService"]
+
 log = logging.getLogger("sprint_map.server")
 
 

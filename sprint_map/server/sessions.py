@@ -26,6 +26,8 @@ from sprint_map.commit import DriveWriter
 from sprint_map.localizer import FrameDecision, Localizer
 from sprint_map.server.errors import ApiError, busy, unknown_session
 
+__all__ = ["CLAIMED_NAMES", "CLOSED", "COMMITTING", "OPEN", "Session", "SessionRegistry"]
+
 OPEN, COMMITTING, CLOSED = "open", "committing", "closed"
 
 #: How many default names of recent unnamed commits stay claimed (see ``begin_default``).

@@ -30,6 +30,8 @@ from sprint_map.map import SprintMap
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
 
+__all__ = ["CommitJob", "CommitOutcome", "CommitWriter", "NameClaims"]
+
 
 @dataclass(frozen=True)
 class CommitJob:

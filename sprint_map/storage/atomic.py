@@ -22,6 +22,10 @@ from typing import Any
 
 from sprint_map.errors import StorageIOError
 
+__all__ = ["FILE_OPS", "FileHook", "PARTIAL_SUFFIX", "fsync", "fsync_dir", "fsync_file",
+           "open_for_write", "publish", "publish_bytes", "remove_partials", "remove_tree",
+           "replace", "set_file_hook", "truncate", "unlink", "write_at"]
+
 PARTIAL_SUFFIX = ".partial"
 
 #: The calls announced to the hook, with what ``info`` holds for each:

@@ -52,6 +52,10 @@ from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 
+__all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
+           "check_map", "check_sequences", "check_shards", "check_thumbnails", "edge_added_by",
+           "partial_files", "sequence_edges", "vertex_owner"]
+
 #: Rows compared (index vectors with shard rows) or hashed per block: bounds check's memory.
 CHECK_BLOCK = 65536
 

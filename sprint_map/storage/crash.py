@@ -10,6 +10,10 @@ from __future__ import annotations
 import os
 import signal
 
+__all__ = ["ADD_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
+           "INDEX_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
+           "UNMERGE_POINTS", "crash_point"]
+
 CRASH_ENV = "SPRINT_MAP_CRASH_AT"
 
 #: Adding a sequence (``add_sequence``, streamed ``ingest``, ``merge``), in commit order.

@@ -34,6 +34,9 @@ from typing import Any
 
 from sprint_map.storage import atomic
 
+__all__ = ["CallRecorder", "FaultInjector", "NOT_SIMULATED", "PowerCut", "PowerLossSimulator",
+           "installed"]
+
 #: Names in a map directory that the simulator leaves alone (LMDB does its own durability, the
 #: writer lock holds no data).
 NOT_SIMULATED = ("map.lmdb", "LOCK")

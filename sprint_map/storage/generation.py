@@ -34,6 +34,10 @@ from sprint_map.errors import MapCorruptError, NotAMapError
 from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
 
+__all__ = ["CURRENT_NAME", "GEN_PARTS", "GEN_RE", "PIN_ATTEMPTS", "PIN_FILE", "current_data",
+           "gen_name", "gen_number", "pin_current", "pin_path", "publish_current",
+           "remove_generation", "stale_generations", "unpin"]
+
 CURRENT_NAME = "CURRENT"
 GEN_RE = re.compile(r"^gen-(\d{6})$")
 #: What a generation holds; generation 0 holds them at the top of the map directory.

@@ -21,6 +21,10 @@ from typing import Any
 
 from sprint_map.errors import MapCorruptError
 
+__all__ = ["COMP_VAL", "DIGEST_BYTES", "EDGE_KEY", "EDGE_VAL", "NO_QUERY", "REMOVED_VAL", "Raw",
+           "RecordStruct", "THUMB_KEY", "U32", "U64", "UF_VAL", "VERTEX_VAL", "decode_json",
+           "decode_number", "decode_text", "read_u32", "read_u64", "u32", "u64"]
+
 
 class RecordStruct(struct.Struct):
     """A fixed-width LMDB key or value layout whose ``unpack`` raises MapCorruptError.

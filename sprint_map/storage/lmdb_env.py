@@ -20,6 +20,8 @@ import lmdb
 from sprint_map.errors import MapCorruptError, MapLockedError, NotAMapError, StorageIOError
 from sprint_map.storage.lock import LOCK_NAME, open_lock_file
 
+__all__ = ["CORRUPT_ERRORS", "DB_NAMES", "LmdbEnv", "MAX_DBS", "OPTIONAL_DBS", "check_data_file"]
+
 T = TypeVar("T")
 
 #: Named databases. Keys/values are described in ``docs/architecture.md``, "On-disk format".

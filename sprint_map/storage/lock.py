@@ -15,6 +15,8 @@ from pathlib import Path
 
 from sprint_map.errors import MapCorruptError, MapLockedError, ReadOnlyMapError
 
+__all__ = ["LOCK_NAME", "NOFOLLOW", "WriterLock", "open_lock_file", "writer_active"]
+
 LOCK_NAME = "LOCK"
 #: Never follow a link planted as ``MAP/LOCK`` (the writer would write into its target).
 NOFOLLOW = os.O_NOFOLLOW | os.O_CLOEXEC

@@ -32,6 +32,11 @@ if TYPE_CHECKING:
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.storage.lazy_faiss import faiss
 
+__all__ = ["APPROX_KINDS", "CORES", "KMEANS_ITER", "MIN_TRAIN", "Model", "PCA_SAMPLE",
+           "POINTS_PER_LIST", "RowReader", "SAMPLE_SEED", "cap_threads", "gather_rows",
+           "model_name", "pca_name", "publish_bytes", "read_faiss", "sample_ids", "serialize",
+           "train_model", "use_threads"]
+
 #: Fewest vertices an approximate index is trained on (8-bit PQ codebooks have 256 centroids).
 MIN_TRAIN = 256
 #: Training vectors per IVF list the coarse k-means wants at least (FAISS warns below 39).

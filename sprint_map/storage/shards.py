@@ -23,6 +23,8 @@ from sprint_map.arrays import Descriptors, Int64Array
 from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage import atomic
 
+__all__ = ["ROW_DTYPE", "ShardSet"]
+
 ROW_DTYPE = np.dtype("<f4")
 
 

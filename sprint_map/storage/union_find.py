@@ -28,6 +28,8 @@ from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import COMP_VAL, UF_VAL, RecordStruct, read_u32, u32
 from sprint_map.storage.lmdb_env import LmdbEnv
 
+__all__ = ["MEMBER_KEY", "UnionFindStore"]
+
 MEMBER_KEY = RecordStruct(">II")
 
 

@@ -15,6 +15,8 @@ import numpy as np
 from sprint_map.synth.layout import CityLayout
 from sprint_map.synth.textures import draw_facade, draw_skyline
 
+__all__ = ["Atlas", "build_atlas", "draw_ground"]
+
 _GAP = 2  # texels between packed textures
 _MAX_SIDE = 32000  # cv2.remap coordinates must stay below SHRT_MAX
 

@@ -53,6 +53,10 @@ from sprint_map.synth.layout import CityLayout, Node, build_layout
 from sprint_map.synth.render import Camera, Renderer
 from sprint_map.synth.routes import Drive, Edge, Trajectory, drive, overlap, plan_route
 
+__all__ = ["CityConfig", "IMAGE_FORMATS", "MIN_MATCHED", "PRESETS", "ROUTE_CANDIDATES",
+           "SyntheticCity", "SyntheticTraversal", "TraversalPlan", "generate_city", "iter_city",
+           "render_city"]
+
 IMAGE_FORMATS = ("png", "jpg")
 #: Candidate routes drawn per traversal when ``novel_fraction`` or ``reverse_fraction`` is set.
 ROUTE_CANDIDATES = 40

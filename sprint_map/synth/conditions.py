@@ -25,6 +25,8 @@ import numpy as np
 from sprint_map.arrays import Image
 from sprint_map.synth.render import BGR, View
 
+__all__ = ["Appearance", "CONDITIONS", "Condition"]
+
 
 @dataclass(frozen=True)
 class Condition:

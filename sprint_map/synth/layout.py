@@ -22,6 +22,8 @@ import numpy as np
 
 from sprint_map.synth.textures import FacadeStyle, random_style
 
+__all__ = ["Building", "CityLayout", "Node", "build_layout"]
+
 Node = tuple[int, int]
 
 

@@ -24,6 +24,8 @@ from sprint_map.arrays import Float32Array, Image
 from sprint_map.synth.atlas import Atlas
 from sprint_map.synth.layout import CityLayout
 
+__all__ = ["BGR", "Camera", "Renderer", "View"]
+
 _FAR = 1.0e4  # depth given to sky pixels (metres)
 
 BGR = tuple[int, int, int]

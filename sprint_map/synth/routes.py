@@ -22,6 +22,8 @@ import numpy as np
 from sprint_map.arrays import Float64Array
 from sprint_map.synth.layout import CityLayout, Node
 
+__all__ = ["Drive", "Edge", "Trajectory", "drive", "overlap", "plan_route"]
+
 Edge = tuple[Node, Node]
 
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+__all__ = ["BGR", "FacadeStyle", "PATTERNS", "draw_facade", "draw_skyline", "random_style"]
+
 BGR = tuple[int, int, int]
 
 PATTERNS = ("plain", "brick", "panels", "stripes")
