@@ -24,6 +24,7 @@ Usage::
     python tools/bench_fleet.py --vehicles 16 --frames 200 --json fleet.json
     python tools/bench_fleet.py --skip-ingest --vehicles 1 16 64
     python tools/bench_fleet.py --quick                      # a small synthetic map (tests)
+    python tools/bench_fleet.py --skip-service --skip-ingest --ray   # tools/bench_ray.py only
 """
 
 from __future__ import annotations
@@ -341,6 +342,21 @@ def table(rows: list[dict[str, Any]], head: tuple[str, ...]) -> str:
     return "\n".join(lines)
 
 
+def run_bench_ray(work: Path, quick: bool) -> dict[str, Any]:
+    """tools/bench_ray.py's sections (it prints its own tables); its JSON."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_ray",
+                                                  Path(__file__).with_name("bench_ray.py"))
+    assert spec is not None and spec.loader is not None
+    bench_ray = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_ray)
+    out = work / "ray.json"
+    bench_ray.main(["--json", str(out), *(["--quick"] if quick else [])])
+    data: dict[str, Any] = json.loads(out.read_text())
+    return data
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 16, 64])
@@ -354,6 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-service", action="store_true")
     parser.add_argument("--skip-ingest", action="store_true")
     parser.add_argument("--quick", action="store_true", help="A small synthetic map.")
+    parser.add_argument("--ray", action="store_true",
+                        help="Also the Ray sections (tools/bench_ray.py: the ingest farm vs "
+                        "serial ingest, a search fanned out to shards vs in process, the "
+                        "per-segment figures; needs the ray extra).")
     parser.add_argument("--json", type=Path, help="Write the results here.")
     args = parser.parse_args(argv)
 
@@ -385,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
             result["ingest"] = ingest
             print(table(ingest, ("what", "how", "drives", "frames", "seconds", "frames_per_s",
                                  "vs_one_per_drive")))
+        if args.ray:
+            result["ray"] = run_bench_ray(work, args.quick)
     result["load_average_after"] = os.getloadavg()
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
