@@ -66,8 +66,9 @@ class ServerConfig:
     shutdown_grace_s : float
         How long a graceful shutdown waits for requests in progress.
     batch_window_ms : float
-        Frames of all sessions arriving within this of the oldest waiting one are searched in
-        one index search (:mod:`.batcher`); 0 searches what is waiting without waiting more.
+        How long after the oldest waiting frame the batcher may wait for more (while fewer
+        wait than its previous batch held) before one index search of them all
+        (:mod:`.batcher`); 0 searches what is waiting without waiting more.
     batch_max_frames : int
         Most frames per batched search; 0 turns batching off (each frame searched alone by a
         frame worker, as before batching: the benchmark's baseline).

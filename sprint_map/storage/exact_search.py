@@ -23,16 +23,24 @@ vertex id: a function of the query and the map only.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import faiss
 import numpy as np
 
-__all__ = ["MARGIN", "ExactFlat", "certified_search", "distance_error_bound", "pair_distances",
-           "row_norm_max"]
+if TYPE_CHECKING:
+    import faiss
+else:  # imported on first use: commands that only read LMDB never load it
+    from sprint_map.storage.lazy_faiss import faiss
+
+__all__ = ["BLAS_FROM_QUERIES", "MARGIN", "ExactFlat", "certified_search",
+           "distance_error_bound", "pair_distances", "row_norm_max"]
 
 #: Extra candidates asked of the fast search, beyond ``k``.
 MARGIN = 8
+#: Queries from which FAISS's flat search computes distances by matrix product (its default,
+#: 20, searches smaller batches pair by pair, reading the whole index once per query). Any
+#: threshold gives the same answers (they are certified); :class:`ExactFlat` sets it.
+BLAS_FROM_QUERIES = 4
 #: float32 unit round-off.
 _U = 2.0 ** -24
 #: Rows per chunk when a query is recomputed against every vertex.
@@ -165,6 +173,7 @@ class ExactFlat:
 
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The exact top ``k`` of each query, independent of the batch (row-number ids)."""
+        faiss.cvar.distance_compute_blas_threshold = BLAS_FROM_QUERIES  # a process global
         vectors = self.rows()
         if len(vectors) != self._seen:
             self._norm = max(self._norm, row_norm_max(vectors[self._seen:]))

@@ -38,11 +38,6 @@ else:  # imported on first use: commands that only read LMDB never load it
 __all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
 
 INDEX_RE = re.compile(r"^flat\.(\d{12})\.faiss$")
-#: Queries from which FAISS's flat search computes distances by matrix product (its default,
-#: 20, searches smaller batches pair by pair, reading the whole index once per query). Any
-#: threshold gives the same answers: every search is certified exact (``exact_search``).
-BLAS_FROM_QUERIES = 4
-faiss.cvar.distance_compute_blas_threshold = BLAS_FROM_QUERIES
 
 
 def index_files(directory: Path) -> list[tuple[int, Path]]:
