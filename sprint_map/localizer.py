@@ -299,7 +299,7 @@ class Localizer:
         searches the frames of many sessions in one batch).
 
         The map's search answers a query the same alone or in a batch (bit for bit, see
-        :func:`sprint_map.storage.exact_search.certified_search`), so with the hits of
+        :func:`sprint_map.exact_search.certified_search`), so with the hits of
         ``smap.search(rows, config.k)`` made against the same map state this equals
         :meth:`step` of the row. The caller keeps the map from changing between the search and
         this call (the service's map gate).

@@ -48,6 +48,7 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
+from sprint_map.storage.segment_model import cap_threads
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import MapStore
 from sprint_map.validation import decode_text
@@ -594,6 +595,12 @@ class SprintMap:
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
         return self.store.search(queries, k)
+
+    @staticmethod
+    def cap_search_threads(n: int) -> None:
+        """Use at most ``n`` OpenMP threads for the searches of the calling thread from now on
+        (any map; e.g. the service's batch searcher, whose other core answers HTTP)."""
+        cap_threads(n)
 
     @staticmethod
     def repair(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:

@@ -56,8 +56,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map.arrays import Float32Array, Int64Array
+from sprint_map.atomic import publish
 from sprint_map.errors import InputError
-from sprint_map.storage.atomic import publish
 
 if TYPE_CHECKING:
     from sprint_map.localizer import FrameDecision, Localizer

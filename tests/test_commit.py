@@ -9,11 +9,11 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
+from sprint_map.atomic import set_file_hook
 from sprint_map.config import MapConfig
 from sprint_map.errors import DuplicateNameError, InputError, UnknownSequenceError
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.storage.atomic import set_file_hook
 from sprint_map.storage.faults import CallRecorder
 from sprint_map.storage.records import EdgeSpec
 

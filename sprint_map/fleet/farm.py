@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map import HMMConfig
 from sprint_map.arrays import Descriptors
 from sprint_map.commit import IngestResult
 from sprint_map.errors import SprintMapError
-from sprint_map.hmm.config import HMMConfig
 from sprint_map.map import SprintMap
 from sprint_map.prepared import PreparedDrive
 

@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map import HMMConfig
 from sprint_map.arrays import Descriptors
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet.shards import alive_nodes, spread
-from sprint_map.hmm.config import HMMConfig
 from sprint_map.localizer import FrameDecision, Localizer, Timing
 from sprint_map.map import SprintMap
 

@@ -7,11 +7,11 @@ and catches up with commits. :class:`ShardedIndex` (in the caller) sends each qu
 every shard at once, gets each one's k best and merges them into the k best overall.
 
 The answer equals the in-process exact search, ids and distances: each shard searches its
-rows as the map's flat index does (:class:`~sprint_map.storage.exact_search.ExactFlat`: every
+rows as the map's flat index does (:class:`~sprint_map.exact_search.ExactFlat`: every
 distance a function of its two rows alone, ties ordered by vertex id), and the k best of the
 union of the ranges' k best (ranges in vertex order, so equal distances keep id order) are the
 k best of the whole. Removed sequences are hidden as
-the store hides them (:func:`~sprint_map.storage.removal.search_live` over the fanned-out search).
+the store hides them (``SprintMap.removed_ranges().search_live`` over the fanned-out search).
 
 Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
 filesystem each actor opens the map read-only and reads its range itself (``ship=False``);
@@ -27,9 +27,8 @@ import faiss
 import numpy as np
 
 from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
+from sprint_map.exact_search import ExactFlat
 from sprint_map.map import SprintMap
-from sprint_map.storage.exact_search import ExactFlat
-from sprint_map.storage.removal import RemovedRanges, search_live
 from sprint_map.validation import validate_descriptors
 
 __all__ = ["ALIGN", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk", "plan_ranges",
@@ -204,7 +203,7 @@ class ShardedIndex:
         ray = require_ray()
         self._ray = ray
         self.dim = smap.config.dim
-        self.removed: RemovedRanges = smap.removed_ranges()
+        self.removed = smap.removed_ranges()
         vertices = smap.stats()["vertices"]
         self.ranges = plan_ranges(vertices, shards)
         remote = ray.remote(ShardWorker)
@@ -234,8 +233,8 @@ class ShardedIndex:
         """k nearest *live* vertices (removed sequences hidden), as ``SprintMap.search``."""
         if not self.removed.count:
             return self.search(queries, k)
-        return search_live(self.search, validate_descriptors(queries, self.dim), k,
-                           self.removed, self.covered)
+        return self.removed.search_live(self.search, validate_descriptors(queries, self.dim), k,
+                                        self.covered)
 
     def catch_up(self, smap: SprintMap) -> int:
         """Bring the open-ended shard up to the map's committed vertices (shared filesystem),

@@ -14,7 +14,7 @@ at once, and a batch that took longer than the window finds the next one ready.
 
 Answers equal offline ``localize`` frame for frame: the map's search gives a query the same
 ids and distances, bit for bit, whatever else is in its batch
-(:func:`sprint_map.storage.exact_search.certified_search`), and the gate keeps commits out
+(:func:`sprint_map.exact_search.certified_search`), and the gate keeps commits out
 between the search and the steps. A session has at most one frame in a batch (its frames run
 one at a time, under its lock), so its frames keep their order.
 
@@ -38,7 +38,6 @@ from sprint_map.map import SprintMap
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.server.gate import MapGate
 from sprint_map.server.sessions import Session
-from sprint_map.storage.segment_model import cap_threads
 
 __all__ = ["BatchStats", "FrameBatcher", "Pending"]
 
@@ -131,7 +130,7 @@ class FrameBatcher:
         return pending.future
 
     def _run(self) -> None:
-        cap_threads(self.search_threads)
+        self.map.cap_search_threads(self.search_threads)
         while True:
             batch = self._next_batch()
             if batch is None:

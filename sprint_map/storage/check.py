@@ -26,8 +26,8 @@ import lmdb
 import networkx as nx
 import numpy as np
 
+from sprint_map.atomic import PARTIAL_SUFFIX
 from sprint_map.errors import MapCorruptError, StorageIOError
-from sprint_map.storage.atomic import PARTIAL_SUFFIX
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index_store import file_problem, index_files
 from sprint_map.storage.keys import (

@@ -35,8 +35,8 @@ from typing import Protocol
 import lmdb
 import numpy as np
 
+from sprint_map import atomic
 from sprint_map.errors import SprintMapError, StorageIOError
-from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.generation import (
     gen_name,

@@ -30,8 +30,8 @@ import re
 import time
 from pathlib import Path
 
+from sprint_map import atomic
 from sprint_map.errors import MapCorruptError, NotAMapError
-from sprint_map.storage import atomic
 from sprint_map.storage.crash import crash_point
 
 __all__ = ["CURRENT_NAME", "GEN_PARTS", "GEN_RE", "PIN_ATTEMPTS", "PIN_FILE", "current_data",

@@ -86,6 +86,12 @@ class RemovedRanges:
         out[inside] = self.first[at[inside]] <= ids[inside]
         return out
 
+    def search_live(self, search: Callable[[Descriptors, int], SearchResult],
+                    queries: Descriptors, k: int, indexed: int) -> SearchResult:
+        """k nearest vertices outside these ranges, by ``search`` over ``indexed`` vectors (any
+        search over the map's vertex ids, e.g. the fleet's sharded one): :func:`search_live`."""
+        return search_live(search, queries, k, self, indexed)
+
 
 def search_live(search: Callable[[Descriptors, int], SearchResult],
                 queries: Descriptors, k: int, removed: RemovedRanges, indexed: int

@@ -33,7 +33,7 @@ from typing import Any
 
 import lmdb
 
-from sprint_map.storage.atomic import fsync_file, truncate
+from sprint_map.atomic import fsync_file, truncate
 from sprint_map.storage.check import MapRecords, check_map, check_sequences, sequence_edges
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64

@@ -76,7 +76,7 @@ from sprint_map.storage.store_config import StoreConfig
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.storage.lazy_faiss import faiss
+    from sprint_map.lazy_faiss import faiss
 
 __all__ = ["SegmentedIndex", "tier_plan"]
 

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sprint_map.storage import atomic
+from sprint_map import atomic
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.segment_model import model_name, pca_name, publish_bytes
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sprint_map import atomic
 from sprint_map.arrays import Descriptors, Int64Array
 from sprint_map.errors import MapCorruptError, StorageIOError
-from sprint_map.storage import atomic
 
 __all__ = ["ROW_DTYPE", "ShardSet"]
 

@@ -29,6 +29,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.atomic import fsync_dir, remove_partials
 from sprint_map.errors import (
     ConfigError,
     MapCorruptError,
@@ -40,7 +41,6 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
-from sprint_map.storage.atomic import fsync_dir, remove_partials
 from sprint_map.storage.compaction import compact_map
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.generation import (

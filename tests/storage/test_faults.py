@@ -3,7 +3,7 @@ simulated power loss.
 
 Each write operation (``add_sequence`` with edges, a streamed ``ingest`` that localises and merges,
 an index persist) is first run on a copy of a template map with a :class:`CallRecorder` on the
-file seam (``sprint_map.storage.atomic``) to enumerate its calls; then, on a fresh copy each
+file seam (``sprint_map.atomic``) to enumerate its calls; then, on a fresh copy each
 time, the 1st, 2nd, ... call is failed with EIO and with ENOSPC. The oracle is the map's state
 (every sequence, descriptor byte, position, edge, component) before and after a clean run of the
 same operation: after the fault, and after a writer's reopen, the map must be in exactly one of
@@ -33,10 +33,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from sprint_map import atomic
 from sprint_map.config import MapConfig
 from sprint_map.errors import StorageIOError
 from sprint_map.map import SprintMap
-from sprint_map.storage import atomic, sequence_writer
+from sprint_map.storage import sequence_writer
 from sprint_map.storage.check import check_map
 from sprint_map.storage.faults import (
     CallRecorder,
@@ -243,7 +244,7 @@ def test_the_seam_covers_every_file_call_of_the_write_paths():
     """Durable writes go through ``atomic``: no module of the store calls the OS directly
     (but the lock file, which holds no data, and index_store's removal of stale index files,
     which the power-loss simulator reconciles from the directory listing)."""
-    storage = Path(atomic.__file__).parent
+    storage = Path(sequence_writer.__file__).parent
     direct = ("os.pwrite(", "os.write(", "os.fsync(", "os.replace(", "os.rename(",
               "os.truncate(", "os.ftruncate(", ".write_bytes(", ".write_text(")
     # lock.py: the lock file holds no data.

@@ -1,4 +1,4 @@
-"""Exact search whose answer for a query does not depend on its batch (storage/exact_search.py).
+"""Exact search whose answer for a query does not depend on its batch (exact_search.py).
 
 The map's flat search must give a query the same ids and distances, bit for bit, searched
 alone, in a small batch or in a large one (the service batches sessions' frames, offline
@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from sprint_map.config import MapConfig
-from sprint_map.map import SprintMap
-from sprint_map.storage.exact_search import (
+from sprint_map.exact_search import (
     certified_search,
     distance_error_bound,
     pair_distances,
     row_norm_max,
 )
+from sprint_map.map import SprintMap
 
 
 def brute(vectors: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +74,7 @@ def test_a_perturbed_fast_search_is_caught_by_the_certificate(world, monkeypatch
         d, i = exact_fast(q, len(vectors))
         return d[:, ::-1][:, :n].copy(), i[:, ::-1][:, :n].copy()
 
-    from sprint_map.storage import exact_search
+    from sprint_map import exact_search
 
     calls = []
     original = exact_search._everything
