@@ -69,6 +69,12 @@ class ProgressBar:
         if total is not None and done >= total:
             self.close()
 
+    @property
+    def live(self) -> bool:
+        """Whether the bar's line is being drawn (from the first call until its total or
+        :meth:`close`)."""
+        return self._progress is not None
+
     def close(self) -> None:
         """Draw the final state and end the line (idempotent)."""
         self._ended = True

@@ -32,7 +32,7 @@ import pytest
 
 from sprint_map.errors import MapLockedError
 from sprint_map.storage.check import check_map
-from sprint_map.storage.lmdb_env import MAX_DBS, _lock_out_writers
+from sprint_map.storage.lmdb_env import MAX_DBS, lock_out_writers
 from sprint_map.storage.lock import LOCK_NAME, WriterLock
 from sprint_map.storage.store import LMDB_DIR, MapStore
 
@@ -330,10 +330,10 @@ def test_lock_free_readers_and_writers_exclude_each_other(make_map):
     lock.acquire()
     try:
         with pytest.raises(MapLockedError, match="cannot register as an LMDB reader"):
-            _lock_out_writers(built.path)
+            lock_out_writers(built.path)
     finally:
         lock.release()
-    fd = _lock_out_writers(built.path)
+    fd = lock_out_writers(built.path)
     assert fd is not None
     try:
         with pytest.raises(MapLockedError, match=LOCK_NAME):

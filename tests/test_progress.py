@@ -127,7 +127,7 @@ def test_a_bar_ends_at_its_total_so_the_next_drive_gets_its_own_line():
     first, second = ProgressBar("ingesting a", stream), ProgressBar("ingesting b", stream)
     for done in (256, 300):
         first(done, 300)
-    assert first._progress is None  # ended at its total: no live line left behind
+    assert not first.live  # ended at its total: no live line left behind
     first(300, 300)  # a late call draws nothing
     for done in (100, 200):
         second(done, 200)

@@ -25,7 +25,7 @@ import numpy as np
 from sprint_map.hmm.graph import ComponentGraph
 
 __all__ = ["BeliefView", "CANDIDATE_FLOOR", "Decision", "decide", "place_mass", "place_runs",
-           "top_candidates"]
+           "place_runs_np", "top_candidates"]
 
 #: Relative belief below which a vertex is not a decision candidate (see top_candidates).
 CANDIDATE_FLOOR = 1e-6
@@ -140,7 +140,7 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
     if p0 == p1:
         return [own]
     if p1 - p0 > _PY_PLACE:
-        return _place_runs_np(view, s, lo, hi, radius, hops)
+        return place_runs_np(view, s, lo, hi, radius, hops)
     # Follow edges only (aligned frames), never temporal moves: the place does not drift
     # along the road however many drives are chained together.
     frontier = {v for v in indices[p0:p1].tolist() if not seed_lo <= v < seed_hi}
@@ -158,7 +158,7 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
             break
         visited |= reached
         if len(visited) > _PY_PLACE:
-            return _place_runs_np(view, s, lo, hi, radius, hops)
+            return place_runs_np(view, s, lo, hi, radius, hops)
         frontier = reached
     nb = np.fromiter(visited, dtype=np.int64, count=len(visited))
     nb_seq = np.searchsorted(graph.local_first, nb, side="right") - 1
@@ -181,7 +181,7 @@ def place_runs(view: BeliefView, slot: int, radius: int, hops: int = 1
     return [(a, b) for a, b in out]
 
 
-def _place_runs_np(view: BeliefView, s: int, lo: int, hi: int, radius: int, hops: int
+def place_runs_np(view: BeliefView, s: int, lo: int, hi: int, radius: int, hops: int
                    ) -> list[tuple[int, int]]:
     """:func:`place_runs` with numpy set operations (large places): sequence ``s``, images
     ``lo .. hi`` of the vertex's neighbourhood."""

@@ -20,7 +20,8 @@ import lmdb
 from sprint_map.errors import MapCorruptError, MapLockedError, NotAMapError, StorageIOError
 from sprint_map.storage.lock import LOCK_NAME, open_lock_file
 
-__all__ = ["CORRUPT_ERRORS", "DB_NAMES", "LmdbEnv", "MAX_DBS", "OPTIONAL_DBS", "check_data_file"]
+__all__ = ["CORRUPT_ERRORS", "DB_NAMES", "LmdbEnv", "MAX_DBS", "OPTIONAL_DBS", "check_data_file",
+           "lock_out_writers"]
 
 T = TypeVar("T")
 
@@ -143,7 +144,7 @@ class LmdbEnv:
         self._reader_lock: int | None = None
         # LMDB readers register in lock.mdb, which they must be able to write. A reader that
         # cannot (a read-only map directory) reads without it, holding a shared flock on the
-        # map's LOCK instead so that no writer can run meanwhile (see _lock_out_writers).
+        # map's LOCK instead so that no writer can run meanwhile (see lock_out_writers).
         lockless = readonly and not create and not _lock_file_writable(path)
         try:
             self.env = lmdb.open(
@@ -165,7 +166,7 @@ class LmdbEnv:
             raise StorageIOError(f"cannot open {path}: map size {map_size}: {exc}") from exc
         if lockless:
             try:
-                self._reader_lock = _lock_out_writers(map_root or path.parent)
+                self._reader_lock = lock_out_writers(map_root or path.parent)
             except BaseException:
                 self.env.close()
                 raise
@@ -349,7 +350,7 @@ def _lock_file_writable(path: Path) -> bool:
     return os.access(path, os.W_OK)
 
 
-def _lock_out_writers(root: Path) -> int | None:
+def lock_out_writers(root: Path) -> int | None:
     """Hold a shared flock on ``root/LOCK`` so that no writer opens the map; return its fd.
 
     Writers take the same lock exclusively (:mod:`sprint_map.storage.lock`), so a reader that

@@ -153,6 +153,11 @@ class SegmentedIndex(RetrievalIndex):
     def persisted(self) -> int:
         return self._manifest.sealed if self._manifest is not None else 0
 
+    @property
+    def segments(self) -> tuple[Any, ...]:
+        """The open FAISS index of each sealed segment, in vertex order (empty until loaded)."""
+        return tuple(self._segments)
+
     def _published_manifest(self) -> Manifest | None:
         try:
             return read_manifest(self.directory)

@@ -373,6 +373,11 @@ class MapStore:
             raise ReadOnlyMapError("the map is open read-only")
 
     @property
+    def writer_lock(self) -> WriterLock | None:
+        """The map's writer lock this store holds (``None`` when read-only)."""
+        return self._lock
+
+    @property
     def writing(self) -> SequenceWriter | None:
         """The sequence being written, if any (one at a time per writer)."""
         return self._writing

@@ -106,9 +106,9 @@ class Scenario:
                     and self._same_route(int(self.db_place[vertex]), int(self.query_place[frame])))
 
     def _same_route(self, a: int, b: int) -> bool:
-        return a // self._route_len == b // self._route_len
+        return a // self.route_len == b // self.route_len
 
-    _route_len: int = 150
+    route_len: int = 150
 
 
 def make_scenario(seed: int, *, n_routes: int = 4, route_len: int = 150, n_db: int = 3,
@@ -163,6 +163,5 @@ def make_scenario(seed: int, *, n_routes: int = 4, route_len: int = 150, n_db: i
         source=MemoryGraphSource(seq_lengths, edges),
         db_place=np.concatenate(db_place), db_desc=np.vstack(db_desc),
         query_place=query_place, query_desc=np.vstack(q_desc),
-        novel=query_place >= n_routes * route_len, seq_lengths=seq_lengths)
-    scenario._route_len = route_len
+        novel=query_place >= n_routes * route_len, seq_lengths=seq_lengths, route_len=route_len)
     return scenario

@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from sprint_map.hmm import HMMConfig, MemoryGraphSource
-from sprint_map.hmm.decision import BeliefView, _place_runs_np, place_mass, place_runs
+from sprint_map.hmm.decision import BeliefView, place_mass, place_runs, place_runs_np
 from sprint_map.hmm.transition import ComponentTransition
 
 
@@ -33,7 +33,7 @@ def test_small_and_large_place_paths_give_the_same_runs(data: st.DataObject) -> 
     s = int(graph.seq_index(np.array([vertex]))[0])
     image = vertex - int(graph.seq_first[s])
     lo, hi = max(image - radius, 0), min(image + radius, int(graph.seq_len[s]) - 1)
-    assert runs == _place_runs_np(view, s, lo, hi, radius, hops)
+    assert runs == place_runs_np(view, s, lo, hi, radius, hops)
     # Runs are sorted and disjoint, cover the vertex, and each vertex counts once.
     flat = [v for a, b in runs for v in range(a, b)]
     assert flat == sorted(set(flat)) and slot in flat

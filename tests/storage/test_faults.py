@@ -73,8 +73,8 @@ def abandon(store: MapStore) -> None:
     store.shards.close()
     store.env.close()
     store.env = None  # type: ignore[assignment]
-    if store._lock is not None:
-        store._lock.release()
+    if store.writer_lock is not None:
+        store.writer_lock.release()
 
 
 # --- the template map and the operations ---------------------------------------------------------

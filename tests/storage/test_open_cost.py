@@ -87,8 +87,8 @@ def test_open_reads_no_bulk_data_and_a_constant_number_of_records(make_map, arm_
         store = MapStore.open(built.path, readonly=readonly)
         counts.append(sorted(gets))
         store.env.close()  # not close(): a writer's close would persist (load) the index
-        if store._lock is not None:
-            store._lock.release()
+        if store.writer_lock is not None:
+            store.writer_lock.release()
     assert counts[0] == counts[1]
     assert len(counts[0]) <= 8
 

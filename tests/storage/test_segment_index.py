@@ -129,7 +129,8 @@ def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres):
         store.search(rows[:1], 5)
         seg = store.index.active
         assert seg is not None and seg.tail_len == 28
-        for index in seg._segments:
+        assert len(seg.segments) == 2
+        for index in seg.segments:
             lists = faiss.downcast_InvertedLists(index.invlists)
             assert isinstance(lists, faiss.OnDiskInvertedLists)  # IO_FLAG_MMAP: not copied
         report = check_map(store)
