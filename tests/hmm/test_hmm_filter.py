@@ -340,7 +340,9 @@ def test_cache_avoids_reloading_components(four_roads: MemoryGraphSource) -> Non
 
 def test_invalidate_remaps_the_belief_after_a_merge() -> None:
     before = MemoryGraphSource([30, 30, 30])
-    exact = HMMConfig(prune_threshold=0.0, support_threshold=0.0)
+    # A fixed T (the adaptive rule's value here, 0.5 * (FAR - CLOSE)): the fresh filter below
+    # then has the same observation model as one that saw every frame.
+    exact = HMMConfig(prune_threshold=0.0, support_threshold=0.0, dist_scale=0.25)
     filt = SprintFilter(exact, before)
     drive(filt, list(range(0, 10)), [40] * 10)
     vids, probs, sink = filt.posterior()
@@ -356,7 +358,6 @@ def test_invalidate_remaps_the_belief_after_a_merge() -> None:
     # It then runs exactly like a filter that always knew the merged map.
     fresh = FullGraphFilter(exact, after)
     fresh.set_posterior(vids2, probs2, sink2)
-    fresh._obs._scale = filt._obs._scale
     for t in range(10, 15):
         filt.update(*hits((t, CLOSE), (40, FAR)))
         fresh.update(*hits((t, CLOSE), (40, FAR)))
