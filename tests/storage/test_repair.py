@@ -5,12 +5,10 @@ corruption of ``test_check.py``: the derivable ones repaired, the others reporte
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -24,19 +22,8 @@ from sprint_map.storage.keys import u64
 from sprint_map.storage.lock import WriterLock
 from sprint_map.storage.repair import repair_map
 from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
+from tests.storage import test_check as corruptions
 
-
-def _load_check_tests() -> ModuleType:
-    # The corruptions of test_check.py, by path (whatever pytest's import mode).
-    spec = importlib.util.spec_from_file_location(
-        "check_corruptions", Path(__file__).with_name("test_check.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-corruptions = _load_check_tests()
 TOTAL = corruptions.TOTAL  # 42 vertices; shard_rows 16: shards 0 and 1 sealed, 2 holds 10 rows
 ROW = 8 * 4  # bytes per row (dim 8)
 

@@ -2,29 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
-from typing import Any
 
 import pytest
 
-TOOLS = Path(__file__).resolve().parents[2] / "tools"
-
-
-def load_tool(name: str) -> Any:
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
+from tools import bench_fleet
 
 
 @pytest.mark.slow
 def test_quick_run_writes_every_row(tmp_path, capsys):
-    bench = load_tool("bench_fleet")
+    bench = bench_fleet
     out = tmp_path / "fleet.json"
     code = bench.main(["--quick", "--vehicles", "3", "--frames", "15", "--overload", "6",
                        "--drives", "3", "--drive-frames", "40", "--dim", "16",

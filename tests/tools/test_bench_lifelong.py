@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -13,22 +11,12 @@ import pytest
 
 from sprint_map.frontend import GroundTruth, GroundTruthSpec
 from sprint_map.localizer import FrameDecision
-
-TOOLS = Path(__file__).resolve().parents[2] / "tools"
-
-
-def load_tool(name: str) -> Any:
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
+from tools import bench_lifelong
 
 
 @pytest.fixture(scope="module")
 def bench() -> Any:
-    return load_tool("bench_lifelong")
+    return bench_lifelong
 
 
 def test_score_counts_best_for_recall_and_accepted_for_precision(bench: Any) -> None:
