@@ -57,11 +57,11 @@ PLAN = textwrap.dedent("""
 """)
 
 WRITER = PLAN + textwrap.dedent("""
-    import json, sys, time
+    import json, os, sys, time
     from sprint_map.config import MapConfig
     from sprint_map.map import SprintMap
 
-    path, count = sys.argv[1], int(sys.argv[2])
+    path, count, progress = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     # Created here: the 1 MiB initial map size lasts for this session, so the map must grow.
     config = MapConfig(dim=DIM, shard_rows=4096, initial_map_size=1 << 20,
                        index_persist_every=20, index_persist_growth=0.05)
@@ -76,6 +76,9 @@ WRITER = PLAN + textwrap.dedent("""
                 m.ingest(drive(i), name=f"d{i}")
             print(json.dumps({"ack": i, "t0": t0, "t1": time.time(),
                               "map_size": m.store.env.map_size()}), flush=True)
+            with open(progress + ".partial", "w") as f:  # for a reader holding a snapshot
+                f.write(str(i))
+            os.replace(progress + ".partial", progress)
             time.sleep(0.02)
 """)
 
@@ -89,6 +92,14 @@ READER = PLAN + textwrap.dedent("""
     # Map no more than the initial size, so that the writer's growth reaches this reader.
     lmdb_env.LmdbEnv.__init__.__kwdefaults__["map_size"] = 1 << 20
     path, stop = sys.argv[1], sys.argv[2]  # read until the file ``stop`` exists
+    progress = sys.argv[3]  # the writer's last ack
+
+    def acked():
+        try:
+            with open(progress) as f:
+                return int(f.read())
+        except (OSError, ValueError):
+            return -1
     out = {"snapshots": 0, "checks": 0, "localized": 0, "inconsistent": [], "violations": [],
            "max_sequences": 0, "held": None}
     sums = np.cumsum([0] + [length(i) for i in range(1000)])
@@ -113,9 +124,12 @@ READER = PLAN + textwrap.dedent("""
             with long_lived.store.env.read() as txn:  # a reader open since the start
                 snap = snapshot(long_lived.store, txn)
                 if out["held"] is None and snap[0] >= 2:
-                    # Keep this snapshot for a second: the writer goes on, we see no change.
+                    # Keep this snapshot while the writer commits twice more (whatever the
+                    # machine's load): the writer goes on, we see no change.
                     t0 = time.time()
-                    time.sleep(1.0)
+                    start = acked()
+                    while acked() < start + 2 and time.time() - t0 < 120:
+                        time.sleep(0.01)
                     again = snapshot(long_lived.store, txn)
                     out["held"] = {"t0": t0, "t1": time.time(), "same": again == snap}
             out["snapshots"] += 1
@@ -183,12 +197,13 @@ def test_readers_see_consistent_snapshots_and_never_block_the_writer(tmp_path, r
     path = tmp_path / "live.map"
     query = tmp_path / "query.npy"
     np.save(query, rng.standard_normal((12, DIM)).astype(np.float32))
-    writer = _python(WRITER, str(path), "30", stdin=subprocess.PIPE)
+    progress = tmp_path / "progress"
+    writer = _python(WRITER, str(path), "30", str(progress), stdin=subprocess.PIPE)
     readers: list[subprocess.Popen] = []
     try:
         assert writer.stdout is not None and writer.stdin is not None
         assert json.loads(writer.stdout.readline()) == {"ready": True}
-        readers.append(_python(READER, str(path), str(tmp_path / "stop")))
+        readers.append(_python(READER, str(path), str(tmp_path / "stop"), str(progress)))
         assert readers[0].stdout is not None
         assert json.loads(readers[0].stdout.readline()) == {"ready": True}
         writer.stdin.write("go\n")
