@@ -26,11 +26,8 @@ from sprint_map.commit import DriveWriter, IngestResult
 from sprint_map.config import MapConfig
 from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.errors import (
-    ConfigError,
     DescriptorShapeError,
     InputError,
-    MapCorruptError,
-    SprintMapError,
 )
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge_rule import select_merges
@@ -51,6 +48,7 @@ from sprint_map.storage.records import (
 from sprint_map.storage.segment_model import cap_threads
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import MapStore
+from sprint_map.storage.store_config import decode_stored_config
 from sprint_map.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
@@ -67,18 +65,11 @@ __all__ = ["SprintMap", "stored_config"]
 
 def stored_config(record: dict[str, Any]) -> MapConfig:
     """The configuration a map stores (its meta record, decoded JSON), or MapCorruptError if
-    it is not a valid config: values the config refuses (of the wrong type or out of range: a
-    map is only ever created with a valid one). The store checks its own fields of it when it
-    opens (:func:`sprint_map.storage.store.decode_config`); this checks the rest. O(fields).
+    it is not a valid config (:func:`~sprint_map.storage.store_config.decode_stored_config`).
+    The store checks its own fields of it when it opens
+    (:func:`sprint_map.storage.store.decode_config`); this checks the rest. O(fields).
     """
-    try:
-        return MapConfig.from_dict(record)
-    except ConfigError as exc:
-        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
-    except SprintMapError:
-        raise
-    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
-        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
+    return decode_stored_config(MapConfig.from_dict, record)
 
 
 class SprintMap:

@@ -31,7 +31,6 @@ import numpy as np
 from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
 from sprint_map.atomic import fsync_dir, remove_partials
 from sprint_map.errors import (
-    ConfigError,
     MapCorruptError,
     MapExistsError,
     NotAMapError,
@@ -82,6 +81,7 @@ from sprint_map.storage.store_config import (
     SCHEMA_VERSION,
     ConfigRecord,
     StoreConfig,
+    decode_stored_config,
 )
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
@@ -764,19 +764,9 @@ def _undo_create(created: list[Path]) -> None:
 
 def decode_config(data: Any) -> StoreConfig:
     """The storage fields of the map's stored config record (decoded JSON), or
-    MapCorruptError if it is not a valid config: not an object, or storage values the config
-    refuses (of the wrong type or out of range: a map is only ever created with a valid one).
-    The facade checks the other fields the same way (``sprint_map.map``). O(fields)."""
-    if not isinstance(data, dict):
-        raise MapCorruptError("corrupt map record config: not a JSON object")
-    try:
-        return StoreConfig.from_record(data)
-    except ConfigError as exc:
-        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
-    except SprintMapError:
-        raise
-    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
-        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
+    MapCorruptError if it is not a valid config (:func:`decode_stored_config`; the facade
+    checks the other fields the same way, ``sprint_map.map``). O(fields)."""
+    return decode_stored_config(StoreConfig.from_record, data)
 
 
 def is_map(path: str | os.PathLike[str]) -> bool:

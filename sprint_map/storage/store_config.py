@@ -13,14 +13,17 @@ which validates them through this class.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from sprint_map import dataclass_dict
+from sprint_map.errors import ConfigError, MapCorruptError, SprintMapError
 
 __all__ = ["INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
-           "StoreConfig"]
+           "StoreConfig", "decode_stored_config"]
+
+_Config = TypeVar("_Config")
 
 #: On-disk schema version written into every map; maps of another version are refused.
 #: 2 added removed vertex ranges (``remove``) and generation directories (``compact``); a
@@ -121,3 +124,20 @@ class StoreConfig:
         names = {f.name for f in fields(cls)}
         return dataclass_dict.from_dict(cls, {k: v for k, v in record.items() if k in names},
                                         where="MapConfig")
+
+
+def decode_stored_config(decode: Callable[[dict[str, Any]], _Config], data: Any) -> _Config:
+    """``decode(data)`` of a map's stored config record (decoded JSON), or MapCorruptError if
+    it is not a valid config: not an object, or values the config refuses (of the wrong type
+    or out of range: a map is only ever created with a valid one). The store decodes its
+    fields with it (:class:`StoreConfig`), the facade the whole config. O(fields)."""
+    if not isinstance(data, dict):
+        raise MapCorruptError("corrupt map record config: not a JSON object")
+    try:
+        return decode(data)
+    except ConfigError as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc
+    except SprintMapError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
+        raise MapCorruptError(f"corrupt map record config: {exc}") from exc

@@ -8,34 +8,17 @@ are in ``test_starvation.py``). Default names: ``test_session_names.py`` (item 2
 from __future__ import annotations
 
 import asyncio
-from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
-from serve_helpers import DIM
+from serve_helpers import DIM, run_service
 
 from sprint_map.map import SprintMap
-from sprint_map.server.app import create_app
-from sprint_map.server.config import ServerConfig
 from sprint_map.server.service import LocalisationService
 
 JSON = {"content-type": "application/json"}
 
-
-def run(map_path: Path, body: Any, token: str | None = None, **config: Any) -> Any:
-    async def main() -> Any:
-        service = LocalisationService(SprintMap.open(map_path), ServerConfig(**config))
-        app = create_app(service, token)
-        await service.start()
-        try:
-            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
-                                         base_url="http://service", timeout=60) as client:
-                return await body(service, client)
-        finally:
-            await service.shutdown()
-
-    return asyncio.run(main())
 
 
 def test_names_that_are_not_utf8_text_are_a_4xx(one_drive_map):
@@ -62,7 +45,7 @@ def test_names_that_are_not_utf8_text_are_a_4xx(one_drive_map):
         done = await client.post(f"/v1/sessions/{named['session_id']}/commit")
         assert done.status_code == 200 and done.json()["name"] == "vélo-東"
 
-    run(one_drive_map, body)
+    run_service(one_drive_map, body)
 
 
 def test_image_frames_above_the_pixel_limit_are_refused_before_decoding(tmp_path, rng):
@@ -95,7 +78,7 @@ def test_image_frames_above_the_pixel_limit_are_refused_before_decoding(tmp_path
                                 headers={"content-type": "image/gif"})
         assert (gif.status_code, gif.json()["error"]) == (422, "bad_image")
 
-    run(path, body, max_image_pixels=1_000_000)
+    run_service(path, body, max_image_pixels=1_000_000)
 
 
 def test_the_token_is_checked_before_the_body_is_read():
