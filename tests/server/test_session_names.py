@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
-from serve_helpers import drive
-from test_hardening import run
+from serve_helpers import drive, run_service
 
 from sprint_map.map import SprintMap
 from sprint_map.server.service import LocalisationService
@@ -42,7 +41,7 @@ def test_unnamed_drives_never_collide_with_named_ones(one_drive_map, places, rng
         assert (kept.status_code, kept.json()["name"]) == (200, "seq-3"), kept.text
         assert (await _drive(client, None, drive(places[:5], rng))).json()["name"] == "seq-5"
 
-    run(one_drive_map, body)
+    run_service(one_drive_map, body)
     with SprintMap.open(one_drive_map, readonly=True) as m:
         assert [s.name for s in m.sequences()] == ["first", "seq-2", "seq-2-2", "seq-3-2",
                                                    "seq-3", "seq-5"]
