@@ -13,6 +13,12 @@ union of the ranges' k best (ranges in vertex order, so equal distances keep id 
 k best of the whole. Removed sequences are hidden as
 the store hides them (``SprintMap.removed_ranges().search_live`` over the fanned-out search).
 
+How a search reaches the shards: by default over a direct TCP connection to each one
+(:mod:`sprint_map.fleet.channel`: raw float32 queries out, raw ids and distances back), not a
+Ray actor call per shard, whose task submission, gRPC and numpy serialisation cost more than a
+small search (``docs/benchmarks.md``, "Ray"); Ray places, loads, catches up and ends the
+actors. A shard lost (killed, its node gone) is a :class:`~sprint_map.errors.ReplicaLostError`.
+
 Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
 filesystem each actor opens the map read-only and reads its range itself (``ship=False``);
 otherwise the caller reads the rows and ships them through Ray's object store (``ship=True``).
@@ -21,24 +27,30 @@ otherwise the caller reads the rows and ships them through Ray's object store (`
 from __future__ import annotations
 
 import os
+import secrets
+import threading
 from typing import Any
 
 import faiss
 import numpy as np
 
 from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
+from sprint_map.errors import ReplicaLostError
 from sprint_map.exact_search import ExactFlat
+from sprint_map.fleet.channel import TOKEN_BYTES, ChannelClient, ChannelError, ChannelServer
 from sprint_map.map import SprintMap
 from sprint_map.validation import validate_descriptors
 
-__all__ = ["ALIGN", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk", "plan_ranges",
-           "spread"]
+__all__ = ["ALIGN", "TRANSPORTS", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk",
+           "plan_ranges", "spread"]
 
 #: Shard boundaries are multiples of this many vertex ids.
 ALIGN = 1024
 #: Rows added to a shard's index per call when loading (bounds the copy of a memory map).
 LOAD_CHUNK = 65536
 PAD_DISTANCE = np.finfo(np.float32).max
+#: How :class:`ShardedIndex` sends searches to the shards (see its ``transport``).
+TRANSPORTS = ("auto", "socket", "ray")
 
 
 def plan_ranges(vertices: int, shards: int, align: int = ALIGN) -> list[tuple[int, int | None]]:
@@ -107,6 +119,9 @@ class ShardWorker:
         self.index = faiss.IndexFlatL2(dim)
         self._exact: ExactFlat | None = None
         self.map: SprintMap | None = None
+        # searches may come from the channel's thread while Ray calls load rows
+        self._lock = threading.Lock()
+        self._server: ChannelServer | None = None
         if rows is None:
             if path is None:
                 raise ValueError("a shard needs the map's path or its rows")
@@ -120,7 +135,9 @@ class ShardWorker:
         at = self.covered()
         while at < upto:
             stop = min(upto, at + LOAD_CHUNK)
-            self.index.add(np.ascontiguousarray(smap.vertex_rows(at, stop), dtype=np.float32))
+            rows = np.ascontiguousarray(smap.vertex_rows(at, stop), dtype=np.float32)
+            with self._lock:
+                self.index.add(rows)
             at = stop
 
     def covered(self) -> int:
@@ -133,7 +150,8 @@ class ShardWorker:
             raise ValueError(f"shard covers up to {self.covered()}, cannot add at {first}")
         if self.stop is not None and first + len(rows) > self.stop:
             raise ValueError(f"rows past the shard's end {self.stop}")
-        self.index.add(np.ascontiguousarray(rows, dtype=np.float32))
+        with self._lock:
+            self.index.add(np.ascontiguousarray(rows, dtype=np.float32))
         return self.covered()
 
     def catch_up(self, committed: int) -> int:
@@ -147,13 +165,26 @@ class ShardWorker:
         """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
         # One thread below 8 queries (latency-bound); the answer does not depend on it.
         faiss.omp_set_num_threads(1 if len(queries) < 8 else self.threads)
-        if not self.index.ntotal:
-            return (np.full((len(queries), k), PAD_DISTANCE, dtype=np.float32),
-                    np.full((len(queries), k), -1, dtype=np.int64))
-        if self._exact is None:
-            self._exact = ExactFlat(self.index)
-        d, i = self._exact.search(queries, k)  # certified: as the in-process search
+        with self._lock:
+            if not self.index.ntotal:
+                return (np.full((len(queries), k), PAD_DISTANCE, dtype=np.float32),
+                        np.full((len(queries), k), -1, dtype=np.int64))
+            if self._exact is None:
+                self._exact = ExactFlat(self.index)
+            d, i = self._exact.search(queries, k)  # certified: as the in-process search
         return d, np.where(i >= 0, i + self.start, -1)
+
+    def listen(self, token: bytes, host: str | None = None) -> tuple[str, int]:
+        """Serve :meth:`search` over a direct TCP channel (:mod:`sprint_map.fleet.channel`)
+        on ``host`` (default: this Ray node's IP); returns ``(host, port)``. Once per shard."""
+        if self._server is None:
+            if host is None:
+                import ray
+
+                node_ip: Any = ray.util.get_node_ip_address  # untyped in Ray
+                host = str(node_ip())
+            self._server = ChannelServer(self.search, int(self.index.d), token, host)
+        return self._server.address
 
     def pid(self) -> int:
         """The process running this shard (tests kill it)."""
@@ -166,6 +197,9 @@ class ShardWorker:
         return str(ray.get_runtime_context().get_node_id())
 
     def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            self._server = None
         if self.map is not None:
             self.map.close()
             self.map = None
@@ -187,19 +221,40 @@ class ShardedIndex:
         OpenMP threads of each shard's search of 8 queries or more (default 1: one shard per
         core; a node of c cores runs c shards best).
     actor_options : dict, optional
-        Ray options of the actors (default ``num_cpus=0``, placed round robin over the
-        cluster's nodes: one actor per node while there are nodes).
+        Ray options of the actors (default ``num_cpus=0``, no restart, placed round robin over
+        the cluster's nodes: one actor per node while there are nodes).
+    transport : {"auto", "socket", "ray"}
+        How searches reach the shards. ``socket``: a direct TCP connection to each shard
+        (:mod:`sprint_map.fleet.channel`; the shard listens on its node's IP, on an ephemeral
+        port the caller must be able to reach); ``ray``: one Ray actor call per shard and
+        search; ``auto`` (default): ``socket``, or ``ray`` when a shard's port cannot be
+        reached (a firewall between the caller and the nodes). :attr:`transport` says which
+        one is used. Loading, catching up and closing always go through Ray.
+    timeout : float
+        Seconds a shard may take to answer on the socket before it counts as lost.
 
     Notes
     -----
-    One search: one Ray call per shard, all in flight at once, and an O(q * S k log S k) merge;
-    its overhead over the in-process search is the round trip (~1-3 ms), so batch queries.
+    One search: the queries to every shard at once, each shard's k best back, an
+    O(q * S k log S k) merge. Its overhead over the in-process search (measured in
+    ``docs/benchmarks.md``, "Ray"): ~0.1 ms of round trip on the socket; ~1.5-2.3 ms on Ray
+    (task submission, gRPC, serialising numpy arrays), so batch queries there. Searches from
+    several threads are serialised on the socket (one exchange at a time per connection).
+
+    Raises
+    ------
+    ReplicaLostError
+        From :meth:`search` once a shard died (its actor killed, its node lost, no answer
+        within ``timeout``): the index cannot answer exactly without it; make a new one.
     """
 
     def __init__(self, smap: SprintMap, shards: int = 3, *, ship: bool = False,
-                 threads: int = 1, actor_options: dict[str, Any] | None = None) -> None:
+                 threads: int = 1, actor_options: dict[str, Any] | None = None,
+                 transport: str = "auto", timeout: float = 60.0) -> None:
         from sprint_map.fleet.runtime import require_ray
 
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, not {transport!r}")
         ray = require_ray()
         self._ray = ray
         self.dim = smap.config.dim
@@ -211,7 +266,7 @@ class ShardedIndex:
         nodes = alive_nodes(ray)
         self.actors = []
         for n, (a, b) in enumerate(self.ranges):
-            options = {"num_cpus": 0, "scheduling_strategy": spread(nodes, n),
+            options = {"num_cpus": 0, "max_restarts": 0, "scheduling_strategy": spread(nodes, n),
                        **(actor_options or {})}
             rows = None
             if ship:
@@ -219,14 +274,63 @@ class ShardedIndex:
                                                                     else min(b, vertices))))
             self.actors.append(remote.options(**options).remote(
                 None if ship else path, a, b, self.dim, rows, threads))
-        self.covered: int = max(ray.get([actor.covered.remote() for actor in self.actors]))
+        self.covered: int = max(self._get([actor.covered.remote() for actor in self.actors]))
+        self._lock = threading.Lock()
+        self._lost: str | None = None
+        self._channels: list[ChannelClient] = []
+        self.transport = "ray"
+        if transport != "ray":
+            self._connect(transport == "socket", timeout)
+
+    def _connect(self, required: bool, timeout: float) -> None:
+        token = secrets.token_bytes(TOKEN_BYTES)
+        addresses = self._get([actor.listen.remote(token) for actor in self.actors])
+        try:
+            for address in addresses:
+                self._channels.append(ChannelClient(tuple(address), token, self.dim, timeout))
+        except ChannelError:
+            self._close_channels()
+            if required:
+                raise
+            return
+        self.transport = "socket"
+
+    def _close_channels(self) -> None:
+        for channel in self._channels:
+            channel.close()
+        self._channels = []
+
+    def _get(self, refs: list[Any]) -> list[Any]:
+        """``ray.get(refs)``, a dead actor reported as :class:`ReplicaLostError`."""
+        ray = self._ray
+        try:
+            return list(ray.get(refs))
+        except (ray.exceptions.RayActorError, ray.exceptions.ActorUnavailableError) as exc:
+            raise self._lose(f"a retrieval shard died: {exc}") from exc
+
+    def _lose(self, why: str) -> ReplicaLostError:
+        self._lost = why
+        self._close_channels()
+        return ReplicaLostError(f"{why}; this sharded index cannot answer exactly without it: "
+                                "make a new one")
 
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest vertices, every range searched: ``(squared L2, vertex ids)``, -1 padded.
         Removed vertices included (see :meth:`search_live`)."""
-        queries = validate_descriptors(queries, self.dim)
-        ref = self._ray.put(queries) if queries.nbytes > 65536 else queries
-        parts = self._ray.get([actor.search.remote(ref, k) for actor in self.actors])
+        queries = np.ascontiguousarray(validate_descriptors(queries, self.dim))
+        if self._lost is not None:
+            raise ReplicaLostError(f"{self._lost}; make a new sharded index")
+        if self.transport == "ray":
+            ref = self._ray.put(queries) if queries.nbytes > 65536 else queries
+            parts = self._get([actor.search.remote(ref, k) for actor in self.actors])
+        else:
+            with self._lock:
+                try:
+                    for channel in self._channels:
+                        channel.send(queries, k)
+                    parts = [channel.receive(len(queries), k) for channel in self._channels]
+                except ChannelError as exc:
+                    raise self._lose(f"a retrieval shard is lost: {exc}") from exc
         return merge_topk([p[0] for p in parts], [p[1] for p in parts], k)
 
     def search_live(self, queries: DescriptorsLike, k: int) -> SearchResult:
@@ -236,6 +340,18 @@ class ShardedIndex:
         return self.removed.search_live(self.search, validate_descriptors(queries, self.dim), k,
                                         self.covered)
 
+    def ping(self) -> None:
+        """An empty round trip to every shard (on the transport searches use)."""
+        if self.transport == "ray":
+            self._get([actor.covered.remote() for actor in self.actors])
+            return
+        with self._lock:
+            try:
+                for channel in self._channels:
+                    channel.ping()
+            except ChannelError as exc:
+                raise self._lose(f"a retrieval shard is lost: {exc}") from exc
+
     def catch_up(self, smap: SprintMap) -> int:
         """Bring the open-ended shard up to the map's committed vertices (shared filesystem),
         or ship it the new rows; refresh the removed ranges."""
@@ -243,15 +359,16 @@ class ShardedIndex:
         self.removed = smap.removed_ranges()
         tail = self.actors[-1]
         if vertices > self.covered:
-            covered = self._ray.get(tail.catch_up.remote(vertices))
+            covered = self._get([tail.catch_up.remote(vertices)])[0]
             if covered < vertices:  # shipped rows: the actor cannot read the map
-                covered = self._ray.get(tail.append.remote(
-                    covered, smap.vertex_rows(covered, vertices)))
+                covered = self._get([tail.append.remote(
+                    covered, smap.vertex_rows(covered, vertices))])[0]
             self.covered = covered
         return self.covered
 
     def close(self) -> None:
-        """End the actors."""
+        """End the channels and the actors."""
+        self._close_channels()
         for actor in self.actors:
             self._ray.kill(actor)
         self.actors = []

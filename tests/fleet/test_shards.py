@@ -1,14 +1,22 @@
 """Retrieval shards on a real 3-node Ray cluster: the fanned-out exact search equals the
-in-process one, ids and distances."""
+in-process one, ids and distances, over the socket channel and over Ray calls; a shard killed
+is a clear ReplicaLostError."""
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from sprint_map.config import MapConfig
+from sprint_map.errors import ReplicaLostError
+from sprint_map.fleet import shards as shards_module
+from sprint_map.fleet.channel import ChannelError
 from sprint_map.fleet.shards import ALIGN, ShardedIndex, ShardWorker, merge_topk, plan_ranges
 from sprint_map.map import SprintMap
 
@@ -42,13 +50,24 @@ def test_merge_topk_pads_and_prefers_earlier_on_ties() -> None:
     assert out_d[0, :3].tolist() == [1.0, 1.0, 3.0]
 
 
-@pytest.mark.parametrize("ship", [False, True], ids=["shared-fs", "shipped"])
+def unreachable(*args: Any, **kwargs: Any) -> None:
+    raise ChannelError("connection refused (a firewall, in this test)")
+
+
+@pytest.mark.parametrize(("ship", "transport"),
+                         [(False, "socket"), (True, "socket"), (False, "ray")],
+                         ids=["shared-fs", "shipped", "ray-calls"])
 def test_fanned_out_search_equals_in_process(cluster: object, tmp_path: Path,
-                                             rng: np.random.Generator, ship: bool) -> None:
+                                             rng: np.random.Generator, ship: bool,
+                                             transport: str,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    if transport == "ray":  # what "auto" does when the shards' ports cannot be reached
+        monkeypatch.setattr(shards_module, "ChannelClient", unreachable)
     with build(tmp_path / "m", rng, [2500, 1700, 3100]) as smap:
         sharded = ShardedIndex(smap, 3, ship=ship)
         try:
             assert len(sharded.actors) == 3
+            assert sharded.transport == transport
             for nq in (1, 5, 40, 300):
                 q = rng.standard_normal((nq, DIM)).astype(np.float32)
                 want_d, want_i = smap.search(q, 10)
@@ -66,6 +85,54 @@ def test_fanned_out_search_equals_in_process(cluster: object, tmp_path: Path,
             np.testing.assert_array_equal(got_i, want_i)
             np.testing.assert_array_equal(got_d, want_d)
             assert (got_i[:20, 0] >= smap.sequence(3).first_vertex).all()
+            # searches from several threads at once (the channel serialises its exchanges)
+            batches = [rng.standard_normal((n, DIM)).astype(np.float32) for n in (1, 7, 33)]
+            wants = [smap.search(b, 5) for b in batches]
+            results: dict[int, Any] = {}
+
+            def run(n: int) -> None:
+                results[n] = [sharded.search_live(batches[n], 5) for _ in range(5)]
+
+            threads = [threading.Thread(target=run, args=(n,)) for n in range(len(batches))]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            for n, want in enumerate(wants):
+                for got in results[n]:
+                    np.testing.assert_array_equal(got[1], want[1])
+                    np.testing.assert_array_equal(got[0], want[0])
+        finally:
+            sharded.close()
+
+
+def test_socket_transport_required_fails_clearly(cluster: object, tmp_path: Path,
+                                                 rng: np.random.Generator,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(shards_module, "ChannelClient", unreachable)
+    with build(tmp_path / "m", rng, [1500]) as smap, pytest.raises(ChannelError,
+                                                                   match="firewall"):
+        ShardedIndex(smap, 1, transport="socket")
+    with pytest.raises(ValueError, match="transport"):
+        ShardedIndex(smap, 1, transport="grpc")
+
+
+@pytest.mark.parametrize("transport", ["socket", "ray"])
+def test_a_killed_shard_is_a_clear_error(cluster: object, tmp_path: Path,
+                                         rng: np.random.Generator, transport: str) -> None:
+    import ray
+
+    with build(tmp_path / "m", rng, [2500, 2000]) as smap:
+        sharded = ShardedIndex(smap, 3, transport=transport)
+        try:
+            q = rng.standard_normal((4, DIM)).astype(np.float32)
+            sharded.search(q, 5)
+            pid = ray.get(sharded.actors[1].pid.remote())
+            os.kill(pid, signal.SIGKILL)  # runs no more code: its connection closes
+            with pytest.raises(ReplicaLostError, match="retrieval shard"):
+                sharded.search(q, 5)
+            with pytest.raises(ReplicaLostError, match="make a new"):  # and stays so
+                sharded.search(q, 5)
         finally:
             sharded.close()
 
