@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.lazy_faiss import faiss
 
-__all__ = ["BLAS_FROM_QUERIES", "MARGIN", "ExactFlat", "certified_search",
+__all__ = ["BLAS_FROM_QUERIES", "MARGIN", "ExactFlat", "candidate_distances", "certified_search",
            "distance_error_bound", "pair_distances", "row_norm_max"]
 
 #: Extra candidates asked of the fast search, beyond ``k``.
@@ -45,6 +45,8 @@ BLAS_FROM_QUERIES = 4
 _U = 2.0 ** -24
 #: Rows per chunk when a query is recomputed against every vertex.
 _CHUNK = 4096
+#: float64 values per chunk of :func:`candidate_distances` (16 MB).
+_CHUNK_VALUES = 1 << 21
 
 
 def pair_distances(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -108,7 +110,8 @@ def certified_search(
 
     Notes
     -----
-    The fast search, plus O(nq * (k + margin) * dim) to recompute the candidates, plus
+    The fast search, plus O(nq * (k + margin) * dim) to recompute the candidates (vectorised
+    over the queries: ~1-2 us a query at dim 128, against ~15 us one query at a time), plus
     O(n_total * dim) for each query not certified.
     """
     total = len(vectors)
@@ -116,24 +119,52 @@ def certified_search(
     dist, ids = fast(queries, max(want, k))
     out_d = dist[:, :k].copy()
     out_i = ids[:, :k].copy()
-    if not total:
+    if not total or not len(queries):
         return out_d, out_i
     dim = vectors.shape[1]
-    qnorms = np.sqrt(np.einsum("ij,ij->i", queries, queries, dtype=np.float64))
-    for q in range(len(queries)):
-        cand = ids[q, :want]
-        cand = cand[cand >= 0]
-        exact = pair_distances(queries[q], vectors[cand])
-        order = np.lexsort((cand, exact))
-        n = min(k, len(order))
-        if want < total and len(cand) == want:
-            bound = distance_error_bound(dim, float(qnorms[q]), norm_max)
-            worst_fast = float(dist[q, want - 1])
-            if not float(exact[order[n - 1]]) + bound < worst_fast - _U * abs(worst_fast):
-                cand, exact, order = _everything(queries[q], vectors)
-        out_d[q, :n] = exact[order[:n]]
-        out_i[q, :n] = cand[order[:n]]
+    cand = ids[:, :want].copy()
+    short = (cand < 0).any(axis=1)  # a fast search that found fewer than want (not flat's)
+    cand[short] = np.maximum(cand[short], 0)  # recomputed against every row below
+    exact = candidate_distances(queries, vectors, cand)
+    order = np.lexsort((cand, exact), axis=-1)  # by (distance, id), per query
+    n = min(k, want)
+    top = order[:, :n]
+    out_d[:, :n] = np.take_along_axis(exact, top, axis=1)
+    out_i[:, :n] = np.take_along_axis(cand, top, axis=1)
+    uncertified = short
+    if want < total:
+        qnorms = np.sqrt(np.einsum("ij,ij->i", queries, queries, dtype=np.float64))
+        bound = (dim + 3) * _U * 1.01 * (qnorms + norm_max) ** 2  # distance_error_bound
+        kth = out_d[:, n - 1].astype(np.float64)
+        worst_fast = dist[:, want - 1].astype(np.float64)
+        uncertified = short | ~(kth + bound < worst_fast - _U * np.abs(worst_fast))
+    for q in np.flatnonzero(uncertified):
+        every, exact_q, order_q = _everything(queries[q], vectors)
+        out_d[q, :n] = exact_q[order_q[:n]]
+        out_i[q, :n] = every[order_q[:n]]
     return out_d, out_i
+
+
+def candidate_distances(queries: np.ndarray, vectors: np.ndarray, cand: np.ndarray
+                        ) -> np.ndarray:
+    """``(nq, m)`` float32: :func:`pair_distances` of each query to its ``m`` candidate rows
+    ``vectors[cand[q]]``, bit for bit, all queries at once.
+
+    Notes
+    -----
+    O(nq * m * dim), in chunks of queries whose float64 temporary stays under ~16 MB.
+    """
+    nq, m = cand.shape
+    dim = vectors.shape[1]
+    out = np.empty((nq, m), np.float32)
+    step = max(1, _CHUNK_VALUES // max(1, m * dim))
+    for a in range(0, nq, step):
+        b = min(nq, a + step)
+        diff = vectors[cand[a:b]].astype(np.float64)
+        diff -= queries[a:b, None, :].astype(np.float64)
+        np.square(diff, out=diff)
+        out[a:b] = diff.sum(axis=2)  # each row summed as pair_distances sums it
+    return out
 
 
 def _everything(query: np.ndarray, vectors: np.ndarray

@@ -15,6 +15,7 @@ import pytest
 from sprint_map.config import MapConfig
 from sprint_map.exact_search import (
     MARGIN,
+    candidate_distances,
     certified_search,
     distance_error_bound,
     pair_distances,
@@ -82,6 +83,35 @@ def test_a_perturbed_fast_search_is_caught_by_the_certificate(world):
     offered = wrong(queries, 5 + MARGIN)[1]
     assert not any(set(want[1][q]) <= set(offered[q]) for q in range(len(queries)))
     np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_a_fast_search_that_finds_too_few_is_recomputed(world):
+    """Candidate lists cut short (-1 padded, as an index that misses rows would give) are not
+    trusted: those queries are recomputed against every row."""
+    vectors, queries = world
+    exact_fast = flat_fast(vectors)
+
+    def short(q, n):
+        d, i = exact_fast(q, n)
+        d[::2, 3:], i[::2, 3:] = np.finfo(np.float32).max, -1
+        return d, i
+
+    got = certified_search(short, vectors, row_norm_max(vectors), queries, 5)
+    want = brute(vectors, queries, 5)
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[0], want[0])
+
+
+@pytest.mark.parametrize("dim", [3, 16, 128, 129, 1764])
+def test_candidate_distances_are_pair_distances_bit_for_bit(rng, dim):
+    """All queries at once (the certification's fast path) as one query at a time, including
+    past numpy's pairwise-summation block (128) and across the chunks of queries."""
+    vectors = (3 * rng.standard_normal((500, dim))).astype(np.float32)
+    queries = (3 * rng.standard_normal((70, dim))).astype(np.float32)
+    cand = rng.integers(0, 500, (70, 18))
+    got = candidate_distances(queries, vectors, cand)
+    for q in range(len(queries)):
+        np.testing.assert_array_equal(got[q], pair_distances(queries[q], vectors[cand[q]]))
 
 
 @pytest.fixture
