@@ -8,10 +8,15 @@ run, back to back, on the same machine (it may be shared: compare the ratios, no
   map of ``--base`` vertices; serial ``SprintMap.ingest_drives`` against ``farm_ingest`` on a
   local Ray runtime (``--ray-cpus``); frames/s of each, their ratio, the drives the farm had to
   localise again, and whether both maps hold the same sequences and edges.
-* ``search``: a flat map of ``--vertices`` vertices cut into ``--shards`` retrieval shards on a
-  simulated cluster of as many nodes (``ray.cluster_utils.Cluster``); per search of 1, 16 and
-  64 queries: the in-process exact search, the fanned-out one (equal answers checked), and the
-  overhead (their difference), per search and per query.
+* ``search``: flat maps of ``--vertices`` vertices (default 20k and 300k) cut into ``--shards``
+  retrieval shards on a simulated cluster of as many nodes (``ray.cluster_utils.Cluster``, one
+  CPU each); per search of 1, 16 and 64 queries, p50 and p99: the in-process exact search, the
+  fanned-out one over each path (equal answers checked), the overhead (fanned out - in
+  process) and each path's empty round trip to the shards. Paths: ``socket`` (the shards' TCP
+  channels, ``ShardedIndex``'s default), ``ray`` (one actor call per shard, the old path) and
+  ``ray-dag`` (a Ray Compiled Graph over the same actors, for comparison; ``--no-dag`` skips
+  it). In-process and fanned-out searches are timed interleaved, round by round; the
+  in-process search runs one OpenMP thread, as each shard does.
 * ``segments``: the segmented IVF-PQ index of maps of ``--segment-sizes`` vertices (trained on
   the map, the map's defaults: 1,024 lists, 16 probed, PQ16 after PCA to 128, 100 re-ranked):
   search latency per query, and disk bytes per vertex (shards, index, LMDB).
@@ -28,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -129,18 +133,96 @@ def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: i
 
 
 # --- search ---------------------------------------------------------------------------------
-def bench_search(work: Path, vertices: int, shards: int, repeat: int, seed: int
-                 ) -> dict[str, Any]:
+def percentiles(ms: list[float]) -> tuple[float, float]:
+    return round(float(np.percentile(ms, 50)), 3), round(float(np.percentile(ms, 99)), 3)
+
+
+def interleaved(fns: dict[str, Any], repeat: int) -> dict[str, list[float]]:
+    """``repeat`` rounds, each timing every function once in turn (ms): a machine whose load
+    drifts during the run weighs on every path alike."""
+    out: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            out[name].append(timed(fn, 1)[0])
+    return out
+
+
+def compiled_dag(ray: Any, actors: list[Any], method: str, *args: Any) -> Any:
+    """A Ray Compiled Graph calling ``method`` on every actor with the input (and ``args``)."""
+    from ray.dag import InputNode, MultiOutputNode
+
+    with InputNode() as inp:
+        dag = MultiOutputNode([getattr(actor, method).bind(inp, *args) for actor in actors])
+    return dag.experimental_compile()
+
+
+def search_rows(vertices: int, batch: int, times: dict[str, list[float]], pings: dict[str, Any],
+                equal: dict[str, bool]) -> list[dict[str, Any]]:
+    local_p50, local_p99 = percentiles(times["in-process"])
+    rows = []
+    for path, ms in times.items():
+        if path == "in-process":
+            continue
+        p50, p99 = percentiles(ms)
+        trip = percentiles(pings[path]) if path in pings else (float("nan"),) * 2
+        rows.append({"vertices": vertices, "queries": batch, "path": path,
+                     "in_process_p50_ms": local_p50, "in_process_p99_ms": local_p99,
+                     "fanned_out_p50_ms": p50, "fanned_out_p99_ms": p99,
+                     "overhead_p50_ms": round(p50 - local_p50, 3),
+                     "overhead_p99_ms": round(p99 - local_p99, 3),
+                     "round_trip_p50_ms": trip[0], "round_trip_p99_ms": trip[1],
+                     "equal": equal[path]})
+    return rows
+
+
+def bench_dag(ray: Any, m: SprintMap, actors: list[Any], vertices: int, repeat: int,
+              rng: np.random.Generator) -> list[dict[str, Any]]:
+    """The ``ray-dag`` rows: a Ray Compiled Graph of the shards' ``search`` against the
+    in-process search, interleaved, and its empty round trip (the shards' no-op
+    ``catch_up(0)``, a method that takes an input)."""
+    from sprint_map.fleet.shards import merge_topk
+
+    graph = compiled_dag(ray, actors, "search", 10)
+
+    def dag_search(q: np.ndarray) -> Any:
+        parts = ray.get(graph.execute(q))
+        return merge_topk([p[0] for p in parts], [p[1] for p in parts], 10)
+
+    rows: list[dict[str, Any]] = []
+    try:
+        for batch in (1, 16, 64):
+            q = unit(rng.standard_normal((batch, DIM)))
+            equal = {"ray-dag": all(np.array_equal(a, b) for a, b in
+                                    zip(m.search(q, 10), dag_search(q), strict=True))}
+            times = interleaved({"in-process": lambda q=q: m.search(q, 10),
+                                 "ray-dag": lambda q=q: dag_search(q)}, repeat)
+            rows += search_rows(vertices, batch, times, {}, equal)
+    finally:
+        graph.teardown()
+    ping_graph = compiled_dag(ray, actors, "catch_up")
+    try:
+        trip = percentiles(timed(lambda: ray.get(ping_graph.execute(0)), repeat))
+    finally:
+        ping_graph.teardown()
+    for row in rows:
+        row["round_trip_p50_ms"], row["round_trip_p99_ms"] = trip
+    return rows
+
+
+def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: int,
+                 dag: bool = True) -> dict[str, Any]:
+    """Per map size and batch (1, 16, 64 queries): the in-process exact search against the
+    fanned-out one over each transport (``ray``: an actor call per shard, the old path;
+    ``socket``: the shards' TCP channels, the default), timed interleaved, and each transport's
+    empty round trip; then, on the same actors, a Ray Compiled Graph (``ray-dag``) against the
+    in-process search again (its actors serve the graph in a loop: timed apart)."""
+    import faiss
     import ray
     from ray.cluster_utils import Cluster
 
     from sprint_map.fleet.shards import ShardedIndex
 
     rng = np.random.default_rng(seed)
-    path = work / "search.map"
-    with SprintMap.create(path, MapConfig(dim=DIM, index_type="flat")) as m:
-        for start in range(0, vertices, 100_000):
-            m.add_sequence(unit(rng.standard_normal((min(100_000, vertices - start), DIM))))
     t0 = time.perf_counter()
     cluster = Cluster(initialize_head=True,
                       head_node_args={"num_cpus": 1, "include_dashboard": False})
@@ -149,36 +231,51 @@ def bench_search(work: Path, vertices: int, shards: int, repeat: int, seed: int
     ray.init(address=cluster.address, log_to_driver=False, logging_level="ERROR")
     cluster.wait_for_nodes()
     cluster_s = time.perf_counter() - t0
-    rows = []
+    rows: list[dict[str, Any]] = []
+    notes: dict[str, Any] = {}
     try:
-        with SprintMap.open(path, readonly=True) as m:
-            t0 = time.perf_counter()
-            sharded = ShardedIndex(m, shards)
-            shards_s = time.perf_counter() - t0
-            m.search(unit(rng.standard_normal((1, DIM))), 10)  # load the index
-            for batch in (1, 16, 64):
-                q = unit(rng.standard_normal((batch, DIM)))
-                equal = all(np.array_equal(a, b) for a, b in
-                            zip(m.search(q, 10), sharded.search_live(q, 10), strict=True))
-                local = timed(lambda q=q: m.search(q, 10), repeat)
-                fanned = timed(lambda q=q: sharded.search_live(q, 10), repeat)
-                noop = timed(lambda: ray.get([a.covered.remote() for a in sharded.actors]),
-                             repeat)
-                med_l, med_f = statistics.median(local), statistics.median(fanned)
-                rows.append({"queries": batch, "in_process_ms": round(med_l, 3),
-                             "fanned_out_ms": round(med_f, 3),
-                             "fanned_out_p99_ms": round(float(np.percentile(fanned, 99)), 3),
-                             "overhead_ms": round(med_f - med_l, 3),
-                             "overhead_per_query_ms": round((med_f - med_l) / batch, 4),
-                             "empty_round_trip_ms": round(statistics.median(noop), 3),
-                             "equal": equal})
-            sharded.close()
+        for vertices in sizes:
+            path = work / f"search{vertices}.map"
+            with SprintMap.create(path, MapConfig(dim=DIM, index_type="flat")) as m:
+                for start in range(0, vertices, 100_000):
+                    m.add_sequence(unit(rng.standard_normal((min(100_000, vertices - start),
+                                                             DIM))))
+            with SprintMap.open(path, readonly=True) as m:
+                # one OpenMP thread, as each shard: two threads on two shared cores spin-wait
+                # for each other (16 queries of 20k took 187 ms at load 5, against 2 alone)
+                SprintMap.cap_search_threads(1)
+                m.search(unit(rng.standard_normal((1, DIM))), 10)  # load the index
+                notes["in_process_omp_threads"] = faiss.omp_get_max_threads()
+                t0 = time.perf_counter()
+                sharded = {t: ShardedIndex(m, shards, transport=t) for t in ("ray", "socket")}
+                notes[f"shards_start_s_{vertices}"] = round(time.perf_counter() - t0, 2)
+                assert sharded["socket"].transport == "socket"
+                actors = sharded["socket"].actors
+                for batch in (1, 16, 64):
+                    q = unit(rng.standard_normal((batch, DIM)))
+                    want = m.search(q, 10)
+                    equal = {t: all(np.array_equal(a, b) for a, b in
+                                    zip(want, s.search_live(q, 10), strict=True))
+                             for t, s in sharded.items()}
+                    fns = {"in-process": lambda q=q: m.search(q, 10),
+                           **{t: lambda q=q, s=s: s.search_live(q, 10)
+                              for t, s in sharded.items()}}
+                    times = interleaved(fns, repeat)
+                    pings = interleaved({t: s.ping for t, s in sharded.items()}, repeat)
+                    rows += search_rows(vertices, batch, times, pings, equal)
+                sharded["ray"].close()
+                if dag:
+                    try:
+                        rows += bench_dag(ray, m, actors, vertices, repeat, rng)
+                    except Exception as exc:  # a beta API: record why, keep the rest
+                        notes["ray_dag_error"] = f"{type(exc).__name__}: {exc}"
+                sharded["socket"].close()
+            shutil.rmtree(path)
     finally:
         ray.shutdown()
         cluster.shutdown()
-    return {"vertices": vertices, "shards": shards, "nodes": shards,
-            "cluster_start_s": round(cluster_s, 2), "shards_start_s": round(shards_s, 2),
-            "rows": rows}
+    return {"sizes": sizes, "shards": shards, "nodes": shards, "repeat": repeat,
+            "cluster_start_s": round(cluster_s, 2), **notes, "rows": rows}
 
 
 # --- segments -------------------------------------------------------------------------------
@@ -240,7 +337,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="drive noise (norm per frame, places unit-norm): 0.5 keeps a "
                         "frame's k nearest in its own area, 1.4 puts most at the noise floor, "
                         "in any area")
-    parser.add_argument("--vertices", type=int, default=300_000, help="search map vertices")
+    parser.add_argument("--vertices", type=int, nargs="+", default=[20_000, 300_000],
+                        help="search maps' vertices")
+    parser.add_argument("--no-dag", action="store_true",
+                        help="skip the Ray Compiled Graph path of the search section")
     parser.add_argument("--shards", type=int, default=3)
     parser.add_argument("--segment-sizes", type=int, nargs="+", default=[250_000, 1_000_000])
     parser.add_argument("--repeat", type=int, default=200)
@@ -250,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path)
     args = parser.parse_args(argv)
     if args.quick:
-        args.base, args.drives, args.vertices = 5_000, 4, 20_000
+        args.base, args.drives, args.vertices = 5_000, 4, [20_000]
         args.segment_sizes, args.repeat = [20_000], 20
     only = args.only or ["ingest", "search", "segments"]
     work = Path(tempfile.mkdtemp(prefix="bench-ray-", dir=args.workdir))
@@ -270,10 +370,11 @@ def main(argv: list[str] | None = None) -> int:
         if "search" in only:
             (work / "search").mkdir()
             out["search"] = bench_search(work / "search", args.vertices, args.shards,
-                                         args.repeat, args.seed)
-            print(f"\n{out['search']['vertices']:,} vertices in {out['search']['shards']} shards "
-                  f"on {out['search']['nodes']} nodes")
-            table("Fanned-out search vs in process (ms per search)", out["search"]["rows"])
+                                         args.repeat, args.seed, dag=not args.no_dag)
+            print(f"\n{out['search']['shards']} shards on {out['search']['nodes']} simulated "
+                  f"nodes, {args.repeat} searches of each size")
+            table("Fanned-out search vs in process (ms per search; overhead = fanned out - in "
+                  "process)", out["search"]["rows"])
         if "segments" in only:
             (work / "segments").mkdir()
             out["segments"] = bench_segments(work / "segments", args.segment_sizes,
