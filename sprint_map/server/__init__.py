@@ -11,6 +11,7 @@ writer.py     CommitWriter: the single writer thread; commits acknowledged once 
 gate.py       MapGate: readers-writer lock between frames and a commit's critical section
 payloads.py   JSON descriptor / image bytes -> one descriptor row, 4xx for bad input
 metrics.py    Prometheus text format
+heap.py       the start-up heap frozen out of the GC (serve), GC pauses timed
 auth.py       bearer token; no token, loopback only
 run.py        serve_map(): open the map, bind, run uvicorn, graceful shutdown
 ```

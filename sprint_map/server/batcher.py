@@ -18,16 +18,23 @@ ids and distances, bit for bit, whatever else is in its batch
 between the search and the steps. A session has at most one frame in a batch (its frames run
 one at a time, under its lock), so its frames keep their order.
 
+Answers go back to the event loop in bulk (:class:`Outbox`): a frame's answer is put in the
+outbox, and the loop is woken (``call_soon_threadsafe``, a write to its self-pipe) only if no
+wake-up is already pending; the loop then resolves every answer that is ready. One wake-up per
+batch, or a few, instead of one per frame: each costs the loop a GIL hand-off from the batcher
+(up to the interpreter's 5 ms switch interval while the batcher steps HMMs), and it is the
+event loop that sends the answers.
+
 Cost per batch: one search of B rows, then B HMM steps (Python, serial: the GIL would
 serialise them anyway).
 """
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import threading
 import time
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +46,7 @@ from sprint_map.server.errors import ApiError, from_library
 from sprint_map.server.gate import MapGate
 from sprint_map.server.sessions import Session
 
-__all__ = ["BatchStats", "FrameBatcher", "Pending"]
+__all__ = ["BatchStats", "FrameBatcher", "Outbox", "Pending"]
 
 #: A frame's answer: the decision, and its (retrieval ms share, HMM ms).
 Answer = tuple[FrameDecision, tuple[float, float]]
@@ -47,13 +54,54 @@ Answer = tuple[FrameDecision, tuple[float, float]]
 
 @dataclass
 class Pending:
-    """One frame waiting for its batch."""
+    """One frame waiting for its batch; ``future`` belongs to the event loop that sent it."""
 
     session: Session
     row: np.ndarray
     position: tuple[float, ...] | None
-    future: Future[Answer] = field(default_factory=Future)
+    future: asyncio.Future[Answer]
     arrived: float = field(default_factory=time.perf_counter)
+
+
+class Outbox:
+    """Answers on their way from the batcher thread to the event loops that wait for them.
+
+    :meth:`post` (any thread) queues an answer or an error, and wakes the future's loop only if
+    no wake-up of that loop is pending; the woken loop resolves everything queued for it by
+    then (a future already cancelled is left alone). Thread-safe.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._ready: dict[asyncio.AbstractEventLoop,
+                          list[tuple[asyncio.Future[Answer], Answer | BaseException]]] = {}
+
+    def post(self, future: asyncio.Future[Answer], outcome: Answer | BaseException) -> None:
+        """Queue ``outcome`` (an answer, or the exception to raise) for ``future``. O(1)."""
+        loop = future.get_loop()
+        with self._lock:
+            waiting = self._ready.get(loop)
+            if waiting is not None:  # a wake-up of that loop is pending: it will take this too
+                waiting.append((future, outcome))
+                return
+            self._ready[loop] = [(future, outcome)]
+        try:
+            loop.call_soon_threadsafe(self._deliver, loop)
+        except RuntimeError:  # the loop is closed: nobody waits for these any more
+            with self._lock:
+                self._ready.pop(loop, None)
+
+    def _deliver(self, loop: asyncio.AbstractEventLoop) -> None:
+        """In ``loop``: resolve every future queued for it. O(answers)."""
+        with self._lock:
+            ready = self._ready.pop(loop, [])
+        for future, outcome in ready:
+            if future.done():  # its request was cancelled
+                continue
+            if isinstance(outcome, BaseException):
+                future.set_exception(outcome)
+            else:
+                future.set_result(outcome)
 
 
 @dataclass
@@ -93,6 +141,7 @@ class FrameBatcher:
         self.max_frames = max_frames
         self.search_threads = search_threads
         self.stats = BatchStats()
+        self.outbox = Outbox()
         self._queue: collections.deque[Pending] = collections.deque()
         self._cond = threading.Condition()
         self._stopping = False
@@ -117,10 +166,12 @@ class FrameBatcher:
             self._thread.join()
 
     def submit(self, session: Session, row: np.ndarray,
-               position: tuple[float, ...] | None = None) -> Future[Answer]:
+               position: tuple[float, ...] | None = None) -> asyncio.Future[Answer]:
         """Queue one frame (a validated ``(dim,)`` float32 row); its future gets the answer
-        or the error (an :class:`ApiError`)."""
-        pending = Pending(session, np.asarray(row, dtype=np.float32).reshape(-1), position)
+        or the error (an :class:`ApiError`). Called in an event loop: the future is of that
+        loop."""
+        pending = Pending(session, np.asarray(row, dtype=np.float32).reshape(-1), position,
+                          asyncio.get_running_loop().create_future())
         with self._cond:
             if self._stopping:
                 raise ApiError(503, "shutting_down", "the server is shutting down")
@@ -157,6 +208,7 @@ class FrameBatcher:
         self.stats.batches += 1
         self.stats.frames += len(batch)
         self.stats.last_size = len(batch)
+        answered = 0
         try:
             with self.gate.shared():
                 start = time.perf_counter()
@@ -164,24 +216,24 @@ class FrameBatcher:
                 share = (time.perf_counter() - start) * 1e3 / len(batch)
                 for i, pending in enumerate(batch):
                     self._step(pending, ids[i], dists[i], share)
-        except BaseException as exc:  # the search failed: every frame of the batch gets it
+                    answered = i + 1
+        except BaseException as exc:  # the search failed: the frames not answered get it
             err = from_library(exc) if isinstance(exc, SprintMapError) else exc
-            for pending in batch:
-                if not pending.future.done():
-                    pending.future.set_exception(err)
+            for pending in batch[answered:]:
+                self.outbox.post(pending.future, err)
             if not isinstance(exc, Exception):
                 raise
 
-    @staticmethod
-    def _step(pending: Pending, ids: np.ndarray, dists: np.ndarray, share: float) -> None:
+    def _step(self, pending: Pending, ids: np.ndarray, dists: np.ndarray, share: float
+              ) -> None:
         try:
             decision = pending.session.step(pending.row, pending.position,
                                             hits=(ids, dists, share))
         except SprintMapError as exc:
-            pending.future.set_exception(from_library(exc))
+            self.outbox.post(pending.future, from_library(exc))
             return
         except Exception as exc:  # noqa: BLE001 - handed to the request, which answers it
-            pending.future.set_exception(exc)
+            self.outbox.post(pending.future, exc)
             return
         timing = pending.session.localizer.timing
-        pending.future.set_result((decision, (share, timing.hmm_ms[-1])))
+        self.outbox.post(pending.future, (decision, (share, timing.hmm_ms[-1])))

@@ -13,7 +13,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from typing import TypeVar
 
-__all__ = ["Counter", "Gauge", "Histogram", "LATENCY_BUCKETS", "Labels", "Metrics"]
+__all__ = ["Counter", "Gauge", "Histogram", "HistogramView", "LATENCY_BUCKETS", "Labels",
+           "Metrics"]
 
 #: Latency buckets in seconds (0.5 ms .. 10 s).
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0,
@@ -123,16 +124,39 @@ class Histogram(_Metric):
     def render(self) -> list[str]:
         with self._lock:
             items = sorted((k, list(v)) for k, v in self._series.items())
-        lines = self.header()
-        for key, series in items:
-            running = 0.0
-            for bound, n in zip(self.buckets + (math.inf,), series[:-1], strict=True):
-                running += n
-                lines.append(f"{self.name}_bucket{_labels(key, [('le', _num(bound))])} "
-                             f"{_num(running)}")
-            lines.append(f"{self.name}_sum{_labels(key)} {repr(series[-1])}")
-            lines.append(f"{self.name}_count{_labels(key)} {_num(running)}")
-        return lines
+        return self.header() + _histogram_lines(self.name, self.buckets, items)
+
+
+class HistogramView(_Metric):
+    """A histogram whose series another object keeps and ``read`` returns at render time:
+    ``{labels: [count per bucket..., count above the last, sum]}`` (as :class:`Histogram`
+    keeps them). For counts kept where taking a lock could deadlock, e.g. inside the garbage
+    collector's callbacks (:class:`sprint_map.server.heap.GcPauses`)."""
+
+    kind = "histogram"
+
+    def __init__(self, name: str, help_text: str, buckets: tuple[float, ...],
+                 read: Callable[[], dict[Labels, list[float]]]) -> None:
+        super().__init__(name, help_text)
+        self.buckets = tuple(buckets)
+        self._read = read
+
+    def render(self) -> list[str]:
+        items = sorted((k, list(v)) for k, v in self._read().items())
+        return self.header() + _histogram_lines(self.name, self.buckets, items)
+
+
+def _histogram_lines(name: str, buckets: tuple[float, ...],
+                     items: list[tuple[Labels, list[float]]]) -> list[str]:
+    lines = []
+    for key, series in items:
+        running = 0.0
+        for bound, n in zip(buckets + (math.inf,), series[:-1], strict=True):
+            running += n
+            lines.append(f"{name}_bucket{_labels(key, [('le', _num(bound))])} {_num(running)}")
+        lines.append(f"{name}_sum{_labels(key)} {repr(series[-1])}")
+        lines.append(f"{name}_count{_labels(key)} {_num(running)}")
+    return lines
 
 
 class Metrics:
@@ -173,6 +197,11 @@ class Metrics:
     def gauge(self, name: str, help_text: str, read: Callable[[], float]) -> None:
         """Register a gauge read at render time."""
         self._add(Gauge(name, help_text, read))
+
+    def histogram_view(self, name: str, help_text: str, buckets: tuple[float, ...],
+                       read: Callable[[], dict[Labels, list[float]]]) -> None:
+        """Register a histogram whose series ``read`` returns at render time."""
+        self._add(HistogramView(name, help_text, buckets, read))
 
     def render(self) -> str:
         lines: list[str] = []

@@ -100,7 +100,9 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
         sock.close()
         smap.close()
         raise
-    service = LocalisationService(smap, config, localizers=pool.localizer if pool else None)
+    # This process is the server: its start-up heap is frozen once ready (server/heap.py).
+    service = LocalisationService(smap, config, localizers=pool.localizer if pool else None,
+                                  settle_heap=True)
     app = create_app(service, token, extensions)
     # The connection limits uvicorn's httptools protocol lacks (header deadline and size, a
     # connection limit that never refuses /healthz): see server/guard.py. The token and the

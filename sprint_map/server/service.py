@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import time
 from collections.abc import Callable
@@ -26,6 +27,7 @@ from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig
 from sprint_map.server.errors import ApiError, busy, from_library, unknown_session
 from sprint_map.server.gate import MapGate
+from sprint_map.server.heap import GcPauses, settle
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.payloads import (
     JSON_TYPES,
@@ -61,11 +63,17 @@ class LocalisationService:
         A map open for writing; the service closes it on :meth:`shutdown` if ``owns_map``.
     config : ServerConfig
         Limits and settings.
+    settle_heap : bool
+        Once started, freeze the process's heap out of the garbage collector's later
+        collections (:func:`sprint_map.server.heap.settle`): for a process that is the server
+        (``sprint-map serve``), not one that creates services in passing (tests).
     """
 
     def __init__(self, smap: SprintMap, config: ServerConfig, *, owns_map: bool = True,
-                 localizers: Callable[[], Any] | None = None) -> None:
+                 localizers: Callable[[], Any] | None = None,
+                 settle_heap: bool = False) -> None:
         self.map = smap
+        self.settle_heap = settle_heap
         #: Makes each session's localiser (default: in this process; ``serve --ray``: a proxy
         #: of one in a Ray replica, see sprint_map/fleet/replicas.py).
         self.localizers = localizers
@@ -105,6 +113,13 @@ class LocalisationService:
                 lambda: self.batcher.stats.batches if self.batcher else 0)
         m.gauge("sprint_map_frame_batch_size", "Frames in the latest batched search.",
                 lambda: self.batcher.stats.last_size if self.batcher else 0)
+        #: The garbage collector's pauses (every frame in flight waits for one).
+        self.gc_pauses = GcPauses()
+        m.histogram_view("sprint_map_gc_pause_seconds", "Garbage collector pauses, by "
+                         "generation (frames in flight wait for them).",
+                         self.gc_pauses.buckets, self.gc_pauses.series)
+        m.gauge("sprint_map_gc_frozen_objects", "Objects frozen out of the garbage collector "
+                "once started (serve: the start-up heap).", gc.get_freeze_count)
         m.gauge("sprint_map_map_vertices", "Vertices in the map.",
                 lambda: self._stats().get("vertices", 0))
         m.gauge("sprint_map_map_sequences", "Sequences in the map.",
@@ -119,6 +134,9 @@ class LocalisationService:
         if self.batcher is not None:
             self.batcher.start()
         self._expiry = asyncio.create_task(self._expire_loop())
+        self.gc_pauses.install()
+        if self.settle_heap:  # after the index load: what start-up made stays frozen
+            settle()
         self.ready = True
 
     def _warm(self) -> None:
@@ -153,6 +171,7 @@ class LocalisationService:
             self.metrics.commits.inc(result="ok")
             self.metrics.edges.inc(outcome.added.edges_added)
         await anyio.to_thread.run_sync(self._close)
+        self.gc_pauses.uninstall()
 
     def _close(self) -> None:
         if self.batcher is not None:
@@ -285,7 +304,7 @@ class LocalisationService:
         else:  # JSON parsing, image decoding and description: in a worker
             row, position = await anyio.to_thread.run_sync(self._decode, payload, body,
                                                            limiter=self._limiter)
-        return await asyncio.wrap_future(self.batcher.submit(session, row, position))
+        return await self.batcher.submit(session, row, position)
 
     def _decode(self, payload: str, body: bytes
                 ) -> tuple[np.ndarray, tuple[float, ...] | None]:
