@@ -1,12 +1,25 @@
-"""Several drives in one ingest: each its own sequence, localised and committed in order.
+"""Several drives in one ingest: each its own sequence, committed in order, in groups.
 
 ``sprint-map ingest MAP A B C`` (and :meth:`sprint_map.map.SprintMap.ingest_drives`) ingests
 drive A, then B against the map that now holds A, then C against A and B: the result equals
-three ``ingest`` commands in the same order (same sequences, same edges, same components). Each
-drive is its own atomic commit; what the drives of a *group* share is the durability cost
-(:meth:`sprint_map.storage.store.MapStore.group_commit`): the per-batch fsyncs of a lone drive
-become one fsync of its rows, and the LMDB meta page and the index are made durable once per
-group. A crash between two drives leaves the earlier ones committed and the later ones absent.
+three ``ingest`` commands in the same order (same sequences, same edges, same components).
+Drives are committed in groups of ``group_drives``, and what a group shares depends on whether
+its drives must see each other:
+
+- **Appended** (``merge=False``, ``--no-merge``: no drive is localised, so none needs the
+  previous one committed): a real group commit
+  (:class:`sprint_map.storage.group_writer.GroupWriter`). Every drive's rows are written, each
+  drive validated as it is added, then the shard files are fsynced once and the group's drives
+  are recorded in ONE LMDB transaction: the fixed cost of a commit is paid once per group.
+  Each drive is still atomic (the transaction holds whole drives only); a kill before the
+  commit point leaves none of the group, after it all of it.
+- **Localised** (``merge=True``): each drive is localised against the map holding the earlier
+  ones, so each is its own commit (rows fsynced once, then its LMDB transaction), and the group
+  shares the index persist (:meth:`sprint_map.storage.store.MapStore.group_commit`).
+
+Either way a drive that fails stops the ingest with the drives before it committed (an
+appended group commits the drives added before the failing one, then raises), and
+``on_committed`` reports each group once it is durable.
 """
 
 from __future__ import annotations
@@ -26,8 +39,9 @@ from sprint_map.storage.crash import crash_point
 if TYPE_CHECKING:
     from sprint_map.commit import IngestResult
     from sprint_map.localizer import Localizer
+    from sprint_map.storage.group_writer import GroupWriter
 
-__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "ingest_drives"]
+__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "append_group", "ingest_drives"]
 
 #: Drives whose durability (fsyncs) is paid together, by default.
 DEFAULT_GROUP_DRIVES = 16
@@ -69,6 +83,8 @@ class IngestingMap(Protocol):
 
     def group_commit(self) -> AbstractContextManager[None]: ...
 
+    def begin_group(self) -> GroupWriter: ...
+
 
 def ingest_drives(
     smap: IngestingMap,
@@ -103,9 +119,10 @@ def ingest_drives(
 
     Notes
     -----
-    Each drive costs what :meth:`SprintMap.ingest` costs, less the fsyncs the group shares:
-    per drive one fsync of its rows and one of the LMDB pages, per group one of the LMDB meta
-    page (and an index persist, when due).
+    Localised, each drive costs what :meth:`SprintMap.ingest` costs (one fsync of its rows and
+    LMDB's commit each), the index persisted once per group when due. Appended, a group costs
+    O(N * dim) per drive to validate, hash and write its rows, then one fsync per shard file
+    written and one LMDB commit for the whole group.
     """
     if group_drives < 1:
         raise InputError(f"group_drives must be >= 1, got {group_drives}")
@@ -119,15 +136,52 @@ def ingest_drives(
         group: list[IngestResult] = []
         try:
             with smap.group_commit():
-                for i, drive in enumerate(drives[start : start + group_drives]):
-                    if i:
-                        crash_point("group.between_drives")
-                    group.append(smap.ingest(drive.descriptors, name=drive.name,
-                                             positions=drive.positions, merge=merge, hmm=hmm,
-                                             source=drive.source, observe=observe,
-                                             thumbnails=drive.thumbnails))
+                if merge:
+                    for i, drive in enumerate(drives[start : start + group_drives]):
+                        if i:
+                            crash_point("group.between_drives")
+                        group.append(smap.ingest(drive.descriptors, name=drive.name,
+                                                 positions=drive.positions, merge=merge,
+                                                 hmm=hmm, source=drive.source,
+                                                 observe=observe,
+                                                 thumbnails=drive.thumbnails))
+                else:
+                    append_group(smap, drives[start : start + group_drives], group)
         finally:  # the drives committed before a failure are reported too
             results.extend(group)
             if on_committed is not None and group:
                 on_committed(group)
     return results
+
+
+def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestResult]) -> None:
+    """Append ``drives`` without localisation in one group commit; their results go to ``out``.
+
+    Each drive's rows are written and its records validated in turn
+    (:meth:`GroupWriter.add <sprint_map.storage.group_writer.GroupWriter.add>`); then one
+    fsync of the rows and one LMDB transaction commit them all. A drive that fails is left
+    out (its rows truncated): the drives before it are committed, then its error is raised.
+
+    Notes
+    -----
+    O(N * dim) per drive of N frames, plus one fsync per shard file written and one LMDB
+    commit for the whole group.
+    """
+    from sprint_map.commit import IngestResult
+    from sprint_map.localizer import Timing
+
+    failure: Exception | None = None
+    with smap.begin_group() as writer:
+        for i, drive in enumerate(drives):
+            if i:
+                crash_point("group.between_drives")
+            try:
+                writer.add(drive.descriptors, drive.name, drive.source, drive.positions,
+                           thumbnails=drive.thumbnails)
+            except Exception as exc:  # the drives before it are still committed
+                failure = exc
+                break
+        added = writer.commit()
+    out.extend(IngestResult(a, [], Timing()) for a in added)
+    if failure is not None:
+        raise failure

@@ -31,6 +31,7 @@ from sprint_map.errors import (
 )
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge_rule import select_merges
+from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.provenance import edge_table, list_edges
 from sprint_map.storage.records import (
     AddResult,
@@ -116,10 +117,17 @@ class SprintMap:
         self.store.flush()
 
     def group_commit(self) -> AbstractContextManager[None]:
-        """Commit several drives as a group: each is still its own atomic, durable commit, but
-        the index is persisted once, at the end (see
+        """Commit several localised drives as a group: each is still its own atomic, durable
+        commit, but the index is persisted once, at the end (see
         :meth:`sprint_map.storage.store.MapStore.group_commit`)."""
         return self.store.group_commit()
+
+    def begin_group(self) -> GroupWriter:
+        """Start a group of drives appended as they are (no localisation) and committed
+        together: one fsync of their rows, one LMDB transaction, each drive whole or absent
+        (see :mod:`sprint_map.storage.group_writer`; ``ingest_drives`` with ``merge=False``
+        uses it)."""
+        return self.store.begin_group()
 
     def __enter__(self) -> SprintMap:
         return self
@@ -298,9 +306,10 @@ class SprintMap:
         on_committed: Callable[[list[IngestResult]], Any] | None = None,
         observe: Callable[[Localizer], None] | None = None,
     ) -> list[IngestResult]:
-        """Ingest several drives in order, each its own sequence and atomic commit, as
-        :meth:`ingest` one after the other would (each localised against the map holding the
-        earlier ones), committed in groups of ``group_drives``.
+        """Ingest several drives in order, each its own sequence, as :meth:`ingest` one after
+        the other would (each localised against the map holding the earlier ones), committed
+        in groups of ``group_drives`` (appended with ``merge=False``: one transaction a group,
+        each drive whole or absent).
 
         See :func:`sprint_map.drives.ingest_drives` (errors, costs, ``on_committed``).
         """

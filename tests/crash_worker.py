@@ -13,7 +13,8 @@ Run as a script it is the child side (never imported by pytest as a test module)
         Try to open MAP for writing; print JSON ``{"error", "message", "seconds"}``.
     crash_worker.py zygote
         A fork server: imports everything once, then for each JSON line on stdin
-        ``{"op": "spawn", "ack": FILE, ...}`` forks a child that runs ``write`` (the default)
+        ``{"op": "spawn", "ack": FILE, ...}`` forks a child that runs ``write`` (the default;
+        ``"groups": true`` commits some sequences in groups, :func:`group_of`)
         or, with ``"mode": "repair"``, ``check --repair`` (``"remove"`` with ``"seqs"``:
         ``remove``; ``"unmerge"`` with ``"seq"``: ``unmerge``; ``"compact"``: ``compact``),
         with ``SPRINT_MAP_CRASH_AT`` set to ``"crash_at"`` if given; the child appends
@@ -141,20 +142,56 @@ def add_planned(store: MapStore, seed: int, index: int, length: int | None = Non
     assert result.sequence.seq_id == index
 
 
+#: Writers that commit groups (``"groups": true``) add sequences ``6j+3 .. 6j+5`` as one group
+#: (``MapStore.begin_group``: one fsync, one transaction), the others one at a time.
+GROUP_PERIOD, GROUP_START = 6, 3
+
+
+def group_of(index: int) -> range:
+    """The sequences a group-committing writer commits together with sequence ``index``."""
+    start = index - index % GROUP_PERIOD + GROUP_START
+    return range(start, start + GROUP_PERIOD - GROUP_START) if index >= start else \
+        range(index, index + 1)
+
+
+def add_planned_group(store: MapStore, seed: int, indices: range,
+                      length: int | None = None) -> None:
+    """Add sequences ``indices`` of stream ``seed`` in one group commit (every third streamed
+    in batches, as :func:`add_planned` does; their edges may reach earlier sequences of the
+    group). The same content as adding them one by one."""
+    with store.begin_group() as group:
+        for index in indices:
+            plan = planned_sequence(seed, index, store.config.dim, length)
+            rows = plan.descriptors
+            if index % 3 == 1:
+                rows = (plan.descriptors[i : i + STREAM_BATCH]
+                        for i in range(0, len(plan.descriptors), STREAM_BATCH))
+            group.add(rows, plan.name, "", plan.positions, plan.edges, plan.thumbnails)
+        results = group.commit()
+    assert [r.sequence.seq_id for r in results] == list(indices)
+
+
 # --- child side --------------------------------------------------------------------------------
 
 
 def write(path: str, seed: int, count: int | None, length: int | None,
-          emit: Callable[[str], None]) -> None:
-    """Add planned sequences to the map at ``path``, acknowledging each with ``emit``."""
+          emit: Callable[[str], None], groups: bool = False) -> None:
+    """Add planned sequences to the map at ``path``, acknowledging each with ``emit`` (with
+    ``groups``, a group's sequences once the group is committed)."""
     with MapStore.open(path) as store:
         emit("ready")
         start = store.stats()["sequences"]
         index = start
         while count is None or index < start + count:
-            add_planned(store, seed, index, length)
-            emit(f"ack {index}")
-            index += 1
+            block = group_of(index) if groups else range(index, index + 1)
+            assert block.start == index, f"the map ends inside group {block}"
+            if len(block) > 1:
+                add_planned_group(store, seed, block, length)
+            else:
+                add_planned(store, seed, index, length)
+            for i in block:
+                emit(f"ack {i}")
+            index = block.stop
     emit("done")
 
 
@@ -242,7 +279,7 @@ def _child(request: dict[str, Any]) -> None:
             unmerge(request["map"], request["seq"], emit)
         else:
             write(request["map"], request["seed"], request.get("count"), request.get("length"),
-                  emit)
+                  emit, request.get("groups", False))
     except BaseException:
         traceback.print_exc()
         status = 1
@@ -346,8 +383,10 @@ def expected_components(seed: int, n: int, dim: int, length: int | None
     return {frozenset(c) for c in nx.connected_components(graph)}
 
 
-def verify(path: Path, seed: int, acked: set[int], length: int | None = None) -> CheckReport:
-    """Open read-only and assert the map holds exactly a prefix of the worker stream.
+def verify(path: Path, seed: int, acked: set[int], length: int | None = None, *,
+           groups: bool = False) -> CheckReport:
+    """Open read-only and assert the map holds exactly a prefix of the worker stream (with
+    ``groups``, one that ends with a whole group: :func:`group_of`).
 
     Every acknowledged sequence is there; every sequence there is whole and bit for bit the
     planned one (descriptors, positions, thumbnails, edges with their provenance); the
@@ -361,6 +400,8 @@ def verify(path: Path, seed: int, acked: set[int], length: int | None = None) ->
         records = store.sequences()
         n = len(records)
         assert acked <= set(range(n)), f"acknowledged {sorted(acked - set(range(n)))} missing"
+        if groups and n:
+            assert group_of(n - 1).stop == n, f"{n} sequences: a group committed in part"
         plans = [planned(seed, i, dim, length) for i in range(n)]
         first = np.cumsum([0] + [len(p.descriptors) for p in plans]).tolist()
         for i, (rec, plan) in enumerate(zip(records, plans, strict=True)):
@@ -441,6 +482,7 @@ class KillStats:
     sequences_committed: int = 0  # distinct sequences in the maps at the end
     vertices_committed: int = 0
     killed_before_ready: int = 0  # during fork, open and recovery
+    killed_inside_group: int = 0  # rows of a group written, its transaction not committed
     partial_index_left: int = 0
     uncommitted_rows_left: int = 0
     recovered_by_open: int = 0
@@ -457,7 +499,8 @@ def kill_loop(root: Path, zygote: Zygote, kills: int, seed: int, *, kills_per_ma
               progress: Callable[[KillStats], None] | None = None) -> KillStats:
     """SIGKILL writers at random instants, ``kills`` times; verify the map after every kill.
 
-    A writer (forked by ``zygote``) opens the map and adds the stream of ``seed``; it is killed
+    A writer (forked by ``zygote``) opens the map and adds the stream of ``seed`` (alone, or three
+    sequences in one group commit: :func:`group_of`); it is killed
     after a random delay (15 % of the kills land before it is ready: during open and recovery;
     the others up to ``max_wait`` s after). After each kill: the map opened read-only holds
     every acknowledged sequence bit for bit, nothing else but whole sequences of the stream, the
@@ -497,7 +540,7 @@ def _one_map(path: Path, zygote: Zygote, kills: int, seed: int, rng: np.random.G
     try:
         for _ in range(kills):
             acks.unlink(missing_ok=True)
-            pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks))
+            pid = zygote.spawn(map=str(path), seed=seed, ack=str(acks), groups=True)
             if rng.random() < 0.15:
                 time.sleep(rng.uniform(0, 0.004))
             else:
@@ -509,11 +552,13 @@ def _one_map(path: Path, zygote: Zygote, kills: int, seed: int, rng: np.random.G
             stats.kills += 1
             stats.killed_before_ready += "ready" not in read_lines(acks)
             acked |= read_acks(acks)
-            report = verify(path, seed, acked)
+            report = verify(path, seed, acked, groups=True)
             assert_ok_but_partials(report)
             stats.sequences_verified += len(acked)
             stats.partial_index_left += bool(report.violations)
-            stats.uncommitted_rows_left += any("uncommitted" in n for n in report.notes)
+            tail = any("uncommitted" in n for n in report.notes)
+            stats.uncommitted_rows_left += tail
+            stats.killed_inside_group += tail and len(group_of(report.checked["sequences"])) > 1
             if stats.kills % 2:  # what the next writer's open does
                 with MapStore.open(path) as store:
                     stats.recovered_by_open += bool(store.recovery)
@@ -529,12 +574,12 @@ def _one_map(path: Path, zygote: Zygote, kills: int, seed: int, rng: np.random.G
 
         # A last writer runs to completion: the stream continues, the map repaired itself.
         acks.unlink(missing_ok=True)
-        status = zygote.run(map=str(path), seed=seed, ack=str(acks), count=5)
+        status = zygote.run(map=str(path), seed=seed, ack=str(acks), count=5, groups=True)
         assert status == {"signal": None, "code": 0}, zygote.log.read_text()
         assert "done" in read_lines(acks)
         before = len(acked)
         acked |= read_acks(acks)
-        report = verify(path, seed, acked)
+        report = verify(path, seed, acked, groups=True)
         assert report.ok, report.violations
         assert len(acked) >= before + 5
         assert_search_finds_everything(path)

@@ -8,8 +8,8 @@ Usage::
 
 The random-kill loop of ``tests/test_crash.py`` (``kill_loop`` in ``tests/crash_worker.py``),
 at soak size. Writers are forked from a warmed-up zygote process; each opens a map and adds a
-deterministic stream of sequences (one-shot and streamed adds, with edges that merge
-components) and is killed after a random delay (some during open and recovery). After every
+deterministic stream of sequences (one-shot and streamed adds, and groups of three committed
+in one transaction as ``ingest A B C --no-merge`` does, with edges that merge components) and is killed after a random delay (some during open and recovery). After every
 kill the map is opened read-only and must hold every acknowledged sequence bit for bit, whole
 sequences only, the components of its edges and pass ``check`` (but for a partial index
 file); then a writable open or ``check --repair`` (alternately) must leave it passing ``check``

@@ -23,9 +23,13 @@ ADD_POINTS = (
     "add.before_commit",  # inside the LMDB write transaction, before it commits
     "add.committed",  # LMDB committed, in-memory index not yet updated
 )
-#: Several drives in one ingest (``SprintMap.ingest_drives``, ``sprint-map ingest A B ...``).
+#: Several drives in one ingest (``SprintMap.ingest_drives``, ``sprint-map ingest A B ...``);
+#: the last three are the group commit of appended drives (``storage/group_writer.py``).
 GROUP_POINTS = (
-    "group.between_drives",  # a drive of the group committed, the next one not yet begun
+    "group.between_drives",  # localised: a drive committed; appended: a drive's rows written
+    "group.rows_written",  # every row of the group written and fsynced, no transaction yet
+    "group.before_commit",  # inside the group's one LMDB transaction, every drive written
+    "group.committed",  # the group's transaction committed, the index not yet caught up
 )
 #: Persisting the index (periodically while adding, on flush and close, in repair).
 INDEX_POINTS = (

@@ -24,6 +24,7 @@ import hashlib
 import math
 import time
 from collections.abc import Callable, Container, Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import lmdb
@@ -52,8 +53,8 @@ from sprint_map.validation import (
     validate_positions,
 )
 
-__all__ = ["ResolvedEdge", "SequenceWriter", "WritableMap", "default_name", "resolve_edge",
-           "write_sequence"]
+__all__ = ["ResolvedEdge", "SequenceWriter", "StagedSequence", "WritableMap", "default_name",
+           "resolve_edge", "write_sequence", "write_staged"]
 
 #: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
 ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
@@ -87,9 +88,9 @@ class WritableMap(Protocol):
 
     def require_writer(self) -> None: ...
 
-    def start_writing(self, writer: SequenceWriter) -> None: ...
+    def start_writing(self, writer: object) -> None: ...
 
-    def end_writing(self, writer: SequenceWriter) -> None: ...
+    def end_writing(self, writer: object) -> None: ...
 
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
 
@@ -119,6 +120,22 @@ def default_name(seq_id: int, taken: Callable[[str], bool]) -> str:
     return name
 
 
+@dataclass(frozen=True)
+class StagedSequence:
+    """A sequence whose rows are written (not yet fsynced) and whose records are validated:
+    what its LMDB transaction writes (:func:`write_staged`). Made by
+    :meth:`SequenceWriter.stage`."""
+
+    record: SequenceRecord
+    #: BLAKE2b of the rows (the ``digests`` database)
+    digest: bytes
+    #: committed rows per shard once it is in
+    lengths: dict[int, int]
+    positions: np.ndarray | None
+    edges: list[ResolvedEdge]
+    thumbnails: list[bytes] | None
+
+
 class SequenceWriter:
     """Writes one new sequence into ``store``; use as a context manager.
 
@@ -135,23 +152,38 @@ class SequenceWriter:
         Free text recording where the sequence came from.
     reserved : container of str
         Names a default must also avoid (e.g. the service's sessions not committed yet).
+    follows : sequence of SequenceRecord, optional
+        Set by a :class:`~sprint_map.storage.group_writer.GroupWriter` only: the records of the
+        sequences of its group staged before this one (uncommitted). This sequence then takes
+        the ids after them, its name must differ from theirs, its edges may reach them, and it
+        is committed by the group (:meth:`stage`, then the group's one transaction), which
+        holds the map's writing slot. None: a lone sequence, committed by :meth:`commit`.
     """
 
     def __init__(self, store: WritableMap, name: str | None = None, source: str = "",
-                 reserved: Container[str] = ()) -> None:
+                 reserved: Container[str] = (),
+                 follows: Sequence[SequenceRecord] | None = None) -> None:
         store.require_writer()
-        if store.writing is not None:
+        if follows is None and store.writing is not None:
             raise SprintMapError("another sequence is already being written to this map")
+        pending = {r.name for r in follows or ()}
         with store.env.read() as txn:
-            self.seq_id = store.counter("next_seq_id", txn)
-            self.first = store.counter("next_vertex_id", txn)
+            if follows:
+                self.seq_id = follows[-1].seq_id + 1
+                self.first = follows[-1].first_vertex + follows[-1].length
+            else:
+                self.seq_id = store.counter("next_seq_id", txn)
+                self.first = store.counter("next_vertex_id", txn)
             names = store.env.db("seq_names")
             if name is None:
-                self.name = default_name(self.seq_id, lambda candidate: candidate in reserved
-                                         or txn.get(candidate.encode(), db=names) is not None)
+                self.name = default_name(
+                    self.seq_id, lambda candidate: candidate in reserved or candidate in pending
+                    or txn.get(candidate.encode(), db=names) is not None)
             else:
                 self.name = name
             validate_name(self.name)
+            if self.name in pending:
+                raise DuplicateNameError(f"two sequences of one group are named {self.name!r}")
             #: (record, digest) of the committed sequence of this name: rows are only hashed
             self.retry_of: tuple[SequenceRecord, bytes] | None = None
             existing = txn.get(self.name.encode(), db=names)
@@ -169,7 +201,11 @@ class SequenceWriter:
         self.frames = 0
         self._lengths: dict[int, int] = {}
         self._done = False
-        store.start_writing(self)
+        #: (first vertex, length) of the group's sequences staged before this one
+        self._pending = {r.seq_id: (r.first_vertex, r.length) for r in follows or ()}
+        self._grouped = follows is not None
+        if not self._grouped:
+            store.start_writing(self)
 
     def __enter__(self) -> SequenceWriter:
         return self
@@ -185,7 +221,8 @@ class SequenceWriter:
                 ) -> tuple[np.ndarray | None, list[ResolvedEdge]]:
         """Validate positions and edges for a sequence of ``frames`` frames (writes nothing)."""
         pos = validate_positions(positions, frames)
-        lengths: dict[int, tuple[int, int]] = {}  # one sequence read per distinct sequence
+        # one sequence read per distinct sequence; a group's staged ones are known already
+        lengths: dict[int, tuple[int, int]] = dict(self._pending)
         with self.store.env.read() as txn:
             resolved = [
                 resolve_edge(self.store, e, self.seq_id, self.first, frames, txn, lengths)
@@ -213,6 +250,44 @@ class SequenceWriter:
             raise
         self.frames += len(arr)
 
+    def stage(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
+              thumbnails: Sequence[bytes] | None = None) -> StagedSequence | AddResult:
+        """Validate the sequence's records and make it ready for its transaction; no more rows.
+
+        Returns what the transaction writes (:func:`write_staged`, after the rows are fsynced:
+        :meth:`commit` does both, a group does them once for all its sequences), or, for a
+        retry of a sequence committed under this name with these very rows, its
+        ``AddResult`` (``already_committed``: nothing to write). Once staged, the rows are the
+        committer's to keep or truncate; this writer no longer drops them on exit.
+
+        Raises
+        ------
+        EmptySequenceError
+            If no row was appended. Any error aborts the sequence (its rows are dropped).
+        InputError
+            Bad positions or edges, or thumbnails not one per frame, or not JPEG bytes.
+        DuplicateNameError
+            A retry whose rows are not the committed sequence's.
+        """
+        try:
+            if self._done:
+                raise SprintMapError("the sequence was already committed or aborted")
+            if self.frames == 0:
+                raise EmptySequenceError("the sequence has no frames")
+            digest = self._hash.digest()
+            if self.retry_of is not None:
+                return self._finish_retry(digest)
+            pos, resolved = self.prepare(positions, edges, self.frames)
+            thumbs = (None if thumbnails is None
+                      else validate_thumbnails(thumbnails, self.frames))
+            record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
+                                    self.source)
+        except BaseException:
+            self._rollback_after_error()
+            raise
+        self._done = True
+        return StagedSequence(record, digest, dict(self._lengths), pos, resolved, thumbs)
+
     def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
                thumbnails: Sequence[bytes] | None = None) -> AddResult:
         """Record the sequence with its positions, edges and thumbnails in one LMDB transaction.
@@ -227,33 +302,24 @@ class SequenceWriter:
             If no row was appended. Any error aborts the sequence (nothing is committed).
         InputError
             Thumbnails not one per frame, or not JPEG bytes.
+        SprintMapError
+            A sequence of a group (its group commits it).
         """
+        if self._grouped:
+            raise SprintMapError("a sequence of a group is committed by its group")
+        staged = self.stage(positions, edges, thumbnails)
+        if isinstance(staged, AddResult):
+            return staged
+        record = staged.record
         try:
-            if self.frames == 0:
-                raise EmptySequenceError("the sequence has no frames")
-            digest = self._hash.digest()
-            if self.retry_of is not None:
-                return self._finish_retry(digest)
-            pos, resolved = self.prepare(positions, edges, self.frames)
-            thumbs = (None if thumbnails is None
-                      else validate_thumbnails(thumbnails, self.frames))
-            record = SequenceRecord(self.seq_id, self.name, self.frames, self.first, time.time(),
-                                    self.source)
             self.store.shards.sync()  # the rows are durable before the commit that counts them
             crash_point("add.shards_written")
-
-            def body(txn: Any) -> tuple[int, int]:
-                txn.put(u32(record.seq_id), digest, db=self.store.env.db("digests"))
-                if thumbs is not None:
-                    put_thumbnails(txn, self.store.env, record.seq_id, thumbs)
-                    crash_point("add.thumbnails_written")
-                return write_sequence(self.store, txn, record, self._lengths, pos, resolved)
-
-            component, added = self.store.env.write(body)
+            component, added = self.store.env.write(
+                lambda txn: write_staged(self.store, txn, staged))
         except BaseException:
+            self._done = False  # staged, not committed: its rows are still this writer's
             self._rollback_after_error()
             raise
-        self._done = True
         self.store.end_writing(self)
         crash_point("add.committed")
         try:
@@ -276,7 +342,8 @@ class SequenceWriter:
                 f"a sequence named {self.name!r} already exists with other descriptors "
                 f"({record.length} frames; choose another name)")
         self._done = True
-        self.store.end_writing(self)
+        if not self._grouped:
+            self.store.end_writing(self)
         self.store.warnings.append(
             f"sequence {record.name!r} was already committed with these very descriptors (as "
             f"sequence {record.seq_id}): nothing added")
@@ -295,7 +362,8 @@ class SequenceWriter:
         if self._done:
             return
         self._done = True
-        self.store.end_writing(self)
+        if not self._grouped:
+            self.store.end_writing(self)
         if self.retry_of is None:  # a possible retry wrote no row
             self.store.shards.recover(self.first)
 
@@ -345,6 +413,19 @@ def resolve_edge(store: WritableMap, edge: EdgeSpec, new_seq: int, first: int, n
     if not (0 <= edge.weight <= 1 and math.isfinite(edge.weight)):
         raise InputError(f"edge weight must be in [0, 1], got {edge.weight}")
     return src, dst, src_seq, dst_seq, edge
+
+def write_staged(store: WritableMap, txn: lmdb.Transaction, staged: StagedSequence
+                 ) -> tuple[int, int]:
+    """Record a staged sequence in ``txn``: its digest, thumbnails and everything
+    :func:`write_sequence` writes. Returns ``(component, edges added)``. Safe to run again in a
+    new transaction (``LmdbEnv.write`` retries a full map)."""
+    txn.put(u32(staged.record.seq_id), staged.digest, db=store.env.db("digests"))
+    if staged.thumbnails is not None:
+        put_thumbnails(txn, store.env, staged.record.seq_id, staged.thumbnails)
+        crash_point("add.thumbnails_written")
+    return write_sequence(store, txn, staged.record, staged.lengths, staged.positions,
+                          staged.edges)
+
 
 def write_sequence(store: WritableMap, txn: lmdb.Transaction, record: SequenceRecord,
                    lengths: dict[int, int], pos: np.ndarray | None, edges: list[ResolvedEdge]

@@ -103,7 +103,9 @@ class ShardSet:
 
         Only the shard being filled and any created after it can hold uncommitted bytes, so
         this touches O(1) files however large the map is. A shard shorter than its committed
-        length is never extended (that would invent zero rows).
+        length is never extended (that would invent zero rows). ``total_rows`` may also be a
+        row past the committed end (a group dropping one of its sequences): rows before it
+        written by ``append(sync=False)`` are still fsynced by the next :meth:`sync`.
 
         Raises
         ------
@@ -113,10 +115,10 @@ class ShardSet:
             If a file cannot be truncated or removed (the next writer's open tries again).
         """
         actions = []
-        # Rows written since the last sync were never committed: they are cut here.
-        self._unsynced.clear()
-        self._dir_unsynced = False
         shard, rest = divmod(total_rows, self.shard_rows)
+        # Rows past the cut are gone; rows before it written since the last sync (a group's
+        # earlier sequences, when one of its sequences is dropped) still need their fsync.
+        self._unsynced = {s for s in self._unsynced if s < shard or (s == shard and rest)}
         path = self.path(shard)
         if rest:
             problem = self.size_problem(shard, rest)
@@ -139,6 +141,7 @@ class ShardSet:
                 shard += 1
             if actions:
                 atomic.fsync_dir(self.directory)
+                self._dir_unsynced = False  # every entry of the directory is durable now
         except OSError as exc:
             raise StorageIOError(
                 f"cannot roll back descriptor shard {path.name}: {exc.strerror or exc}"

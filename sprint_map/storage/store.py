@@ -49,6 +49,7 @@ from sprint_map.storage.generation import (
     stale_generations,
     unpin,
 )
+from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.index_store import IndexStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
@@ -144,7 +145,7 @@ class MapStore:
         self.recovery: list[str] = []
         #: Problems that lost nothing and failed no operation (e.g. the index cache not saved).
         self.warnings: list[str] = []
-        self._writing: SequenceWriter | None = None
+        self._writing: SequenceWriter | GroupWriter | None = None
         self._grouped = 0  # depth of group_commit blocks
         self._persist_due = False  # an index persist deferred to the end of the group
 
@@ -378,19 +379,22 @@ class MapStore:
         return self._lock
 
     @property
-    def writing(self) -> SequenceWriter | None:
-        """The sequence being written, if any (one at a time per writer)."""
+    def writing(self) -> SequenceWriter | GroupWriter | None:
+        """The sequence (or group of sequences) being written, if any (one at a time per
+        writer)."""
         return self._writing
 
-    def start_writing(self, writer: SequenceWriter) -> None:
-        """Record ``writer`` as the one sequence in progress (:class:`SequenceWriter` calls it
-        once it has checked its name). Raises SprintMapError if another one is."""
+    def start_writing(self, writer: object) -> None:
+        """Record ``writer`` (a :class:`SequenceWriter` or a :class:`GroupWriter`) as the one
+        write in progress (each calls it once it has checked its name). Raises SprintMapError
+        if another one is."""
         self.require_writer()
         if self._writing is not None:
             raise SprintMapError("another sequence is already being written to this map")
+        assert isinstance(writer, SequenceWriter | GroupWriter)
         self._writing = writer
 
-    def end_writing(self, writer: SequenceWriter) -> None:
+    def end_writing(self, writer: object) -> None:
         """``writer`` committed or aborted: another sequence may be written."""
         if self._writing is writer:
             self._writing = None
@@ -697,6 +701,12 @@ class MapStore:
     def begin_sequence(self, name: str | None = None, source: str = "") -> SequenceWriter:
         """Start streaming a new sequence: ``append`` batches, then ``commit`` (atomic)."""
         return SequenceWriter(self, name, source)
+
+    def begin_group(self) -> GroupWriter:
+        """Start a group of new sequences committed together: ``add`` each, then ``commit``
+        (one fsync of their rows, one LMDB transaction; each sequence whole or absent). See
+        :mod:`sprint_map.storage.group_writer`."""
+        return GroupWriter(self)
 
     def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None:
         """The content digest committed with sequence ``seq_id`` (None: written before digests

@@ -2,7 +2,7 @@
 simulated power loss.
 
 Each write operation (``add_sequence`` with edges, a streamed ``ingest`` that localises and merges,
-an index persist) is first run on a copy of a template map with a :class:`CallRecorder` on the
+an index persist, a group commit of appended drives) is first run on a copy of a template map with a :class:`CallRecorder` on the
 file seam (``sprint_map.atomic``) to enumerate its calls; then, on a fresh copy each
 time, the 1st, 2nd, ... call is failed with EIO and with ENOSPC. The oracle is the map's state
 (every sequence, descriptor byte, position, edge, component) before and after a clean run of the
@@ -35,7 +35,7 @@ import pytest
 
 from sprint_map import atomic
 from sprint_map.config import MapConfig
-from sprint_map.errors import StorageIOError
+from sprint_map.errors import InvalidDescriptorError, StorageIOError
 from sprint_map.map import SprintMap
 from sprint_map.storage import sequence_writer
 from sprint_map.storage.check import check_map
@@ -130,8 +130,28 @@ def op_persist(path: Path) -> None:
         store.flush()
 
 
+def add_group(store: MapStore) -> None:
+    """Appended drives in one group commit (``ingest A B C --no-merge``): g (positions, an edge
+    to a), x (its stream fails after its first batch crossed into a new shard file: dropped)
+    and h (streamed, an edge to g, staged in the same group); one fsync, one transaction."""
+    with store.begin_group() as group:
+        group.add(_drive(7, 5), name="g", positions=np.ones((5, 2)),
+                  edges=[EdgeSpec((None, 0), (0, 1), 0.5, 0)])
+        with pytest.raises(InvalidDescriptorError):
+            group.add(iter([_drive(8, 4), np.full((1, DIM), np.nan)]), name="x")
+        g = group.staged[0].seq_id
+        group.add(iter([_drive(9, 3), _drive(10, 2)]), name="h",
+                  edges=[EdgeSpec((None, 4), (g, 0), 0.7, 4)])
+        assert [r.sequence.name for r in group.commit()] == ["g", "h"]
+
+
+def op_group(path: Path) -> None:
+    with MapStore.open(path) as store:
+        add_group(store)
+
+
 OPERATIONS: dict[str, Callable[[Path], None]] = {
-    "add": op_add, "ingest": op_ingest, "persist": op_persist,
+    "add": op_add, "ingest": op_ingest, "persist": op_persist, "group": op_group,
 }
 
 
@@ -418,6 +438,7 @@ def _session_steps() -> list[tuple[str, Callable[[MapStore], None]]]:
                                            edges=[EdgeSpec((1, 0), (None, 1), 0.5, 1)])),
         ("flush", lambda s: s.flush()),
         ("add f (streamed)", _add_streamed),
+        ("group g, h (x dropped)", add_group),
     ]
 
 
