@@ -16,7 +16,8 @@ run, back to back, on the same machine (it may be shared: compare the ratios, no
   channels, ``ShardedIndex``'s default), ``ray`` (one actor call per shard, the old path) and
   ``ray-dag`` (a Ray Compiled Graph over the same actors, for comparison; ``--no-dag`` skips
   it). In-process and fanned-out searches are timed interleaved, round by round; the
-  in-process search runs one OpenMP thread, as each shard does.
+  in-process search runs one OpenMP thread, as each shard does; ``one_shard`` is the largest
+  range searched in process alone (what each shard computes per search).
 * ``segments``: the segmented IVF-PQ index of maps of ``--segment-sizes`` vertices (trained on
   the map, the map's defaults: 1,024 lists, 16 probed, PQ16 after PCA to 128, 100 re-ranked):
   search latency per query, and disk bytes per vertex (shards, index, LMDB).
@@ -159,15 +160,16 @@ def compiled_dag(ray: Any, actors: list[Any], method: str, *args: Any) -> Any:
 def search_rows(vertices: int, batch: int, times: dict[str, list[float]], pings: dict[str, Any],
                 equal: dict[str, bool]) -> list[dict[str, Any]]:
     local_p50, local_p99 = percentiles(times["in-process"])
+    alone = percentiles(times["one-shard"])[0]
     rows = []
     for path, ms in times.items():
-        if path == "in-process":
+        if path in ("in-process", "one-shard"):
             continue
         p50, p99 = percentiles(ms)
         trip = percentiles(pings[path]) if path in pings else (float("nan"),) * 2
         rows.append({"vertices": vertices, "queries": batch, "path": path,
                      "in_process_p50_ms": local_p50, "in_process_p99_ms": local_p99,
-                     "fanned_out_p50_ms": p50, "fanned_out_p99_ms": p99,
+                     "one_shard_p50_ms": alone, "fanned_out_p50_ms": p50, "fanned_out_p99_ms": p99,
                      "overhead_p50_ms": round(p50 - local_p50, 3),
                      "overhead_p99_ms": round(p99 - local_p99, 3),
                      "round_trip_p50_ms": trip[0], "round_trip_p99_ms": trip[1],
@@ -175,8 +177,8 @@ def search_rows(vertices: int, batch: int, times: dict[str, list[float]], pings:
     return rows
 
 
-def bench_dag(ray: Any, m: SprintMap, actors: list[Any], vertices: int, repeat: int,
-              rng: np.random.Generator) -> list[dict[str, Any]]:
+def bench_dag(ray: Any, m: SprintMap, actors: list[Any], alone: Any, vertices: int,
+              repeat: int, rng: np.random.Generator) -> list[dict[str, Any]]:
     """The ``ray-dag`` rows: a Ray Compiled Graph of the shards' ``search`` against the
     in-process search, interleaved, and its empty round trip (the shards' no-op
     ``catch_up(0)``, a method that takes an input)."""
@@ -195,6 +197,7 @@ def bench_dag(ray: Any, m: SprintMap, actors: list[Any], vertices: int, repeat: 
             equal = {"ray-dag": all(np.array_equal(a, b) for a, b in
                                     zip(m.search(q, 10), dag_search(q), strict=True))}
             times = interleaved({"in-process": lambda q=q: m.search(q, 10),
+                                 "one-shard": lambda q=q, w=alone: w.search(q, 10),
                                  "ray-dag": lambda q=q: dag_search(q)}, repeat)
             rows += search_rows(vertices, batch, times, {}, equal)
     finally:
@@ -220,7 +223,7 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
     import ray
     from ray.cluster_utils import Cluster
 
-    from sprint_map.fleet.shards import ShardedIndex
+    from sprint_map.fleet.shards import ShardedIndex, ShardWorker
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
@@ -251,6 +254,11 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
                 notes[f"shards_start_s_{vertices}"] = round(time.perf_counter() - t0, 2)
                 assert sharded["socket"].transport == "socket"
                 actors = sharded["socket"].actors
+                # the largest range searched here, alone: what each shard computes per search
+                a, b = max(sharded["socket"].ranges,
+                           key=lambda r: (vertices if r[1] is None else r[1]) - r[0])
+                alone = ShardWorker(None, a, b, DIM, np.ascontiguousarray(
+                    m.vertex_rows(a, vertices if b is None else b)))
                 for batch in (1, 16, 64):
                     q = unit(rng.standard_normal((batch, DIM)))
                     want = m.search(q, 10)
@@ -258,6 +266,7 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
                                     zip(want, s.search_live(q, 10), strict=True))
                              for t, s in sharded.items()}
                     fns = {"in-process": lambda q=q: m.search(q, 10),
+                           "one-shard": lambda q=q, w=alone: w.search(q, 10),
                            **{t: lambda q=q, s=s: s.search_live(q, 10)
                               for t, s in sharded.items()}}
                     times = interleaved(fns, repeat)
@@ -266,7 +275,7 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
                 sharded["ray"].close()
                 if dag:
                     try:
-                        rows += bench_dag(ray, m, actors, vertices, repeat, rng)
+                        rows += bench_dag(ray, m, actors, alone, vertices, repeat, rng)
                     except Exception as exc:  # a beta API: record why, keep the rest
                         notes["ray_dag_error"] = f"{type(exc).__name__}: {exc}"
                 sharded["socket"].close()

@@ -236,9 +236,9 @@ class ShardedIndex:
     Notes
     -----
     One search: the queries to every shard at once, each shard's k best back, an
-    O(q * S k log S k) merge. Its overhead over the in-process search (measured in
-    ``docs/benchmarks.md``, "Ray"): ~0.1 ms of round trip on the socket; ~1.5-2.3 ms on Ray
-    (task submission, gRPC, serialising numpy arrays), so batch queries there. Searches from
+    O(q * S k log S k) merge. The round trip to 3 shards (``docs/benchmarks.md``, "Ray"):
+    0.13-0.37 ms p50 on the socket, 1.4-2 ms on Ray calls (task submission, gRPC, pickling
+    numpy arrays); the rest of a search is its slowest shard's scan. Searches from
     several threads are serialised on the socket (one exchange at a time per connection).
 
     Raises
