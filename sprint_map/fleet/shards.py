@@ -37,7 +37,14 @@ import numpy as np
 from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.errors import ReplicaLostError
 from sprint_map.exact_search import ExactFlat
-from sprint_map.fleet.channel import TOKEN_BYTES, ChannelClient, ChannelError, ChannelServer
+from sprint_map.fleet.channel import (
+    TOKEN_BYTES,
+    ChannelClient,
+    ChannelError,
+    ChannelServer,
+    pack_result,
+    unpack_result,
+)
 from sprint_map.map import SprintMap
 from sprint_map.validation import validate_descriptors
 
@@ -173,6 +180,14 @@ class ShardWorker:
                 self._exact = ExactFlat(self.index)
             d, i = self._exact.search(queries, k)  # certified: as the in-process search
         return d, np.where(i >= 0, i + self.start, -1)
+
+    def search_packed(self, queries: Descriptors | bytes, k: int) -> bytes:
+        """:meth:`search` for a Ray call: ``queries`` as an array or as raw float32 bytes, the
+        answer as :func:`~sprint_map.fleet.channel.pack_result`'s one buffer (Ray pickles
+        bytes far cheaper than numpy arrays)."""
+        if isinstance(queries, bytes):
+            queries = np.frombuffer(queries, np.float32).reshape(-1, int(self.index.d))
+        return pack_result(self.search(queries, k))
 
     def listen(self, token: bytes, host: str | None = None) -> tuple[str, int]:
         """Serve :meth:`search` over a direct TCP channel (:mod:`sprint_map.fleet.channel`)
@@ -321,8 +336,9 @@ class ShardedIndex:
         if self._lost is not None:
             raise ReplicaLostError(f"{self._lost}; make a new sharded index")
         if self.transport == "ray":
-            ref = self._ray.put(queries) if queries.nbytes > 65536 else queries
-            parts = self._get([actor.search.remote(ref, k) for actor in self.actors])
+            ref = self._ray.put(queries) if queries.nbytes > 65536 else queries.tobytes()
+            parts = [unpack_result(b, len(queries), k) for b in
+                     self._get([actor.search_packed.remote(ref, k) for actor in self.actors])]
         else:
             with self._lock:
                 try:

@@ -68,7 +68,7 @@ def test_fanned_out_search_equals_in_process(cluster: object, tmp_path: Path,
         try:
             assert len(sharded.actors) == 3
             assert sharded.transport == transport
-            for nq in (1, 5, 40, 300):
+            for nq in (1, 5, 40, 300, 800):  # 800: past 64 KB, through the object store
                 q = rng.standard_normal((nq, DIM)).astype(np.float32)
                 want_d, want_i = smap.search(q, 10)
                 got_d, got_i = sharded.search_live(q, 10)
