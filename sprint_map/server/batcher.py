@@ -18,12 +18,15 @@ ids and distances, bit for bit, whatever else is in its batch
 between the search and the steps. A session has at most one frame in a batch (its frames run
 one at a time, under its lock), so its frames keep their order.
 
-Answers go back to the event loop in bulk (:class:`Outbox`): a frame's answer is put in the
-outbox, and the loop is woken (``call_soon_threadsafe``, a write to its self-pipe) only if no
-wake-up is already pending; the loop then resolves every answer that is ready. One wake-up per
-batch, or a few, instead of one per frame: each costs the loop a GIL hand-off from the batcher
-(up to the interpreter's 5 ms switch interval while the batcher steps HMMs), and it is the
-event loop that sends the answers.
+Answers go back to the event loop in bulk (:class:`Outbox`): once the batch's last session is
+stepped, all its answers are handed over with one wake-up of the loop
+(``call_soon_threadsafe``, a write to its self-pipe), and the loop resolves them all. Handing
+each answer over as its step ended woke the loop once per frame, and the loop (sending answers)
+and the batcher (stepping the next session) then traded the GIL at every answer, each trade a
+wake-up and a context switch, and a wait of up to the interpreter's switch interval (5 ms) for
+the thread that lost it: on Nordland, 16 vehicles, the server's CPU per frame went from
+0.89-0.94 ms to 0.64-0.69 ms and the p50 from ~15 to ~11 ms when the answers went in bulk
+(``docs/benchmarks.md``, "Fleet").
 
 Cost per batch: one search of B rows, then B HMM steps (Python, serial: the GIL would
 serialise them anyway).
@@ -66,9 +69,10 @@ class Pending:
 class Outbox:
     """Answers on their way from the batcher thread to the event loops that wait for them.
 
-    :meth:`post` (any thread) queues an answer or an error, and wakes the future's loop only if
-    no wake-up of that loop is pending; the woken loop resolves everything queued for it by
-    then (a future already cancelled is left alone). Thread-safe.
+    :meth:`post_all` (any thread; the batcher posts each batch's answers at once) queues
+    answers or errors, and wakes each future's loop only if no wake-up of that loop is pending;
+    the woken loop resolves everything queued for it by then (a future already cancelled is
+    left alone). Thread-safe.
     """
 
     def __init__(self) -> None:
@@ -78,18 +82,27 @@ class Outbox:
 
     def post(self, future: asyncio.Future[Answer], outcome: Answer | BaseException) -> None:
         """Queue ``outcome`` (an answer, or the exception to raise) for ``future``. O(1)."""
-        loop = future.get_loop()
-        with self._lock:
-            waiting = self._ready.get(loop)
-            if waiting is not None:  # a wake-up of that loop is pending: it will take this too
-                waiting.append((future, outcome))
-                return
-            self._ready[loop] = [(future, outcome)]
-        try:
-            loop.call_soon_threadsafe(self._deliver, loop)
-        except RuntimeError:  # the loop is closed: nobody waits for these any more
+        self.post_all([(future, outcome)])
+
+    def post_all(self, items: list[tuple[asyncio.Future[Answer], Answer | BaseException]]
+                 ) -> None:
+        """Queue several outcomes with at most one wake-up of each loop. O(len(items))."""
+        by_loop: dict[asyncio.AbstractEventLoop,
+                      list[tuple[asyncio.Future[Answer], Answer | BaseException]]] = {}
+        for item in items:
+            by_loop.setdefault(item[0].get_loop(), []).append(item)
+        for loop, group in by_loop.items():
             with self._lock:
-                self._ready.pop(loop, None)
+                waiting = self._ready.get(loop)
+                if waiting is not None:  # a wake-up of that loop is pending: it takes these too
+                    waiting.extend(group)
+                    continue
+                self._ready[loop] = group
+            try:
+                loop.call_soon_threadsafe(self._deliver, loop)
+            except RuntimeError:  # the loop is closed: nobody waits for these any more
+                with self._lock:
+                    self._ready.pop(loop, None)
 
     def _deliver(self, loop: asyncio.AbstractEventLoop) -> None:
         """In ``loop``: resolve every future queued for it. O(answers)."""
@@ -204,36 +217,38 @@ class FrameBatcher:
             return [self._queue.popleft() for _ in range(n)]
 
     def _answer(self, batch: list[Pending]) -> None:
-        """Search the batch in one call, then step each session in arrival order."""
+        """Search the batch in one call, step each session in arrival order, then hand every
+        answer to the event loop at once."""
         self.stats.batches += 1
         self.stats.frames += len(batch)
         self.stats.last_size = len(batch)
-        answered = 0
+        outcomes: list[tuple[asyncio.Future[Answer], Answer | BaseException]] = []
         try:
             with self.gate.shared():
                 start = time.perf_counter()
                 dists, ids = self.map.search(np.stack([p.row for p in batch]), self.k)
                 share = (time.perf_counter() - start) * 1e3 / len(batch)
                 for i, pending in enumerate(batch):
-                    self._step(pending, ids[i], dists[i], share)
-                    answered = i + 1
-        except BaseException as exc:  # the search failed: the frames not answered get it
+                    outcomes.append((pending.future,
+                                     self._step(pending, ids[i], dists[i], share)))
+        except BaseException as exc:  # the search failed: the frames not stepped get it
             err = from_library(exc) if isinstance(exc, SprintMapError) else exc
-            for pending in batch[answered:]:
-                self.outbox.post(pending.future, err)
+            outcomes += [(pending.future, err) for pending in batch[len(outcomes):]]
             if not isinstance(exc, Exception):
                 raise
+        finally:
+            self.outbox.post_all(outcomes)
 
-    def _step(self, pending: Pending, ids: np.ndarray, dists: np.ndarray, share: float
-              ) -> None:
+    @staticmethod
+    def _step(pending: Pending, ids: np.ndarray, dists: np.ndarray, share: float
+              ) -> Answer | BaseException:
+        """One session's HMM step with its hits: the answer, or the error for its request."""
         try:
             decision = pending.session.step(pending.row, pending.position,
                                             hits=(ids, dists, share))
         except SprintMapError as exc:
-            self.outbox.post(pending.future, from_library(exc))
-            return
+            return from_library(exc)
         except Exception as exc:  # noqa: BLE001 - handed to the request, which answers it
-            self.outbox.post(pending.future, exc)
-            return
+            return exc
         timing = pending.session.localizer.timing
-        self.outbox.post(pending.future, (decision, (share, timing.hmm_ms[-1])))
+        return decision, (share, timing.hmm_ms[-1])

@@ -91,3 +91,34 @@ def test_fast_path_answers_errors_like_the_api(one_drive_map: Path):
 def test_batch_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         ServerConfig(**{field: value})
+
+
+def test_a_failed_search_answers_every_frame_of_its_batch(one_drive_map: Path, places, rng,
+                                                          monkeypatch):
+    from sprint_map.errors import StorageIOError
+    from sprint_map.server.batcher import FrameBatcher
+    from sprint_map.server.gate import MapGate
+    from sprint_map.server.sessions import Session
+
+    rows = drive(places, rng)[:5]
+
+    def broken(queries: np.ndarray, k: int) -> Any:
+        raise StorageIOError("the index is unreadable")
+
+    async def body(smap: SprintMap) -> list[Any]:
+        batcher = FrameBatcher(smap, MapGate(), k=5, window_s=0.0, max_frames=64)
+        sessions = [Session(None, smap.localizer(), smap.config.dim) for _ in rows]
+        # Queued before the thread starts: the five frames make one batch.
+        futures = [batcher.submit(s, r) for s, r in zip(sessions, rows, strict=True)]
+        batcher.start()
+        try:
+            return await asyncio.gather(*futures, return_exceptions=True)
+        finally:
+            batcher.stop()
+
+    with SprintMap.open(one_drive_map) as smap:
+        monkeypatch.setattr(smap, "search", broken)
+        got = asyncio.run(body(smap))
+    # Each request gets the library error's answer (503 storage_error), none is left waiting.
+    assert [(e.status, e.code, e.message) for e in got] == \
+        [(503, "storage_error", "the index is unreadable")] * len(rows)

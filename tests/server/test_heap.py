@@ -148,6 +148,29 @@ def test_outbox_answers_each_future_with_one_wakeup_for_all_ready(cancel):
     assert wakeups == 2  # the 12 answers, then the late one
 
 
+async def _posted_together(n: int) -> tuple[list[Any], int]:
+    loop = asyncio.get_running_loop()
+    wakeups = 0
+    wake = loop.call_soon_threadsafe
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        nonlocal wakeups
+        wakeups += 1
+        return wake(*args, **kwargs)
+
+    loop.call_soon_threadsafe = counting  # type: ignore[method-assign]
+    futures = [loop.create_future() for _ in range(n)]
+    # As the batcher posts a batch: from its thread, every answer in one call.
+    threading.Thread(target=Outbox().post_all,
+                     args=([(f, i) for i, f in enumerate(futures)],)).start()
+    return await asyncio.gather(*futures), wakeups
+
+
+def test_a_batch_posted_together_wakes_the_loop_once():
+    got, wakeups = asyncio.run(_posted_together(16))
+    assert got == list(range(16)) and wakeups == 1
+
+
 def test_outbox_posting_to_a_closed_loop_is_dropped():
     loop = asyncio.new_event_loop()
     future = loop.create_future()
