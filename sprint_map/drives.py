@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "append_group", "ingest_drives"]
 
-#: Drives whose durability (fsyncs) is paid together, by default.
+#: Drives per group, by default: appended, one transaction; localised, one index persist.
 DEFAULT_GROUP_DRIVES = 16
 
 

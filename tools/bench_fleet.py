@@ -16,13 +16,15 @@ must be shed with 429/503, never a 5xx. The ratio column compares each row with 
 
 Ingest: ten 1,000-frame drives of precomputed 256-dim descriptors: one ``ingest`` of all ten
 against ten ``ingest`` calls (in process, and as CLI commands), appended (``--no-merge``, the
-commit path alone) and localised (merge).
+commit path alone: one group commit, ``sprint_map/storage/group_writer.py``) and localised
+(merge). The appended rows are the median of ``--ingest-repeats`` runs (min and max shown).
 
 Usage::
 
     python tools/bench_fleet.py                              # everything, Nordland
     python tools/bench_fleet.py --vehicles 16 --frames 200 --json fleet.json
     python tools/bench_fleet.py --skip-ingest --vehicles 1 16 64
+    python tools/bench_fleet.py --skip-service --skip-localised --ingest-repeats 7
     python tools/bench_fleet.py --quick                      # a small synthetic map (tests)
     python tools/bench_fleet.py --skip-service --skip-ingest --ray   # tools/bench_ray.py only
 """
@@ -33,6 +35,7 @@ import argparse
 import asyncio
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -280,7 +283,12 @@ def build_nordland(work: Path, quick: bool) -> tuple[Path, np.ndarray]:
 
 
 # --- ingest -------------------------------------------------------------------------------------
-def bench_ingest(work: Path, drives: int, frames: int, dim: int) -> list[dict[str, Any]]:
+def bench_ingest(work: Path, drives: int, frames: int, dim: int, repeats: int = 5,
+                 localised: bool = True) -> list[dict[str, Any]]:
+    """Ten drives (``drives`` of ``frames``) in one ingest vs one ingest per drive, appended and
+    localised, in process and as CLI commands. Appended rows are measured ``repeats`` times
+    each, one call and ten calls alternating, each on a fresh map: the median is reported with
+    the min and max (a 10k-frame commit takes tens of ms, and the disk is shared)."""
     rng = np.random.default_rng(1)
     places = rng.standard_normal((frames, dim)).astype(np.float32)
     data = [(places + 0.3 * rng.standard_normal(places.shape)).astype(np.float32)
@@ -290,49 +298,56 @@ def bench_ingest(work: Path, drives: int, frames: int, dim: int) -> list[dict[st
         files.append(work / f"drive{i}.npy")
         np.save(files[-1], d)
     total = drives * frames
-    out = []
-    for merge in (False, True):
-        label = "localised + merged" if merge else "appended (--no-merge)"
-        times = {}
-        for n, how in enumerate(("one ingest of all", "one ingest per drive")):
-            path = work / f"ingest-{merge}-{n}.map"
-            with SprintMap.create(path, MapConfig(dim=dim)) as m:
-                m.add_sequence(places, name="base")  # a map to localise against
-                t0 = time.perf_counter()
-                if how == "one ingest of all":
-                    m.ingest_drives([Drive(d, f"d{i}") for i, d in enumerate(data)],
-                                    merge=merge)
-                else:
-                    for i, d in enumerate(data):
-                        m.ingest(d, name=f"d{i}", merge=merge)
-                times[how] = time.perf_counter() - t0
-        for how, seconds in times.items():
-            out.append({"what": f"in process, {label}", "how": how, "drives": drives,
-                        "frames": total, "seconds": round(seconds, 4),
+    out: list[dict[str, Any]] = []
+
+    def rows(what: str, times: dict[str, list[float]], base: str) -> None:
+        for how, runs in times.items():
+            seconds = float(np.median(runs))
+            out.append({"what": what, "how": how, "drives": drives, "frames": total,
+                        "runs": len(runs), "seconds": round(seconds, 4),
+                        "min_s": round(min(runs), 4), "max_s": round(max(runs), 4),
                         "frames_per_s": round(total / seconds),
-                        "vs_one_per_drive": round(times["one ingest per drive"] / seconds, 2)})
+                        "vs_one_per_drive": round(float(np.median(times[base])) / seconds,
+                                                  2)})
+
+    for merge in (False, True) if localised else (False,):
+        label = "localised + merged" if merge else "appended (--no-merge)"
+        times: dict[str, list[float]] = {"one ingest of all": [], "one ingest per drive": []}
+        for run in range(1 if merge else repeats):
+            for n, how in enumerate(times):
+                path = work / f"ingest-{merge}-{run}-{n}.map"
+                with SprintMap.create(path, MapConfig(dim=dim)) as m:
+                    m.add_sequence(places, name="base")  # a map to localise against
+                    t0 = time.perf_counter()
+                    if how == "one ingest of all":
+                        m.ingest_drives([Drive(d, f"d{i}") for i, d in enumerate(data)],
+                                        merge=merge)
+                    else:
+                        for i, d in enumerate(data):
+                            m.ingest(d, name=f"d{i}", merge=merge)
+                    times[how].append(time.perf_counter() - t0)
+                shutil.rmtree(path)
+        rows(f"in process, {label}", times, "one ingest per drive")
         # The same as commands: one process for all drives, or one process per drive.
         flag = [] if merge else ["--no-merge"]
-        cli_times = {}
-        for n, how in enumerate(("one command, all drives", "one command per drive")):
-            path = work / f"cli-{merge}-{n}.map"
-            subprocess.run([*CLI, "init", str(path), "--dim", str(dim)], check=True,
-                           capture_output=True)
-            t0 = time.perf_counter()
-            if how == "one command, all drives":
-                subprocess.run([*CLI, "ingest", str(path), *map(str, files), *flag, "-q"],
-                               check=True, capture_output=True)
-            else:
-                for f in files:
-                    subprocess.run([*CLI, "ingest", str(path), str(f), *flag, "-q"],
+        cli_times: dict[str, list[float]] = {"one command, all drives": [],
+                                             "one command per drive": []}
+        for run in range(1 if merge else max(1, repeats // 2)):
+            for n, how in enumerate(cli_times):
+                path = work / f"cli-{merge}-{run}-{n}.map"
+                subprocess.run([*CLI, "init", str(path), "--dim", str(dim)], check=True,
+                               capture_output=True)
+                t0 = time.perf_counter()
+                if how == "one command, all drives":
+                    subprocess.run([*CLI, "ingest", str(path), *map(str, files), *flag, "-q"],
                                    check=True, capture_output=True)
-            cli_times[how] = time.perf_counter() - t0
-        for how, seconds in cli_times.items():
-            out.append({"what": f"CLI wall time, {label}", "how": how, "drives": drives,
-                        "frames": total, "seconds": round(seconds, 4),
-                        "frames_per_s": round(total / seconds),
-                        "vs_one_per_drive": round(cli_times["one command per drive"] / seconds,
-                                                  2)})
+                else:
+                    for f in files:
+                        subprocess.run([*CLI, "ingest", str(path), str(f), *flag, "-q"],
+                                       check=True, capture_output=True)
+                cli_times[how].append(time.perf_counter() - t0)
+                shutil.rmtree(path)
+        rows(f"CLI wall time, {label}", cli_times, "one command per drive")
     return out
 
 
@@ -367,6 +382,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--drives", type=int, default=10)
     parser.add_argument("--drive-frames", type=int, default=1000)
     parser.add_argument("--dim", type=int, default=256, help="Ingest descriptors' dimension.")
+    parser.add_argument("--ingest-repeats", type=int, default=5,
+                        help="Runs of each appended ingest row (median, min, max reported).")
+    parser.add_argument("--skip-localised", action="store_true",
+                        help="Ingest: only the appended (--no-merge) rows (seconds, not minutes).")
     parser.add_argument("--skip-service", action="store_true")
     parser.add_argument("--skip-ingest", action="store_true")
     parser.add_argument("--quick", action="store_true", help="A small synthetic map.")
@@ -401,10 +420,11 @@ def main(argv: list[str] | None = None) -> int:
                 if r["first_error"]:
                     print(f"{r['mode']}, {r['vehicles']} vehicles: {r['first_error']}")
         if not args.skip_ingest:
-            ingest = bench_ingest(work, args.drives, args.drive_frames, args.dim)
+            ingest = bench_ingest(work, args.drives, args.drive_frames, args.dim,
+                                  args.ingest_repeats, not args.skip_localised)
             result["ingest"] = ingest
-            print(table(ingest, ("what", "how", "drives", "frames", "seconds", "frames_per_s",
-                                 "vs_one_per_drive")))
+            print(table(ingest, ("what", "how", "drives", "frames", "runs", "seconds", "min_s",
+                                 "max_s", "frames_per_s", "vs_one_per_drive")))
         if args.ray:
             result["ray"] = run_bench_ray(work, args.quick)
     result["load_average_after"] = os.getloadavg()

@@ -39,7 +39,6 @@ from sprint_map.storage.sequence_writer import (
     WritableMap,
     write_staged,
 )
-from sprint_map.validation import validate_descriptors
 
 __all__ = ["GroupWriter"]
 
@@ -126,9 +125,9 @@ class GroupWriter:
         writer = SequenceWriter(self.store, name, source, follows=self.staged)
         with writer:  # an error (or a batch iterator's) drops this sequence's rows
             if isinstance(rows, np.ndarray):
-                rows = validate_descriptors(rows, self.store.config.dim)
-                writer.prepare(positions, edges, len(rows))  # nothing written for bad input
-                writer.append(rows)
+                if rows.ndim == 2 and len(rows):  # (else append refuses them, unwritten)
+                    writer.prepare(positions, edges, len(rows))  # nothing written if bad
+                writer.append(rows)  # validated whole before it is written
             else:
                 for batch in rows:
                     writer.append(batch)

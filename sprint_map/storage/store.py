@@ -733,9 +733,11 @@ class MapStore:
 
     @contextlib.contextmanager
     def group_commit(self) -> Iterator[None]:
-        """Commit several sequences as a group: each is still its own atomic, durable commit
-        (rows fsynced once, then its LMDB transaction), but the index is persisted once, at
-        the end of the group, if one of them made it due. Nests.
+        """Commit several sequences one after the other as a group: each is still its own
+        atomic, durable commit (rows fsynced once, then its LMDB transaction; what localised
+        drives need, each seen by the next), but the index is persisted once, at the end of
+        the group, if one of them made it due. Nests. (Sequences that need not see each other
+        share one transaction instead: :meth:`begin_group`.)
 
         Notes
         -----

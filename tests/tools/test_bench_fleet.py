@@ -15,7 +15,7 @@ def test_quick_run_writes_every_row(tmp_path, capsys):
     out = tmp_path / "fleet.json"
     code = bench.main(["--quick", "--vehicles", "3", "--frames", "15", "--overload", "6",
                        "--drives", "3", "--drive-frames", "40", "--dim", "16",
-                       "--json", str(out)])
+                       "--ingest-repeats", "2", "--json", str(out)])
     assert code == 0, capsys.readouterr()
     data = json.loads(out.read_text())
     service = {(r["mode"], r["vehicles"]): r for r in data["service"]}
@@ -28,4 +28,8 @@ def test_quick_run_writes_every_row(tmp_path, capsys):
                    for r in data["service"] for code in r["statuses"])
     hows = {(r["what"], r["how"]) for r in data["ingest"]}
     assert len(hows) == 8 and all(r["frames"] == 120 for r in data["ingest"])
+    for r in data["ingest"]:  # appended: the median of the repeats; localised: one run
+        assert r["runs"] == (1 if "localised" in r["what"] else 2 if "in process" in r["what"]
+                             else 1)
+        assert r["min_s"] <= r["seconds"] <= r["max_s"]
     assert "frames_per_s" in capsys.readouterr().out
