@@ -122,26 +122,33 @@ def certified_search(
     if not total or not len(queries):
         return out_d, out_i
     dim = vectors.shape[1]
-    cand = ids[:, :want].copy()
-    short = (cand < 0).any(axis=1)  # a fast search that found fewer than want (not flat's)
-    cand[short] = np.maximum(cand[short], 0)  # recomputed against every row below
-    exact = candidate_distances(queries, vectors, cand)
-    order = np.lexsort((cand, exact), axis=-1)  # by (distance, id), per query
+    cand = ids[:, :want]
+    # FAISS leaves out rows at an infinite distance (a query of huge values): -1 in the list
+    short = (cand < 0).any(axis=1)
     n = min(k, want)
-    top = order[:, :n]
-    out_d[:, :n] = np.take_along_axis(exact, top, axis=1)
-    out_i[:, :n] = np.take_along_axis(cand, top, axis=1)
-    uncertified = short
-    if want < total:
-        qnorms = np.sqrt(np.einsum("ij,ij->i", queries, queries, dtype=np.float64))
-        bound = (dim + 3) * _U * 1.01 * (qnorms + norm_max) ** 2  # distance_error_bound
-        kth = out_d[:, n - 1].astype(np.float64)
-        worst_fast = dist[:, want - 1].astype(np.float64)
-        uncertified = short | ~(kth + bound < worst_fast - _U * np.abs(worst_fast))
-    for q in np.flatnonzero(uncertified):
-        every, exact_q, order_q = _everything(queries[q], vectors)
-        out_d[q, :n] = exact_q[order_q[:n]]
-        out_i[q, :n] = every[order_q[:n]]
+    full = np.flatnonzero(~short)
+    if len(full):
+        q_full = queries if len(full) == len(queries) else queries[full]
+        c_full = cand[full]
+        exact = candidate_distances(q_full, vectors, c_full)
+        top = np.lexsort((c_full, exact), axis=-1)[:, :n]  # by (distance, id), per query
+        out_d[full, :n] = np.take_along_axis(exact, top, axis=1)
+        out_i[full, :n] = np.take_along_axis(c_full, top, axis=1)
+        if want < total:
+            qnorms = np.sqrt(np.einsum("ij,ij->i", q_full, q_full, dtype=np.float64))
+            bound = (dim + 3) * _U * 1.01 * (qnorms + norm_max) ** 2  # distance_error_bound
+            kth = out_d[full, n - 1].astype(np.float64)
+            worst_fast = dist[full, want - 1].astype(np.float64)
+            for q in full[~(kth + bound < worst_fast - _U * np.abs(worst_fast))]:
+                every, exact_q, order_q = _everything(queries[q], vectors)
+                out_d[q, :n] = exact_q[order_q[:n]]
+                out_i[q, :n] = every[order_q[:n]]
+    for q in np.flatnonzero(short):  # the rows found, re-measured and ordered; then -1
+        found = cand[q][cand[q] >= 0]
+        exact_q = pair_distances(queries[q], vectors[found])
+        order_q = np.lexsort((found, exact_q))[:k]
+        out_d[q, :len(order_q)] = exact_q[order_q]
+        out_i[q, :len(order_q)] = found[order_q]
     return out_d, out_i
 
 

@@ -85,9 +85,10 @@ def test_a_perturbed_fast_search_is_caught_by_the_certificate(world):
     np.testing.assert_array_equal(got[1], want[1])
 
 
-def test_a_fast_search_that_finds_too_few_is_recomputed(world):
-    """Candidate lists cut short (-1 padded, as an index that misses rows would give) are not
-    trusted: those queries are recomputed against every row."""
+def test_a_fast_search_that_finds_too_few_keeps_what_it_found(world):
+    """Candidate lists cut short (-1 padded: FAISS leaves out rows at an infinite distance)
+    give the rows found, re-measured and ordered by (distance, id), then -1; full lists the
+    exact answer."""
     vectors, queries = world
     exact_fast = flat_fast(vectors)
 
@@ -96,10 +97,25 @@ def test_a_fast_search_that_finds_too_few_is_recomputed(world):
         d[::2, 3:], i[::2, 3:] = np.finfo(np.float32).max, -1
         return d, i
 
-    got = certified_search(short, vectors, row_norm_max(vectors), queries, 5)
-    want = brute(vectors, queries, 5)
-    np.testing.assert_array_equal(got[1], want[1])
-    np.testing.assert_array_equal(got[0], want[0])
+    got_d, got_i = certified_search(short, vectors, row_norm_max(vectors), queries, 5)
+    want_d, want_i = brute(vectors, queries, 5)
+    np.testing.assert_array_equal(got_i[1::2], want_i[1::2])
+    np.testing.assert_array_equal(got_d[1::2], want_d[1::2])
+    found = short(queries, 5 + MARGIN)[1][::2, :3]
+    for q, ids in enumerate(found):
+        exact = pair_distances(queries[2 * q], vectors[ids])
+        order = np.lexsort((ids, exact))
+        assert got_i[2 * q].tolist() == ids[order].tolist() + [-1, -1]
+        np.testing.assert_array_equal(got_d[2 * q, :3], exact[order])
+
+
+def test_a_query_of_huge_values_finds_nothing_and_warns_not(world):
+    """Squared distances past float32 (a fuzzer's frame): no hit, as FAISS gives, no error."""
+    vectors, _ = world
+    huge = np.full((2, vectors.shape[1]), 3e38, np.float32)
+    with np.errstate(all="raise"):
+        d, i = certified_search(flat_fast(vectors), vectors, row_norm_max(vectors), huge, 5)
+    assert (i == -1).all()
 
 
 @pytest.mark.parametrize("dim", [3, 16, 128, 129, 1764])
