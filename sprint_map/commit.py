@@ -156,7 +156,7 @@ class DriveWriter:
             One JPEG per frame, committed with the drive.
         exclusive : callable, optional
             A context manager factory held around the LMDB transaction and ``on_commit`` only
-            (the service's exclusive map gate); the rows are written before it.
+            (the service's exclusive map gate); the rows are written and fsynced before it.
         on_commit : callable, optional
             Called with :attr:`DriveCommit.changed` right after the transaction, still inside
             ``exclusive``.
@@ -181,6 +181,8 @@ class DriveWriter:
             rows = validate_descriptors(rows, writer.store.config.dim)
             writer.prepare(positions, edges, len(rows))  # nothing is written for bad input
             writer.append(rows)
+        if exclusive is not None:
+            writer.sync()  # the rows' fsync, the slow part, before the gate: not under it
         with exclusive() if exclusive is not None else nullcontext():
             added = writer.commit(positions, edges, thumbnails)
             changed = before | {added.component}

@@ -83,13 +83,23 @@ def test_exclusive_section_holds_the_commit_and_the_hook(smap, rng):
     def on_commit(changed: set[int]) -> None:
         events.append(f"changed {sorted(changed)} stats {smap.stats()['sequences']}")
 
+    def seam(op: str, path: object, info: object) -> None:
+        if op == "fsync":
+            events.append("fsync")
+
     with smap.begin_drive(None, "cam", reserved={"seq-2"}) as drive:
         assert drive.name == "seq-2-2"  # a default name avoids the reserved ones
         drive.append(rng.standard_normal((4, DIM)))
-        done = drive.commit([decision(0, 0, 1), decision(3, 1, 0)], exclusive=exclusive,
-                            on_commit=on_commit)
-    # the components before (0 and 1) and the new one (0: the edges joined all three)
-    assert events == ["enter", "changed [0, 1] stats 3", "exit"]
+        previous = set_file_hook(seam)
+        try:
+            done = drive.commit([decision(0, 0, 1), decision(3, 1, 0)], exclusive=exclusive,
+                                on_commit=on_commit)
+        finally:
+            set_file_hook(previous)
+    # the rows fsynced before the gate (the slow part: frames go on meanwhile); under it the
+    # transaction and the hook: the components before (0 and 1) and the new one (0: the edges
+    # joined all three)
+    assert events == ["fsync", "enter", "changed [0, 1] stats 3", "exit"]
     assert done.changed == {0, 1} and done.added.component == 0
     assert done.merged.tolist() == [True, True]
     assert done.added.sequence.source == "cam"

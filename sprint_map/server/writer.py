@@ -173,9 +173,9 @@ class CommitWriter:
 
         try:
             with begun as drive:
-                drive.append(job.descriptors)  # shards written and fsynced; not yet visible
-                # The commit point (durable on return), then the registry is told, both under
-                # the exclusive gate.
+                drive.append(job.descriptors)  # shards written; not yet visible
+                # The rows fsynced, then under the exclusive gate the commit point (durable on
+                # return) and the registry told.
                 done = drive.commit(decisions, job.positions, exclusive=exclusive,
                                     on_commit=self.on_commit)
         except BaseException:

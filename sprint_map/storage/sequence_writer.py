@@ -250,6 +250,17 @@ class SequenceWriter:
             raise
         self.frames += len(arr)
 
+    def sync(self) -> None:
+        """Make the rows appended so far durable now (one fsync per shard file written, as
+        :meth:`commit` would; it then finds nothing left to sync): to keep the fsync out of a
+        lock held around the commit. An error aborts the sequence (its rows are dropped).
+        """
+        try:
+            self.store.shards.sync()
+        except BaseException:
+            self._rollback_after_error()
+            raise
+
     def stage(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
               thumbnails: Sequence[bytes] | None = None) -> StagedSequence | AddResult:
         """Validate the sequence's records and make it ready for its transaction; no more rows.
