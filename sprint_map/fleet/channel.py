@@ -1,7 +1,7 @@
 """The search data plane of the retrieval shards: one TCP connection from the caller to each shard.
 
 A Ray actor call costs ~0.5-0.8 ms of CPU on this 2-core machine (task submission, gRPC, the
-serialisation of numpy arguments and results), so a fan-out to three shards paid 1.4-2 ms
+serialisation of numpy arguments and results), so a fan-out to three shards paid 1.4-2.2 ms
 before any shard searched (``docs/benchmarks.md``, "Ray"). Ray keeps the control plane (placing
 the actors, loading and catching up their ranges, killing them); the searches go over a plain
 socket per shard: the caller writes the query rows as raw float32 bytes, the shard answers with

@@ -252,7 +252,7 @@ class ShardedIndex:
     -----
     One search: the queries to every shard at once, each shard's k best back, an
     O(q * S k log S k) merge. The round trip to 3 shards (``docs/benchmarks.md``, "Ray"):
-    0.13-0.37 ms p50 on the socket, 1.4-2 ms on Ray calls (task submission, gRPC, pickling
+    0.13-0.37 ms p50 on the socket, 1.4-2.2 ms on Ray calls (task submission, gRPC, pickling
     numpy arrays); the rest of a search is its slowest shard's scan. Searches from
     several threads are serialised on the socket (one exchange at a time per connection).
 
