@@ -253,8 +253,9 @@ class ShardedIndex:
     One search: the queries to every shard at once, each shard's k best back, an
     O(q * S k log S k) merge. The round trip to 3 shards (``docs/benchmarks.md``, "Ray"):
     0.13-0.37 ms p50 on the socket, 1.4-2.2 ms on Ray calls (task submission, gRPC, pickling
-    numpy arrays); the rest of a search is its slowest shard's scan. Searches from
-    several threads are serialised on the socket (one exchange at a time per connection).
+    numpy arrays); the rest of a search is its slowest shard's scan. Only the process that made
+    the index searches through it (the connections are its own); searches from several of its
+    threads take turns on the socket (one exchange at a time per connection).
 
     Raises
     ------
