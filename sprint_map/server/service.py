@@ -134,9 +134,9 @@ class LocalisationService:
         if self.batcher is not None:
             self.batcher.start()
         self._expiry = asyncio.create_task(self._expire_loop())
-        self.gc_pauses.install()
         if self.settle_heap:  # after the index load: what start-up made stays frozen
             settle()
+        self.gc_pauses.install()  # (after settle's own collection: the pauses of serving)
         self.ready = True
 
     def _warm(self) -> None:
