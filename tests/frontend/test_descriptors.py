@@ -103,9 +103,9 @@ def test_describe_batch(rng):
     assert spec.describe_batch([]).shape == (0, 1764)
 
 
-@given(
-    gains=st.lists(st.floats(0.3, 1.5), min_size=8, max_size=8),
-    offsets=st.lists(st.integers(-40, 40), min_size=8, max_size=8),
+@given(  # base 60-190 stays inside 0-255 under any of these (clipping is not affine)
+    gains=st.lists(st.floats(0.4, 1.2), min_size=8, max_size=8),
+    offsets=st.lists(st.integers(-10, 20), min_size=8, max_size=8),
 )
 @settings(max_examples=30, deadline=None)
 def test_patchnorm_ignores_per_patch_brightness_and_contrast(gains, offsets):
