@@ -6,6 +6,7 @@ StoreConfig`, which also checks them); the rest (descriptor, merge rule, HMM) is
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -101,6 +102,10 @@ class MapConfig:
         A merged decision's frame is at most as far from the map (best-hit distance) as this
         quantile of the distances of the drive's frames that pass every other test (0
         disables the check).
+    merge_max_contrast : float
+        A merged decision's run stands out from the rest of the map: the median contrast of
+        its frames (best hit inside the decided place over best hit elsewhere, smoothed
+        decisions) is at most this (0 disables the check).
     merge_both_ways : bool
         Store each merge edge in both directions (query -> map and map -> query), so belief can
         later cross between the two drives either way. The paper keeps one direction.
@@ -131,8 +136,9 @@ class MapConfig:
     merge_min_agree: int = 0
     merge_max_rate: float = 3.0
     merge_min_run: int = 20
-    merge_dist_quantile: float = 0.98
+    merge_dist_quantile: float = 0.0
     merge_min_advance: float = 0.3
+    merge_max_contrast: float = 0.95
     merge_both_ways: bool = True
     hmm: HMMConfig = field(default_factory=HMMConfig)
 
@@ -162,13 +168,16 @@ class MapConfig:
             raise ValueError("merge_dist_quantile must be in [0, 1]")
         if not 0 <= self.merge_min_advance <= self.merge_max_rate:
             raise ValueError("merge_min_advance must be in [0, merge_max_rate]")
+        if not 0 <= self.merge_max_contrast < math.inf:
+            raise ValueError("merge_max_contrast must be a finite number >= 0")
 
     @property
     def merge_rule(self) -> MergeRule:
         """The merge rule these fields define (:mod:`sprint_map.merge_rule`)."""
         return MergeRule(self.merge_threshold, self.merge_max_novel, self.merge_window,
                          self.merge_min_agree, self.merge_max_rate, self.merge_min_run,
-                         self.merge_dist_quantile, self.merge_min_advance)
+                         self.merge_dist_quantile, self.merge_min_advance,
+                         self.merge_max_contrast)
 
     @property
     def storage(self) -> StoreConfig:

@@ -31,7 +31,7 @@ from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
 from sprint_map.validation import validate_descriptors
 
 __all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "MapView", "Timing",
-           "local_quantiles"]
+           "local_quantiles", "recorded_k"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
@@ -80,7 +80,10 @@ class FrameDecision:
     ``novel_prob`` is the posterior probability that the frame shows a place the map does not
     hold (the filter's "unmapped place" state; 1 when the map is empty). ``distance`` is the
     frame's best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which
-    the merge rule compares with the drive's accepted matches.
+    the merge rule compares with the drive's accepted matches. ``contrast`` (smoothed matches
+    only, NaN otherwise) is the best hit inside the decided place over the best hit elsewhere
+    in the map (:func:`sprint_map.hmm.decision.place_contrast`): below 1 the place stands out,
+    at 1 or more a lookalike is as close; the merge rule reads it along runs.
     """
 
     frame: int
@@ -91,6 +94,7 @@ class FrameDecision:
     best: tuple[int, int] | None = None
     novel_prob: float = 0.0
     distance: float = math.inf
+    contrast: float = math.nan
 
     @property
     def is_match(self) -> bool:
@@ -99,7 +103,8 @@ class FrameDecision:
     def to_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
                 "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6),
-                "distance": round(self.distance, 6) if math.isfinite(self.distance) else None}
+                "distance": round(self.distance, 6) if math.isfinite(self.distance) else None,
+                "contrast": round(self.contrast, 6) if math.isfinite(self.contrast) else None}
 
 
 @dataclass
@@ -290,7 +295,7 @@ class Localizer:
             if self._empty:
                 return self._no_map_decision()
             start = time.perf_counter()
-            dists, ids = self.source.search(row, self.config.k)
+            dists, ids = self.source.search(row, self.search_k)
             return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
 
     def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0
@@ -333,14 +338,22 @@ class Localizer:
                         yield self._no_map_decision()
                     continue
                 start = time.perf_counter()
-                dists, ids = self.source.search(rows, self.config.k)
+                dists, ids = self.source.search(rows, self.search_k)
                 share = (time.perf_counter() - start) * 1e3 / len(rows)
                 for i in range(len(rows)):
                     yield self._update(ids[i], dists[i], share)
 
+    @property
+    def search_k(self) -> int:
+        """Neighbours searched per frame: :func:`recorded_k` when the hits are recorded for
+        :meth:`smoothed`, else ``k``. The causal filter reads the ``k`` nearest either way."""
+        return recorded_k(self.config) if self.record else self.config.k
+
     def _update(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float) -> FrameDecision:
         start = time.perf_counter()
-        decision = self.filter.step(ids, dists)
+        k = self.config.k
+        # the search returns the nearest first: the causal filter reads the k nearest
+        decision = self.filter.step(ids[:k], dists[:k])
         self.timing.hmm_ms.append((time.perf_counter() - start) * 1e3)
         self.timing.retrieval_ms.append(retrieval_ms)
         self.timing.active_vertices.append(int(decision.n_active_vertices))
@@ -365,7 +378,7 @@ class Localizer:
         return FrameDecision(frame, int(decision.seq_id), int(decision.image_id),
                              float(decision.prob), int(decision.vertex_id),
                              (int(decision.seq_id), int(decision.image_id)),
-                             float(decision.sink_prob), distance)
+                             float(decision.sink_prob), distance, float(decision.contrast))
 
     def _no_map_decision(self) -> FrameDecision:
         self.timing.retrieval_ms.append(0.0)
@@ -376,6 +389,13 @@ class Localizer:
         if self.observer is not None:
             self.observer(out, np.empty(0, np.int64), np.empty(0, np.float32))
         return out
+
+
+def recorded_k(config: HMMConfig) -> int:
+    """Neighbours to search per frame for a drive whose hits are kept for the smoothed
+    decisions: ``max(k, smooth_k)`` (the service's batches search this many for its sessions,
+    which are smoothed when committed)."""
+    return max(config.k, config.smooth_k)
 
 
 def local_quantiles(values: np.ndarray, mask: np.ndarray, q: float, window: int,

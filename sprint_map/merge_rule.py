@@ -21,7 +21,15 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
    images must also advance by at least ``merge_min_advance`` per frame: a match stuck on one
    image while the drive goes on is a belief coasting on a place the drive has left (a
    tunnel, a dark or featureless stretch);
-5. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
+5. its run stands out from the rest of the map: the median ``contrast`` of the run's frames
+   (the frame's best hit inside the decided place over its best hit anywhere else in the map,
+   :func:`sprint_map.hmm.decision.place_contrast`) is at most ``merge_max_contrast``. A
+   lookalike street is lined up frame after frame by the sequence model, but along it
+   something elsewhere in the map keeps looking as much like the drive as the place it is
+   matched to; along a street the map really holds, the matched place is the closest thing
+   to most frames. Frames without a contrast (causal decisions) do not count in the median;
+   a run with none passes;
+6. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
    either side agree with it in the sense of 4.
 
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
@@ -57,6 +65,8 @@ class MergeDecision(Protocol):
     def novel_prob(self) -> float: ...
     @property
     def distance(self) -> float: ...
+    @property
+    def contrast(self) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -71,13 +81,15 @@ class MergeRule:
     min_run: int = 0
     dist_quantile: float = 0.0
     min_advance: float = 0.0
+    max_contrast: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {"merge_threshold": self.threshold, "merge_max_novel": self.max_novel,
                 "merge_window": self.window, "merge_min_agree": self.min_agree,
                 "merge_max_rate": self.max_rate, "merge_min_run": self.min_run,
                 "merge_dist_quantile": self.dist_quantile,
-                "merge_min_advance": self.min_advance}
+                "merge_min_advance": self.min_advance,
+                "merge_max_contrast": self.max_contrast}
 
 
 def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.ndarray:
@@ -119,6 +131,11 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
                                    rule.min_advance) >= rule.min_run)
 
     accepted = on_runs(ok)
+    if rule.max_contrast > 0 and accepted.any():
+        contrast = np.array([d.contrast for d in decisions], dtype=np.float64)
+        ok &= ~_low_contrast_runs(np.where(accepted, seq, -1), img, contrast, gap,
+                                  rule.max_rate, rule.max_contrast)
+        accepted = on_runs(ok)
     if rule.dist_quantile > 0 and int(accepted.sum()) >= CALIBRATE_MIN_FRAMES:
         dist = np.array([d.distance for d in decisions], dtype=np.float64)
         limit = float(np.quantile(dist[accepted], rule.dist_quantile))
@@ -185,6 +202,26 @@ def run_ids(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> 
             run[f] = n_runs
             n_runs += 1
     return run
+
+
+def _low_contrast_runs(seq: np.ndarray, img: np.ndarray, contrast: np.ndarray, max_gap: int,
+                       max_rate: float, limit: float) -> np.ndarray:
+    """The frames of the runs (see :func:`run_ids`) whose median contrast (NaN ignored)
+    exceeds ``limit``. O(n * max_gap)."""
+    run = run_ids(seq, img, max_gap, max_rate)
+    out = np.zeros(len(seq), dtype=bool)
+    held = np.flatnonzero(run >= 0)
+    if not held.size:
+        return out
+    order = held[np.argsort(run[held], kind="stable")]
+    starts = np.flatnonzero(np.r_[True, run[order[1:]] != run[order[:-1]]])
+    for a, b in zip(starts.tolist(), np.r_[starts[1:], order.size].tolist(), strict=True):
+        frames = order[a:b]
+        values = contrast[frames]
+        values = values[~np.isnan(values)]
+        if values.size and float(np.median(values)) > limit:
+            out[frames] = True
+    return out
 
 
 def _advancing(run: np.ndarray, img: np.ndarray, min_advance: float, half: int) -> np.ndarray:

@@ -112,7 +112,7 @@ def prepare_drive(smap: PreparableMap, batches: Iterable[DescriptorsLike], *, me
             for _ in localizer.iter_localize(iter([batch])):
                 pass
         decisions = localizer.smoothed()
-        k = localizer.config.k
+        k = localizer.search_k
         kth = np.array([float(d[ids >= 0].max()) if int((ids >= 0).sum()) >= k else math.inf
                         for ids, d in localizer.hits])
         hit_ids = np.unique(np.concatenate([ids[ids >= 0] for ids, _ in localizer.hits]

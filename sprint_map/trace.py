@@ -103,7 +103,7 @@ class TraceRecorder:
     def attach(self, localizer: Localizer) -> None:
         """Record every frame ``localizer`` decides from now on (sets its ``observer``)."""
         self._localizer = localizer
-        self.k = localizer.config.k
+        self.k = localizer.search_k
         localizer.observer = self.observe
 
     @property

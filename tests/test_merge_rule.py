@@ -81,3 +81,41 @@ def test_local_quantiles(window):
     mask[60:] = True  # too few accepted frames near the start: the whole drive's
     out = local_quantiles(values, mask, 0.5, 5, 3)
     assert out[0] == 3.0 and math.isfinite(out[0])
+
+
+def with_contrast(drive: list[FrameDecision], contrast: float | list[float]
+                  ) -> list[FrameDecision]:
+    values = contrast if isinstance(contrast, list) else [contrast] * len(drive)
+    return [FrameDecision(d.frame, d.seq_id, d.image_id, d.prob, distance=d.distance,
+                          contrast=c) for d, c in zip(drive, values, strict=True)]
+
+
+def test_a_run_that_does_not_stand_out_from_the_map_is_not_merged():
+    # A real street (the matched place is the closest thing in the map: contrast 0.7) and a
+    # lookalike stretch as long and as consistent, along which something elsewhere in the map
+    # is as close (contrast 1.05).
+    drive = with_contrast(along(30), 0.7) + with_contrast(
+        along(30, seq=1, start=200, first_frame=30), 1.05)
+    rule = MergeRule(window=3, min_run=20, max_contrast=0.95)
+    merged = select_merges(drive, rule)
+    assert merged[:30].all() and not merged[30:].any()
+    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()  # gate off
+
+
+def test_the_contrast_gate_reads_the_runs_median():
+    # a few frames of a true run whose place had no hit (inf) or a rival (1.2) do not sink it;
+    # a lookalike run with a few distinct frames is still rejected
+    good = [0.6] * 24 + [math.inf] * 3 + [1.2] * 3
+    bad = [1.1] * 20 + [0.5] * 10
+    drive = with_contrast(along(30), good) + with_contrast(
+        along(30, seq=1, start=200, first_frame=30), bad)
+    merged = select_merges(drive, MergeRule(window=3, min_run=20, max_contrast=0.95))
+    assert merged[:30].all() and not merged[30:].any()
+
+
+def test_decisions_without_contrast_are_not_gated():
+    # causal decisions (NaN contrast) pass; NaN frames are left out of a run's median
+    drive = along(30)
+    assert select_merges(drive, MergeRule(window=3, min_run=20, max_contrast=0.5)).all()
+    mixed = with_contrast(along(30), [math.nan] * 25 + [2.0] * 5)
+    assert not select_merges(mixed, MergeRule(window=3, min_run=20, max_contrast=0.95)).any()

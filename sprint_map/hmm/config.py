@@ -25,6 +25,15 @@ class HMMConfig:
     k : int
         Neighbours the caller retrieves per query frame (the filter accepts any number of hits;
         this is the facade's retrieval setting, kept here so a map remembers it).
+    smooth_k : int
+        Neighbours retrieved per frame when the drive is also smoothed (``ingest``,
+        ``localize --smooth``, the service's sessions), if larger than ``k``: the causal filter
+        still reads the ``k`` nearest, and the smoothed decisions (the merge) read them all.
+        0 (the default): ``k``. Over a whole drive, hits far down the list add evidence that
+        consecutive frames confirm (Nordland winter -> summer smoothed recall@1 80.6 % at 10,
+        86.3 % at 64), but they also let a drive on streets the map has never seen keep
+        finding hits near one hypothesis, so more novel frames are merged, the more so the
+        smaller the map (``docs/benchmarks.md``, "The contrast gate").
     window : tuple of float
         Forward transition window ``w``: ``w[0]`` is the weight of staying on the same image,
         ``w[i]`` of moving ``i`` images ahead in the same sequence. Normalised on use; never
@@ -103,6 +112,12 @@ class HMMConfig:
     place_hops : int
         ``h``: how many edges a place reaches across (drives chained by merge edges: one hop
         per drive in the chain). 0 limits a place to one sequence.
+    contrast_reach : int
+        Smoothed decisions report a *contrast* (:func:`sprint_map.hmm.decision.place_contrast`):
+        the frame's best hit inside the decided place over its best hit elsewhere, where
+        "elsewhere" excludes the place's surroundings, this many images around it (the same
+        road a few images on is not a rival place). The merge rule reads it
+        (``MapConfig.merge_max_contrast``).
     decision_candidates : int
         How many of the most probable vertices are scored by place mass; the decision is the
         candidate whose place holds the most mass.
@@ -113,6 +128,7 @@ class HMMConfig:
     """
 
     k: int = 10
+    smooth_k: int = 0
     window: tuple[float, ...] = (0.25, 0.5, 0.15, 0.07, 0.03)
     edge_weight: float = 1.0
     prune_threshold: float = 1e-4
@@ -130,6 +146,7 @@ class HMMConfig:
     novelty_window: int = 100
     place_radius: int = 2
     place_hops: int = 4
+    contrast_reach: int = 20
     decision_candidates: int = 4
     min_confidence: float = 0.2
     cache_budget_bytes: int = 256 << 20
@@ -137,6 +154,8 @@ class HMMConfig:
     def __post_init__(self) -> None:
         if not _is_int(self.k) or self.k < 1:
             raise ValueError("k must be an integer >= 1")
+        if not _is_int(self.smooth_k) or self.smooth_k < 0:
+            raise ValueError("smooth_k must be an integer >= 0")
         window = tuple(float(w) for w in self.window)
         if not window or not all(math.isfinite(w) and w >= 0 for w in window) or sum(window) <= 0:
             raise ValueError("window must be non-empty, finite, non-negative and not all zero")
@@ -165,6 +184,8 @@ class HMMConfig:
             raise ValueError("place_radius must be an integer >= 0")
         if not _is_int(self.place_hops) or self.place_hops < 0:
             raise ValueError("place_hops must be an integer >= 0")
+        if not _is_int(self.contrast_reach) or self.contrast_reach < 0:
+            raise ValueError("contrast_reach must be an integer >= 0")
         if not _is_int(self.decision_candidates) or self.decision_candidates < 1:
             raise ValueError("decision_candidates must be an integer >= 1")
         _finite_range("min_confidence", self.min_confidence, 0.0, 1.0)

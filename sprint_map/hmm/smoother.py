@@ -32,20 +32,27 @@ plus its hits; decisions are made frame by frame during the backward pass.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.decision import BeliefView, Decision, decide, top_candidates
+from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_candidates
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition
 
-__all__ = ["FrameBelief", "ForwardBackward", "smooth"]
+__all__ = ["FrameBelief", "ForwardBackward", "RIVAL_CONFIRMATIONS", "RIVAL_SLACK", "smooth"]
+
+#: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
+#: this many of the 4 frames around it have a hit where the same drive would be then ...
+RIVAL_CONFIRMATIONS = 2
+#: ... within this many images.
+RIVAL_SLACK = 2
 
 
 @dataclass(slots=True)
@@ -60,6 +67,8 @@ class FrameBelief:
         The sink's filtered posterior.
     hit_ids : list of int
         The frame's distinct valid hits.
+    hit_dists : list of float
+        Their squared-L2 distances (for the decisions' contrast).
     hit_lik : list of float
         Their likelihood ratios.
     sink_lik : float
@@ -69,6 +78,7 @@ class FrameBelief:
     parts: list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
     sink: float
     hit_ids: list[int]
+    hit_dists: list[float]
     hit_lik: list[float]
     sink_lik: float
 
@@ -123,9 +133,10 @@ class ForwardBackward:
         ids = np.asarray(hit_ids)
         dists = np.asarray(hit_dists)
         self.filter.update(ids, dists)  # validates the hits first
-        vids, _, lik, sink_lik, _ = self._obs.evaluate(ids, dists)
+        vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, dists)
         parts, sink = self.filter.live_belief()
-        self.frames.append(FrameBelief(parts, sink, vids, lik, sink_lik))
+        self.frames.append(FrameBelief(parts, sink, vids, [float(d) for d in vdists], lik,
+                                       sink_lik))
 
     def posteriors(self) -> list[tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
                                        float]]:
@@ -138,12 +149,18 @@ class ForwardBackward:
         return out
 
     def decisions(self) -> list[Decision]:
-        """The decision of every frame from its smoothed posterior, in frame order."""
+        """The decision of every frame from its smoothed posterior, in frame order.
+
+        A match carries its ``contrast`` (:func:`~sprint_map.hmm.decision.place_contrast`
+        over the frame's ``k`` nearest hits, as the causal filter reads them, whatever
+        ``smooth_k`` the drive was searched with).
+        """
         cfg = self.config
         buffers: dict[int, np.ndarray] = {}
         out: list[Decision] = []
         prefer: int | None = None
-        for parts, sink in self._backward():
+        for t, (parts, sink) in zip(range(len(self.frames) - 1, -1, -1), self._backward(),
+                                    strict=True):
             views = []
             for trans, slots, gamma in parts:
                 key = trans.graph.component_id
@@ -162,10 +179,51 @@ class ForwardBackward:
             # consecutive answers then follow one drive (see merge_rule's runs).
             if decision.candidate_id is not None and decision.seq_id is not None:
                 prefer = decision.seq_id
+            if decision.vertex_id is not None:
+                decision = replace(decision, contrast=self._contrast(views, decision.vertex_id,
+                                                                     t))
             out.append(decision)
             for (_, slots, _), view in zip(parts, views, strict=True):
                 view.x[slots] = 0.0
         out.reverse()
+        return out
+
+    def _contrast(self, views: list[BeliefView], vertex_id: int, t: int) -> float:
+        cfg = self.config
+        ids, dists = self._nearest_hits(t)
+        for view in views:
+            s = int(view.graph.seq_index(np.array([vertex_id]))[0])
+            if s >= 0:
+                slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
+                return place_contrast(view, slot, ids, dists, cfg.place_radius,
+                                      cfg.place_hops, cfg.contrast_reach,
+                                      self._confirmed(ids, t))
+        return math.nan  # not reached: the decided vertex lies in one of the views
+
+    def _nearest_hits(self, t: int) -> tuple[list[int], list[float]]:
+        """Frame ``t``'s ``k`` nearest distinct hits (as the causal filter reads them, whatever
+        ``smooth_k`` the drive was searched with)."""
+        frame = self.frames[t]
+        ids, dists = frame.hit_ids, frame.hit_dists
+        if len(ids) > self.config.k:
+            order = sorted(range(len(ids)), key=dists.__getitem__)[:self.config.k]
+            ids, dists = [ids[i] for i in order], [dists[i] for i in order]
+        return ids, dists
+
+    def _confirmed(self, ids: list[int], t: int) -> set[int]:
+        """The hits of frame ``t`` that the frames around it confirm: at least
+        :data:`RIVAL_CONFIRMATIONS` of the frames ``t - 2 .. t + 2`` have a hit within
+        :data:`RIVAL_SLACK` images of where the same drive would be ``d`` frames away (vertex
+        ids run along a sequence; near a sequence's end the next one may be counted: a rival
+        too many, never one too few). A rival route, not a stray near neighbour. O(k^2)."""
+        n = len(self.frames)
+        near = {d: self._nearest_hits(t + d)[0] for d in (-2, -1, 1, 2) if 0 <= t + d < n}
+        out = set()
+        for h in ids:
+            votes = sum(1 for d, other in near.items()
+                        if any(abs(w - (h + d)) <= RIVAL_SLACK for w in other))
+            if votes >= RIVAL_CONFIRMATIONS:
+                out.add(h)
         return out
 
     def _backward(self) -> Iterable[tuple[list[tuple[ComponentTransition, np.ndarray,

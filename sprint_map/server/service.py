@@ -21,7 +21,7 @@ import anyio
 import numpy as np
 
 from sprint_map.errors import SprintMapError
-from sprint_map.localizer import Localizer
+from sprint_map.localizer import Localizer, recorded_k
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig
@@ -88,7 +88,7 @@ class LocalisationService:
                                    self.registry)
         #: Frames of all sessions searched together; None: each alone (batch_max_frames 0,
         #: or the sessions' localisers live in Ray replicas, which search their own frames).
-        self.batcher = (FrameBatcher(smap, self.gate, smap.config.hmm.k,
+        self.batcher = (FrameBatcher(smap, self.gate, recorded_k(smap.config.hmm),
                                      config.batch_window_ms / 1e3, config.batch_max_frames,
                                      config.search_threads)
                         if config.batch_max_frames and localizers is None else None)

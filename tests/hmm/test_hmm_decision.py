@@ -38,3 +38,25 @@ def test_small_and_large_place_paths_give_the_same_runs(data: st.DataObject) -> 
     flat = [v for a, b in runs for v in range(a, b)]
     assert flat == sorted(set(flat)) and slot in flat
     assert np.isclose(place_mass(view, slot, radius, hops), x[flat].sum(), rtol=1e-12)
+
+
+def test_place_contrast_compares_the_place_with_the_rest_of_the_map() -> None:
+    from sprint_map.hmm.decision import place_contrast
+
+    src = MemoryGraphSource([40, 40, 40], [(5, 45, 1.0)])  # drives 0 and 1 joined at 5 <-> 45
+    graph = src.load_component(src.components_of(np.array([0]))[0])
+    first = {int(s): int(f) for s, f in zip(graph.seq_ids, graph.seq_first, strict=True)}
+    slot_first = np.array([0, 45], dtype=np.int64)  # two sequences of 40 + gutter 5
+    view = BeliefView(graph, slot_first, np.zeros(90))
+    slot = 5  # drive 0, image 5
+    # a hit on the drive joined by the edge is the same place, not a rival
+    assert place_contrast(view, slot, [5, first[1] + 5], [0.2, 0.1], 2, 1, 10) == 0.0
+    # the same road 8 images on is the place's surroundings (reach 10), not a rival either
+    assert place_contrast(view, slot, [5, 13], [0.2, 0.1], 2, 1, 10) == 0.0
+    # ... but with a reach of 4 it is elsewhere
+    assert place_contrast(view, slot, [5, 13], [0.2, 0.1], 2, 1, 4) == 2.0
+    # a hit in another component (drive 2) is elsewhere
+    assert place_contrast(view, slot, [6, 90], [0.1, 0.4], 2, 1, 10) == 0.25
+    # no hit inside the place: it does not stand out at all
+    assert place_contrast(view, slot, [90], [0.4], 2, 1, 10) == float("inf")
+    assert place_contrast(view, slot, [], [], 2, 1, 10) == float("inf")

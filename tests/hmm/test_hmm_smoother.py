@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -146,3 +149,31 @@ def test_novelty_dist_can_be_set_per_frame() -> None:
     fb.set_novelty_dist(None)
     with pytest.raises(ValueError):
         fb.set_novelty_dist(float("nan"))
+
+
+def test_smoothed_matches_report_their_places_contrast() -> None:
+    fb = ForwardBackward(HMMConfig(), MemoryGraphSource([50, 50]))
+    for t in range(6):  # the drive follows drive 0; drive 1's image 20 looks half as close
+        fb.forward(np.array([10 + t, 70]), np.array([0.1, 0.2]))
+    decisions = fb.decisions()
+    assert [d.image_id for d in decisions] == [10, 11, 12, 13, 14, 15]
+    assert [d.contrast for d in decisions] == pytest.approx([0.5] * 6)
+    # the causal filter does not compute it
+    assert math.isnan(SprintFilter(HMMConfig(), MemoryGraphSource([50, 50])).step(
+        np.array([10, 70]), np.array([0.1, 0.2])).contrast)
+
+
+def test_a_rival_counts_only_if_the_frames_around_confirm_it() -> None:
+    # The drive follows drive 0 (hits at 10 + t, distance 0.1). A stray near neighbour on
+    # drive 1 (a different image every frame) is not a rival; a route on drive 1 that advances
+    # with the drive (60 + t) is, and at the same distance the place no longer stands out.
+    def run(rival_of: Callable[[int], int]) -> list[float]:
+        fb = ForwardBackward(HMMConfig(), MemoryGraphSource([50, 50]))
+        for t in range(8):
+            fb.forward(np.array([10 + t, rival_of(t)]), np.array([0.1, 0.1]))
+        return [d.contrast for d in fb.decisions()]
+
+    stray = run(lambda t: 50 + (7 * t) % 40)
+    route = run(lambda t: 60 + t)
+    assert stray == pytest.approx([0.0] * 8)
+    assert route[2:6] == pytest.approx([1.0] * 4)
