@@ -38,7 +38,7 @@ drive has been seen, the future of the drive supports or contradicts each frame.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -204,19 +204,24 @@ def run_ids(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> 
     return run
 
 
+def _members(run: np.ndarray) -> Iterator[np.ndarray]:
+    """The frames of each run (``run`` as :func:`run_ids` gives it), ascending, run by run.
+    O(n log n)."""
+    held = np.flatnonzero(run >= 0)
+    if not held.size:
+        return
+    by_run = held[np.argsort(run[held], kind="stable")]
+    starts = np.flatnonzero(np.r_[True, run[by_run[1:]] != run[by_run[:-1]]])
+    for a, b in zip(starts.tolist(), np.r_[starts[1:], by_run.size].tolist(), strict=True):
+        yield by_run[a:b]
+
+
 def _low_contrast_runs(seq: np.ndarray, img: np.ndarray, contrast: np.ndarray, max_gap: int,
                        max_rate: float, limit: float) -> np.ndarray:
     """The frames of the runs (see :func:`run_ids`) whose median contrast (NaN ignored)
     exceeds ``limit``. O(n * max_gap)."""
-    run = run_ids(seq, img, max_gap, max_rate)
     out = np.zeros(len(seq), dtype=bool)
-    held = np.flatnonzero(run >= 0)
-    if not held.size:
-        return out
-    order = held[np.argsort(run[held], kind="stable")]
-    starts = np.flatnonzero(np.r_[True, run[order[1:]] != run[order[:-1]]])
-    for a, b in zip(starts.tolist(), np.r_[starts[1:], order.size].tolist(), strict=True):
-        frames = order[a:b]
+    for frames in _members(run_ids(seq, img, max_gap, max_rate)):
         values = contrast[frames]
         values = values[~np.isnan(values)]
         if values.size and float(np.median(values)) > limit:
@@ -229,13 +234,7 @@ def _advancing(run: np.ndarray, img: np.ndarray, min_advance: float, half: int) 
     frames within ``half`` frames of it (first to last of them): a run that stalls for a
     stretch loses that stretch, even if the run as a whole moves on."""
     ok = np.zeros(len(run), dtype=bool)
-    order = np.flatnonzero(run >= 0)
-    if not order.size:
-        return ok
-    by_run = order[np.argsort(run[order], kind="stable")]
-    starts = np.flatnonzero(np.r_[True, run[by_run[1:]] != run[by_run[:-1]]])
-    for a, b in zip(starts.tolist(), np.r_[starts[1:], by_run.size].tolist(), strict=True):
-        frames = by_run[a:b]  # ascending: frames are visited in order within a run
+    for frames in _members(run):
         lo = np.searchsorted(frames, frames - half)
         hi = np.searchsorted(frames, frames + half, side="right") - 1
         span = frames[hi] - frames[lo]
