@@ -159,6 +159,8 @@ class ForwardBackward:
         buffers: dict[int, np.ndarray] = {}
         out: list[Decision] = []
         prefer: int | None = None
+        # each frame's k nearest hits, read by its own contrast and its neighbours' (O(n k))
+        nearest = [self._nearest_hits(t) for t in range(len(self.frames))]
         for t, (parts, sink) in zip(range(len(self.frames) - 1, -1, -1), self._backward(),
                                     strict=True):
             views = []
@@ -181,23 +183,24 @@ class ForwardBackward:
                 prefer = decision.seq_id
             if decision.vertex_id is not None:
                 decision = replace(decision, contrast=self._contrast(views, decision.vertex_id,
-                                                                     t))
+                                                                     t, nearest))
             out.append(decision)
             for (_, slots, _), view in zip(parts, views, strict=True):
                 view.x[slots] = 0.0
         out.reverse()
         return out
 
-    def _contrast(self, views: list[BeliefView], vertex_id: int, t: int) -> float:
+    def _contrast(self, views: list[BeliefView], vertex_id: int, t: int,
+                  nearest: list[tuple[list[int], list[float]]]) -> float:
         cfg = self.config
-        ids, dists = self._nearest_hits(t)
+        ids, dists = nearest[t]
         for view in views:
             s = int(view.graph.seq_index(np.array([vertex_id]))[0])
             if s >= 0:
                 slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
                 return place_contrast(view, slot, ids, dists, cfg.place_radius,
                                       cfg.place_hops, cfg.contrast_reach,
-                                      self._confirmed(ids, t))
+                                      _confirmed(ids, t, nearest))
         return math.nan  # not reached: the decided vertex lies in one of the views
 
     def _nearest_hits(self, t: int) -> tuple[list[int], list[float]]:
@@ -209,22 +212,6 @@ class ForwardBackward:
             order = sorted(range(len(ids)), key=dists.__getitem__)[:self.config.k]
             ids, dists = [ids[i] for i in order], [dists[i] for i in order]
         return ids, dists
-
-    def _confirmed(self, ids: list[int], t: int) -> set[int]:
-        """The hits of frame ``t`` that the frames around it confirm: at least
-        :data:`RIVAL_CONFIRMATIONS` of the frames ``t - 2 .. t + 2`` have a hit within
-        :data:`RIVAL_SLACK` images of where the same drive would be ``d`` frames away (vertex
-        ids run along a sequence; near a sequence's end the next one may be counted: a rival
-        too many, never one too few). A rival route, not a stray near neighbour. O(k^2)."""
-        n = len(self.frames)
-        near = {d: self._nearest_hits(t + d)[0] for d in (-2, -1, 1, 2) if 0 <= t + d < n}
-        out = set()
-        for h in ids:
-            votes = sum(1 for d, other in near.items()
-                        if any(abs(w - (h + d)) <= RIVAL_SLACK for w in other))
-            if votes >= RIVAL_CONFIRMATIONS:
-                out.add(h)
-        return out
 
     def _backward(self) -> Iterable[tuple[list[tuple[ComponentTransition, np.ndarray,
                                                      np.ndarray]], float]]:
@@ -288,6 +275,25 @@ class ForwardBackward:
 
 _EMPTY_SLOTS = np.zeros(0, dtype=np.int64)
 _EMPTY_VALS = np.zeros(0)
+
+
+def _confirmed(ids: list[int], t: int, nearest: list[tuple[list[int], list[float]]]
+               ) -> set[int]:
+    """The hits ``ids`` of frame ``t`` that the frames around it confirm: at least
+    :data:`RIVAL_CONFIRMATIONS` of the frames ``t - 2 .. t + 2`` have a hit (among their
+    ``nearest``) within :data:`RIVAL_SLACK` images of where the same drive would be ``d``
+    frames away (vertex ids run along a sequence; near a sequence's end the next one may be
+    counted: a rival too many, never one too few). A rival route, not a stray near neighbour.
+    O(k^2)."""
+    n = len(nearest)
+    near = [(d, nearest[t + d][0]) for d in (-2, -1, 1, 2) if 0 <= t + d < n]
+    out = set()
+    for h in ids:
+        votes = sum(1 for d, other in near
+                    if any(abs(w - (h + d)) <= RIVAL_SLACK for w in other))
+        if votes >= RIVAL_CONFIRMATIONS:
+            out.add(h)
+    return out
 
 
 def smooth(config: HMMConfig, source: GraphSource,

@@ -30,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.errors import MapCorruptError, SprintMapError, StorageIOError
+from sprint_map.errors import SprintMapError
 from sprint_map.storage.crash import crash_point
 from sprint_map.storage.records import AddResult, EdgeSpec, SequenceRecord
 from sprint_map.storage.sequence_writer import (
     SequenceWriter,
     StagedSequence,
+    UncommittedRows,
     WritableMap,
     write_staged,
 )
@@ -43,7 +44,7 @@ from sprint_map.storage.sequence_writer import (
 __all__ = ["GroupWriter"]
 
 
-class GroupWriter:
+class GroupWriter(UncommittedRows):
     """Sequences added one after the other, committed in one transaction; a context manager.
 
     Holds the map's writing slot from its creation to its commit or abort (no other sequence
@@ -68,16 +69,6 @@ class GroupWriter:
         self._added: list[StagedSequence | AddResult] = []
         self._done = False
         store.start_writing(self)
-
-    def __enter__(self) -> GroupWriter:
-        return self
-
-    def __exit__(self, exc_type: object, *exc: object) -> None:
-        if not self._done:
-            if exc_type is None:
-                self.abort()
-            else:
-                self._rollback_after_error()
 
     @property
     def staged(self) -> list[SequenceRecord]:
@@ -200,10 +191,3 @@ class GroupWriter:
         self.store.end_writing(self)
         if self.staged:
             self.store.shards.recover(self.first)
-
-    def _rollback_after_error(self) -> None:
-        """:meth:`abort` while an error propagates: a failed rollback must not mask it."""
-        try:
-            self.abort()
-        except (StorageIOError, MapCorruptError) as exc:
-            self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")

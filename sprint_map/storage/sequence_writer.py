@@ -25,7 +25,7 @@ import math
 import time
 from collections.abc import Callable, Container, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, Self
 
 import lmdb
 import numpy as np
@@ -53,8 +53,8 @@ from sprint_map.validation import (
     validate_positions,
 )
 
-__all__ = ["ResolvedEdge", "SequenceWriter", "StagedSequence", "WritableMap", "default_name",
-           "resolve_edge", "write_sequence", "write_staged"]
+__all__ = ["ResolvedEdge", "SequenceWriter", "StagedSequence", "UncommittedRows", "WritableMap",
+           "default_name", "resolve_edge", "write_sequence", "write_staged"]
 
 #: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
 ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
@@ -136,7 +136,37 @@ class StagedSequence:
     thumbnails: list[bytes] | None
 
 
-class SequenceWriter:
+class UncommittedRows:
+    """What a writer of uncommitted rows (:class:`SequenceWriter`, and the group writer) shares:
+    a context manager that aborts when left without a commit, and an abort during an error
+    that never masks it. Subclasses set ``store`` and ``_done`` and define :meth:`abort`."""
+
+    store: WritableMap
+    _done: bool
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if not self._done:
+            if exc_type is None:
+                self.abort()
+            else:
+                self._rollback_after_error()
+
+    def abort(self) -> None:
+        """Drop the uncommitted rows (truncate the shards to the committed end)."""
+        raise NotImplementedError
+
+    def _rollback_after_error(self) -> None:
+        """:meth:`abort` while an error propagates: a failed rollback must not mask the error."""
+        try:
+            self.abort()
+        except (StorageIOError, MapCorruptError) as exc:
+            self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")
+
+
+class SequenceWriter(UncommittedRows):
     """Writes one new sequence into ``store``; use as a context manager.
 
     Parameters
@@ -206,16 +236,6 @@ class SequenceWriter:
         self._grouped = follows is not None
         if not self._grouped:
             store.start_writing(self)
-
-    def __enter__(self) -> SequenceWriter:
-        return self
-
-    def __exit__(self, exc_type: object, *exc: object) -> None:
-        if not self._done:
-            if exc_type is None:
-                self.abort()
-            else:
-                self._rollback_after_error()
 
     def prepare(self, positions: Any, edges: Sequence[EdgeSpec], frames: int
                 ) -> tuple[np.ndarray | None, list[ResolvedEdge]]:
@@ -377,13 +397,6 @@ class SequenceWriter:
             self.store.end_writing(self)
         if self.retry_of is None:  # a possible retry wrote no row
             self.store.shards.recover(self.first)
-
-    def _rollback_after_error(self) -> None:
-        """:meth:`abort` while an error propagates: a failed rollback must not mask the error."""
-        try:
-            self.abort()
-        except (StorageIOError, MapCorruptError) as exc:
-            self.store.warnings.append(f"uncommitted rows not yet removed ({exc})")
 
 
 def resolve_edge(store: WritableMap, edge: EdgeSpec, new_seq: int, first: int, n: int,

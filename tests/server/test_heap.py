@@ -105,17 +105,23 @@ def test_a_served_map_freezes_its_heap_and_reports_gc_pauses(one_drive_map: Path
     assert server.terminate() == 0
 
 
-async def _bulk(outcomes: list[Any], cancel: int | None) -> tuple[list[Any], int]:
-    loop = asyncio.get_running_loop()
-    wakeups = 0
+def _count_wakeups(loop: asyncio.AbstractEventLoop) -> list[int]:
+    """Count the loop's ``call_soon_threadsafe`` calls (wake-ups from other threads) from now
+    on, in the returned one-item list."""
+    count = [0]
     wake = loop.call_soon_threadsafe
 
     def counting(*args: Any, **kwargs: Any) -> Any:
-        nonlocal wakeups
-        wakeups += 1
+        count[0] += 1
         return wake(*args, **kwargs)
 
     loop.call_soon_threadsafe = counting  # type: ignore[method-assign]
+    return count
+
+
+async def _bulk(outcomes: list[Any], cancel: int | None) -> tuple[list[Any], int]:
+    loop = asyncio.get_running_loop()
+    wakeups = _count_wakeups(loop)
     outbox = Outbox()
     futures = [loop.create_future() for _ in outcomes]
     if cancel is not None:
@@ -131,7 +137,7 @@ async def _bulk(outcomes: list[Any], cancel: int | None) -> tuple[list[Any], int
     late = loop.create_future()
     threading.Thread(target=outbox.post, args=(late, "late")).start()
     got.append(await late)
-    return got, wakeups
+    return got, wakeups[0]
 
 
 @pytest.mark.parametrize("cancel", [None, 3])
@@ -150,20 +156,12 @@ def test_outbox_answers_each_future_with_one_wakeup_for_all_ready(cancel):
 
 async def _posted_together(n: int) -> tuple[list[Any], int]:
     loop = asyncio.get_running_loop()
-    wakeups = 0
-    wake = loop.call_soon_threadsafe
-
-    def counting(*args: Any, **kwargs: Any) -> Any:
-        nonlocal wakeups
-        wakeups += 1
-        return wake(*args, **kwargs)
-
-    loop.call_soon_threadsafe = counting  # type: ignore[method-assign]
+    wakeups = _count_wakeups(loop)
     futures = [loop.create_future() for _ in range(n)]
     # As the batcher posts a batch: from its thread, every answer in one call.
     threading.Thread(target=Outbox().post_all,
                      args=([(f, i) for i, f in enumerate(futures)],)).start()
-    return await asyncio.gather(*futures), wakeups
+    return await asyncio.gather(*futures), wakeups[0]
 
 
 def test_a_batch_posted_together_wakes_the_loop_once():
