@@ -83,7 +83,10 @@ class FrameDecision:
     the merge rule compares with the drive's accepted matches. ``contrast`` (smoothed matches
     only, NaN otherwise) is the best hit inside the decided place over the best hit elsewhere
     in the map (:func:`sprint_map.hmm.decision.place_contrast`): below 1 the place stands out,
-    at 1 or more a lookalike is as close; the merge rule reads it along runs.
+    at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
+    is False for a smoothed decision the merge rule may not merge: one of the deeper pass of
+    a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
+    was not accepted (:meth:`Localizer.smoothed`).
     """
 
     frame: int
@@ -95,6 +98,7 @@ class FrameDecision:
     novel_prob: float = 0.0
     distance: float = math.inf
     contrast: float = math.nan
+    confirmed: bool = True
 
     @property
     def is_match(self) -> bool:
@@ -104,7 +108,8 @@ class FrameDecision:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
                 "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6),
                 "distance": round(self.distance, 6) if math.isfinite(self.distance) else None,
-                "contrast": round(self.contrast, 6) if math.isfinite(self.contrast) else None}
+                "contrast": round(self.contrast, 6) if math.isfinite(self.contrast) else None,
+                "confirmed": self.confirmed}
 
 
 @dataclass
@@ -208,10 +213,15 @@ class Localizer:
         frame's ``novelty_dist`` (kept in :attr:`novelty_dist`). The places decided stay
         those of the first pass.
 
+        With ``smooth_k`` > ``k`` (the default), these two passes read the ``k`` nearest hits
+        of each frame, and a third pass all ``smooth_k``: the merge rule's accepted decisions
+        stay those of the ``k``-hit passes, every other frame takes the third pass's place,
+        marked ``confirmed=False`` (never merged; see :meth:`_deep_decisions`).
+
         Notes
         -----
-        Two more filter steps and backward steps per frame (one without calibration), all
-        O(live); memory O(live) per frame of the sequence.
+        Two more filter steps and backward steps per frame (one without calibration), three
+        with ``smooth_k``, all O(live); memory O(live) per frame of the sequence.
         """
         if self._empty:
             return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
@@ -224,19 +234,58 @@ class Localizer:
                 self.hits = [(np.where(self.source.visible(ids), ids, -1), dists)
                              for ids, dists in self.hits]
             nearest = [_nearest(ids, dists) for ids, dists in self.hits]
-            out = self._smooth_pass(nearest)
+            k = self.config.k
+            deep = self.config.smooth_k > k
+            # the k nearest (as the causal filter reads them): the model the rule is tuned on
+            hits = [(ids[:k], dists[:k]) for ids, dists in self.hits] if deep else self.hits
+            out = self._smooth_pass(nearest, hits)
             novelty = self._calibrated_novelty(out)
             if novelty is not None:
-                calibrated = self._smooth_pass(nearest, novelty)
+                calibrated = self._smooth_pass(nearest, hits, novelty)
                 out = [dataclasses.replace(d, novel_prob=c.novel_prob)
                        for d, c in zip(out, calibrated, strict=True)]
+            if deep:
+                out = self._deep_decisions(nearest, out)
         self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
         return out
 
-    def _smooth_pass(self, nearest: list[float], novelty: np.ndarray | None = None
-                     ) -> list[FrameDecision]:
+    def _deep_decisions(self, nearest: list[float], shallow: list[FrameDecision]
+                        ) -> list[FrameDecision]:
+        """The decisions of a drive searched deeper than ``k`` (``smooth_k``), from
+        ``shallow``, its calibrated decisions over the ``k`` nearest hits of each frame.
+
+        A further pass reads all ``smooth_k`` hits: under a change of conditions they keep
+        more of a place's true neighbours, so its places are the more often right. But the
+        merge rule and the unmapped place are tuned on the ``k``-hit model: with many hits
+        among few vertices, any hypothesis keeps finding hits near it. So each frame the
+        merge rule accepts in ``shallow`` keeps that acceptance (it is reported by the deep
+        place when that lies on the same sequence within ``place_radius`` images, else as
+        it is), and every other frame takes the deep decision, marked ``confirmed=False``:
+        it answers where the frame is, it never becomes an edge. ``novel_prob`` is always
+        the calibrated one of ``shallow``.
+
+        Notes
+        -----
+        One more filter step and backward step per frame, over ``smooth_k`` hits.
+        """
+        accepted = select_merges(shallow, self.map.config.merge_rule)
+        deep = self._smooth_pass(nearest, self.hits)
+        radius = self.config.place_radius
+        out = []
+        for s, d, ok in zip(shallow, deep, accepted.tolist(), strict=True):
+            if not ok:
+                out.append(dataclasses.replace(d, novel_prob=s.novel_prob, confirmed=False))
+            elif (d.seq_id == s.seq_id and d.image_id is not None and s.image_id is not None
+                    and abs(d.image_id - s.image_id) <= radius):
+                out.append(dataclasses.replace(d, novel_prob=s.novel_prob, contrast=s.contrast))
+            else:
+                out.append(s)
+        return out
+
+    def _smooth_pass(self, nearest: list[float], hits: list[tuple[np.ndarray, np.ndarray]],
+                     novelty: np.ndarray | None = None) -> list[FrameDecision]:
         fb = ForwardBackward(self.config, self.source, self.cache)
-        for t, (ids, dists) in enumerate(self.hits):
+        for t, (ids, dists) in enumerate(hits):
             if novelty is not None:
                 nd = float(novelty[t])
                 fb.set_novelty_dist(nd if math.isfinite(nd) else None)
@@ -426,3 +475,4 @@ def _nearest(ids: np.ndarray, dists: np.ndarray) -> float:
     """A frame's best-hit distance (squared L2; inf without a valid hit)."""
     d = np.asarray(dists, dtype=np.float64).ravel()[np.asarray(ids).ravel() >= 0]
     return float(d.min()) if d.size else math.inf
+

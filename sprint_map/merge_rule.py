@@ -32,6 +32,9 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
 6. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
    either side agree with it in the sense of 4.
 
+A decision marked ``confirmed=False`` (the deeper pass of a drive searched with ``smooth_k``
+neighbours, where the rule did not accept the ``k``-neighbour decision) is never merged.
+
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
 drive has been seen, the future of the drive supports or contradicts each frame.
 """
@@ -67,6 +70,8 @@ class MergeDecision(Protocol):
     def distance(self) -> float: ...
     @property
     def contrast(self) -> float: ...
+    @property
+    def confirmed(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -121,7 +126,8 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], dtype=np.int64)
     prob = np.array([d.prob for d in decisions], dtype=np.float64)
     novel = np.array([d.novel_prob for d in decisions], dtype=np.float64)
-    ok = (seq >= 0) & (prob >= rule.threshold) & (novel <= rule.max_novel)
+    confirmed = np.array([d.confirmed for d in decisions], dtype=bool)
+    ok = (seq >= 0) & (prob >= rule.threshold) & (novel <= rule.max_novel) & confirmed
     gap = max(rule.window, 1)
 
     def on_runs(keep: np.ndarray) -> np.ndarray:

@@ -178,6 +178,32 @@ def test_ingest_merges_smoothed_decisions(tmp_path, rng, world):
         assert all("novel_prob" in d and "merged" in d for d in out["decisions"])
 
 
+def test_a_deeper_search_answers_every_frame_but_merges_only_the_k_model(tmp_path, rng, world):
+    """With ``smooth_k`` > ``k``: the frames the merge rule accepts from the ``k`` nearest
+    hits keep their acceptance, every other frame answers with the decision from all
+    ``smooth_k`` hits and is never merged."""
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+        for i in range(3):  # merged with each other: parallel drives are not rivals
+            m.ingest(traverse(rng, world, 0, 200, noise=1.0)[0], name=f"d{i}")
+        q, _ = traverse(rng, world, 20, 150, noise=1.0)
+        assert m.config.hmm.smooth_k > m.config.hmm.k  # the default searches deeper
+        deep, _ = m.localize(q, smooth=True)
+        shallow, _ = m.localize(q, smooth=True, smooth_k=0)
+        wide, _ = m.localize(q, smooth=True, k=m.config.hmm.smooth_k, smooth_k=0)
+        accepted = m.select_merges(shallow)
+        assert 0 < accepted.sum() < len(q)
+        assert [d.confirmed for d in deep] == accepted.tolist()
+        assert not m.select_merges(deep)[~accepted].any()
+        assert [d.novel_prob for d in deep] == [d.novel_prob for d in shallow]
+        radius = m.config.hmm.place_radius
+        for d, s, w, ok in zip(deep, shallow, wide, accepted, strict=True):
+            if ok:  # the k-model's accepted place, or the deep one where it is the same
+                assert d.seq_id == s.seq_id and abs(d.image_id - s.image_id) <= radius
+            else:  # the place the smooth_k hits give
+                assert (d.seq_id, d.image_id, d.best) == (w.seq_id, w.image_id, w.best)
+        assert any(d.best != s.best for d, s in zip(deep, shallow, strict=True))
+
+
 def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
     """A drive that follows a mapped road closely, with a detour on its way past a lookalike
     of a stretch it saw earlier, which it matches only loosely: the unmapped-place probability,

@@ -68,6 +68,13 @@ def test_novel_and_unconfident_decisions_are_never_merged():
     assert not merged[5] and not merged[6] and merged[:5].all() and merged[7:].all()
 
 
+def test_unconfirmed_decisions_are_never_merged():
+    drive = along(30)
+    drive[5] = FrameDecision(5, 0, 15, 0.9, confirmed=False)  # a deeper pass's answer only
+    merged = select_merges(drive, MergeRule(threshold=0.5, window=3, min_run=20))
+    assert not merged[5] and merged[:5].all() and merged[6:].all()
+
+
 @pytest.mark.parametrize("window", [0, 5])
 def test_local_quantiles(window):
     values = np.r_[np.full(50, 1.0), np.full(50, 3.0)]
