@@ -173,7 +173,8 @@ class Localizer:
     """
 
     def __init__(self, smap: LocalizableMap, hmm: HMMConfig | None = None,
-                 cache: ComponentCache | None = None, *, record: bool = False) -> None:
+                 cache: ComponentCache | None = None, *, record: bool = False,
+                 record_k: int | None = None) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
         self.source = smap.view()
@@ -185,6 +186,9 @@ class Localizer:
         self._frame = 0
         #: Keep every frame's retrieval hits, for :meth:`smoothed` (O(k) per frame).
         self.record = record
+        #: Neighbours searched and kept per recorded frame (None: :func:`recorded_k`; the
+        #: service keeps ``k`` and has :meth:`smoothed` search the drive deeper at commit).
+        self.record_k = record_k
         self.hits: list[tuple[np.ndarray, np.ndarray]] = []
         #: The per-frame unmapped-place distances the last :meth:`smoothed` calibrated.
         self.novelty_dist: np.ndarray | None = None
@@ -199,7 +203,7 @@ class Localizer:
         self._frame = 0
         self.hits = []
 
-    def smoothed(self) -> list[FrameDecision]:
+    def smoothed(self, descriptors: DescriptorsLike | None = None) -> list[FrameDecision]:
         """The decisions of every frame so far, re-made from the smoothed posterior.
 
         Forward-backward over the same sparse active set (:mod:`sprint_map.hmm.smoother`),
@@ -216,7 +220,10 @@ class Localizer:
         With ``smooth_k`` > ``k`` (the default), these two passes read the ``k`` nearest hits
         of each frame, and a third pass all ``smooth_k``: the merge rule's accepted decisions
         stay those of the ``k``-hit passes, every other frame takes the third pass's place,
-        marked ``confirmed=False`` (never merged; see :meth:`_deep_decisions`).
+        marked ``confirmed=False`` (never merged; see :meth:`_deep_decisions`). The deep hits
+        are the recorded ones; where fewer were recorded (``record_k``), the drive's
+        ``descriptors``, if given, are searched ``smooth_k`` deep now, in one batch (the
+        service answers its vehicles from ``k`` hits and smooths at commit).
 
         Notes
         -----
@@ -235,7 +242,8 @@ class Localizer:
                              for ids, dists in self.hits]
             nearest = [_nearest(ids, dists) for ids, dists in self.hits]
             k = self.config.k
-            deep = self.config.smooth_k > k
+            deep_hits = self._deep_hits(descriptors)
+            deep = self.config.smooth_k > k and any(len(ids) > k for ids, _ in deep_hits)
             # the k nearest (as the causal filter reads them): the model the rule is tuned on
             hits = [(ids[:k], dists[:k]) for ids, dists in self.hits] if deep else self.hits
             out = self._smooth_pass(nearest, hits)
@@ -245,11 +253,28 @@ class Localizer:
                 out = [dataclasses.replace(d, novel_prob=c.novel_prob)
                        for d, c in zip(out, calibrated, strict=True)]
             if deep:
-                out = self._deep_decisions(nearest, out)
+                out = self._deep_decisions(nearest, out, deep_hits)
         self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
         return out
 
-    def _deep_decisions(self, nearest: list[float], shallow: list[FrameDecision]
+    def _deep_hits(self, descriptors: DescriptorsLike | None
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The hits of the deep pass: the recorded ones, or, where they are shallower than
+        ``smooth_k`` and the drive's ``descriptors`` are given, a search of them now (one
+        batch; the map is pinned by the caller)."""
+        deep_k = self.config.smooth_k
+        if (descriptors is None or deep_k <= self.config.k or not self.hits
+                or all(len(ids) >= deep_k for ids, _ in self.hits)):
+            return self.hits
+        rows = validate_descriptors(np.asarray(descriptors), self.map.config.dim)
+        if len(rows) != len(self.hits):
+            raise ValueError(f"smoothed() got {len(rows)} descriptors for {len(self.hits)} "
+                             "localised frames")
+        dists, ids = self.source.search(rows, deep_k)
+        return list(zip(ids, dists, strict=True))
+
+    def _deep_decisions(self, nearest: list[float], shallow: list[FrameDecision],
+                        deep_hits: list[tuple[np.ndarray, np.ndarray]]
                         ) -> list[FrameDecision]:
         """The decisions of a drive searched deeper than ``k`` (``smooth_k``), from
         ``shallow``, its calibrated decisions over the ``k`` nearest hits of each frame.
@@ -269,7 +294,7 @@ class Localizer:
         One more filter step and backward step per frame, over ``smooth_k`` hits.
         """
         accepted = select_merges(shallow, self.map.config.merge_rule)
-        deep = self._smooth_pass(nearest, self.hits)
+        deep = self._smooth_pass(nearest, deep_hits)
         radius = self.config.place_radius
         out = []
         for s, d, ok in zip(shallow, deep, accepted.tolist(), strict=True):
@@ -396,7 +421,9 @@ class Localizer:
     def search_k(self) -> int:
         """Neighbours searched per frame: :func:`recorded_k` when the hits are recorded for
         :meth:`smoothed`, else ``k``. The causal filter reads the ``k`` nearest either way."""
-        return recorded_k(self.config) if self.record else self.config.k
+        if not self.record:
+            return self.config.k
+        return self.record_k if self.record_k is not None else recorded_k(self.config)
 
     def _update(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float) -> FrameDecision:
         start = time.perf_counter()
@@ -442,8 +469,8 @@ class Localizer:
 
 def recorded_k(config: HMMConfig) -> int:
     """Neighbours to search per frame for a drive whose hits are kept for the smoothed
-    decisions: ``max(k, smooth_k)`` (the service's batches search this many for its sessions,
-    which are smoothed when committed)."""
+    decisions: ``max(k, smooth_k)`` (``ingest``, ``localize --smooth``; the service keeps ``k``
+    per frame and searches the drive ``smooth_k`` deep when it commits)."""
     return max(config.k, config.smooth_k)
 
 

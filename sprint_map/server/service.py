@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import logging
 import time
@@ -21,7 +22,7 @@ import anyio
 import numpy as np
 
 from sprint_map.errors import SprintMapError
-from sprint_map.localizer import Localizer, recorded_k
+from sprint_map.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig
@@ -88,7 +89,7 @@ class LocalisationService:
                                    self.registry)
         #: Frames of all sessions searched together; None: each alone (batch_max_frames 0,
         #: or the sessions' localisers live in Ray replicas, which search their own frames).
-        self.batcher = (FrameBatcher(smap, self.gate, recorded_k(smap.config.hmm),
+        self.batcher = (FrameBatcher(smap, self.gate, smap.config.hmm.k,
                                      config.batch_window_ms / 1e3, config.batch_max_frames,
                                      config.search_threads)
                         if config.batch_max_frames and localizers is None else None)
@@ -213,7 +214,8 @@ class LocalisationService:
                                    f"the map already has a sequence named {name!r}")
             try:
                 localizer = (self.localizers() if self.localizers is not None
-                             else Localizer(self.map, cache=self.cache, record=True))
+                             else Localizer(self.map, cache=self.cache, record=True,
+                                            record_k=self.map.config.hmm.k))
             except SprintMapError as exc:  # e.g. no replica could take the session
                 raise from_library(exc) from None
             return Session(name, localizer, self.dim)
@@ -332,10 +334,12 @@ class LocalisationService:
 
     # --- commits ----------------------------------------------------------------------------
     def _job(self, session: Session) -> CommitJob:
-        return CommitJob(session.name, session.descriptors(), list(session.decisions),
+        rows = session.descriptors()
+        # the vehicles were answered from k hits; the commit searches the drive smooth_k deep
+        return CommitJob(session.name, rows, list(session.decisions),
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
-                         smoothed=session.localizer.smoothed)
+                         smoothed=functools.partial(session.localizer.smoothed, rows))
 
     async def commit(self, session_id: str) -> dict[str, Any]:
         """Commit a session's drive; returns once the commit is durable."""

@@ -77,7 +77,8 @@ def test_drives_end_to_end_equal_offline_localize_and_ingest(one_drive_map, plac
     assert server.terminate() == 0
 
     # The commits are exactly what `ingest` commits for the same drives (the service smooths a
-    # drive's decisions at its commit, as ingest does, from the hits its frames retrieved).
+    # drive's decisions at its commit, as ingest does, from the k hits its frames retrieved and
+    # a smooth_k-deep search of the drive made then; ingest records both while it streams).
     with SprintMap.open(reference) as m:
         m.ingest(second, name="second", positions=where)
         m.ingest(third, name="third")
