@@ -120,7 +120,9 @@ class RemoteLocalizer:
         self.timing.hmm_ms.append(hmm_ms)
         return decision
 
-    def smoothed(self) -> list[FrameDecision]:
+    def smoothed(self, descriptors: Descriptors | None = None) -> list[FrameDecision]:
+        """The session's smoothed decisions, made in its replica (which recorded every
+        frame's ``smooth_k`` hits: ``descriptors`` are not needed, so not sent)."""
         decisions: list[FrameDecision] = self._call(self._actor.smoothed.remote(self.session))
         return decisions
 
