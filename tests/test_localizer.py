@@ -10,7 +10,7 @@ import pytest
 from sprint_map.commit import merge_edges
 from sprint_map.config import MapConfig
 from sprint_map.errors import DescriptorShapeError, DuplicateNameError
-from sprint_map.localizer import FrameDecision
+from sprint_map.localizer import FrameDecision, Localizer
 from sprint_map.map import SprintMap
 from sprint_map.merge_rule import MergeRule, select_merges
 
@@ -202,6 +202,27 @@ def test_a_deeper_search_answers_every_frame_but_merges_only_the_k_model(tmp_pat
             else:  # the place the smooth_k hits give
                 assert (d.seq_id, d.image_id, d.best) == (w.seq_id, w.image_id, w.best)
         assert any(d.best != s.best for d, s in zip(deep, shallow, strict=True))
+
+
+def test_a_drive_recorded_k_deep_is_searched_deeper_when_smoothed(tmp_path, rng, world):
+    """The service answers from ``k`` hits per frame (``record_k``) and smooths at commit
+    with the drive's descriptors: the same decisions as a drive recorded ``smooth_k`` deep."""
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+        for i in range(2):
+            m.ingest(traverse(rng, world, 0, 150, noise=1.0)[0], name=f"d{i}")
+        q = np.vstack([traverse(rng, world, 10, 100, noise=1.0)[0],
+                       unit(rng.standard_normal((30, DIM)))])  # then a street nobody drove
+        deep = Localizer(m, record=True)
+        shallow = Localizer(m, record=True, record_k=m.config.hmm.k)
+        for row in q:
+            deep.step(row)
+            shallow.step(row)
+        assert {len(ids) for ids, _ in shallow.hits} == {m.config.hmm.k}
+        want = deep.smoothed()
+        assert shallow.smoothed(q) == want
+        assert any(not d.confirmed for d in want)
+        with pytest.raises(ValueError, match="descriptors for 130"):
+            shallow.smoothed(q[:50])
 
 
 def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
