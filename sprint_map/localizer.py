@@ -30,11 +30,15 @@ from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
 from sprint_map.validation import validate_descriptors
 
-__all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "MapView", "Timing",
-           "local_quantiles", "recorded_k"]
+__all__ = ["CALIBRATE_MIN_RUN", "SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer",
+           "MapView", "Timing", "local_quantiles", "recorded_k"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
+
+#: Shortest run (frames) of the matches a drive's unmapped place is calibrated on
+#: (:meth:`Localizer.smoothed`): the merge rule's runs without its lookalike tests.
+CALIBRATE_MIN_RUN = 5
 
 
 class MapView(GraphSource, Protocol):
@@ -211,8 +215,9 @@ class Localizer:
         decision then uses the frames after it as well. The causal decisions are unchanged.
 
         With ``novelty_quantile`` set (the default), each decision's ``novel_prob`` comes from
-        a second pass whose unmapped-place hypothesis is calibrated on this drive: the frames
-        of the first pass that the map's merge rule accepts give the drive's match distances,
+        a second pass whose unmapped-place hypothesis is calibrated on this drive: the
+        consistent matches of the first pass (:meth:`_calibrated_novelty`) give the drive's
+        match distances,
         and their ``novelty_quantile`` quantile within ``novelty_window`` frames becomes each
         frame's ``novelty_dist`` (kept in :attr:`novelty_dist`). The places decided stay
         those of the first pass.
@@ -320,14 +325,26 @@ class Localizer:
     def _calibrated_novelty(self, decisions: list[FrameDecision]) -> np.ndarray | None:
         """Per-frame ``novelty_dist`` for this drive (see :meth:`smoothed`; ``inf``: none at
         that frame), or None to keep the config's: calibration off, set by hand, or too few
-        accepted frames to calibrate on."""
+        matched frames to calibrate on.
+
+        The frames it learns from are the drive's consistent matches: the merge rule's frames
+        without its lookalike tests (``merge_max_contrast`` off, runs of at least
+        :data:`CALIBRATE_MIN_RUN` frames instead of ``merge_min_run``). A lookalike lies about
+        as far from the map as a true match under the same conditions, so it does not bias
+        how far this drive's matches lie; but leaving its tests on left whole stretches of a
+        drive under rain or snow without a frame to calibrate on (``docs/benchmarks.md``,
+        "Calibrated on consistent matches").
+        """
         cfg = self.config
         if not cfg.novelty_quantile or cfg.novelty_dist is not None:
             return None
-        accepted = select_merges(decisions, self.map.config.merge_rule)
-        if int(accepted.sum()) < CALIBRATE_MIN_FRAMES:
+        rule = self.map.config.merge_rule
+        rule = dataclasses.replace(rule, max_contrast=0.0,
+                                   min_run=min(rule.min_run, CALIBRATE_MIN_RUN))
+        matched = select_merges(decisions, rule)
+        if int(matched.sum()) < CALIBRATE_MIN_FRAMES:
             return None
-        self.novelty_dist = local_quantiles(np.array([d.distance for d in decisions]), accepted,
+        self.novelty_dist = local_quantiles(np.array([d.distance for d in decisions]), matched,
                                             cfg.novelty_quantile, cfg.novelty_window,
                                             CALIBRATE_MIN_FRAMES)
         return self.novelty_dist

@@ -225,6 +225,33 @@ def test_a_drive_recorded_k_deep_is_searched_deeper_when_smoothed(tmp_path, rng,
             shallow.smoothed(q[:50])
 
 
+def test_novelty_is_calibrated_on_short_consistent_runs_too(tmp_path, rng):
+    """A stretch the merge rule does not accept (a run shorter than ``merge_min_run``), under
+    its own light, far from the runs it accepts: the calibration learns its distances from the
+    stretch itself (a consistent run of at least CALIBRATE_MIN_RUN frames), so its frames are
+    not called unmapped for lying farther than the accepted runs."""
+    places = unit(rng.standard_normal((400, DIM)))
+    mapped = unit(places + 0.05 * unit(rng.standard_normal(places.shape)))
+
+    def seen(idx, noise):
+        return unit(places[idx] + noise * unit(rng.standard_normal((len(idx), DIM))))
+
+    stretch = slice(230, 245)  # 15 frames of places 330..344, seen under a dimmer light
+    query = np.vstack([seen(np.arange(100), 0.15), unit(rng.standard_normal((130, DIM))),
+                       seen(np.arange(330, 345), 0.4)])
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
+        m.add_sequence(mapped, name="mapped")
+        smoothed, _ = m.localize(query, smooth=True)
+        merged = m.select_merges(smoothed)
+        assert merged[:100].mean() > 0.9 and not merged[100:].any()  # the stretch: too short
+        far = [d.distance for d in smoothed[stretch]]
+        assert max(d.distance for d in smoothed[:100]) < min(far)
+        assert all(d.image_id is not None and abs(d.image_id - (100 + f)) <= 2
+                   for f, d in enumerate(smoothed[stretch], start=230))
+        # calibrated on the stretch's own distances: its frames are mapped places
+        assert np.median([d.novel_prob for d in smoothed[stretch]]) < 0.2
+
+
 def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
     """A drive that follows a mapped road closely, with a detour on its way past a lookalike
     of a stretch it saw earlier, which it matches only loosely: the unmapped-place probability,

@@ -97,14 +97,15 @@ class HMMConfig:
         every hit. ``None`` (default) disables it (distances are descriptor-dependent).
     novelty_quantile : float
         Calibration of the unmapped-place hypothesis for smoothed (merge) decisions, per
-        drive: after a first smoothing pass, the best-hit distances of the frames the map's
-        merge rule accepts are this drive's match distances to the map (under its own light
-        and weather); their ``novelty_quantile`` quantile becomes ``novelty_dist`` for a
-        second pass, so a frame whose best hit is farther than the drive's accepted matches
+        drive: after a first smoothing pass, the best-hit distances of the frames that are
+        consistent matches (the map's merge rule without its lookalike tests: runs of 5
+        frames, no contrast gate) are this drive's match distances to the map (under its own
+        light and weather); their ``novelty_quantile`` quantile becomes ``novelty_dist`` for a
+        second pass, so a frame whose best hit is farther than the drive's matches
         is explained at least as well by an unmapped place. 0 disables it (and so does a
         ``novelty_dist`` set by hand). The causal filter does not use it.
     novelty_window : int
-        The calibration is local: frame ``t`` uses the accepted frames within this many
+        The calibration is local: frame ``t`` uses the matched frames within this many
         frames of it (light and weather change along a drive: tunnels, dusk), or the whole
         drive where fewer than 10 lie that close. 0: the whole drive.
     place_radius : int
