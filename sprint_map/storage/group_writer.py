@@ -175,19 +175,8 @@ class GroupWriter(UncommittedRows):
                        for s, (component, added) in zip(staged, written, strict=True))
         return [a if isinstance(a, AddResult) else next(results) for a in self._added]
 
-    def abort(self) -> None:
-        """Drop every row the group wrote (truncate the shards to the committed end); nothing
-        is committed.
-
-        Raises
-        ------
-        StorageIOError
-            If the shards cannot be truncated; the rows stay invisible (LMDB never counted
-            them) and the next writer's open truncates them.
-        """
-        if self._done:
-            return
-        self._done = True
+    def drop_rows(self) -> None:
+        """Drop every row the group wrote (see :meth:`abort`)."""
         self.store.end_writing(self)
         if self.staged:
             self.store.shards.recover(self.first)

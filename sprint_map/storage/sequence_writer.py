@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Container, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, Self
@@ -136,10 +137,11 @@ class StagedSequence:
     thumbnails: list[bytes] | None
 
 
-class UncommittedRows:
+class UncommittedRows(ABC):
     """What a writer of uncommitted rows (:class:`SequenceWriter`, and the group writer) shares:
-    a context manager that aborts when left without a commit, and an abort during an error
-    that never masks it. Subclasses set ``store`` and ``_done`` and define :meth:`abort`."""
+    a context manager that aborts when left without a commit, an abort that runs once, and an
+    abort during an error that never masks it. Subclasses set ``store`` and ``_done`` and
+    define :meth:`drop_rows`."""
 
     store: WritableMap
     _done: bool
@@ -155,8 +157,24 @@ class UncommittedRows:
                 self._rollback_after_error()
 
     def abort(self) -> None:
-        """Drop the uncommitted rows (truncate the shards to the committed end)."""
-        raise NotImplementedError
+        """Drop the uncommitted rows (truncate the shards to the committed end); nothing is
+        committed. Once: later calls, and calls after a commit, do nothing.
+
+        Raises
+        ------
+        StorageIOError
+            If the shards cannot be truncated; the rows stay invisible (LMDB never counted
+            them) and the next writer's open truncates them.
+        """
+        if self._done:
+            return
+        self._done = True
+        self.drop_rows()
+
+    @abstractmethod
+    def drop_rows(self) -> None:
+        """:meth:`abort`'s work, called once by it: release the writer's hold on the store and
+        truncate the shards to the committed end."""
 
     def _rollback_after_error(self) -> None:
         """:meth:`abort` while an error propagates: a failed rollback must not mask the error."""
@@ -381,18 +399,8 @@ class SequenceWriter(UncommittedRows):
         return AddResult(record, self.store.component_of(record.seq_id), 0,
                          already_committed=True)
 
-    def abort(self) -> None:
-        """Drop every row appended so far (truncate the shards to the committed length).
-
-        Raises
-        ------
-        StorageIOError
-            If the shards cannot be truncated; the rows stay invisible (LMDB never counted
-            them) and the next writer's open truncates them.
-        """
-        if self._done:
-            return
-        self._done = True
+    def drop_rows(self) -> None:
+        """Drop every row appended so far (see :meth:`abort`)."""
         if not self._grouped:
             self.store.end_writing(self)
         if self.retry_of is None:  # a possible retry wrote no row
