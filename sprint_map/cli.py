@@ -184,7 +184,8 @@ def _model_options(f: Any) -> Any:
               help="CSV frame,x,y[,heading_deg] with a header row (one SOURCE only).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
-              "(images and video; about 2 KiB a frame), for viewers.")
+              "(images and video; about 2 KiB a frame), for viewers and to verify merges on "
+              "the images against the map's own thumbnails.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON (several "
               "SOURCEs: a list, one object per drive).")
 @click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (drives "
@@ -302,24 +303,31 @@ def _ingest_line(out: dict[str, Any]) -> str:
 @click.option("--smooth", is_flag=True,
               help="Decide each frame from the smoothed posterior (the whole drive, as ingest "
                    "merges); default: causal, as a vehicle gets the answers.")
+@click.option("--thumbnails", is_flag=True,
+              help="With --smooth: verify on the images, against the map's thumbnails, the "
+                   "runs the merge rule's lookalike tests refuse, as ingest --thumbnails does "
+                   "(images and video).")
 @_trace_option
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             trace: str | None, stride: int, quiet: bool, k: int | None, window: str | None,
-             hmm_pairs: tuple[str, ...]) -> None:
+             thumbnails: bool, trace: str | None, stride: int, quiet: bool, k: int | None,
+             window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
     \b
     Examples:
       sprint-map localize city.map drives/friday/ --json
       sprint-map localize city.map friday.npy --smooth --json
+      sprint-map localize city.map drives/friday/ --smooth --thumbnails --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
     """
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
-        src = m.open_source(source, stride=stride, progress=progress)
+        if thumbnails and not smooth:
+            raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
+        src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
         localizer = m.localizer(**overrides)
         localizer.record = smooth
         recorder = TraceRecorder(m) if trace else None
@@ -327,7 +335,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
             recorder.attach(localizer)
         decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
         if smooth:
-            decisions = localizer.smoothed()
+            decisions = localizer.smoothed(thumbnails=src.thumbnails if thumbnails else None)
         if recorder is not None and trace:
             recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
                                                         "source": str(source)})

@@ -106,6 +106,11 @@ class MapConfig:
         A merged decision's run stands out from the rest of the map: the median contrast of
         its frames (best hit inside the decided place over best hit elsewhere, smoothed
         decisions) is at most this (0 disables the check).
+    merge_verify_inliers : int
+        Geometric verification of the runs the lookalike tests refuse, where the drive and
+        the map keep thumbnails (``ingest --thumbnails``): a stretch whose sampled frames share
+        at least this many inliers (median) with their matched map images is merged
+        (:mod:`sprint_map.verification`; unrelated images share 14-20). 0 disables it.
     merge_both_ways : bool
         Store each merge edge in both directions (query -> map and map -> query), so belief can
         later cross between the two drives either way. The paper keeps one direction.
@@ -139,6 +144,7 @@ class MapConfig:
     merge_dist_quantile: float = 0.0
     merge_min_advance: float = 0.3
     merge_max_contrast: float = 0.95
+    merge_verify_inliers: int = 35
     merge_both_ways: bool = True
     hmm: HMMConfig = field(default_factory=HMMConfig)
 
@@ -170,6 +176,8 @@ class MapConfig:
             raise ValueError("merge_min_advance must be in [0, merge_max_rate]")
         if not 0 <= self.merge_max_contrast < math.inf:
             raise ValueError("merge_max_contrast must be a finite number >= 0")
+        if not isinstance(self.merge_verify_inliers, int) or self.merge_verify_inliers < 0:
+            raise ValueError("merge_verify_inliers must be an integer >= 0")
 
     @property
     def merge_rule(self) -> MergeRule:

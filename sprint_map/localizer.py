@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -21,6 +21,7 @@ import numpy as np
 
 from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.config import MapConfig
+from sprint_map.errors import UnknownSequenceError
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision
@@ -73,6 +74,8 @@ class LocalizableMap(Protocol):
 
     def view(self) -> MapView: ...
 
+    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None: ...
+
 
 @dataclass(frozen=True)
 class FrameDecision:
@@ -90,7 +93,10 @@ class FrameDecision:
     at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
     is False for a smoothed decision the merge rule may not merge: one of the deeper pass of
     a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
-    was not accepted (:meth:`Localizer.smoothed`).
+    was not accepted (:meth:`Localizer.smoothed`). ``verified`` is True for a smoothed
+    decision on a run that geometric verification on the thumbnails confirmed
+    (:mod:`sprint_map.verification`): the merge rule merges it even if a lookalike test
+    refused it.
     """
 
     frame: int
@@ -103,6 +109,7 @@ class FrameDecision:
     distance: float = math.inf
     contrast: float = math.nan
     confirmed: bool = True
+    verified: bool = False
 
     @property
     def is_match(self) -> bool:
@@ -113,7 +120,7 @@ class FrameDecision:
                 "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6),
                 "distance": round(self.distance, 6) if math.isfinite(self.distance) else None,
                 "contrast": round(self.contrast, 6) if math.isfinite(self.contrast) else None,
-                "confirmed": self.confirmed}
+                "confirmed": self.confirmed, "verified": self.verified}
 
 
 @dataclass
@@ -207,7 +214,8 @@ class Localizer:
         self._frame = 0
         self.hits = []
 
-    def smoothed(self, descriptors: DescriptorsLike | None = None) -> list[FrameDecision]:
+    def smoothed(self, descriptors: DescriptorsLike | None = None,
+                 thumbnails: Sequence[bytes] | None = None) -> list[FrameDecision]:
         """The decisions of every frame so far, re-made from the smoothed posterior.
 
         Forward-backward over the same sparse active set (:mod:`sprint_map.hmm.smoother`),
@@ -230,10 +238,18 @@ class Localizer:
         ``descriptors``, if given, are searched ``smooth_k`` deep now, in one batch (the
         service answers its vehicles from ``k`` hits and smooths at commit).
 
+        With the drive's ``thumbnails`` (one JPEG per frame) and ``merge_verify_inliers`` set,
+        the runs that the merge rule refuses only for its lookalike tests (contrast gate,
+        unmapped-place veto) are checked on the images against the map's own thumbnails
+        (:mod:`sprint_map.verification`); the frames of verified stretches are marked
+        ``verified`` and merged. Nothing is verified for a map frame without a thumbnail.
+
         Notes
         -----
         Two more filter steps and backward steps per frame (one without calibration), three
-        with ``smooth_k``, all O(live); memory O(live) per frame of the sequence.
+        with ``smooth_k``, all O(live); memory O(live) per frame of the sequence. Verification
+        adds one keypoint matching per :data:`~sprint_map.verification.SAMPLE_EVERY` frames
+        of the refused runs.
         """
         if self._empty:
             return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
@@ -257,6 +273,8 @@ class Localizer:
                 calibrated = self._smooth_pass(nearest, hits, novelty)
                 out = [dataclasses.replace(d, novel_prob=c.novel_prob)
                        for d, c in zip(out, calibrated, strict=True)]
+            if thumbnails is not None:
+                out = self._verify(out, thumbnails)
             if deep:
                 out = self._deep_decisions(nearest, out, deep_hits)
         self.timing.smooth_ms = (time.perf_counter() - start) * 1e3
@@ -307,10 +325,43 @@ class Localizer:
                 out.append(dataclasses.replace(d, novel_prob=s.novel_prob, confirmed=False))
             elif (d.seq_id == s.seq_id and d.image_id is not None and s.image_id is not None
                     and abs(d.image_id - s.image_id) <= radius):
-                out.append(dataclasses.replace(d, novel_prob=s.novel_prob, contrast=s.contrast))
+                out.append(dataclasses.replace(d, novel_prob=s.novel_prob, contrast=s.contrast,
+                                               verified=s.verified))
             else:
                 out.append(s)
         return out
+
+    def _verify(self, decisions: list[FrameDecision], thumbnails: Sequence[bytes]
+                ) -> list[FrameDecision]:
+        """``decisions`` with ``verified`` set on the frames of the runs that the merge rule
+        refuses only for its lookalike tests and that the thumbnails confirm (see
+        :meth:`smoothed`). Unchanged when verification is off or the thumbnails are not one
+        per frame (the commit refuses those)."""
+        from sprint_map.verification import RunVerifier
+
+        config = self.map.config
+        if not config.merge_verify_inliers or len(thumbnails) != len(decisions):
+            return decisions
+        rule = config.merge_rule
+        relaxed = dataclasses.replace(rule, max_contrast=0.0, max_novel=1.0)
+        candidates = select_merges(decisions, relaxed)
+        accepted = select_merges(decisions, rule)
+        if not (candidates & ~accepted).any():
+            return decisions
+        verifier = RunVerifier(thumbnails, self._map_thumbnail, config.merge_verify_inliers,
+                               rule.min_run)
+        verified = verifier.verified(decisions, candidates, max(rule.window, 1), rule.max_rate,
+                                     skip=accepted)
+        return [dataclasses.replace(d, verified=True) if v else d
+                for d, v in zip(decisions, verified.tolist(), strict=True)]
+
+    def _map_thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
+        """A map frame's thumbnail; None when it keeps none or has no such frame (a drive
+        shorter than that, or removed since the hits were searched)."""
+        try:
+            return self.map.thumbnail(seq_id, image_id)
+        except UnknownSequenceError:
+            return None
 
     def _smooth_pass(self, nearest: list[float], hits: list[tuple[np.ndarray, np.ndarray]],
                      novelty: np.ndarray | None = None) -> list[FrameDecision]:

@@ -209,9 +209,11 @@ class SprintMap:
             memory is bounded by the batch, not the drive.
         thumbnails : sequence of bytes, optional
             One small JPEG per frame, committed with the drive (``FrameSource.thumbnails`` of
-            a source opened with ``thumbnails=True``: read at the commit, after the batches,
-            so a list the source fills while it streams is complete by then). Held in memory
-            until the commit: about 2 KiB per frame.
+            a source opened with ``thumbnails=True``: read after the batches, so a list the
+            source fills while it streams is complete by then). Held in memory until the
+            commit: about 2 KiB per frame. They also let the merge verify, against the map's
+            own thumbnails, the runs its lookalike tests refuse (``merge_verify_inliers``,
+            :mod:`sprint_map.verification`).
 
         Notes
         -----
@@ -240,7 +242,8 @@ class SprintMap:
                     for _ in localizer.iter_localize(iter([batch])):
                         pass
                 drive.append(batch)
-            decisions = localizer.smoothed() if localizer is not None else []
+            decisions = (localizer.smoothed(thumbnails=thumbnails) if localizer is not None
+                         else [])
             done = drive.commit(decisions, positions, thumbnails=thumbnails)
         return IngestResult(done.added, decisions, localizer.timing if localizer else Timing(),
                             done.merged)
@@ -414,20 +417,23 @@ class SprintMap:
         base = hmm or self.config.hmm
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
 
-    def localize(self, descriptors: Any, *, smooth: bool = False, **overrides: Any
+    def localize(self, descriptors: Any, *, smooth: bool = False,
+                 thumbnails: Sequence[bytes] | None = None, **overrides: Any
                  ) -> tuple[list[FrameDecision], Timing]:
         """Localise a whole query sequence without changing the map; batches its searches.
 
         With ``smooth`` the decisions are re-made from the forward-backward smoothed posterior
-        once the whole sequence has been seen (what ``ingest`` merges); without it they are the
-        causal filter's, as a vehicle gets them.
+        once the whole sequence has been seen (what ``ingest`` merges, given the same
+        ``thumbnails``: one JPEG per frame, for the geometric verification of
+        :mod:`sprint_map.verification`); without it they are the causal filter's, as a vehicle
+        gets them.
         """
         localizer = self.localizer(**overrides)
         if not smooth:
             return localizer.localize(np.asarray(descriptors)), localizer.timing
         localizer.record = True
         localizer.localize(np.asarray(descriptors))
-        return localizer.smoothed(), localizer.timing
+        return localizer.smoothed(thumbnails=thumbnails), localizer.timing
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
                     progress: ProgressCallback | None = None,

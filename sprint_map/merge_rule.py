@@ -32,6 +32,11 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
 6. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
    either side agree with it in the sense of 4.
 
+A decision marked ``verified`` (its run confirmed on the thumbnails by geometric
+verification, :mod:`sprint_map.verification`) is merged even if tests 1-3 and 5 refused it:
+many keypoints that fit one two-view geometry say "the same place" more surely than a
+lookalike test can say "a lookalike".
+
 A decision marked ``confirmed=False`` (the deeper pass of a drive searched with ``smooth_k``
 neighbours, where the rule did not accept the ``k``-neighbour decision) is never merged.
 
@@ -72,6 +77,9 @@ class MergeDecision(Protocol):
     def contrast(self) -> float: ...
     @property
     def confirmed(self) -> bool: ...
+
+    @property
+    def verified(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -146,8 +154,10 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
         dist = np.array([d.distance for d in decisions], dtype=np.float64)
         limit = float(np.quantile(dist[accepted], rule.dist_quantile))
         accepted = on_runs(ok & (dist <= limit))
+    verified = np.array([d.verified for d in decisions], dtype=bool) & confirmed & (seq >= 0)
     if rule.min_agree <= 0 or rule.window <= 0 or not n:
-        return accepted
+        merged: np.ndarray = accepted | verified
+        return merged
     agree = np.zeros(n, dtype=np.int64)
     for d in range(1, rule.window + 1):
         if d >= n:
@@ -158,7 +168,8 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
         same = (seq[d:] == seq[:-d]) & (seq[:-d] >= 0) & (step >= 0) & (step <= limit_step)
         agree[:-d] += same
         agree[d:] += same  # the same pair seen from the later frame (the step is mirrored)
-    return accepted & (agree >= rule.min_agree)
+    merged = (accepted & (agree >= rule.min_agree)) | verified
+    return merged
 
 
 def run_lengths(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float,

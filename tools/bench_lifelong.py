@@ -34,6 +34,10 @@ runs.
     python tools/bench_lifelong.py --quick            # 8 traversals x 60 frames, a smoke run
     python tools/bench_lifelong.py --world hard --frames 150   # 4 x 4 grid, one facade style
 
+Every drive keeps its thumbnails (as ``ingest --thumbnails`` does), so the merge verifies on the
+images the runs its lookalike tests refuse (:mod:`sprint_map.verification`); both runs localise
+the same way. ``--no-thumbnails`` measures without them.
+
 ``--world hard`` drives a 4 x 4 grid with one facade style under dusk / rain / fog / snow in
 turn: exact k-NN@1 is ~70 % instead of ~85 %, so belief split over parallel drives matters more.
 """
@@ -54,6 +58,7 @@ import numpy as np
 from sprint_map import MapConfig
 from sprint_map.evaluation.runner import evaluate_query
 from sprint_map.frontend import GroundTruth
+from sprint_map.frontend.thumbnails import make_thumbnail
 from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.synth import CityConfig, iter_city
@@ -82,11 +87,14 @@ class Drive:
     condition: str
     rows: np.ndarray  # (N, dim) float32 HoG
     xy: np.ndarray  # (N, 2)
+    thumbnails: list[bytes] | None  # one JPEG per frame, as ``ingest --thumbnails`` keeps them
 
 
 def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
-                  workers: int | None) -> tuple[list[Drive], GroundTruth, float]:
-    """Render the city traversal by traversal, keeping only descriptors and positions.
+                  workers: int | None, thumbnails: bool = True
+                  ) -> tuple[list[Drive], GroundTruth, float]:
+    """Render the city traversal by traversal, keeping only descriptors, positions and (with
+    ``thumbnails``) a thumbnail of each frame.
 
     Returns the drives, their ground truth and the seconds spent.
     """
@@ -96,8 +104,9 @@ def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
     drives, positions = [], {}
     for traversal in iter_city(traversals, frames, seed=seed, config=config, workers=workers):
         rows = spec.describe_batch(traversal.images)
+        thumbs = [make_thumbnail(image) for image in traversal.images] if thumbnails else None
         drives.append(Drive(traversal.name, traversal.condition, rows,
-                            traversal.positions[:, 1:3].copy()))
+                            traversal.positions[:, 1:3].copy(), thumbs))
         positions[traversal.name] = traversal.positions
     gt = GroundTruth(config.ground_truth_spec(), positions=positions)
     return drives, gt, time.perf_counter() - start
@@ -139,7 +148,8 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> li
     with SprintMap.create(work / ("merge.map" if merge else "no-merge.map"), config) as m:
         for i, drive in enumerate(drives):
             if i == 0:
-                m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge)
+                m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge,
+                         thumbnails=drive.thumbnails)
                 continue
             start = time.perf_counter()
             names = {s.seq_id: s.name for s in m.sequences()}
@@ -147,8 +157,9 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> li
             # Exact k-NN, the ground truth's matchable frames and the streaming decisions, then
             # ingest's own decisions read-only, all on the map before this drive.
             knn, streamed = evaluate_query(m, drive.name, drive.rows, gt, KS, None)
-            offline, _ = m.localize(drive.rows, smooth=True)
-            result = m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge)
+            offline, _ = m.localize(drive.rows, smooth=True, thumbnails=drive.thumbnails)
+            result = m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge,
+                              thumbnails=drive.thumbnails)
             decisions = result.decisions if merge else offline
             matchable = int(knn.has_match.sum())
             online = score(streamed, drive.name, gt, names, knn.has_match)
@@ -337,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="8 traversals x 60 frames, one seed (a smoke run)")
     parser.add_argument("--workers", type=int, default=None, help="rendering threads")
+    parser.add_argument("--no-thumbnails", action="store_true",
+                        help="keep no thumbnails: the merge verifies nothing on the images")
     parser.add_argument("--json", type=Path, help="write per-traversal rows and summaries here")
     parser.add_argument("--png", type=Path, help="plot recall@1 per traversal here")
     args = parser.parse_args(argv)
@@ -349,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for seed in args.seeds:
         drives, gt, render_s = render_drives(seed, args.traversals, args.frames, city,
-                                             args.workers)
+                                             args.workers, not args.no_thumbnails)
         print(f"seed {seed}: rendered and described {len(drives)} x {args.frames} frames in "
               f"{render_s:.1f} s", flush=True)
         arms = {}

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +46,7 @@ from sprint_map.localizer import FrameDecision
 from sprint_map.map import SprintMap
 
 __all__ = ["EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
-           "evaluate_query", "run_evaluation"]
+           "describe_with_thumbnails", "evaluate_query", "run_evaluation"]
 
 PROTOCOLS = ("lifelong", "pairs")
 Log = Callable[[str], None]
@@ -190,23 +190,35 @@ def config_for(dataset: Dataset, descriptor: str = "auto") -> MapConfig:
 
 def describe(m: SprintMap, traversal: Traversal, stride: int) -> Descriptors:
     """Descriptors of a traversal, in the map's descriptor kind."""
-    source = traversal.open(m.config.descriptor_spec(), stride=stride)
+    return describe_with_thumbnails(m, traversal, stride, thumbnails=False)[0]
+
+
+def describe_with_thumbnails(m: SprintMap, traversal: Traversal, stride: int,
+                             thumbnails: bool = True) -> tuple[Descriptors, list[bytes] | None]:
+    """Descriptors of a traversal, in the map's descriptor kind, and its thumbnails (one JPEG
+    per frame, as ``ingest --thumbnails`` keeps them) when it holds images or video and
+    ``thumbnails`` is set; else None. The thumbnails never change a descriptor."""
+    spec = m.config.descriptor_spec()
+    thumbnails = thumbnails and spec is not None and traversal.kind != "npy"
+    source = traversal.open(spec, stride=stride, thumbnails=thumbnails)
     rows = source.read_all()
     if rows.shape[1] != m.config.dim:
         raise InputError(f"{traversal.folder}: descriptors of dim {rows.shape[1]}, map has "
                          f"{m.config.dim}")
-    return rows
+    return rows, (list(source.thumbnails) if source.thumbnails is not None else None)
 
 
 def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
-                   ks: tuple[int, ...], hmm: HMMConfig | None, *, smooth: bool = False
+                   ks: tuple[int, ...], hmm: HMMConfig | None, *, smooth: bool = False,
+                   thumbnails: Sequence[bytes] | None = None
                    ) -> tuple[QueryResult, list[FrameDecision]]:
     """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both.
 
     With ``smooth`` the query is also localised with the smoothed posterior over the same map
     (what :meth:`SprintMap.localize` with ``smooth=True`` gives, from the hits of the streamed
     pass) and the map's merge rule is scored on it (:meth:`QueryResult.score_merge`): what
-    merging the query would add. The returned decisions are the streamed (causal) ones.
+    merging the query would add, its runs verified on ``thumbnails`` as ``ingest`` would).
+    The returned decisions are the streamed (causal) ones.
     """
     names = {s.seq_id: s.name for s in m.sequences()}
     db_names = list(names.values())
@@ -244,7 +256,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
         map_vertices=m.stats()["vertices"],
     )
     if smooth:
-        smoothed = localizer.smoothed()
+        smoothed = localizer.smoothed(thumbnails=thumbnails)
         result.score_merge(smoothed, m.select_merges(smoothed), gt, names,
                            _edges_per_decision(m.config))
     return result, decisions
@@ -288,26 +300,29 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
             map_dir = _fresh(work_dir / f"map-{db_name}")
             with SprintMap.create(map_dir, config) as m:
                 log(f"mapping {db_name}")
-                m.add_sequence(describe(m, dataset[db_name], options.stride), name=db_name,
+                db_rows, db_thumbs = describe_with_thumbnails(m, dataset[db_name], options.stride)
+                m.add_sequence(db_rows, name=db_name, thumbnails=db_thumbs,
                                positions=_xy(dataset[db_name].positions(options.stride)))
                 log(f"localising {q_name} against {db_name}")
-                rows = describe(m, dataset[q_name], options.stride)
+                rows, thumbs = describe_with_thumbnails(m, dataset[q_name], options.stride)
                 results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
-                                              smooth=True)[0])
+                                              smooth=True, thumbnails=thumbs)[0])
     else:
         map_dir = _fresh(work_dir / "map-lifelong")
         with SprintMap.create(map_dir, config) as m:
             for i, traversal in enumerate(dataset):
-                rows = describe(m, traversal, options.stride)
+                rows, thumbs = describe_with_thumbnails(m, traversal, options.stride)
                 positions = _xy(traversal.positions(options.stride))
                 if i == 0:
                     log(f"mapping {traversal.name} (first traversal)")
-                    m.add_sequence(rows, name=traversal.name, positions=positions)
+                    m.add_sequence(rows, name=traversal.name, positions=positions,
+                                   thumbnails=thumbs)
                     continue
                 log(f"localising {traversal.name} against {i} earlier traversal(s), then merging")
                 seq_names = {s.seq_id: s.name for s in m.sequences()}
                 result, _ = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm)
-                ingested = m.ingest(rows, name=traversal.name, positions=positions, hmm=hmm)
+                ingested = m.ingest(rows, name=traversal.name, positions=positions, hmm=hmm,
+                                    thumbnails=thumbs)
                 result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
                                    _edges_per_decision(m.config))
                 result.edges_added = ingested.added.edges_added
@@ -321,7 +336,8 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         "ground_truth": gt.spec.to_dict(),
         "config": config.to_dict(),
         "hmm": (hmm or config.hmm).to_dict(),
-        "merge_rule": {**config.merge_rule.to_dict(), "merge_both_ways": config.merge_both_ways},
+        "merge_rule": {**config.merge_rule.to_dict(), "merge_both_ways": config.merge_both_ways,
+                       "merge_verify_inliers": config.merge_verify_inliers},
         "queries": rows_out,
         "overall": overall,
         "recall_by_traversal": [

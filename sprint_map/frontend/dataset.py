@@ -113,10 +113,13 @@ class Traversal:
         workers: int | None = None,
         executor: str = "thread",
         progress: ProgressCallback | None = None,
+        thumbnails: bool = False,
     ) -> FrameSource:
-        """Open the traversal as a frame source named after the folder (see ``open_source``)."""
+        """Open the traversal as a frame source named after the folder (see ``open_source``;
+        ``thumbnails``: also a small JPEG of each frame, images and video only)."""
         source = open_source(
-            self.source_path, spec, stride, batch_size, workers, executor, progress
+            self.source_path, spec, stride, batch_size, workers, executor, progress,
+            thumbnails=thumbnails,
         )
         source.name = self.name
         return source

@@ -94,7 +94,8 @@ def test_protocols_score_knn_and_sprint(tmp_path, dataset, protocol):
         assert q["merged_decisions"] > 0 and q["novel_merged"] == 0
     _check_rows(results)
     assert results["merge_rule"] == {**config.merge_rule.to_dict(),
-                                     "merge_both_ways": config.merge_both_ways}
+                                     "merge_both_ways": config.merge_both_ways,
+                                     "merge_verify_inliers": config.merge_verify_inliers}
     by_traversal = results["recall_by_traversal"]
     assert [r["query"] for r in by_traversal] == [q["query"] for q in queries]
     assert [r["sprint_recall@1"] for r in by_traversal] == [q["sprint_recall@1"] for q in queries]

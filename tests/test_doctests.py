@@ -1,0 +1,36 @@
+"""The examples in the package's docstrings run and print what they say (numpydoc
+``Examples`` sections): every module whose source holds one is collected."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+from pathlib import Path
+
+import pytest
+
+import sprint_map
+
+PACKAGE = Path(sprint_map.__file__).parent
+MODULES = sorted(
+    ".".join(("sprint_map", *path.relative_to(PACKAGE).with_suffix("").parts))
+    for path in PACKAGE.rglob("*.py")
+    if ">>> " in path.read_text(encoding="utf-8")
+)
+
+
+def test_the_package_has_examples():
+    assert "sprint_map.verification" in MODULES and "sprint_map.merge_rule" in MODULES
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_docstring_examples_run(name):
+    module = importlib.import_module(name)
+    finder = doctest.DocTestFinder(exclude_empty=True)
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    tests = [t for t in finder.find(module, name) if t.examples]
+    assert tests, f"{name} holds '>>> ' but no example was found"
+    for test in tests:
+        runner.run(test)
+    result = runner.summarize(verbose=False)
+    assert result.failed == 0, f"{result.failed} of {result.attempted} examples failed in {name}"
