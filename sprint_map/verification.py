@@ -33,6 +33,7 @@ OpenCV is imported when the first thumbnail is verified, not with this module.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -41,7 +42,7 @@ import numpy as np
 
 from sprint_map.merge_rule import MergeDecision, run_ids
 
-__all__ = ["CONTROL_OFFSET", "LocalFeatures", "MIN_WIDTH", "RunVerifier", "SAMPLE_EVERY",
+__all__ = ["CONTROL_OFFSET", "FEATURE_CACHE", "LocalFeatures", "MIN_WIDTH", "RunVerifier", "SAMPLE_EVERY",
            "SAMPLE_MIN_INLIERS", "WORK_WIDTH", "inliers", "local_features"]
 
 #: Width (pixels) a thumbnail is resized to before keypoints are found: the map's thumbnails
@@ -63,6 +64,8 @@ RANSAC_PX = 2.0
 MIN_MATCHES = 8
 #: Frames between two verified samples of a run.
 SAMPLE_EVERY = 5
+#: Map images whose keypoints a verifier keeps (least recently used dropped first): ~32 KiB each.
+FEATURE_CACHE = 256
 #: Images between a sample's map image and its control image (see :meth:`RunVerifier.verified`).
 CONTROL_OFFSET = 50
 #: Inliers (median of a sample and its two neighbours) for a sample to count: at the top of
@@ -175,7 +178,7 @@ class RunVerifier:
         self.map_thumbnail = map_thumbnail
         self.min_inliers = min_inliers
         self.min_run = min_run
-        self._features: dict[tuple[int, int], LocalFeatures] = {}
+        self._features: OrderedDict[tuple[int, int], LocalFeatures] = OrderedDict()
         #: Samples verified so far (one inlier count each).
         self.samples = 0
 
@@ -192,7 +195,8 @@ class RunVerifier:
         Notes
         -----
         O(F / SAMPLE_EVERY) matchings for F candidate frames, each O(keypoints^2): the cost
-        follows the drive, never the map.
+        follows the drive, never the map. Memory: the keypoints of at most
+        :data:`FEATURE_CACHE` map images.
         """
         seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
         img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
@@ -223,21 +227,26 @@ class RunVerifier:
         mapped = self.map_thumbnail(seq_id, image_id)
         if mapped is None or frame >= len(self.query):
             return 0
-        query = self._local(("q", frame), self.query[frame])
-        score = inliers(query, self._local((seq_id, image_id), mapped))
+        query = local_features(self.query[frame])
+        score = inliers(query, self._mapped((seq_id, image_id), mapped))
         if score < SAMPLE_MIN_INLIERS:
             return score
         for control in (image_id - CONTROL_OFFSET, image_id + CONTROL_OFFSET):
             other = self.map_thumbnail(seq_id, control) if control >= 0 else None
             if other is not None:
-                static = inliers(query, self._local((seq_id, control), other))
+                static = inliers(query, self._mapped((seq_id, control), other))
                 return 0 if static >= SAMPLE_MIN_INLIERS else score
         return 0
 
-    def _local(self, key: tuple[Any, int], jpeg: bytes) -> LocalFeatures:
-        if key not in self._features:
-            self._features[key] = local_features(jpeg)
-        return self._features[key]
+    def _mapped(self, key: tuple[int, int], jpeg: bytes) -> LocalFeatures:
+        """A map image's keypoints, kept for the next samples that land on it."""
+        if key in self._features:
+            self._features.move_to_end(key)
+            return self._features[key]
+        features = self._features[key] = local_features(jpeg)
+        if len(self._features) > FEATURE_CACHE:
+            self._features.popitem(last=False)
+        return features
 
 
 def _counting_stretches(counts: np.ndarray) -> list[tuple[int, int]]:
