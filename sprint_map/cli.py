@@ -322,11 +322,11 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
     """
+    if thumbnails and not smooth:
+        raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
-        if thumbnails and not smooth:
-            raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
         localizer = m.localizer(**overrides)
         localizer.record = smooth

@@ -52,7 +52,8 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["MergeDecision", "MergeRule", "run_ids", "run_lengths", "select_merges"]
+__all__ = ["MergeDecision", "MergeRule", "run_ids", "run_lengths", "run_members",
+           "select_merges"]
 
 #: Frames that must pass the other tests before the distance test is calibrated on them.
 CALIBRATE_MIN_FRAMES = 10
@@ -221,7 +222,7 @@ def run_ids(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> 
     return run
 
 
-def _members(run: np.ndarray) -> Iterator[np.ndarray]:
+def run_members(run: np.ndarray) -> Iterator[np.ndarray]:
     """The frames of each run (``run`` as :func:`run_ids` gives it), ascending, run by run.
     O(n log n)."""
     held = np.flatnonzero(run >= 0)
@@ -238,7 +239,7 @@ def _low_contrast_runs(seq: np.ndarray, img: np.ndarray, contrast: np.ndarray, m
     """The frames of the runs (see :func:`run_ids`) whose median contrast (NaN ignored)
     exceeds ``limit``. O(n * max_gap)."""
     out = np.zeros(len(seq), dtype=bool)
-    for frames in _members(run_ids(seq, img, max_gap, max_rate)):
+    for frames in run_members(run_ids(seq, img, max_gap, max_rate)):
         values = contrast[frames]
         values = values[~np.isnan(values)]
         if values.size and float(np.median(values)) > limit:
@@ -251,7 +252,7 @@ def _advancing(run: np.ndarray, img: np.ndarray, min_advance: float, half: int) 
     frames within ``half`` frames of it (first to last of them): a run that stalls for a
     stretch loses that stretch, even if the run as a whole moves on."""
     ok = np.zeros(len(run), dtype=bool)
-    for frames in _members(run):
+    for frames in run_members(run):
         lo = np.searchsorted(frames, frames - half)
         hi = np.searchsorted(frames, frames + half, side="right") - 1
         span = frames[hi] - frames[lo]

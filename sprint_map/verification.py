@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.merge_rule import MergeDecision, run_ids
+from sprint_map.merge_rule import MergeDecision, run_ids, run_members
 
 __all__ = ["CONTROL_OFFSET", "FEATURE_CACHE", "LocalFeatures", "MIN_WIDTH", "RunVerifier", "SAMPLE_EVERY",
            "SAMPLE_MIN_INLIERS", "WORK_WIDTH", "inliers", "local_features"]
@@ -200,10 +200,9 @@ class RunVerifier:
         """
         seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
         img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
-        run = run_ids(np.where(candidates, seq, -1), img, max_gap, max_rate)
         out = np.zeros(len(decisions), dtype=bool)
-        for r in range(int(run.max()) + 1 if len(run) else 0):
-            frames = np.flatnonzero(run == r)
+        for frames in run_members(run_ids(np.where(candidates, seq, -1), img, max_gap,
+                                          max_rate)):
             if (frames[-1] - frames[0] + 1 < self.min_run
                     or (skip is not None and bool(skip[frames].all()))):
                 continue
