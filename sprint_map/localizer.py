@@ -93,7 +93,9 @@ class FrameDecision:
     at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
     is False for a smoothed decision the merge rule may not merge: one of the deeper pass of
     a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
-    was not accepted (:meth:`Localizer.smoothed`). ``verified`` is True for a smoothed
+    was not accepted (:meth:`Localizer.smoothed`), or one on a run that claims a revisit the
+    drive's own thumbnails deny, outside its verified stretches
+    (:meth:`sprint_map.verification.RunVerifier.contradicted`). ``verified`` is True for a smoothed
     decision on a run that geometric verification on the thumbnails confirmed
     (:mod:`sprint_map.verification`): the merge rule merges it even if a lookalike test
     refused it.
@@ -243,13 +245,17 @@ class Localizer:
         unmapped-place veto) are checked on the images against the map's own thumbnails
         (:mod:`sprint_map.verification`); the frames of verified stretches are marked
         ``verified`` and merged. Nothing is verified for a map frame without a thumbnail.
+        Then two accepted runs matched to the same images of one map sequence (the drive
+        passed there twice, they claim) are checked on the drive's own thumbnails: where its
+        frames at the shared images do not match each other, each run keeps only its verified
+        stretches and its other frames are marked ``confirmed=False``.
 
         Notes
         -----
         Two more filter steps and backward steps per frame (one without calibration), three
         with ``smooth_k``, all O(live); memory O(live) per frame of the sequence. Verification
         adds one keypoint matching per :data:`~sprint_map.verification.SAMPLE_EVERY` frames
-        of the refused runs.
+        of the refused runs, and a few per pair of accepted runs on shared images.
         """
         if self._empty:
             return [FrameDecision(i, None, None, 0.0, novel_prob=1.0) for i in range(self._frame)]
@@ -333,27 +339,34 @@ class Localizer:
 
     def _verify(self, decisions: list[FrameDecision], thumbnails: Sequence[bytes]
                 ) -> list[FrameDecision]:
-        """``decisions`` with ``verified`` set on the frames of the runs that the merge rule
-        refuses only for its lookalike tests and that the thumbnails confirm (see
-        :meth:`smoothed`). Unchanged when verification is off or the thumbnails are not one
-        per frame (the commit refuses those)."""
+        """``decisions`` checked on the thumbnails (see :meth:`smoothed`): ``verified`` set on
+        the frames of the runs that the merge rule refuses only for its lookalike tests and
+        that the map's thumbnails confirm; then ``confirmed`` cleared on the accepted frames
+        of runs that the drive's own images deny a revisit to, outside their verified
+        stretches (:meth:`RunVerifier.contradicted
+        <sprint_map.verification.RunVerifier.contradicted>`). Unchanged when verification is
+        off or the thumbnails are not one per frame (the commit refuses those)."""
         from sprint_map.verification import RunVerifier
 
         config = self.map.config
         if not config.merge_verify_inliers or len(thumbnails) != len(decisions):
             return decisions
         rule = config.merge_rule
+        gap = max(rule.window, 1)
+        verifier = RunVerifier(thumbnails, self._map_thumbnail, config.merge_verify_inliers,
+                               rule.min_run)
         relaxed = dataclasses.replace(rule, max_contrast=0.0, max_novel=1.0)
         candidates = select_merges(decisions, relaxed)
         accepted = select_merges(decisions, rule)
-        if not (candidates & ~accepted).any():
-            return decisions
-        verifier = RunVerifier(thumbnails, self._map_thumbnail, config.merge_verify_inliers,
-                               rule.min_run)
-        verified = verifier.verified(decisions, candidates, max(rule.window, 1), rule.max_rate,
-                                     skip=accepted)
-        return [dataclasses.replace(d, verified=True) if v else d
-                for d, v in zip(decisions, verified.tolist(), strict=True)]
+        if (candidates & ~accepted).any():
+            verified = verifier.verified(decisions, candidates, gap, rule.max_rate,
+                                         skip=accepted)
+            decisions = [dataclasses.replace(d, verified=True) if v else d
+                         for d, v in zip(decisions, verified.tolist(), strict=True)]
+            accepted = select_merges(decisions, rule)
+        denied = verifier.contradicted(decisions, accepted, gap, rule.max_rate)
+        return [dataclasses.replace(d, confirmed=False) if x else d
+                for d, x in zip(decisions, denied.tolist(), strict=True)]
 
     def _map_thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
         """A map frame's thumbnail; None when it keeps none or has no such frame (a drive

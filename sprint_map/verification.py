@@ -42,8 +42,9 @@ import numpy as np
 
 from sprint_map.merge_rule import MergeDecision, run_ids, run_members
 
-__all__ = ["CONTROL_OFFSET", "FEATURE_CACHE", "LocalFeatures", "MIN_WIDTH", "RunVerifier", "SAMPLE_EVERY",
-           "SAMPLE_MIN_INLIERS", "WORK_WIDTH", "inliers", "local_features"]
+__all__ = ["CONTROL_OFFSET", "FEATURE_CACHE", "LocalFeatures", "MIN_WIDTH", "REVISIT_SAMPLES",
+           "RunVerifier", "SAMPLE_EVERY", "SAMPLE_MIN_INLIERS", "WORK_WIDTH", "inliers",
+           "local_features"]
 
 #: Width (pixels) a thumbnail is resized to before keypoints are found: the map's thumbnails
 #: are 96 pixels wide, too small for ORB's patches.
@@ -72,6 +73,8 @@ CONTROL_OFFSET = 50
 #: what two unrelated images share, so a stretch bridges a weak sample or two (the stretch's
 #: own median must still reach ``merge_verify_inliers``).
 SAMPLE_MIN_INLIERS = 22
+#: Pairs of the drive's own frames matched to check a revisit (:meth:`RunVerifier.contradicted`).
+REVISIT_SAMPLES = 3
 
 
 @dataclass(frozen=True)
@@ -217,6 +220,65 @@ class RunVerifier:
                         and float(np.median(counts[a:b + 1])) >= self.min_inliers):
                     out[frames[(frames >= first) & (frames <= last)]] = True
         return out
+
+    def contradicted(self, decisions: Sequence[MergeDecision], accepted: np.ndarray,
+                     max_gap: int, max_rate: float) -> np.ndarray:
+        """The frames of ``accepted`` (the frames a merge rule accepts) that a *revisit* the
+        drive's own images deny leaves unproven: a boolean mask over ``decisions``.
+
+        Two accepted runs (:func:`sprint_map.merge_rule.run_ids`) matched to the same images
+        of one map sequence say the drive passed that place twice. The drive's own frames at
+        :data:`REVISIT_SAMPLES` images both runs share are then matched with each other: the
+        same camera under the same light, so a true second pass shares many inliers with the
+        first (``docs/benchmarks.md``, "A drive that contradicts itself": medians of 67-171
+        where the revisits were true, 17-19 where they were not). If their median is below ``min_inliers``, the drive drove two
+        different places that both look like the map's, and at most one of the runs is right:
+        each run of such a pair keeps only its stretches verified on the map's thumbnails
+        (:meth:`verified`) and the rest of it is returned. A copy of a street (the same
+        facades elsewhere) passes this test as it passes :meth:`verified`; frames without
+        keypoints (narrower than :data:`MIN_WIDTH`, undecodable) deny nothing.
+
+        Notes
+        -----
+        :data:`REVISIT_SAMPLES` matchings per pair of runs on shared images (pairs: O(R^2) for
+        R runs), plus :meth:`verified` on the runs of a denied pair.
+        """
+        seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
+        img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
+        runs = list(run_members(run_ids(np.where(accepted, seq, -1), img, max_gap, max_rate)))
+        denied: set[int] = set()
+        for a, first in enumerate(runs):
+            for b in range(a + 1, len(runs)):
+                second = runs[b]
+                if seq[first[0]] == seq[second[0]] and not self._same_place(first, second, img):
+                    denied.update((a, b))
+        out = np.zeros(len(decisions), dtype=bool)
+        for k in sorted(denied):
+            run = np.zeros(len(decisions), dtype=bool)
+            run[runs[k]] = True
+            out |= run & ~self.verified(decisions, run, max_gap, max_rate)
+        return out
+
+    def _same_place(self, first: np.ndarray, second: np.ndarray, img: np.ndarray) -> bool:
+        """Whether two runs of the drive, on one map sequence, are the drive at one place
+        twice: no images in common, or its frames on the images they share match each other
+        (median inliers of :data:`REVISIT_SAMPLES` pairs at least ``min_inliers``)."""
+        lo = max(int(img[first].min()), int(img[second].min()))
+        hi = min(int(img[first].max()), int(img[second].max()))
+        if hi < lo:
+            return True
+        targets = sorted({round(lo + (hi - lo) * (i + 1) / (REVISIT_SAMPLES + 1))
+                          for i in range(REVISIT_SAMPLES)})
+        scores = []
+        for image in targets:
+            fa = int(first[np.argmin(np.abs(img[first] - image))])
+            fb = int(second[np.argmin(np.abs(img[second] - image))])
+            if max(fa, fb) >= len(self.query):
+                continue
+            a, b = local_features(self.query[fa]), local_features(self.query[fb])
+            if len(a) and len(b):  # frames too small to look at (MIN_WIDTH) deny nothing
+                scores.append(inliers(a, b))
+        return not scores or float(np.median(scores)) >= self.min_inliers
 
     def _inliers(self, frame: int, seq_id: int, image_id: int) -> int:
         """A sample's score: its inliers with its map image, 0 if the control image (the first

@@ -136,6 +136,66 @@ def test_a_sample_counts_by_the_median_of_it_and_its_neighbours(drives):
     assert SAMPLE_MIN_INLIERS < 35
 
 
+@pytest.mark.parametrize(("case", "denied"), [
+    ("true revisit", ()),  # the drive's own images agree: it passed the place twice
+    ("false revisit", range(60, 120)),  # the second pass is another street: it goes
+    ("false revisit, map without thumbnails", range(0, 120)),  # nothing proves either pass
+    ("false revisit, frames too small to look at", ()),  # Nordland's 64x32: no evidence
+])
+def test_a_revisit_the_drives_own_images_deny_keeps_only_verified_runs(drives, case, denied):
+    """Two runs of a drive matched to the same map images (10..69) claim the drive passed
+    that place twice; the drive's own frames at the shared images are matched to each other."""
+    _, _, thumbs, _ = drives
+    day = thumbs[0]
+    first = [day[f + 10 + 1] for f in range(60)]  # the frame after the matched one
+    second = first if case == "true revisit" else [day[(f + 10 + 75) % len(day)]
+                                                   for f in range(60)]
+
+    def map_thumbnail(seq_id, image_id):
+        return None if "without" in case else day[image_id]
+
+    if "small" in case:
+        import cv2
+
+        def small(jpeg):
+            image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+            return cv2.imencode(".jpg", cv2.resize(image, (64, 48)))[1].tobytes()
+
+        first, second = [small(t) for t in first], [small(t) for t in second]
+    decisions = _run([*range(10, 70), *range(10, 70)], frames=range(120))
+    verifier = RunVerifier(first + second, map_thumbnail, min_inliers=35, min_run=20)
+    got = verifier.contradicted(decisions, np.ones(120, dtype=bool), max_gap=3, max_rate=3.0)
+    assert np.flatnonzero(got).tolist() == list(denied)
+    # runs on different sequences, or on images they do not share, claim no revisit
+    elsewhere = [*_run(range(10, 70)), *(FrameDecision(60 + f, 1, 10 + f, 0.9)
+                                         for f in range(60))]
+    assert not verifier.contradicted(elsewhere, np.ones(120, dtype=bool), 3, 3.0).any()
+    later = _run([*range(10, 70), *range(80, 140)], frames=range(120))
+    assert not verifier.contradicted(later, np.ones(120, dtype=bool), 3, 3.0).any()
+
+
+def test_a_drive_that_contradicts_itself_does_not_merge_the_revisit(drives, tmp_path):
+    """The snow drive's first 70 frames driven twice: the same descriptors twice, so the
+    second pass is matched to the same day images as the first. With its own thumbnails it
+    merges as before; with another street's thumbnails for the second pass (the drive's
+    images say it was elsewhere) the second pass is not merged, and nothing is merged that
+    the honest drive would not merge."""
+    traversals, rows, thumbs, _ = drives
+    day, _ = traversals
+    twice = np.concatenate([rows[1][:70], rows[1][:70]])
+    honest = thumbs[1][:70] * 2
+    lying = thumbs[1][:70] + thumbs[1][75:145]
+    merged = {}
+    with SprintMap.create(tmp_path / "m", MapConfig.for_descriptor("hog")) as m:
+        m.add_sequence(rows[0], name=day.name, thumbnails=thumbs[0])
+        for label, images in (("honest", honest), ("lying", lying)):
+            decisions, _ = m.localize(twice, smooth=True, thumbnails=images)
+            merged[label] = m.select_merges(decisions)
+    assert merged["honest"][:70].sum() >= 40 and merged["honest"][70:].sum() >= 40
+    assert not merged["lying"][70:].any()
+    assert (merged["honest"] | ~merged["lying"]).all()
+
+
 def test_the_merge_rule_merges_verified_decisions_only_if_confirmed():
     # A run the contrast gate refuses (a lookalike as close as the match).
     ds = [FrameDecision(i, 0, i, 0.99, contrast=1.2) for i in range(30)]

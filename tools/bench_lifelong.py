@@ -17,7 +17,10 @@ the frames that have a true match; the recall@1 of *accepted* decisions (``is_ma
 match, over the frames that have one: what issue 13 measured when the map degraded as it grew,
 a split belief then being answered "no match"); the precision of the accepted decisions (``is_match``,
 counted over every accepted frame, with or without a true match); exact k-NN recall@1 and @10
-(the same map contents in both runs, so the same numbers). Summary per run: recall@1 pooled over
+(the same map contents in both runs, so the same numbers); in the merge run, the decisions
+merged as edges (``merged``) and how many of them are wrong by the ground truth
+(``merged_wrong``, the table's ``wrongM``; ``merge_precision`` per half): a wrong edge stays in
+the map for every later drive. Summary per run: recall@1 pooled over
 the earlier half of the traversals (1 .. N/2 - 1) and over the later half (N/2 .. N - 1), and
 merge minus no-merge on the later half, in points.
 
@@ -181,6 +184,11 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> li
                 row["ingest_differs_from_localize"] = sum(
                     (a.best, a.seq_id, a.image_id) != (b.best, b.seq_id, b.image_id)
                     for a, b in zip(result.decisions, offline, strict=True))
+            merged = [d for d, keep in zip(result.decisions, np.asarray(result.merged).tolist(),
+                                           strict=True) if keep and merge]
+            row["merged"] = len(merged)
+            row["merged_wrong"] = sum(not gt.correct(drive.name, d.frame, names[d.seq_id],
+                                                     d.image_id) for d in merged)
             stats = m.stats()
             row.update(edges_added=result.added.edges_added, components=stats["components"],
                        seconds=round(time.perf_counter() - start, 2))
@@ -202,6 +210,10 @@ def pooled(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "accepted_recall@1": round(sum(r["accepted_recall_correct"] for r in rows)
                                    / max(matchable, 1), 4),
     }
+    merged = sum(r.get("merged", 0) for r in rows)
+    out["merged"] = merged
+    out["merged_wrong"] = sum(r.get("merged_wrong", 0) for r in rows)
+    out["merge_precision"] = (round(1 - out["merged_wrong"] / merged, 4) if merged else None)
     out["online_sprint_recall@1"] = round(sum(r["online_sprint_correct"] for r in rows)
                                           / max(matchable, 1), 4)
     out["online_accepted_recall@1"] = round(sum(r["online_accepted_recall_correct"]
@@ -238,14 +250,14 @@ def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
 def print_rows(seed: int, arms: dict[str, list[dict[str, Any]]]) -> None:
     print(f"\nseed {seed}")
     print(f"{'trav':>4} {'cond':>5} {'match':>5} | {'merge R@1':>9} {'acc.':>6} {'prec':>6} "
-          f"{'edges':>5} | {'no-merge R@1':>12} {'acc.':>6} {'prec':>6} | "
+          f"{'edges':>5} {'wrongM':>6} | {'no-merge R@1':>12} {'acc.':>6} {'prec':>6} | "
           f"{'kNN@1':>6} {'kNN@10':>6}")
     for a, b in zip(arms["merge"], arms["no-merge"], strict=True):
         def pct(v: float | None) -> str:
             return "   -  " if v is None else f"{100 * v:5.1f}%"
         print(f"{a['traversal']:>4} {a['condition']:>5} {a['frames_with_match']:>5} | "
               f"{pct(a['sprint_recall@1']):>9} {pct(a['accepted_recall@1']):>6} "
-              f"{pct(a['precision']):>6} {a['edges_added']:>5} | "
+              f"{pct(a['precision']):>6} {a['edges_added']:>5} {a['merged_wrong']:>6} | "
               f"{pct(b['sprint_recall@1']):>12} {pct(b['accepted_recall@1']):>6} "
               f"{pct(b['precision']):>6} | "
               f"{pct(a['knn_recall@1']):>6} {pct(a['knn_recall@10']):>6}", flush=True)
@@ -271,6 +283,11 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
               f"{pct(e['accepted_recall@1'])} {{{pct(e['online_accepted_recall@1'])}}}, later half "
               f"{pct(lat['accepted_recall@1'])} {{{pct(lat['online_accepted_recall@1'])}}}, "
               f"later - earlier {s[arm]['accepted_later_minus_earlier_points']:+.1f} points")
+    merge = s["merge"]
+    print(f"  merged decisions (edges): precision {pct(merge['earlier']['merge_precision'])} "
+          f"({merge['earlier']['merged_wrong']:.0f} wrong of {merge['earlier']['merged']:.0f}) on the "
+          f"earlier half, {pct(merge['later']['merge_precision'])} "
+          f"({merge['later']['merged_wrong']:.0f} wrong of {merge['later']['merged']:.0f}) on the later")
     print(f"  merge - no-merge on the later half: "
           f"{s['merge_minus_no_merge_later_points']:+.1f} points "
           f"(causal, streaming decisions: {s['online_merge_minus_no_merge_later_points']:+.1f}); "
@@ -298,7 +315,8 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         out[arm] = {
             half: {key: mean((arm, half, key)) for key in
                    ("sprint_recall@1", "online_sprint_recall@1", "accepted_recall@1",
-                    "online_accepted_recall@1", "precision", "knn_recall@1", "knn_recall@10")}
+                    "online_accepted_recall@1", "precision", "merge_precision",
+                    "merged", "merged_wrong", "knn_recall@1", "knn_recall@10")}
             for half in ("earlier", "later")
         }
         for key in ("later_minus_earlier_points", "accepted_later_minus_earlier_points"):

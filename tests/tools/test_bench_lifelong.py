@@ -57,6 +57,9 @@ def test_quick_run_writes_both_arms_and_halves(bench: Any, tmp_path: Path,
         # Both runs score the decisions ingest makes: what the merge used, and read-only.
         assert a["ingest_differs_from_localize"] == 0
         assert 0 <= a["online_sprint_correct"] <= a["frames_with_match"]
+        # Every merged decision makes two edges (both ways); appending merges none.
+        assert a["edges_added"] == 2 * a["merged"] and 0 <= a["merged_wrong"] <= a["merged"]
+        assert b["merged"] == b["merged_wrong"] == 0
     assert sum(r["edges_added"] for r in merge) > 0
     assert run["summary"]["ingest_differs_from_localize"] == 0
     assert merge[-1]["components"] < append[-1]["components"]
@@ -69,6 +72,11 @@ def test_quick_run_writes_both_arms_and_halves(bench: Any, tmp_path: Path,
             sum(r["sprint_correct"] for r in rows[3:]) / matchable, abs=1e-4)
         # The ground truth is wired to the right traversals: SPRINT finds most places.
         assert earlier["sprint_recall@1"] >= 0.4 and later["sprint_recall@1"] >= 0.4
+    later = summary["merge"]["later"]
+    assert later["merged"] == sum(r["merged"] for r in merge[3:]) > 0
+    assert later["merge_precision"] == pytest.approx(
+        1 - sum(r["merged_wrong"] for r in merge[3:]) / later["merged"], abs=1e-4)
+    assert summary["no-merge"]["later"]["merge_precision"] is None
     assert summary["merge_minus_no_merge_later_points"] == pytest.approx(
         100 * (summary["merge"]["later"]["sprint_recall@1"]
                - summary["no-merge"]["later"]["sprint_recall@1"]), abs=0.01)
@@ -77,3 +85,4 @@ def test_quick_run_writes_both_arms_and_halves(bench: Any, tmp_path: Path,
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     printed = capsys.readouterr().out
     assert "merge - no-merge on the later half" in printed and "no-merge R@1" in printed
+    assert "merged decisions (edges): precision" in printed
