@@ -38,7 +38,9 @@ many keypoints that fit one two-view geometry say "the same place" more surely t
 lookalike test can say "a lookalike".
 
 A decision marked ``confirmed=False`` (the deeper pass of a drive searched with ``smooth_k``
-neighbours, where the rule did not accept the ``k``-neighbour decision) is never merged.
+neighbours, where the rule did not accept the ``k``-neighbour decision; or a run claiming a
+revisit that the drive's own thumbnails deny, :meth:`RunVerifier.contradicted
+<sprint_map.verification.RunVerifier.contradicted>`) is never merged.
 
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
 drive has been seen, the future of the drive supports or contradicts each frame.

@@ -201,8 +201,7 @@ class RunVerifier:
         follows the drive, never the map. Memory: the keypoints of at most
         :data:`FEATURE_CACHE` map images.
         """
-        seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
-        img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
+        seq, img = _places(decisions)
         out = np.zeros(len(decisions), dtype=bool)
         for frames in run_members(run_ids(np.where(candidates, seq, -1), img, max_gap,
                                           max_rate)):
@@ -243,8 +242,7 @@ class RunVerifier:
         :data:`REVISIT_SAMPLES` matchings per pair of runs on shared images (pairs: O(R^2) for
         R runs), plus :meth:`verified` on the runs of a denied pair.
         """
-        seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
-        img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
+        seq, img = _places(decisions)
         runs = list(run_members(run_ids(np.where(accepted, seq, -1), img, max_gap, max_rate)))
         denied: set[int] = set()
         for a, first in enumerate(runs):
@@ -308,6 +306,13 @@ class RunVerifier:
         if len(self._features) > FEATURE_CACHE:
             self._features.popitem(last=False)
         return features
+
+
+def _places(decisions: Sequence[MergeDecision]) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(seq_id, image_id)`` of every decision as two int64 arrays, -1 for "no match"."""
+    seq = np.array([-1 if d.seq_id is None else d.seq_id for d in decisions], np.int64)
+    img = np.array([-1 if d.image_id is None else d.image_id for d in decisions], np.int64)
+    return seq, img
 
 
 def _counting_stretches(counts: np.ndarray) -> list[tuple[int, int]]:
