@@ -30,10 +30,16 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
    to most frames. Frames without a contrast (causal decisions) do not count in the median;
    a run with none passes;
 6. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
-   either side agree with it in the sense of 4.
+   either side agree with it in the sense of 4;
+7. its run is not half of a *teleport*: two runs of the drive on one sequence, the later one
+   re-entering images of the earlier one sooner than a drive can come back to a place it has
+   just passed (:func:`teleports`). At most one of the two is right, and nothing in the
+   images tells which (a copied street verifies as well as the street it copies), so neither
+   is merged.
 
 A decision marked ``verified`` (its run confirmed on the thumbnails by geometric
-verification, :mod:`sprint_map.verification`) is merged even if tests 1-3 and 5 refused it:
+verification, :mod:`sprint_map.verification`) is merged even if tests 1-3 and 5 refused it
+(test 7 still applies):
 many keypoints that fit one two-view geometry say "the same place" more surely than a
 lookalike test can say "a lookalike".
 
@@ -55,7 +61,7 @@ from typing import Protocol
 import numpy as np
 
 __all__ = ["MergeDecision", "MergeRule", "run_ids", "run_lengths", "run_members",
-           "select_merges"]
+           "select_merges", "teleports"]
 
 #: Frames that must pass the other tests before the distance test is calibrated on them.
 CALIBRATE_MIN_FRAMES = 10
@@ -160,6 +166,7 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     verified = np.array([d.verified for d in decisions], dtype=bool) & confirmed & (seq >= 0)
     if rule.min_agree <= 0 or rule.window <= 0 or not n:
         merged: np.ndarray = accepted | verified
+        merged &= ~teleports(np.where(merged, seq, -1), img, gap, rule.max_rate)
         return merged
     agree = np.zeros(n, dtype=np.int64)
     for d in range(1, rule.window + 1):
@@ -172,7 +179,52 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
         agree[:-d] += same
         agree[d:] += same  # the same pair seen from the later frame (the step is mirrored)
     merged = (accepted & (agree >= rule.min_agree)) | verified
+    merged &= ~teleports(np.where(merged, seq, -1), img, gap, rule.max_rate)
     return merged
+
+
+def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> np.ndarray:
+    """The frames of the runs (:func:`run_ids`) that are half of a teleport: a boolean mask.
+
+    Two runs on one sequence, the second starting ``gap`` frames after the first ends, whose
+    images overlap on ``shared`` images, say the drive came back to the places of the first
+    run. To come back, a drive must leave the place it has just passed and return to it
+    facing the same way, which takes far longer than driving the stretch once; a second run
+    that re-enters more than ``max_rate * (gap + max_gap)`` shared images (as many as the
+    runs could advance through in the gap, plus one gap's slack for a run that stalls and
+    restarts a few images back) came back sooner than any drive can. The drive saw the same
+    stretch twice in a row: a street and its copy, driven one after the other.
+
+    Notes
+    -----
+    O(n * max_gap) for the runs, plus O(R^2) for R runs.
+
+    Examples
+    --------
+    >>> seq = np.zeros(8, dtype=np.int64)
+    >>> img = np.array([10, 12, 14, 16, 18, 10, 12, 14])  # back to image 10 at once
+    >>> teleports(seq, img, 1, 1.0).tolist()
+    [True, True, True, True, True, True, True, True]
+    >>> seq = np.r_[[0] * 4, [-1] * 12, [0] * 4]  # back to image 10 after 12 frames elsewhere
+    >>> img = np.r_[[10, 11, 12, 13], [-1] * 12, [10, 11, 12, 13]]
+    >>> bool(teleports(seq, img, 1, 1.0).any())
+    False
+    """
+    runs = list(run_members(run_ids(seq, img, max_gap, max_rate)))
+    out = np.zeros(len(seq), dtype=bool)
+    for a, first in enumerate(runs):
+        for second in runs[a + 1:]:
+            if seq[first[0]] != seq[second[0]]:
+                continue
+            earlier, later = (first, second) if first[-1] < second[0] else (second, first)
+            gap = int(later[0] - earlier[-1])
+            if gap <= 0:  # interleaved runs: not one pass after the other
+                continue
+            shared = (min(int(img[earlier].max()), int(img[later].max()))
+                      - max(int(img[earlier].min()), int(img[later].min())) + 1)
+            if shared > max_rate * (gap + max_gap):
+                out[first] = out[second] = True
+    return out
 
 
 def run_lengths(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float,

@@ -387,12 +387,26 @@ CHURN_PLAN = PLAN + textwrap.dedent("""
 """)
 
 #: Ingests ``count`` drives (localised and merged) and removes the drive ingested two commits
-#: earlier after every fourth, pausing between commits; one line per commit.
+#: earlier after every fourth, pausing between commits; one line per commit. After each remove
+#: it waits until every reader (the progress files named after it) has finished a run begun
+#: after the remove, so the readers cross commits however loaded the machine is.
 CHURN_WRITER = CHURN_PLAN + textwrap.dedent("""
     import json, sys, time
     from sprint_map.map import SprintMap
 
-    path, count = sys.argv[1], int(sys.argv[2])
+    path, count, progress = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
+
+    def runs():
+        return [int(open(f).read() or 0) for f in progress]
+
+    def readers_ran():
+        # two more runs: the second began after this commit
+        want, deadline = [r + 2 for r in runs()], time.monotonic() + 300
+        while any(r < w for r, w in zip(runs(), want)):
+            if time.monotonic() > deadline:
+                sys.exit("the readers made no progress in 300 s")
+            time.sleep(0.01)
+
     with SprintMap.open(path) as m:
         print(json.dumps({"ready": True}), flush=True)
         sys.stdin.readline()  # the readers are up
@@ -403,17 +417,18 @@ CHURN_WRITER = CHURN_PLAN + textwrap.dedent("""
             if i % 4 == 3:  # 5 removes in 20 ingests
                 m.remove_sequences([f"c{i - 2}"])
                 print(json.dumps({"remove": i - 2}), flush=True)
-                time.sleep(0.1)
+                readers_ran()
 """)
 
 #: Localises a 240-frame drive (12 searches of 20 frames) over and over, one open as a server
-#: would, until the file ``stop`` exists; counts runs, failures and the map states it saw. Mode
-#: "smooth" also smooths each drive (``localize --smooth``: a second pass after the first).
+#: would, until the file ``stop`` exists; counts runs, failures and the map states it saw, and
+#: writes its count of runs to the file ``progress`` after each. Mode "smooth" also smooths each
+#: drive (``localize --smooth``: a second pass after the first).
 CHURN_READER = CHURN_PLAN + textwrap.dedent("""
     import json, os, sys, traceback
     from sprint_map.map import SprintMap
 
-    path, stop, mode = sys.argv[1], sys.argv[2], sys.argv[3]
+    path, stop, mode, progress = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4]
     query = batches(walk(900, 0, 240))
     out = {"runs": 0, "failures": [], "states": set()}
     with SprintMap.open(path, readonly=True) as m:
@@ -429,6 +444,9 @@ CHURN_READER = CHURN_PLAN + textwrap.dedent("""
                 out["failures"].append(traceback.format_exc(limit=-4))
             out["runs"] += 1
             out["states"].add(m.stats()["vertices"])
+            with open(progress + ".partial", "w") as f:
+                f.write(str(out["runs"]))
+            os.replace(progress + ".partial", progress)
     out["states"] = len(out["states"])
     print(json.dumps(out))
 """)
@@ -452,9 +470,12 @@ def test_localize_survives_merging_ingests_and_removes(tmp_path):
             m.add_sequence(plan["walk"](i, 15 * i, 15), name=f"d{i}")
     query = tmp_path / "query.npy"
     np.save(query, plan["walk"](900, 0, 240))
-    writer = _python(CHURN_WRITER, str(path), "20", stdin=subprocess.PIPE)
-    readers = [_python(CHURN_READER, str(path), str(tmp_path / "stop"), mode)
-               for mode in ("causal", "smooth")]
+    progress = [tmp_path / f"{mode}.runs" for mode in ("causal", "smooth")]
+    for file in progress:
+        file.write_text("0")
+    writer = _python(CHURN_WRITER, str(path), "20", *map(str, progress), stdin=subprocess.PIPE)
+    readers = [_python(CHURN_READER, str(path), str(tmp_path / "stop"), mode, str(file))
+               for mode, file in zip(("causal", "smooth"), progress, strict=True)]
     cli: list[subprocess.Popen] = []
     try:
         assert writer.stdout is not None and writer.stdin is not None

@@ -126,3 +126,32 @@ def test_decisions_without_contrast_are_not_gated():
     assert select_merges(drive, MergeRule(window=3, min_run=20, max_contrast=0.5)).all()
     mixed = with_contrast(along(30), [math.nan] * 25 + [2.0] * 5)
     assert not select_merges(mixed, MergeRule(window=3, min_run=20, max_contrast=0.95)).any()
+
+
+def test_a_drive_cannot_come_back_to_a_stretch_it_has_just_left():
+    # City-novel's overcast drive (seed 2): a block matched right (images 119-151), then the
+    # next block north, a copy of it, matched to the same images from the next frame on.
+    # Both runs pass every other test; at most one is right and neither is merged.
+    first = along(50, start=119, step=1)
+    copy = along(43, start=128, first_frame=50)
+    verified = [FrameDecision(d.frame, d.seq_id, d.image_id, d.prob, verified=True)
+                for d in first + copy]
+    rule = MergeRule(window=3, min_run=20)
+    for drive in (first + copy, verified):
+        assert not select_merges(drive, rule).any()
+    # the same two passes a loop apart (120 frames elsewhere): a true revisit, both merged
+    loop = [FrameDecision(50 + i, 1, 500 + i, 0.9) for i in range(120)]
+    later = along(43, start=128, first_frame=170)
+    assert select_merges(first + loop + later, rule).all()
+
+
+@pytest.mark.parametrize("back", [1, 3, 9])
+def test_a_run_that_stalls_and_restarts_a_few_images_back_is_kept(back):
+    drive = along(30) + along(30, start=39 - back, first_frame=30)
+    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()
+
+
+def test_runs_on_images_the_other_run_never_saw_are_no_teleport():
+    # the map drive looped: its images 233-264 and 148-203 are neighbouring streets
+    drive = along(40, start=233) + along(40, start=148, first_frame=40)
+    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()
