@@ -31,11 +31,12 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
    a run with none passes;
 6. optionally (``merge_min_agree`` > 0), at least that many of the ``merge_window`` frames on
    either side agree with it in the sense of 4;
-7. its run is not half of a *teleport*: two runs of the drive on one sequence, the later one
-   re-entering images of the earlier one sooner than a drive can come back to a place it has
-   just passed (:func:`teleports`). At most one of the two is right, and nothing in the
-   images tells which (a copied street verifies as well as the street it copies), so neither
-   is merged.
+7. it is not on the contested images of a *teleport*: two runs of the drive on one sequence,
+   the later one re-entering images of the earlier one sooner than a drive can come back to a
+   place it has just passed (:func:`teleports`). On the images both runs claim, at most one of
+   them is right and nothing in the images tells which (a copied street verifies as well as
+   the street it copies), so neither is merged there; what is left of either run is merged
+   only if it is still a run of ``merge_min_run`` frames.
 
 A decision marked ``verified`` (its run confirmed on the thumbnails by geometric
 verification, :mod:`sprint_map.verification`) is merged even if tests 1-3 and 5 refused it
@@ -165,9 +166,7 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
         accepted = on_runs(ok & (dist <= limit))
     verified = np.array([d.verified for d in decisions], dtype=bool) & confirmed & (seq >= 0)
     if rule.min_agree <= 0 or rule.window <= 0 or not n:
-        merged: np.ndarray = accepted | verified
-        merged &= ~teleports(np.where(merged, seq, -1), img, gap, rule.max_rate)
-        return merged
+        return _without_teleports(accepted | verified, seq, img, gap, rule)
     agree = np.zeros(n, dtype=np.int64)
     for d in range(1, rule.window + 1):
         if d >= n:
@@ -178,22 +177,38 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
         same = (seq[d:] == seq[:-d]) & (seq[:-d] >= 0) & (step >= 0) & (step <= limit_step)
         agree[:-d] += same
         agree[d:] += same  # the same pair seen from the later frame (the step is mirrored)
-    merged = (accepted & (agree >= rule.min_agree)) | verified
-    merged &= ~teleports(np.where(merged, seq, -1), img, gap, rule.max_rate)
-    return merged
+    return _without_teleports((accepted & (agree >= rule.min_agree)) | verified, seq, img, gap,
+                              rule)
+
+
+def _without_teleports(merged: np.ndarray, seq: np.ndarray, img: np.ndarray, gap: int,
+                       rule: MergeRule) -> np.ndarray:
+    """``merged`` less the contested frames of teleports (test 7), and less what is left of a
+    run that lost some of them if it is no longer a run of ``min_run`` frames. O(n * gap)."""
+    contested = teleports(np.where(merged, seq, -1), img, gap, rule.max_rate)
+    if not contested.any():
+        return merged
+    run = run_ids(np.where(merged, seq, -1), img, gap, rule.max_rate)
+    touched = np.isin(run, np.unique(run[contested])) & (run >= 0)
+    left = merged & ~contested
+    short = run_lengths(np.where(left, seq, -1), img, gap, rule.max_rate) < max(rule.min_run, 1)
+    out: np.ndarray = left & ~(touched & short)
+    return out
 
 
 def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> np.ndarray:
-    """The frames of the runs (:func:`run_ids`) that are half of a teleport: a boolean mask.
+    """The contested frames of teleports: a boolean mask over the frames.
 
-    Two runs on one sequence, the second starting ``gap`` frames after the first ends, whose
-    images overlap on ``shared`` images, say the drive came back to the places of the first
-    run. To come back, a drive must leave the place it has just passed and return to it
-    facing the same way, which takes far longer than driving the stretch once; a second run
+    Two runs on one sequence whose images overlap on ``shared`` images, the second coming to
+    them ``gap`` frames after the first left them, say the drive came back to the places of
+    the first run (runs that alternate on them, ``gap <= 0``, are not two passes). To come
+    back, a drive must leave the place it has just passed and return to it facing the same
+    way, which takes far longer than driving the stretch once; a second run
     that re-enters more than ``max_rate * (gap + max_gap)`` shared images (as many as the
     runs could advance through in the gap, plus one gap's slack for a run that stalls and
     restarts a few images back) came back sooner than any drive can. The drive saw the same
-    stretch twice in a row: a street and its copy, driven one after the other.
+    stretch twice in a row: a street and its copy, driven one after the other, or a lookalike
+    of a stretch just driven. The frames of either run on the images both claim are contested.
 
     Notes
     -----
@@ -202,9 +217,9 @@ def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -
     Examples
     --------
     >>> seq = np.zeros(8, dtype=np.int64)
-    >>> img = np.array([10, 12, 14, 16, 18, 10, 12, 14])  # back to image 10 at once
+    >>> img = np.array([6, 8, 10, 12, 14, 10, 12, 14])  # back to image 10 at once
     >>> teleports(seq, img, 1, 1.0).tolist()
-    [True, True, True, True, True, True, True, True]
+    [False, False, True, True, True, True, True, True]
     >>> seq = np.r_[[0] * 4, [-1] * 12, [0] * 4]  # back to image 10 after 12 frames elsewhere
     >>> img = np.r_[[10, 11, 12, 13], [-1] * 12, [10, 11, 12, 13]]
     >>> bool(teleports(seq, img, 1, 1.0).any())
@@ -216,14 +231,16 @@ def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -
         for second in runs[a + 1:]:
             if seq[first[0]] != seq[second[0]]:
                 continue
-            earlier, later = (first, second) if first[-1] < second[0] else (second, first)
-            gap = int(later[0] - earlier[-1])
-            if gap <= 0:  # interleaved runs: not one pass after the other
+            lo = max(int(img[first].min()), int(img[second].min()))
+            hi = min(int(img[first].max()), int(img[second].max()))
+            if hi < lo:
                 continue
-            shared = (min(int(img[earlier].max()), int(img[later].max()))
-                      - max(int(img[earlier].min()), int(img[later].min())) + 1)
-            if shared > max_rate * (gap + max_gap):
-                out[first] = out[second] = True
+            on_a = first[(img[first] >= lo) & (img[first] <= hi)]
+            on_b = second[(img[second] >= lo) & (img[second] <= hi)]
+            # frames between leaving the shared images and coming back to them
+            gap = int(max(on_b[0] - on_a[-1], on_a[0] - on_b[-1]))
+            if gap > 0 and hi - lo + 1 > max_rate * (gap + max_gap):
+                out[on_a] = out[on_b] = True
     return out
 
 

@@ -145,6 +145,18 @@ def test_a_drive_cannot_come_back_to_a_stretch_it_has_just_left():
     assert select_merges(first + loop + later, rule).all()
 
 
+def test_only_the_images_both_runs_claim_are_refused():
+    # a long right run, then a lookalike of its last 20 images at once: the run keeps the 80
+    # frames nothing contests; the lookalike, all contested, goes
+    drive = along(100, start=0) + along(20, start=80, first_frame=100)
+    merged = select_merges(drive, MergeRule(window=3, min_run=20))
+    assert merged[:80].all() and not merged[80:].any()
+    # what is left must still be a run of min_run frames
+    merged = select_merges(along(30, start=0) + along(20, start=15, first_frame=30),
+                           MergeRule(window=3, min_run=20))
+    assert not merged.any()
+
+
 @pytest.mark.parametrize("back", [1, 3, 9])
 def test_a_run_that_stalls_and_restarts_a_few_images_back_is_kept(back):
     drive = along(30) + along(30, start=39 - back, first_frame=30)
