@@ -19,10 +19,10 @@ from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
 
 if TYPE_CHECKING:
-    from sprint_map.commit import IngestResult
-    from sprint_map.drives import Drive
-    from sprint_map.localizer import FrameDecision, Localizer, Timing
+    from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
     from sprint_map.map import SprintMap
+    from sprint_map.merge.commit import IngestResult
+    from sprint_map.merge.drives import Drive
     from sprint_map.storage.records import (
         AddResult,
         CheckReport,
@@ -47,10 +47,10 @@ __all__ = ["SCHEMA_VERSION", "AddResult", "CheckReport", "CompactReport", "Compo
 __version__ = "0.1.0"
 
 #: Names imported on first use, and the module that defines each.
-_LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.commit",
-         "Drive": "sprint_map.drives",
-         "Localizer": "sprint_map.localizer", "FrameDecision": "sprint_map.localizer",
-         "Timing": "sprint_map.localizer",
+_LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.merge.commit",
+         "Drive": "sprint_map.merge.drives",
+         "Localizer": "sprint_map.localize.localizer", "FrameDecision": "sprint_map.localize.localizer",
+         "Timing": "sprint_map.localize.localizer",
          **dict.fromkeys(_RECORDS, "sprint_map.storage.records")}
 
 

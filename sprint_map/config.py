@@ -10,16 +10,16 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from sprint_map import dataclass_dict
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.merge_rule import MergeRule
+from sprint_map.merge.rule import MergeRule
 from sprint_map.storage.store_config import (
     INDEX_TYPES,
     READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
     StoreConfig,
 )
+from sprint_map.util import dataclass_dict
 
 __all__ = ["DESCRIPTOR_KINDS", "INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION",
            "HMMConfig", "MapConfig"]
@@ -44,7 +44,7 @@ class MapConfig:
     shard_rows : int
         Rows per descriptor shard file; a shard is sealed (never written again) once full.
     index_type : str
-        Retrieval index (see :mod:`sprint_map.storage.index_store`): ``"flat"`` (exact L2
+        Retrieval index (see :mod:`sprint_map.storage.index.map_index`): ``"flat"`` (exact L2
         through ``IndexIDMap2(IndexFlatL2)``), ``"ivf-pq"`` / ``"ivf-sq8"`` (segmented FAISS
         IVF with PQ / 8-bit SQ codes, optionally after PCA, candidates re-ranked exactly from
         the shards) or ``"auto"`` (flat while the map is small, ``ivf-pq`` from
@@ -82,7 +82,7 @@ class MapConfig:
         LMDB map size at creation in bytes (sparse file; it doubles on demand).
     merge_threshold : float
         Minimum place probability for a localisation decision to become an edge on merge
-        (:mod:`sprint_map.merge_rule`).
+        (:mod:`sprint_map.merge.rule`).
     merge_max_novel : float
         A decision whose probability of being an unmapped place exceeds this is not merged.
     merge_window : int
@@ -110,7 +110,7 @@ class MapConfig:
         Geometric verification of the runs the lookalike tests refuse, where the drive and
         the map keep thumbnails (``ingest --thumbnails``): a stretch whose sampled frames share
         at least this many inliers (median) with their matched map images is merged
-        (:mod:`sprint_map.verification`; unrelated images share 14-20). 0 disables it.
+        (:mod:`sprint_map.merge.verification`; unrelated images share 14-20). 0 disables it.
     merge_both_ways : bool
         Store each merge edge in both directions (query -> map and map -> query), so belief can
         later cross between the two drives either way. The paper keeps one direction.
@@ -181,7 +181,7 @@ class MapConfig:
 
     @property
     def merge_rule(self) -> MergeRule:
-        """The merge rule these fields define (:mod:`sprint_map.merge_rule`)."""
+        """The merge rule these fields define (:mod:`sprint_map.merge.rule`)."""
         return MergeRule(self.merge_threshold, self.merge_max_novel, self.merge_window,
                          self.merge_min_agree, self.merge_max_rate, self.merge_min_run,
                          self.merge_dist_quantile, self.merge_min_advance,

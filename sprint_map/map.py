@@ -20,18 +20,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map import dataclass_dict
-from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
-from sprint_map.commit import DriveWriter, IngestResult
 from sprint_map.config import MapConfig
-from sprint_map.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.errors import (
     DescriptorShapeError,
     InputError,
 )
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.merge_rule import select_merges
+from sprint_map.merge.commit import DriveWriter, IngestResult
+from sprint_map.merge.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
+from sprint_map.merge.rule import select_merges
 from sprint_map.storage.group_writer import GroupWriter
+from sprint_map.storage.index.model import cap_threads
 from sprint_map.storage.provenance import edge_table, list_edges
 from sprint_map.storage.records import (
     AddResult,
@@ -46,18 +45,19 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
-from sprint_map.storage.segment_model import cap_threads
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.store_config import decode_stored_config
-from sprint_map.validation import decode_text
+from sprint_map.util import dataclass_dict
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.util.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
     from sprint_map.export.report import ExportReport
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.hmm.cache import ComponentCache
-    from sprint_map.localizer import FrameDecision, Localizer, MapView, Timing
-    from sprint_map.prepared import PreparedDrive
+    from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
+    from sprint_map.merge.prepared import PreparedDrive
     from sprint_map.storage.removal import RemovedRanges
 
 
@@ -195,7 +195,7 @@ class SprintMap:
         against the map as it stands (causally, batch by batch); once the whole drive has been
         seen its decisions are re-made from the forward-backward smoothed posterior over the
         same sparse active set (:mod:`sprint_map.hmm.smoother`), and the merge rule
-        (:mod:`sprint_map.merge_rule`: confident, not novel, temporally consistent) selects
+        (:mod:`sprint_map.merge.rule`: confident, not novel, temporally consistent) selects
         those that become edges (both ways if ``config.merge_both_ways``). The sequence, its
         edges and the union-find merges are committed in one transaction. With
         ``merge=False``, or on an empty map, the sequence is appended as it is, without
@@ -213,7 +213,7 @@ class SprintMap:
             source fills while it streams is complete by then). Held in memory until the
             commit: about 2 KiB per frame. They also let the merge verify, against the map's
             own thumbnails, the runs its lookalike tests refuse (``merge_verify_inliers``,
-            :mod:`sprint_map.verification`).
+            :mod:`sprint_map.merge.verification`).
 
         Notes
         -----
@@ -221,10 +221,10 @@ class SprintMap:
         backward step of the smoother over the same support; the smoother keeps the frame's
         hits and its sparse forward belief (O(live) per frame) until the drive ends.
         ``observe`` receives the localizer before the first frame (e.g.
-        :meth:`sprint_map.trace.TraceRecorder.attach`); it is not called when the drive is
+        :meth:`sprint_map.localize.trace.TraceRecorder.attach`); it is not called when the drive is
         appended without localisation.
         """
-        from sprint_map.localizer import SEARCH_BATCH, Localizer, Timing
+        from sprint_map.localize.localizer import SEARCH_BATCH, Localizer, Timing
 
         batches: Iterable[DescriptorsLike]
         if isinstance(descriptors, np.ndarray):
@@ -251,9 +251,9 @@ class SprintMap:
     def begin_drive(self, name: str | None = None, source: str = "",
                     reserved: Container[str] = ()) -> DriveWriter:
         """Start committing a localised drive: append its rows, then
-        :meth:`~sprint_map.commit.DriveWriter.commit` it with its decisions (the one commit
+        :meth:`~sprint_map.merge.commit.DriveWriter.commit` it with its decisions (the one commit
         path of ``ingest``, ``merge``, ``commit_prepared`` and the service; see
-        :mod:`sprint_map.commit`).
+        :mod:`sprint_map.merge.commit`).
 
         ``name`` is checked now, before any row is written; without one the sequence is named
         ``seq-<id>`` (or ``seq-<id>-2``, ...), avoiding the map's names and ``reserved``. One
@@ -268,8 +268,8 @@ class SprintMap:
         """Localise a drive as :meth:`ingest` would, against one snapshot, without committing
         (read-only is enough): an ingest farm's workers do this in parallel. ``batches`` are
         the drive's search batches (as ``ingest`` would get them). See
-        :mod:`sprint_map.prepared`."""
-        from sprint_map.prepared import prepare_drive
+        :mod:`sprint_map.merge.prepared`."""
+        from sprint_map.merge.prepared import prepare_drive
 
         return prepare_drive(self, batches, merge=merge, hmm=hmm)
 
@@ -285,9 +285,9 @@ class SprintMap:
         Notes
         -----
         The staleness check costs O(N * M * dim) for the M vertices committed since the
-        snapshot (:func:`sprint_map.prepared.stale_reason`).
+        snapshot (:func:`sprint_map.merge.prepared.stale_reason`).
         """
-        from sprint_map.prepared import stale_reason
+        from sprint_map.merge.prepared import stale_reason
 
         reason = stale_reason(self, prepared, np.concatenate(list(batches)))
         if reason is not None:
@@ -314,7 +314,7 @@ class SprintMap:
         in groups of ``group_drives`` (appended with ``merge=False``: one transaction a group,
         each drive whole or absent).
 
-        See :func:`sprint_map.drives.ingest_drives` (errors, costs, ``on_committed``).
+        See :func:`sprint_map.merge.drives.ingest_drives` (errors, costs, ``on_committed``).
         """
         return ingest_drives(self, drives, merge=merge, hmm=hmm, group_drives=group_drives,
                              on_committed=on_committed, observe=observe)
@@ -322,7 +322,7 @@ class SprintMap:
     def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
         """The map's merge rule over one drive's decisions: which would become edges.
 
-        See :mod:`sprint_map.merge_rule`; the rule's parameters are the ``merge_*`` fields of
+        See :mod:`sprint_map.merge.rule`; the rule's parameters are the ``merge_*`` fields of
         the map's config.
         """
         return select_merges(decisions, self.config.merge_rule)
@@ -387,15 +387,15 @@ class SprintMap:
         approximate index's PCA and quantizer on a fresh sample (``sprint-map index``).
 
         Readers keep using the old index until the new one is published atomically. See
-        :meth:`sprint_map.storage.index_store.IndexStore.train`.
+        :meth:`sprint_map.storage.index.map_index.IndexStore.train`.
         """
         return self.store.rebuild_index(train=train)
 
     def view(self) -> MapView:
-        """A new view of the map for one :class:`~sprint_map.localizer.Localizer` (what it
+        """A new view of the map for one :class:`~sprint_map.localize.localizer.Localizer` (what it
         reads: k-NN search, vertex locations, components and their edges, from pinned LMDB
         snapshots)."""
-        from sprint_map.map_graph import MapGraphSource
+        from sprint_map.localize.map_graph import MapGraphSource
 
         return MapGraphSource(self.store)
 
@@ -412,7 +412,7 @@ class SprintMap:
 
         ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``).
         """
-        from sprint_map.localizer import Localizer
+        from sprint_map.localize.localizer import Localizer
 
         base = hmm or self.config.hmm
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
@@ -425,7 +425,7 @@ class SprintMap:
         With ``smooth`` the decisions are re-made from the forward-backward smoothed posterior
         once the whole sequence has been seen (what ``ingest`` merges, given the same
         ``thumbnails``: one JPEG per frame, for the geometric verification of
-        :mod:`sprint_map.verification`); without it they are the causal filter's, as a vehicle
+        :mod:`sprint_map.merge.verification`); without it they are the causal filter's, as a vehicle
         gets them.
         """
         localizer = self.localizer(**overrides)

@@ -53,12 +53,12 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.errors import SprintMapError
 from sprint_map.storage.check import check_map
-from sprint_map.storage.crash import CRASH_ENV
 from sprint_map.storage.keys import THUMB_KEY, read_u64
 from sprint_map.storage.records import CheckReport, EdgeSpec
 from sprint_map.storage.repair import repair_map
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.thumbnails import THUMBNAILS_DB
+from sprint_map.testing.crash import CRASH_ENV
 
 WORKER = Path(__file__).resolve()
 MAX_LENGTH = 90

@@ -2,7 +2,7 @@
 
 Run as ``python map_fuzz_worker.py``: it imports the CLI once, prints ``ready``, then for each
 JSON line ``{"args": [...], "stdout": FILE, "stderr": FILE}`` on stdin forks a child that runs
-exactly what the ``sprint-map`` console script runs (``sprint_map.cli.main``) with those
+exactly what the ``sprint-map`` console script runs (``sprint_map.cli.main.main``) with those
 arguments, its output going to the two files, and replies ``{"code": ..., "signal": ...}`` once
 the child is reaped. An exception escaping ``main`` is printed as Python prints it (a
 ``Traceback`` on stderr, exit 1), and a signal (SIGBUS, SIGSEGV) is reported as such: the child
@@ -20,7 +20,7 @@ from typing import Any
 
 
 def _child(request: dict[str, Any]) -> None:
-    from sprint_map.cli import main
+    from sprint_map.cli.main import main
 
     out = os.open(str(request["stdout"]), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     err = os.open(str(request["stderr"]), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -40,7 +40,7 @@ def _child(request: dict[str, Any]) -> None:
 
 
 def serve() -> None:
-    import sprint_map.cli  # noqa: F401  (imported once, before any fork)
+    import sprint_map.cli.main  # noqa: F401  (imported once, before any fork)
 
     print("ready", flush=True)
     for line in sys.stdin:

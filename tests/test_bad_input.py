@@ -37,7 +37,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map import errors
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import (
     ConfigError,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.errors import InputError
 
 

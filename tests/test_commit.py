@@ -1,4 +1,4 @@
-"""The one commit path of a localised drive (``sprint_map.commit``), as ingest, merge and the
+"""The one commit path of a localised drive (``sprint_map.merge.commit``), as ingest, merge and the
 service use it: merges become edges, everything is validated before a row is written, the
 exclusive section holds the transaction and the commit hook, retries are reported."""
 
@@ -9,13 +9,13 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from sprint_map.atomic import set_file_hook
 from sprint_map.config import MapConfig
 from sprint_map.errors import DuplicateNameError, InputError, UnknownSequenceError
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.storage.faults import CallRecorder
 from sprint_map.storage.records import EdgeSpec
+from sprint_map.testing.faults import CallRecorder
+from sprint_map.util.atomic import set_file_hook
 
 DIM = 5
 

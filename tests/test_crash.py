@@ -25,7 +25,12 @@ import numpy as np
 import pytest
 
 from sprint_map.storage.check import check_map
-from sprint_map.storage.crash import (
+from sprint_map.storage.generation import CURRENT_NAME
+from sprint_map.storage.index.map_index import index_files
+from sprint_map.storage.keys import u32, u64
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
+from sprint_map.testing.crash import (
     ADD_POINTS,
     COMPACT_POINTS,
     CRASH_POINTS,
@@ -37,11 +42,6 @@ from sprint_map.storage.crash import (
     SEGMENT_POINTS,
     UNMERGE_POINTS,
 )
-from sprint_map.storage.generation import CURRENT_NAME
-from sprint_map.storage.index_store import index_files
-from sprint_map.storage.keys import u32, u64
-from sprint_map.storage.records import EdgeSpec
-from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
 worker = crash_worker
 verify = worker.verify

@@ -14,13 +14,13 @@ from typing import Any
 
 import pytest
 
-from sprint_map import dataclass_dict
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError
 from sprint_map.frontend.groundtruth import GroundTruthSpec
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.server.config import ServerConfig
 from sprint_map.synth.city import CityConfig
+from sprint_map.util import dataclass_dict
 
 CONFIGS: list[tuple[type, dict[str, Any]]] = [
     (MapConfig, {"dim": 16}), (HMMConfig, {}), (ServerConfig, {}), (CityConfig, {}),

@@ -1,7 +1,7 @@
 """The documentation keeps up with the code (model: sqlite-utils' ``tests/test_docs.py``).
 
 - every command of the CLI (walking the click group) is documented, and ``docs/cli.md`` is
-  exactly what ``sprint_map.cli_reference`` generates from the commands' ``--help``;
+  exactly what ``sprint_map.cli.reference`` generates from the commands' ``--help``;
 - every exit code of ``sprint_map/errors.py`` is in ``docs/cli.md``'s table;
 - every reference to a page of ``docs/`` names a page that exists, and a quoted section after
   it (``docs/x.md``, "Section") names a heading or a bold paragraph label of that page;
@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from sprint_map import cli_reference, errors
+from sprint_map import errors
+from sprint_map.cli import reference as cli_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"

@@ -20,7 +20,7 @@ MODULES = sorted(
 
 
 def test_the_package_has_examples():
-    assert "sprint_map.verification" in MODULES and "sprint_map.merge_rule" in MODULES
+    assert "sprint_map.merge.verification" in MODULES and "sprint_map.merge.rule" in MODULES
 
 
 @pytest.mark.parametrize("name", MODULES)

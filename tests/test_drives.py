@@ -1,4 +1,4 @@
-"""Several drives in one ingest (sprint_map/drives.py): equal to serial ingest, each atomic.
+"""Several drives in one ingest (sprint_map/merge/drives.py): equal to serial ingest, each atomic.
 
 The crash test kills a real ``sprint-map ingest A B C`` between two drives of one group.
 """
@@ -17,7 +17,7 @@ import pytest
 
 from sprint_map import Drive, MapConfig, SprintMap
 from sprint_map.errors import DuplicateNameError, InputError, InvalidDescriptorError
-from sprint_map.storage.crash import CRASH_ENV, GROUP_POINTS
+from sprint_map.testing.crash import CRASH_ENV, GROUP_POINTS
 
 DIM = 16
 
@@ -102,7 +102,7 @@ def test_group_defers_the_index_persist_to_its_end(tmp_path, drives):
     assert after != files[1] and any("000000000160" in name for name in after)
 
 
-CLI = [sys.executable, "-c", "from sprint_map.cli import main; main()"]
+CLI = [sys.executable, "-c", "from sprint_map.cli.main import main; main()"]
 
 
 def test_crash_between_drives_keeps_the_earlier_ones(tmp_path, drives):

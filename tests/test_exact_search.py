@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from sprint_map.config import MapConfig
-from sprint_map.exact_search import (
+from sprint_map.map import SprintMap
+from sprint_map.util.exact_search import (
     MARGIN,
     candidate_distances,
     certified_search,
@@ -21,7 +22,6 @@ from sprint_map.exact_search import (
     pair_distances,
     row_norm_max,
 )
-from sprint_map.map import SprintMap
 
 
 def brute(vectors: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

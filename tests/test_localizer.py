@@ -7,12 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sprint_map.commit import merge_edges
 from sprint_map.config import MapConfig
 from sprint_map.errors import DescriptorShapeError, DuplicateNameError
-from sprint_map.localizer import FrameDecision, Localizer
+from sprint_map.localize.localizer import FrameDecision, Localizer
 from sprint_map.map import SprintMap
-from sprint_map.merge_rule import MergeRule, select_merges
+from sprint_map.merge.commit import merge_edges
+from sprint_map.merge.rule import MergeRule, select_merges
 
 DIM = 48
 

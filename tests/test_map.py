@@ -8,7 +8,7 @@ import pytest
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import MapLockedError, NotAMapError, ReadOnlyMapError
 from sprint_map.map import SprintMap
-from sprint_map.storage.index_store import index_files
+from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import INDEX_DIR
 

@@ -1,4 +1,4 @@
-"""The merge rule (sprint_map.merge_rule) on hand-made drives."""
+"""The merge rule (sprint_map.merge.rule) on hand-made drives."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sprint_map.localizer import FrameDecision, local_quantiles
-from sprint_map.merge_rule import MergeRule, run_lengths, select_merges
+from sprint_map.localize.localizer import FrameDecision, local_quantiles
+from sprint_map.merge.rule import MergeRule, run_lengths, select_merges
 
 
 def along(n: int, seq: int = 0, start: int = 10, step: int = 1, prob: float = 0.9,

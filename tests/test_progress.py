@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
-from sprint_map.progress import ProgressBar, progress_display, shows_progress
+from sprint_map.cli.main import main
+from sprint_map.cli.progress import ProgressBar, progress_display, shows_progress
 
 DIM = 16
 FRAMES = 1000  # four batches of 256 rows: the bar is updated several times
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
-CLI = [sys.executable, "-c", "from sprint_map.cli import main; main()"]
+CLI = [sys.executable, "-c", "from sprint_map.cli.main import main; main()"]
 
 
 @pytest.fixture
@@ -167,7 +167,7 @@ def test_no_bar_object_without_a_terminal_or_when_quiet():
 
 
 def test_importing_the_cli_does_not_import_rich():
-    code = "import sys, sprint_map.cli; print('rich' in sys.modules)"
+    code = "import sys, sprint_map.cli.main; print('rich' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "False"

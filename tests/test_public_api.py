@@ -41,9 +41,9 @@ def _import(name: str):
 
 def test_the_walk_finds_the_whole_package():
     # Every layer is walked (a broken walk would make the test below vacuous).
-    for name in ("sprint_map.cli", "sprint_map.map", "sprint_map.storage.store",
+    for name in ("sprint_map.cli.main", "sprint_map.map", "sprint_map.storage.store",
                  "sprint_map.hmm.sprint_filter", "sprint_map.server.app", "sprint_map.fleet.farm",
-                 "sprint_map.frontend.sources", "sprint_map.synth.city", "sprint_map.trace"):
+                 "sprint_map.frontend.sources", "sprint_map.synth.city", "sprint_map.localize.trace"):
         assert name in MODULES
     assert len(MODULES) > 80
 

@@ -35,7 +35,7 @@ def test_the_front_end_loads_opencv_when_an_image_is_described():
 
 def test_nothing_imports_ray_without_ray_asked_for():
     """Ray (the optional extra) loads only with ``--ray`` or sprint_map.fleet's functions."""
-    mods = loaded_after("import sprint_map.cli, sprint_map.map, sprint_map.server.run, "
+    mods = loaded_after("import sprint_map.cli.main, sprint_map.map, sprint_map.server.run, "
                         "sprint_map.fleet.runtime, sprint_map.fleet.shards, "
                         "sprint_map.fleet.farm, sprint_map.fleet.replicas")
     assert "ray" not in mods
@@ -49,7 +49,7 @@ HEAVY = ("faiss", "scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "
 # Runs the CLI in this process, then lists what it imported (at exit: main() exits).
 CLI_MODULES = ("import atexit, sys\n"
                "atexit.register(lambda: print(' '.join(sorted(sys.modules)), file=sys.stderr))\n"
-               "from sprint_map.cli import main\n"
+               "from sprint_map.cli.main import main\n"
                "main()\n")
 
 
@@ -87,7 +87,7 @@ def test_reading_commands_import_no_hmm_opencv_or_scipy(small_map, args):
 
 
 def test_sprint_map_cli_imports_no_opencv():
-    assert "cv2" not in loaded_after("import sprint_map.cli")
+    assert "cv2" not in loaded_after("import sprint_map.cli.main")
 
 
 def test_faiss_loads_with_the_first_search(small_map):

@@ -16,7 +16,7 @@ import pytest
 from sprint_map.errors import InputError
 from sprint_map.server.auth import load_token
 from sprint_map.server.config import ServerConfig
-from sprint_map.validation import decode_text, name_key, shown, validate_name
+from sprint_map.util.validation import decode_text, name_key, shown, validate_name
 
 UNDECODABLE = b"a\xffb".decode("utf-8", "surrogateescape")  # what argv gives for a 0xff byte
 

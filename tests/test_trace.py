@@ -9,10 +9,10 @@ import pytest
 from click.testing import CliRunner
 from sample_maps import build_road_map
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.errors import InputError
+from sprint_map.localize.trace import FORMAT, VERSION, TraceRecorder, read_trace
 from sprint_map.map import SprintMap
-from sprint_map.trace import FORMAT, VERSION, TraceRecorder, read_trace
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Geometric verification of merge candidates on thumbnails (sprint_map.verification), and
+"""Geometric verification of merge candidates on thumbnails (sprint_map.merge.verification), and
 what it changes in the merge: rendered city drives, thumbnails as ``ingest --thumbnails``
 keeps them."""
 
@@ -11,16 +11,16 @@ import pytest
 
 from sprint_map.config import MapConfig
 from sprint_map.frontend.thumbnails import make_thumbnail
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.merge_rule import MergeRule, select_merges
-from sprint_map.synth import CityConfig, iter_city
-from sprint_map.verification import (
+from sprint_map.merge.rule import MergeRule, select_merges
+from sprint_map.merge.verification import (
     SAMPLE_MIN_INLIERS,
     RunVerifier,
     inliers,
     local_features,
 )
+from sprint_map.synth import CityConfig, iter_city
 
 #: A small city driven twice, by day then in snow, the second drive on the first one's streets
 #: (seed 2: the merge rule's lookalike tests refuse runs of it that are right).

@@ -53,7 +53,7 @@ def drives(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
 
 
 def test_cli_on_precomputed_descriptors(tmp_path, drives):
-    cli = "from sprint_map.cli import main\nmain()\n"
+    cli = "from sprint_map.cli.main import main\nmain()\n"
     steps = [["init", "city.map", "--dim", "24"],
              ["ingest", "city.map", str(drives[0])],
              ["ingest", "city.map", str(drives[1]), "--json"],

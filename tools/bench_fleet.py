@@ -48,11 +48,11 @@ from typing import Any
 import numpy as np
 
 from sprint_map.config import MapConfig
-from sprint_map.drives import Drive
 from sprint_map.map import SprintMap
+from sprint_map.merge.drives import Drive
 
 NORDLAND = Path(os.environ.get("SPRINT_MAP_NORDLAND", "/work/shared/data/nordland"))
-CLI = [sys.executable, "-c", "from sprint_map.cli import main; main()"]
+CLI = [sys.executable, "-c", "from sprint_map.cli.main import main; main()"]
 
 
 # --- the lean client ----------------------------------------------------------------------------

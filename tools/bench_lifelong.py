@@ -38,7 +38,7 @@ runs.
     python tools/bench_lifelong.py --world hard --frames 150   # 4 x 4 grid, one facade style
 
 Every drive keeps its thumbnails (as ``ingest --thumbnails`` does), so the merge verifies on the
-images the runs its lookalike tests refuse (:mod:`sprint_map.verification`); both runs localise
+images the runs its lookalike tests refuse (:mod:`sprint_map.merge.verification`); both runs localise
 the same way. ``--no-thumbnails`` measures without them.
 
 ``--world hard`` drives a 4 x 4 grid with one facade style under dusk / rain / fog / snow in
@@ -62,7 +62,7 @@ from sprint_map import MapConfig
 from sprint_map.evaluation.runner import evaluate_query
 from sprint_map.frontend import GroundTruth
 from sprint_map.frontend.thumbnails import make_thumbnail
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.synth import CityConfig, iter_city
 

@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 
 from sprint_map.config import MapConfig
-from sprint_map.drives import Drive
 from sprint_map.map import SprintMap
+from sprint_map.merge.drives import Drive
 
 DIM = 128
 AREA = 1000  # places per area: one drive's worth

@@ -171,7 +171,7 @@ def _serve(map_path: Path, token: str, log: Path, config: dict[str, Any]
     cfg = log.with_suffix(".json")
     cfg.write_text(json.dumps(config))
     proc = subprocess.Popen(
-        [sys.executable, "-c", "from sprint_map.cli import main; main()", "serve", str(map_path),
+        [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "serve", str(map_path),
          "--host", "127.0.0.1", "--port", "0", "--config", str(cfg)],
         stdout=subprocess.PIPE, stderr=log.open("w"), text=True,
         env={**os.environ, "SPRINT_MAP_TOKEN": token})

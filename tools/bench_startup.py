@@ -41,7 +41,7 @@ from typing import Any
 HEAVY = ("faiss", "scipy", "cv2", "matplotlib", "networkx", "sprint_map.hmm", "rich", "fastapi",
          "uvicorn", "ray")
 TARGET_S = 0.25
-CLI = "import sys; from sprint_map.cli import main; sys.argv[0] = 'sprint-map'; main()"
+CLI = "import sys; from sprint_map.cli.main import main; sys.argv[0] = 'sprint-map'; main()"
 LOADED = ("import sys, atexit\n"
           "atexit.register(lambda: print(' '.join(sorted(sys.modules)), file=sys.stderr))\n"
           + CLI)

@@ -41,9 +41,9 @@ import httpx
 import numpy as np
 
 from sprint_map.config import MapConfig
+from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
-from sprint_map.trace import TraceRecorder
 from sprint_map.viewer.browser import ViewProcess, chromium, console_errors, wait_for
 
 DIM = 16

@@ -44,7 +44,7 @@ from sprint_map.frontend.sources import open_source
 from sprint_map.map import SprintMap
 
 NORDLAND = Path(os.environ.get("SPRINT_MAP_NORDLAND", "/work/shared/data/nordland"))
-SERVE = [sys.executable, "-c", "from sprint_map.cli import main; main()", "serve"]
+SERVE = [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "serve"]
 
 
 @dataclass

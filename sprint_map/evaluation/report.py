@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.atomic import publish
+from sprint_map.util.atomic import publish
 
 __all__ = ["COLUMNS", "markdown_table", "write_report"]
 

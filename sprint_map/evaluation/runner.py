@@ -9,7 +9,7 @@ Every query frame is answered three ways over the same map: by exact k-NN (FAISS
 the baseline); by SPRINT, streamed frame by frame as a vehicle would (``sprint_recall@1``, and
 the latencies reported are per-frame latencies, not batch averages); and by SPRINT's smoothed
 decisions, made once the whole drive has been seen (``smoothed_recall@1``), which the merge
-rule (:mod:`sprint_map.merge_rule`) turns into edges. The merge metrics
+rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 (:func:`sprint_map.evaluation.metrics.merge_metrics`: ``merge_precision``, ``merge_recall``,
 ``edges_added``, ``edges_wrong``, ``novel_merged``) score those edges:
 
@@ -36,14 +36,14 @@ from typing import Any
 import numpy as np
 
 from sprint_map import HMMConfig
-from sprint_map.arrays import Descriptors
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
 from sprint_map.frontend.dataset import Dataset, Traversal
 from sprint_map.frontend.groundtruth import GroundTruth
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
+from sprint_map.util.arrays import Descriptors
 
 __all__ = ["EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
            "describe_with_thumbnails", "evaluate_query", "run_evaluation"]
@@ -274,7 +274,7 @@ def _correct(query: str, places: list[tuple[int, int] | None], gt: GroundTruth,
 
 
 def _edges_per_decision(config: MapConfig) -> int:
-    """Edges one merged decision makes (:func:`sprint_map.commit.merge_edges`)."""
+    """Edges one merged decision makes (:func:`sprint_map.merge.commit.merge_edges`)."""
     return 2 if config.merge_both_ways else 1
 
 

@@ -22,7 +22,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from sprint_map.atomic import PARTIAL_SUFFIX, publish
 from sprint_map.errors import InputError
 from sprint_map.export.geojson import has_positions, write_geojson
 from sprint_map.export.graphml import write_sequence_graphml, write_vertex_graphml
@@ -30,10 +29,11 @@ from sprint_map.export.report import LEVELS, VERTEX_LEVEL_LIMIT, ExportReport, c
 from sprint_map.export.tables import TABLES, write_table
 from sprint_map.storage.scan import MapScan
 from sprint_map.storage.store import MapStore
+from sprint_map.util.atomic import PARTIAL_SUFFIX, publish
 
 
 def _publish(path: Path, fill: Callable[[Path], None]) -> None:
-    """:func:`~sprint_map.atomic.publish` ``path``; whatever fails the write (an I/O
+    """:func:`~sprint_map.util.atomic.publish` ``path``; whatever fails the write (an I/O
     error, a corrupt record met half-way), the temporary file goes with it."""
     try:
         publish(path, fill)

@@ -32,7 +32,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, SearchResult
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 __all__ = ["CONNECT_TIMEOUT", "FAILED", "OK", "TOKEN_BYTES", "ChannelClient", "ChannelError",
            "ChannelServer", "pack_result", "recv_exact", "unpack_result"]

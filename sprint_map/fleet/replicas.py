@@ -5,7 +5,7 @@ The HTTP app, the sessions' bookkeeping and the one commit writer stay in the se
 (one per replica, spread over the cluster's nodes), which opens the map read-only (a shared
 filesystem) and steps that session's filter frame by frame, in the session's order. The serving
 process holds a :class:`RemoteLocalizer` per session, the proxy the service uses in place of an
-in-process :class:`~sprint_map.localizer.Localizer`: ``step`` is one Ray call, the components a
+in-process :class:`~sprint_map.localize.localizer.Localizer`: ``step`` is one Ray call, the components a
 commit changed travel with the session's next frame (``invalidate``), and the commit's smoothing
 runs in the replica (``smoothed``), which reads the map as the writer left it.
 
@@ -26,11 +26,11 @@ from typing import Any
 import numpy as np
 
 from sprint_map import HMMConfig
-from sprint_map.arrays import Descriptors
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet.shards import alive_nodes, spread
-from sprint_map.localizer import FrameDecision, Localizer, Timing
+from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
 from sprint_map.map import SprintMap
+from sprint_map.util.arrays import Descriptors
 
 __all__ = ["RemoteLocalizer", "ReplicaPool", "ReplicaWorker"]
 
@@ -79,7 +79,7 @@ class ReplicaWorker:
 class RemoteLocalizer:
     """The serving process's handle on one session's localiser in a replica.
 
-    Implements what the service uses of a :class:`~sprint_map.localizer.Localizer`: ``step``,
+    Implements what the service uses of a :class:`~sprint_map.localize.localizer.Localizer`: ``step``,
     ``invalidate``, ``smoothed``, ``timing``. The replica forgets the session when this handle is
     garbage-collected (the session committed, discarded or expired).
     """

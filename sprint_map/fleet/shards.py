@@ -7,7 +7,7 @@ and catches up with commits. :class:`ShardedIndex` (in the caller) sends each qu
 every shard at once, gets each one's k best and merges them into the k best overall.
 
 The answer equals the in-process exact search, ids and distances: each shard searches its
-rows as the map's flat index does (:class:`~sprint_map.exact_search.ExactFlat`: every
+rows as the map's flat index does (:class:`~sprint_map.util.exact_search.ExactFlat`: every
 distance a function of its two rows alone, ties ordered by vertex id), and the k best of the
 union of the ranges' k best (ranges in vertex order, so equal distances keep id order) are the
 k best of the whole. Removed sequences are hidden as
@@ -34,9 +34,7 @@ from typing import Any
 import faiss
 import numpy as np
 
-from sprint_map.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.errors import ReplicaLostError
-from sprint_map.exact_search import ExactFlat
 from sprint_map.fleet.channel import (
     TOKEN_BYTES,
     ChannelClient,
@@ -46,7 +44,9 @@ from sprint_map.fleet.channel import (
     unpack_result,
 )
 from sprint_map.map import SprintMap
-from sprint_map.validation import validate_descriptors
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
+from sprint_map.util.exact_search import ExactFlat
+from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["ALIGN", "TRANSPORTS", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk",
            "plan_ranges", "spread"]

@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.arrays import Float64Array
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.imagefiles import is_image_name, is_video_name, list_images, natural_key
 from sprint_map.frontend.positions import read_positions
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
+from sprint_map.util.arrays import Float64Array
 
 __all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal"]
 

@@ -35,8 +35,8 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from sprint_map.arrays import Descriptors, Float32Array, Image
 from sprint_map.errors import ConfigError
+from sprint_map.util.arrays import Descriptors, Float32Array, Image
 
 if TYPE_CHECKING:
     import cv2

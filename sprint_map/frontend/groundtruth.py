@@ -24,8 +24,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from sprint_map import dataclass_dict
 from sprint_map.errors import ConfigError, InputError
+from sprint_map.util import dataclass_dict
 
 __all__ = ["ALIGNMENTS", "GroundTruth", "GroundTruthSpec"]
 

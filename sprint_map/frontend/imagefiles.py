@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sprint_map.arrays import Image
 from sprint_map.errors import InputError
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS, check_pixels
+from sprint_map.util.arrays import Image
 
 __all__ = ["IMAGE_EXTENSIONS", "VIDEO_EXTENSIONS", "decode_image", "is_image_name",
            "is_video_name", "list_images", "natural_key", "read_image", "read_image_bytes"]

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sprint_map.arrays import Float64Array
 from sprint_map.errors import InputError
+from sprint_map.util.arrays import Float64Array
 
 __all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_positions"]
 

@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, DescriptorsLike, Image
 from sprint_map.errors import (
     DescriptorShapeError,
     EmptySequenceError,
@@ -43,6 +42,7 @@ from sprint_map.frontend.imagefiles import (
     read_image_bytes,
 )
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
 
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2

@@ -19,8 +19,8 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from sprint_map.arrays import Image
 from sprint_map.errors import InputError
+from sprint_map.util.arrays import Image
 
 #: Width of a thumbnail in pixels (its height follows the frame's aspect ratio).
 THUMBNAIL_WIDTH = 96

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sprint_map import dataclass_dict
+from sprint_map.util import dataclass_dict
 
 __all__ = ["HMMConfig"]
 
@@ -36,7 +36,7 @@ class HMMConfig:
         ``k`` 10, 86.2 % with 64), but it also keeps finding hits near one hypothesis on a
         street the map has never seen. So a frame the merge rule accepts keeps the ``k``-hit
         decision's acceptance, and every other frame answers with the deep decision, never
-        merged (:meth:`sprint_map.localizer.Localizer.smoothed`).
+        merged (:meth:`sprint_map.localize.localizer.Localizer.smoothed`).
     window : tuple of float
         Forward transition window ``w``: ``w[0]`` is the weight of staying on the same image,
         ``w[i]`` of moving ``i`` images ahead in the same sequence. Normalised on use; never

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from sprint_map.errors import InputError, UnsafeServeError
 from sprint_map.server.config import ServerConfig
-from sprint_map.validation import decode_text
+from sprint_map.util.validation import decode_text
 
 __all__ = ["check_bind", "is_loopback", "load_token", "token_matches"]
 

@@ -14,7 +14,7 @@ at once, and a batch that took longer than the window finds the next one ready.
 
 Answers equal offline ``localize`` frame for frame: the map's search gives a query the same
 ids and distances, bit for bit, whatever else is in its batch
-(:func:`sprint_map.exact_search.certified_search`), and the gate keeps commits out
+(:func:`sprint_map.util.exact_search.certified_search`), and the gate keeps commits out
 between the search and the steps. A session has at most one frame in a batch (its frames run
 one at a time, under its lock), so its frames keep their order.
 
@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sprint_map.errors import SprintMapError
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.server.gate import MapGate

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sprint_map import dataclass_dict
+from sprint_map.util import dataclass_dict
 
 __all__ = ["SHUTDOWN_MODES", "ServerConfig"]
 

@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, DescriptorsLike
 from sprint_map.errors import SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import decode_image
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
-from sprint_map.validation import validate_descriptors, validate_name
+from sprint_map.util.arrays import Descriptors, DescriptorsLike
+from sprint_map.util.validation import validate_descriptors, validate_name
 
 __all__ = ["JSON_TYPES", "RAW_TYPE", "descriptor_from_image", "descriptor_from_json",
            "descriptor_from_raw", "media_type", "parse_json", "position_from_json", "session_name"]
@@ -116,7 +116,7 @@ def session_name(name: str | None) -> str | None:
     """A session's sequence name, checked by the store's one name check, or a 422 ``bad_input``.
 
     JSON can carry a lone surrogate (``"\\udcff"``): a Python ``str`` but not UTF-8 text, which
-    :func:`~sprint_map.validation.validate_name` refuses (it was a 500).
+    :func:`~sprint_map.util.validation.validate_name` refuses (it was a 500).
     """
     if name is not None:
         try:

@@ -22,7 +22,7 @@ import anyio
 import numpy as np
 
 from sprint_map.errors import SprintMapError
-from sprint_map.localizer import Localizer
+from sprint_map.localize.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig

@@ -1,6 +1,6 @@
 """Sessions: one per drive, each with its own filter state, and the registry that bounds them.
 
-A session is a vehicle's drive in progress: its :class:`~sprint_map.localizer.Localizer` (the
+A session is a vehicle's drive in progress: its :class:`~sprint_map.localize.localizer.Localizer` (the
 SPRINT filter's belief), the descriptors it streamed and the decisions it was answered, kept
 until the drive is committed (as ``ingest`` would commit it) or discarded. Frames of a session
 run one at a time, in arrival order (``lock``, FIFO); sessions run concurrently.
@@ -21,10 +21,10 @@ from collections.abc import Callable, Container, Iterable
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors
-from sprint_map.commit import DriveWriter
-from sprint_map.localizer import FrameDecision, Localizer
+from sprint_map.localize.localizer import FrameDecision, Localizer
+from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import ApiError, busy, unknown_session
+from sprint_map.util.arrays import Descriptors
 
 __all__ = ["CLAIMED_NAMES", "CLOSED", "COMMITTING", "OPEN", "Session", "SessionRegistry"]
 

@@ -2,7 +2,7 @@
 
 A commit is what ``SprintMap.ingest`` does at the end of a drive, through the same path
 (:meth:`SprintMap.begin_drive <sprint_map.map.SprintMap.begin_drive>`,
-:meth:`DriveWriter.commit <sprint_map.commit.DriveWriter.commit>`): the drive's descriptors and
+:meth:`DriveWriter.commit <sprint_map.merge.commit.DriveWriter.commit>`): the drive's descriptors and
 the decisions the merge rule selects as edges, in one LMDB transaction. It is acknowledged (its future resolves) only after that transaction returned,
 i.e. once durable (LMDB ``sync=True``). The slow part, writing and fsyncing the shard rows,
 runs beside the frames (the rows are invisible until the transaction); only the transaction and
@@ -23,12 +23,12 @@ from typing import Protocol
 import numpy as np
 
 from sprint_map import AddResult
-from sprint_map.arrays import Descriptors
-from sprint_map.commit import DriveWriter
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
+from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
+from sprint_map.util.arrays import Descriptors
 
 __all__ = ["CommitJob", "CommitOutcome", "CommitWriter", "NameClaims"]
 
@@ -38,7 +38,7 @@ class CommitJob:
     """A drive to commit: its descriptors (in frame order) and the decisions it was answered.
 
     ``smoothed``, if given, re-makes the decisions from the whole drive (the session
-    localizer's :meth:`~sprint_map.localizer.Localizer.smoothed`); the writer merges those,
+    localizer's :meth:`~sprint_map.localize.localizer.Localizer.smoothed`); the writer merges those,
     as ``ingest`` does, and calls it in its own thread, never in the event loop.
     """
 

@@ -26,10 +26,10 @@ import lmdb
 import networkx as nx
 import numpy as np
 
-from sprint_map.atomic import PARTIAL_SUFFIX
 from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
-from sprint_map.storage.index_store import file_problem, index_files
+from sprint_map.storage.index.check import check_segments, has_segments
+from sprint_map.storage.index.map_index import file_problem, index_files
 from sprint_map.storage.keys import (
     COMP_VAL,
     DIGEST_BYTES,
@@ -47,10 +47,10 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lock import writer_active
 from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.records import CheckReport, SequenceRecord
-from sprint_map.storage.segment_check import check_segments, has_segments
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
+from sprint_map.util.atomic import PARTIAL_SUFFIX
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
            "check_map", "check_sequences", "check_shards", "check_thumbnails", "edge_added_by",

@@ -35,9 +35,7 @@ from typing import Protocol
 import lmdb
 import numpy as np
 
-from sprint_map import atomic
 from sprint_map.errors import SprintMapError, StorageIOError
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.generation import (
     gen_name,
     gen_number,
@@ -45,12 +43,14 @@ from sprint_map.storage.generation import (
     remove_generation,
     stale_generations,
 )
-from sprint_map.storage.index_store import IndexStore
+from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.keys import u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import CompactReport, SequenceRecord
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import SCHEMA_VERSION, StoreConfig
+from sprint_map.testing.crash import crash_point
+from sprint_map.util import atomic
 
 
 class CompactableMap(Protocol):

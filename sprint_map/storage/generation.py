@@ -30,9 +30,9 @@ import re
 import time
 from pathlib import Path
 
-from sprint_map import atomic
 from sprint_map.errors import MapCorruptError, NotAMapError
-from sprint_map.storage.crash import crash_point
+from sprint_map.testing.crash import crash_point
+from sprint_map.util import atomic
 
 __all__ = ["CURRENT_NAME", "GEN_PARTS", "GEN_RE", "PIN_ATTEMPTS", "PIN_FILE", "current_data",
            "gen_name", "gen_number", "pin_current", "pin_path", "publish_current",

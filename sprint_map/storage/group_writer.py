@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from sprint_map.errors import SprintMapError
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.records import AddResult, EdgeSpec, SequenceRecord
 from sprint_map.storage.sequence_writer import (
     SequenceWriter,
@@ -40,6 +39,7 @@ from sprint_map.storage.sequence_writer import (
     WritableMap,
     write_staged,
 )
+from sprint_map.testing.crash import crash_point
 
 __all__ = ["GroupWriter"]
 

@@ -28,10 +28,10 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, NO_QUERY, read_u32, u32, u64
 from sprint_map.storage.records import EdgeInfo, EdgeRecord, EdgeTable, UnmergeResult
 from sprint_map.storage.removal import RecordStore, edge_keys, rebuild_components
+from sprint_map.testing.crash import crash_point
 
 #: Byte offset of the adding sequence's id (``>I``) inside an edge value, after the ``>d``
 #: weight: a scan compares these 4 bytes without decoding the value.

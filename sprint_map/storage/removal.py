@@ -22,14 +22,14 @@ from typing import Any, Protocol
 import lmdb
 import numpy as np
 
-from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.errors import MapCorruptError
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import RemoveResult, SequenceRecord
 from sprint_map.storage.thumbnails import delete_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 
 class RecordStore(Protocol):

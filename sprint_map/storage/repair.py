@@ -33,13 +33,13 @@ from typing import Any
 
 import lmdb
 
-from sprint_map.atomic import fsync_file, truncate
 from sprint_map.storage.check import MapRecords, check_map, check_sequences, sequence_edges
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.records import RepairReport
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.thumbnails import drop_broken
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.atomic import fsync_file, truncate
 
 #: Areas rebuilt by the LMDB transaction of step 3.
 RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails")

@@ -40,7 +40,6 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.keys import DIGEST_BYTES, EDGE_KEY, VERTEX_VAL, read_u32, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
@@ -48,7 +47,8 @@ from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
 from sprint_map.storage.union_find import UnionFindStore
-from sprint_map.validation import (
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.validation import (
     validate_descriptors,
     validate_name,
     validate_positions,

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sprint_map import atomic
-from sprint_map.arrays import Descriptors, Int64Array
 from sprint_map.errors import MapCorruptError, StorageIOError
+from sprint_map.util import atomic
+from sprint_map.util.arrays import Descriptors, Int64Array
 
 __all__ = ["ROW_DTYPE", "ShardSet"]
 

@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING, Any
 import lmdb
 import numpy as np
 
-from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.storage.removal import RemovedRanges, search_live
-from sprint_map.validation import validate_descriptors
+from sprint_map.util.arrays import DescriptorsLike, SearchResult
+from sprint_map.util.validation import validate_descriptors
 
 if TYPE_CHECKING:
     from sprint_map.storage.store import MapStore

@@ -28,8 +28,6 @@ from typing import Any
 import lmdb
 import numpy as np
 
-from sprint_map.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
-from sprint_map.atomic import fsync_dir, remove_partials
 from sprint_map.errors import (
     MapCorruptError,
     MapExistsError,
@@ -41,7 +39,6 @@ from sprint_map.errors import (
     UnknownSequenceError,
 )
 from sprint_map.storage.compaction import compact_map
-from sprint_map.storage.crash import crash_point
 from sprint_map.storage.generation import (
     current_data,
     pin_current,
@@ -50,7 +47,7 @@ from sprint_map.storage.generation import (
     unpin,
 )
 from sprint_map.storage.group_writer import GroupWriter
-from sprint_map.storage.index_store import IndexStore
+from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
@@ -86,7 +83,10 @@ from sprint_map.storage.store_config import (
 )
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
-from sprint_map.validation import decode_text, name_key, shown, validate_descriptors
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.util.atomic import fsync_dir, remove_partials
+from sprint_map.util.validation import decode_text, name_key, shown, validate_descriptors
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"

@@ -17,8 +17,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Protocol, TypeVar
 
-from sprint_map import dataclass_dict
 from sprint_map.errors import ConfigError, MapCorruptError, SprintMapError
+from sprint_map.util import dataclass_dict
 
 __all__ = ["INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
            "StoreConfig", "decode_stored_config"]

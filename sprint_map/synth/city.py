@@ -42,8 +42,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sprint_map import dataclass_dict
-from sprint_map.arrays import Float64Array, Image
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.parallel import default_workers
@@ -52,6 +50,8 @@ from sprint_map.synth.conditions import CONDITIONS, Appearance, Condition
 from sprint_map.synth.layout import CityLayout, Node, build_layout
 from sprint_map.synth.render import Camera, Renderer
 from sprint_map.synth.routes import Drive, Edge, Trajectory, drive, overlap, plan_route
+from sprint_map.util import dataclass_dict
+from sprint_map.util.arrays import Float64Array, Image
 
 __all__ = ["CityConfig", "IMAGE_FORMATS", "MIN_MATCHED", "PRESETS", "ROUTE_CANDIDATES",
            "SyntheticCity", "SyntheticTraversal", "TraversalPlan", "generate_city", "iter_city",

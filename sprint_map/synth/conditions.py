@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from sprint_map.arrays import Image
 from sprint_map.synth.render import BGR, View
+from sprint_map.util.arrays import Image
 
 __all__ = ["Appearance", "CONDITIONS", "Condition"]
 

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from sprint_map.arrays import Float32Array, Image
 from sprint_map.synth.atlas import Atlas
 from sprint_map.synth.layout import CityLayout
+from sprint_map.util.arrays import Float32Array, Image
 
 __all__ = ["BGR", "Camera", "Renderer", "View"]
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sprint_map.arrays import Float64Array
 from sprint_map.synth.layout import CityLayout, Node
+from sprint_map.util.arrays import Float64Array
 
 __all__ = ["Drive", "Edge", "Trajectory", "drive", "overlap", "plan_route"]
 

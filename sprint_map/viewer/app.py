@@ -29,7 +29,7 @@ from fastapi.params import Depends
 from fastapi.responses import HTMLResponse, Response
 
 from sprint_map.errors import UnknownSequenceError
-from sprint_map.trace import Trace
+from sprint_map.localize.trace import Trace
 from sprint_map.viewer import playback
 from sprint_map.viewer.matrix import MATRIX_SIZE, drive_detail, match_matrix
 from sprint_map.viewer.summary import MapSummary

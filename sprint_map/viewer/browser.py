@@ -41,7 +41,7 @@ class ViewProcess:
 
     def __init__(self, map_path: Path, trace: Path | None = None, log: Path | None = None,
                  env: dict[str, str] | None = None) -> None:
-        cmd = [sys.executable, "-c", "from sprint_map.cli import main; main()", "view",
+        cmd = [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "view",
                str(map_path), "--port", "0"]
         if trace is not None:
             cmd += ["--trace", str(trace)]

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.trace import Trace
+from sprint_map.localize.trace import Trace
 from sprint_map.viewer.summary import MapState, MapSummary
 
 __all__ = ["PAGE", "frames", "timeline"]

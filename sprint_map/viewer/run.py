@@ -33,10 +33,10 @@ def view_map(path: str | os.PathLike[str], *, trace: str | os.PathLike[str] | No
     """
     import uvicorn
 
+    from sprint_map.localize.trace import read_trace
     from sprint_map.server.auth import check_bind, load_token
     from sprint_map.server.config import ServerConfig
     from sprint_map.server.run import bind
-    from sprint_map.trace import read_trace
     from sprint_map.viewer.app import create_view_app, page_html
     from sprint_map.viewer.summary import MapSummary
 

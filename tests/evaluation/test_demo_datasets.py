@@ -38,7 +38,7 @@ def test_cli_demo_dataset_writes_results_in_sprint_demo(which: str, tmp_path: Pa
     """``sprint-map demo --dataset city|city-novel``: ./sprint-demo/results.json by default."""
     from click.testing import CliRunner
 
-    from sprint_map.cli import main
+    from sprint_map.cli.main import main
 
     monkeypatch.setattr(demo, "CITY_TRAVERSALS", 2)
     monkeypatch.setattr(demo, "CITY_FRAMES", 30)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.config import MapConfig
 from sprint_map.evaluation.metrics import merge_metrics
 from sprint_map.evaluation.report import write_report

@@ -8,7 +8,7 @@ import networkx as nx
 import numpy as np
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.errors import InputError
 
 

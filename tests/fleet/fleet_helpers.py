@@ -83,7 +83,7 @@ class Server:
 
         import httpx
 
-        cmd = [sys.executable, "-c", "from sprint_map.cli import main; main()", "serve",
+        cmd = [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "serve",
                str(map_path), "--port", "0", *args]
         self.log = log
         self._err = log.open("w")

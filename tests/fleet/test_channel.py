@@ -11,8 +11,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.fleet.channel import TOKEN_BYTES, ChannelClient, ChannelError, ChannelServer
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 DIM = 6
 TOKEN = bytes(range(TOKEN_BYTES))

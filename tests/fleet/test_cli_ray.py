@@ -13,7 +13,7 @@ from fleet_helpers import base_map, copy_map, drive, save_drives, snapshot, worl
 
 pytestmark = pytest.mark.ray
 
-CLI = [sys.executable, "-c", "from sprint_map.cli import main; main()"]
+CLI = [sys.executable, "-c", "from sprint_map.cli.main import main; main()"]
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:

@@ -28,7 +28,7 @@ from sprint_map.server.service import LocalisationService
 
 DIM = 32
 PLACES = 80
-SERVE = [sys.executable, "-c", "from sprint_map.cli import main; main()", "serve"]
+SERVE = [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "serve"]
 
 
 class ServerProcess:

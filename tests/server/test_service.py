@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner
 from serve_helpers import DIM, drive, run_service
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError, UnsafeServeError
 from sprint_map.frontend.descriptors import DescriptorSpec

@@ -1,7 +1,7 @@
 """The contract every retrieval index kind passes (zarr-python's ``StoreTests`` is the model).
 
 :class:`IndexContract` holds the tests; a kind's test class subclasses it and says which
-:class:`~sprint_map.storage.retrieval_index.RetrievalIndex` it tests, with which config and on
+:class:`~sprint_map.storage.index.base.RetrievalIndex` it tests, with which config and on
 how many rows (``tests/storage/test_index_contract.py``)::
 
     class TestFlatIndex(IndexContract):
@@ -26,7 +26,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 
-from sprint_map.storage.retrieval_index import (
+from sprint_map.storage.index.base import (
     PAD_DISTANCE,
     IndexNotLoadedError,
     RetrievalIndex,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sprint_map.storage.check import check_map
-from sprint_map.storage.index_store import index_files
+from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, UF_VAL, u32, u64
 from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
@@ -200,7 +200,7 @@ def test_an_io_error_at_any_file_call_of_a_compaction_leaves_a_whole_map(make_ma
     import shutil
 
     from sprint_map.errors import StorageIOError
-    from sprint_map.storage.faults import CallRecorder, FaultInjector, installed
+    from sprint_map.testing.faults import CallRecorder, FaultInjector, installed
 
     built = make_map((12, 20, 9), dim=8, shard_rows=16, edges=2)
     with MapStore.open(built.path) as store:

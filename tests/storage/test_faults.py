@@ -3,7 +3,7 @@ simulated power loss.
 
 Each write operation (``add_sequence`` with edges, a streamed ``ingest`` that localises and merges,
 an index persist, a group commit of appended drives) is first run on a copy of a template map with a :class:`CallRecorder` on the
-file seam (``sprint_map.atomic``) to enumerate its calls; then, on a fresh copy each
+file seam (``sprint_map.util.atomic``) to enumerate its calls; then, on a fresh copy each
 time, the 1st, 2nd, ... call is failed with EIO and with ENOSPC. The oracle is the map's state
 (every sequence, descriptor byte, position, edge, component) before and after a clean run of the
 same operation: after the fault, and after a writer's reopen, the map must be in exactly one of
@@ -33,21 +33,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sprint_map import atomic
 from sprint_map.config import MapConfig
 from sprint_map.errors import InvalidDescriptorError, StorageIOError
 from sprint_map.map import SprintMap
 from sprint_map.storage import sequence_writer
 from sprint_map.storage.check import check_map
-from sprint_map.storage.faults import (
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
+from sprint_map.testing.faults import (
     CallRecorder,
     FaultInjector,
     PowerCut,
     PowerLossSimulator,
     installed,
 )
-from sprint_map.storage.records import EdgeSpec
-from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
+from sprint_map.util import atomic
 
 DIM = 4
 ERRNOS = {"EIO": errno.EIO, "ENOSPC": errno.ENOSPC}
@@ -563,8 +563,8 @@ def test_publish_refuses_a_short_write(tmp_path):
 
 CLI_WITH_FAULT = textwrap.dedent("""
     import errno, sys
-    from sprint_map.cli import main
-    from sprint_map.storage.faults import FaultInjector, installed
+    from sprint_map.cli.main import main
+    from sprint_map.testing.faults import FaultInjector, installed
     op, nth, err = sys.argv[1], int(sys.argv[2]), getattr(errno, sys.argv[3])
     with installed(FaultInjector(nth, err, ops={op})):
         main(sys.argv[4:])
@@ -594,7 +594,7 @@ def test_the_cli_warns_when_only_the_index_cache_could_not_be_saved(template, tm
     CLI says, on stderr, that the cache was not saved."""
     from click.testing import CliRunner
 
-    from sprint_map.cli import main
+    from sprint_map.cli.main import main
 
     path = fresh(template, tmp_path, "cli-warn")
     drive = tmp_path / "drive.npy"

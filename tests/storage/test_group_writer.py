@@ -22,9 +22,9 @@ from sprint_map.errors import (
     SprintMapError,
 )
 from sprint_map.storage.check import check_map
-from sprint_map.storage.faults import CallRecorder, installed
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import SHARDS_DIR, MapStore
+from sprint_map.testing.faults import CallRecorder, installed
 
 SEED, DIM = 3, 16
 CONFIG = {"dim": DIM, "shard_rows": 64}

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from index_contract import IndexContract
 
-from sprint_map.storage.flat_index import FlatIndex
-from sprint_map.storage.segment_index import SegmentedIndex
-from sprint_map.storage.segment_model import MIN_TRAIN
+from sprint_map.storage.index.flat import FlatIndex
+from sprint_map.storage.index.model import MIN_TRAIN
+from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.store_config import StoreConfig
 
 DIM = 32

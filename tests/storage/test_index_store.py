@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from index_contract import Committed, clustered
 
-from sprint_map.storage.flat_index import FlatIndex, index_files
-from sprint_map.storage.index_store import KINDS, IndexStore
-from sprint_map.storage.segment_index import SegmentedIndex
-from sprint_map.storage.segment_manifest import MANIFEST
+from sprint_map.storage.index.flat import FlatIndex, index_files
+from sprint_map.storage.index.manifest import MANIFEST
+from sprint_map.storage.index.map_index import KINDS, IndexStore
+from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.store_config import StoreConfig
 
 DIM = 32

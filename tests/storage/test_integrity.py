@@ -31,16 +31,16 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.config import MapConfig
 from sprint_map.errors import DuplicateNameError, MapCorruptError
-from sprint_map.storage import index_store
 from sprint_map.storage.check import check_map
-from sprint_map.storage.flat_index import file_bytes, index_files
+from sprint_map.storage.index import map_index as index_store
+from sprint_map.storage.index.flat import file_bytes, index_files
+from sprint_map.storage.index.manifest import MANIFEST
 from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL
 from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.lock import writer_active
-from sprint_map.storage.segment_manifest import MANIFEST
 from sprint_map.storage.store import LMDB_DIR, MapStore
 
 DIM = 16

@@ -65,7 +65,7 @@ def test_a_lock_file_this_process_cannot_write_is_the_permission_error(tmp_path)
     map's error (exit 14), as for a map directory we cannot write, and readers still read."""
     from click.testing import CliRunner
 
-    from sprint_map.cli import main
+    from sprint_map.cli.main import main
     from sprint_map.config import MapConfig
     from sprint_map.errors import ReadOnlyMapError
     from sprint_map.map import SprintMap

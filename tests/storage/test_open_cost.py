@@ -14,7 +14,7 @@ from typing import Any
 import faiss
 import pytest
 
-from sprint_map.storage.index_store import IndexStore
+from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store import MapStore

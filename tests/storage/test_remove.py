@@ -14,8 +14,8 @@ import pytest
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import UnknownSequenceError
+from sprint_map.localize.map_graph import MapGraphSource
 from sprint_map.map import SprintMap
-from sprint_map.map_graph import MapGraphSource
 from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import u64
 from sprint_map.storage.lmdb_env import MAX_DBS

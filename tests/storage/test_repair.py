@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.errors import MapLockedError
 from sprint_map.storage.check import REPAIRABLE, check_map
-from sprint_map.storage.index_store import index_files
+from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.keys import u64
 from sprint_map.storage.lock import WriterLock
 from sprint_map.storage.repair import repair_map

@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError
 from sprint_map.storage.check import check_map
-from sprint_map.storage.crash import CRASH_ENV, SEGMENT_POINTS
-from sprint_map.storage.index_store import index_files
+from sprint_map.storage.index.manifest import MANIFEST, read_manifest
+from sprint_map.storage.index.map_index import index_files
+from sprint_map.storage.index.segmented import tier_plan
 from sprint_map.storage.repair import repair_map
-from sprint_map.storage.segment_index import tier_plan
-from sprint_map.storage.segment_manifest import MANIFEST, read_manifest
 from sprint_map.storage.store import INDEX_DIR, MapStore
+from sprint_map.testing.crash import CRASH_ENV, SEGMENT_POINTS
 
 DIM = 32
 #: Small segments, a small quantizer: every mechanism fires on a map of a few thousand rows.
@@ -287,7 +287,7 @@ def test_cli_index_train_rebuild_and_show(tmp_path, rng, centres):
     with MapStore.open(path, readonly=True) as reader:  # a reader with the old index loaded
         _, before = reader.search(rows[:5], 3)
         # Another process retrains (LMDB allows one environment per process).
-        result = subprocess.run([sys.executable, "-c", "from sprint_map.cli import main; main()",
+        result = subprocess.run([sys.executable, "-c", "from sprint_map.cli.main import main; main()",
                                  "index", str(path), "--train", "--json"],
                                 capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr

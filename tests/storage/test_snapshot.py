@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from sprint_map.config import MapConfig
-from sprint_map.map_graph import MapGraphSource
+from sprint_map.localize.map_graph import MapGraphSource
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore

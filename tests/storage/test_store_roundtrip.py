@@ -7,7 +7,7 @@ import pytest
 
 from sprint_map.config import MapConfig
 from sprint_map.storage.check import check_map
-from sprint_map.storage.index_store import index_files
+from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 

@@ -28,10 +28,10 @@ from sprint_map.errors import (
     EmptySequenceError,
     InvalidDescriptorError,
 )
-from sprint_map.exact_search import pair_distances
 from sprint_map.storage.check import check_map
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
+from sprint_map.util.exact_search import pair_distances
 
 DIM = 3
 CONFIG = MapConfig(dim=DIM, shard_rows=5, index_persist_every=4, index_persist_growth=0.5)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sprint_map.frontend import GroundTruth, GroundTruthSpec
-from sprint_map.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision
 from tools import bench_lifelong
 
 

@@ -7,8 +7,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sample_maps import build_road_map
 
+from sprint_map.localize.trace import TraceRecorder, read_trace
 from sprint_map.map import SprintMap
-from sprint_map.trace import TraceRecorder, read_trace
 from sprint_map.viewer.app import create_view_app, mount_viewer
 from sprint_map.viewer.summary import MapSummary
 

@@ -14,9 +14,9 @@ import pytest
 from sample_maps import DIM, build_road_map
 
 from sprint_map.config import MapConfig
+from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
-from sprint_map.trace import TraceRecorder
 from sprint_map.viewer.browser import (
     ViewProcess,
     chromium,

@@ -7,7 +7,7 @@ import pytest
 from click.testing import CliRunner
 from sample_maps import build_road_map
 
-from sprint_map.cli import main
+from sprint_map.cli.main import main
 from sprint_map.viewer.browser import ViewProcess
 
 

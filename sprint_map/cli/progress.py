@@ -7,7 +7,7 @@ unknown length (a video) shows a pulsing bar, the count and the rate, with no ET
 ``None`` (no display at all, and rich is not even imported) with ``quiet`` or when ``stream``
 is not a terminal, so piped and scripted runs print nothing but their result.
 
-rich is imported on the first display only: ``import sprint_map.cli`` stays fast
+rich is imported on the first display only: ``import sprint_map.cli.main`` stays fast
 (``tests/test_startup.py``).
 """
 

@@ -5,11 +5,11 @@ queries". It is a *cache* of the shards (LMDB and the shards are the truth, vert
 row): it may lag the map and is caught up from the shards, it must never lead it, and any file
 of it the map does not vouch for is dropped and rebuilt. Two kinds implement it:
 
-* :class:`~sprint_map.storage.flat_index.FlatIndex`: exact, one FAISS flat file;
-* :class:`~sprint_map.storage.segment_index.SegmentedIndex`: approximate candidates (PCA,
+* :class:`~sprint_map.storage.index.flat.FlatIndex`: exact, one FAISS flat file;
+* :class:`~sprint_map.storage.index.segmented.SegmentedIndex`: approximate candidates (PCA,
   IVF-PQ or IVF-SQ8 segments plus an exact tail) re-ranked by exact distance from the shards.
 
-:class:`~sprint_map.storage.index_store.IndexStore` holds one of them (the *active* index) and
+:class:`~sprint_map.storage.index.map_index.IndexStore` holds one of them (the *active* index) and
 replaces it by another kind when the map's config and size call for it. Everything it asks of
 an index is declared here, with the same signature and the same return types for every kind;
 ``tests/storage/index_contract.py`` is the one test suite every kind passes.
@@ -29,9 +29,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 __all__ = ["CHUNK", "PAD_DISTANCE", "IndexNotLoadedError", "RetrievalIndex", "padded_results"]
 

@@ -19,9 +19,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sprint_map import atomic
-from sprint_map.storage.crash import crash_point
-from sprint_map.storage.segment_model import model_name, pca_name, publish_bytes
+from sprint_map.storage.index.model import model_name, pca_name, publish_bytes
+from sprint_map.testing.crash import crash_point
+from sprint_map.util import atomic
 
 __all__ = [
     "CHECKSUM_BYTES", "MANIFEST", "MODEL_RE", "SEGMENT_RE", "Manifest", "SegmentEntry",

@@ -1,6 +1,6 @@
 """FAISS, imported on first use, so that commands which only read LMDB never load it.
 
-``from sprint_map.lazy_faiss import faiss`` gives an object that stands for the
+``from sprint_map.util.lazy_faiss import faiss`` gives an object that stands for the
 ``faiss`` module: the first attribute read imports it (Python's import lock makes that safe
 from several threads), every read after that is an attribute read on the module (O(1), well
 under a microsecond next to any FAISS call). ``sprint-map info`` opens a map and describes its

@@ -1,7 +1,7 @@
 """Fault injection and simulated power loss over the map's file seam (testing tools).
 
-Every file-system call the map makes on its own files goes through :mod:`sprint_map.atomic`,
-which calls a hook first (:func:`~sprint_map.atomic.set_file_hook`). The classes here are
+Every file-system call the map makes on its own files goes through :mod:`sprint_map.util.atomic`,
+which calls a hook first (:func:`~sprint_map.util.atomic.set_file_hook`). The classes here are
 such hooks; nothing in this module runs unless a test or a tool installs one with :func:`installed`.
 
 - :class:`CallRecorder` lists the calls an operation makes: its failure surface.
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sprint_map import atomic
+from sprint_map.util import atomic
 
 __all__ = ["CallRecorder", "FaultInjector", "NOT_SIMULATED", "PowerCut", "PowerLossSimulator",
            "installed"]
@@ -72,7 +72,7 @@ class FaultInjector:
     error : int
         The errno, e.g. ``errno.EIO`` or ``errno.ENOSPC``.
     ops : iterable of str
-        The ops counted (default: all of :data:`~sprint_map.atomic.FILE_OPS`).
+        The ops counted (default: all of :data:`~sprint_map.util.atomic.FILE_OPS`).
     sticky : bool
         Fail every call after the ``nth`` as well, whatever its op (a disk that died): the
         rollback's calls fail too.

@@ -6,7 +6,7 @@ group, nested groups included) and the table of exit codes (one row per
 ``tests/test_docs.py`` fails when the file differs from what the code would generate, so a new
 command, option or error class cannot go undocumented. Regenerate with::
 
-    python -m sprint_map.cli_reference --write docs/cli.md
+    python -m sprint_map.cli.reference --write docs/cli.md
 
 Only for documentation and its test: the CLI itself never imports this module.
 """
@@ -36,7 +36,7 @@ GENERAL_EXIT_CODES = {
     2: "command-line usage error (reported by click)",
 }
 
-REGENERATE = "python -m sprint_map.cli_reference --write docs/cli.md"
+REGENERATE = "python -m sprint_map.cli.reference --write docs/cli.md"
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def _contexts(group: click.Group | None, prefix: str,
     """The group's context, then one per command below it (with each command's own context
     settings, e.g. ``-h``, inherited as when invoked); help wrapped at :data:`WIDTH`."""
     if group is None:
-        from sprint_map.cli import main as group_main
+        from sprint_map.cli.main import main as group_main
 
         group = group_main
     ctx = click.Context(group, info_name=prefix.split()[-1], parent=parent,
@@ -106,7 +106,7 @@ def _meaning(cls: type) -> str:
 
 def render() -> str:
     """The text of ``docs/cli.md``."""
-    from sprint_map.cli import main as group
+    from sprint_map.cli.main import main as group
 
     out = [
         "# Command-line reference",

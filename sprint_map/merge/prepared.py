@@ -27,10 +27,10 @@ from typing import Any, Protocol
 import faiss
 import numpy as np
 
-from sprint_map.arrays import Descriptors, DescriptorsLike
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localizer import FrameDecision, LocalizableMap, Localizer, Timing
+from sprint_map.localize.localizer import FrameDecision, LocalizableMap, Localizer, Timing
 from sprint_map.storage.store import MapStore
+from sprint_map.util.arrays import Descriptors, DescriptorsLike
 
 __all__ = ["PreparableMap", "PreparedDrive", "prepare_drive", "stale_reason"]
 

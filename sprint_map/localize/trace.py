@@ -1,7 +1,7 @@
 """Localisation traces: what the filter saw and believed at every frame of one drive.
 
 ``sprint-map localize ... --trace OUT`` and ``sprint-map ingest ... --trace OUT`` attach a
-:class:`TraceRecorder` to the :class:`~sprint_map.localizer.Localizer` (its ``observer``
+:class:`TraceRecorder` to the :class:`~sprint_map.localize.localizer.Localizer` (its ``observer``
 hook); after every frame it keeps
 
 * the frame's retrieval hits (vertex ids and squared-L2 distances, ``k`` per frame),
@@ -55,12 +55,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.arrays import Float32Array, Int64Array
-from sprint_map.atomic import publish
 from sprint_map.errors import InputError
+from sprint_map.util.arrays import Float32Array, Int64Array
+from sprint_map.util.atomic import publish
 
 if TYPE_CHECKING:
-    from sprint_map.localizer import FrameDecision, Localizer
+    from sprint_map.localize.localizer import FrameDecision, Localizer
     from sprint_map.map import SprintMap
 
 __all__ = ["FORMAT", "TOP_N", "VERSION", "Trace", "TraceRecorder", "read_trace"]

@@ -26,8 +26,8 @@ from typing import Any
 import faiss
 import numpy as np
 
-from sprint_map.storage.flat_index import index_files
-from sprint_map.storage.segment_manifest import (
+from sprint_map.storage.index.flat import index_files
+from sprint_map.storage.index.manifest import (
     MANIFEST,
     Manifest,
     checksum_problems,
@@ -35,7 +35,7 @@ from sprint_map.storage.segment_manifest import (
     manifest_problems,
     read_manifest,
 )
-from sprint_map.storage.segment_model import Model, gather_rows, read_faiss
+from sprint_map.storage.index.model import Model, gather_rows, read_faiss
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 

@@ -19,7 +19,6 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.config import MapConfig
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.hmm.cache import ComponentCache
@@ -28,8 +27,9 @@ from sprint_map.hmm.decision import Decision
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
-from sprint_map.merge_rule import CALIBRATE_MIN_FRAMES, select_merges
-from sprint_map.validation import validate_descriptors
+from sprint_map.merge.rule import CALIBRATE_MIN_FRAMES, select_merges
+from sprint_map.util.arrays import DescriptorsLike, SearchResult
+from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["CALIBRATE_MIN_RUN", "SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer",
            "MapView", "Timing", "local_quantiles", "recorded_k"]
@@ -44,7 +44,7 @@ CALIBRATE_MIN_RUN = 5
 
 class MapView(GraphSource, Protocol):
     """What a :class:`Localizer` reads of a map, through a view of its own
-    (:class:`sprint_map.map_graph.MapGraphSource` is one).
+    (:class:`sprint_map.localize.map_graph.MapGraphSource` is one).
 
     Besides the HMM's :class:`~sprint_map.hmm.graph.GraphSource` (components of vertices, a
     component's arrays): k-NN search, vertex -> ``(seq_id, image_id)``, the vertex count and
@@ -95,9 +95,9 @@ class FrameDecision:
     a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
     was not accepted (:meth:`Localizer.smoothed`), or one on a run that claims a revisit the
     drive's own thumbnails deny, outside its verified stretches
-    (:meth:`sprint_map.verification.RunVerifier.contradicted`). ``verified`` is True for a smoothed
+    (:meth:`sprint_map.merge.verification.RunVerifier.contradicted`). ``verified`` is True for a smoothed
     decision on a run that geometric verification on the thumbnails confirmed
-    (:mod:`sprint_map.verification`): the merge rule merges it even if a lookalike test
+    (:mod:`sprint_map.merge.verification`): the merge rule merges it even if a lookalike test
     refused it.
     """
 
@@ -206,7 +206,7 @@ class Localizer:
         #: The per-frame unmapped-place distances the last :meth:`smoothed` calibrated.
         self.novelty_dist: np.ndarray | None = None
         #: Called after every frame with ``(decision, hit ids, hit distances)`` (e.g. a
-        #: :class:`sprint_map.trace.TraceRecorder`, which reads ``filter`` too); None: nothing.
+        #: :class:`sprint_map.localize.trace.TraceRecorder`, which reads ``filter`` too); None: nothing.
         self.observer: Callable[[FrameDecision, np.ndarray, np.ndarray], None] | None = None
 
     def reset(self) -> None:
@@ -243,7 +243,7 @@ class Localizer:
         With the drive's ``thumbnails`` (one JPEG per frame) and ``merge_verify_inliers`` set,
         the runs that the merge rule refuses only for its lookalike tests (contrast gate,
         unmapped-place veto) are checked on the images against the map's own thumbnails
-        (:mod:`sprint_map.verification`); the frames of verified stretches are marked
+        (:mod:`sprint_map.merge.verification`); the frames of verified stretches are marked
         ``verified`` and merged. Nothing is verified for a map frame without a thumbnail.
         Then two accepted runs matched to the same images of one map sequence (the drive
         passed there twice, they claim) are checked on the drive's own thumbnails: where its
@@ -254,7 +254,7 @@ class Localizer:
         -----
         Two more filter steps and backward steps per frame (one without calibration), three
         with ``smooth_k``, all O(live); memory O(live) per frame of the sequence. Verification
-        adds one keypoint matching per :data:`~sprint_map.verification.SAMPLE_EVERY` frames
+        adds one keypoint matching per :data:`~sprint_map.merge.verification.SAMPLE_EVERY` frames
         of the refused runs, and a few per pair of accepted runs on shared images.
         """
         if self._empty:
@@ -344,9 +344,9 @@ class Localizer:
         that the map's thumbnails confirm; then ``confirmed`` cleared on the accepted frames
         of runs that the drive's own images deny a revisit to, outside their verified
         stretches (:meth:`RunVerifier.contradicted
-        <sprint_map.verification.RunVerifier.contradicted>`). Unchanged when verification is
+        <sprint_map.merge.verification.RunVerifier.contradicted>`). Unchanged when verification is
         off or the thumbnails are not one per frame (the commit refuses those)."""
-        from sprint_map.verification import RunVerifier
+        from sprint_map.merge.verification import RunVerifier
 
         config = self.map.config
         if not config.merge_verify_inliers or len(thumbnails) != len(decisions):
@@ -459,7 +459,7 @@ class Localizer:
         searches the frames of many sessions in one batch).
 
         The map's search answers a query the same alone or in a batch (bit for bit, see
-        :func:`sprint_map.exact_search.certified_search`), so with the hits of
+        :func:`sprint_map.util.exact_search.certified_search`), so with the hits of
         ``smap.search(rows, config.k)`` made against the same map state this equals
         :meth:`step` of the row. The caller keeps the map from changing between the search and
         this call (the service's map gate).

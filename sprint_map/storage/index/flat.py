@@ -20,20 +20,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map import atomic
-from sprint_map.arrays import Descriptors, SearchResult
-from sprint_map.atomic import fsync_dir, publish
-from sprint_map.exact_search import ExactFlat
-from sprint_map.storage.crash import crash_point
-from sprint_map.storage.retrieval_index import IndexNotLoadedError, RetrievalIndex
-from sprint_map.storage.segment_model import use_threads
+from sprint_map.storage.index.base import IndexNotLoadedError, RetrievalIndex
+from sprint_map.storage.index.model import use_threads
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.testing.crash import crash_point
+from sprint_map.util import atomic
+from sprint_map.util.arrays import Descriptors, SearchResult
+from sprint_map.util.atomic import fsync_dir, publish
+from sprint_map.util.exact_search import ExactFlat
 
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.lazy_faiss import faiss
+    from sprint_map.util.lazy_faiss import faiss
 
 __all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
 
@@ -93,7 +93,7 @@ def _ids_dense(index: faiss.Index, upto: int) -> bool:
 class FlatIndex(RetrievalIndex):
     """Exact L2 retrieval over all committed descriptors, as ``IndexIDMap2(IndexFlatL2)``.
 
-    A :class:`~sprint_map.storage.retrieval_index.RetrievalIndex` (see there for the
+    A :class:`~sprint_map.storage.index.base.RetrievalIndex` (see there for the
     parameters and the contract). Its file is rewritten whole on every persist, on a
     geometric schedule (:meth:`after_commit`).
     """
@@ -219,7 +219,7 @@ class FlatIndex(RetrievalIndex):
         """k nearest vertices of each query row: ``(distances, vertex_ids)``, -1 padded.
 
         Exact and independent of the batch: a query gets the same ids and distances, bit for
-        bit, searched alone or among others (:func:`~sprint_map.exact_search.
+        bit, searched alone or among others (:func:`~sprint_map.util.exact_search.
         certified_search`: FAISS for candidates, each re-measured by a function of the two
         vectors alone, ties ordered by vertex id).
 

@@ -12,13 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, Float64Array
 from sprint_map.errors import (
     DescriptorShapeError,
     EmptySequenceError,
     InputError,
     InvalidDescriptorError,
 )
+from sprint_map.util.arrays import Descriptors, Float64Array
 
 __all__ = ["decode_text", "name_key", "shown", "validate_descriptors", "validate_name",
            "validate_positions"]

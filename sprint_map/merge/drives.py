@@ -31,14 +31,14 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from sprint_map.arrays import DescriptorsLike
 from sprint_map.errors import InputError
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.storage.crash import crash_point
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.arrays import DescriptorsLike
 
 if TYPE_CHECKING:
-    from sprint_map.commit import IngestResult
-    from sprint_map.localizer import Localizer
+    from sprint_map.localize.localizer import Localizer
+    from sprint_map.merge.commit import IngestResult
     from sprint_map.storage.group_writer import GroupWriter
 
 __all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "append_group", "ingest_drives"]
@@ -167,8 +167,8 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
     O(N * dim) per drive of N frames, plus one fsync per shard file written and one LMDB
     commit for the whole group.
     """
-    from sprint_map.commit import IngestResult
-    from sprint_map.localizer import Timing
+    from sprint_map.localize.localizer import Timing
+    from sprint_map.merge.commit import IngestResult
 
     failure: Exception | None = None
     with smap.begin_group() as writer:

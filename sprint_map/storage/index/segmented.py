@@ -2,7 +2,7 @@
 exact re-ranking from the shards.
 
 Vertex ids ``[0, sealed)`` are held in sealed *segments*, each an IVF index (PQ or SQ8 codes
-of one trained :class:`~sprint_map.storage.segment_model.Model`) for one id range ``[a, b)``,
+of one trained :class:`~sprint_map.storage.index.model.Model`) for one id range ``[a, b)``,
 written once, published atomically and opened memory-mapped read-only (``IO_FLAG_MMAP``: the
 inverted lists stay in the page cache, not in the heap). Ids ``[sealed, committed)`` are the
 *tail*: kept in memory (in the indexed space) and searched exactly. When the tail reaches
@@ -15,7 +15,7 @@ of them: their inverted lists are stacked, ``HStackInvertedLists``) and of the t
 their true float32 rows from the memory-mapped shards and returns the k best by exact squared
 L2 distance: the distances are the flat index's, only the candidate set is approximate.
 
-``segments.json``, the manifest (:mod:`~sprint_map.storage.segment_manifest`), names the
+``segments.json``, the manifest (:mod:`~sprint_map.storage.index.manifest`), names the
 model and the segments with their sizes and checksums; it is the only thing a reader trusts.
 Like the flat index this is a cache of the shards: a segment ahead of LMDB, torn or failing
 its checksum is dropped with every segment after it (the tail then starts earlier: its rows
@@ -33,16 +33,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, SearchResult
 from sprint_map.errors import StorageIOError
-from sprint_map.storage.crash import crash_point
-from sprint_map.storage.retrieval_index import (
+from sprint_map.storage.index.base import (
     CHUNK,
     IndexNotLoadedError,
     RetrievalIndex,
     padded_results,
 )
-from sprint_map.storage.segment_manifest import (
+from sprint_map.storage.index.manifest import (
     MANIFEST,
     Manifest,
     SegmentEntry,
@@ -55,7 +53,7 @@ from sprint_map.storage.segment_manifest import (
     remove_unlisted,
     segment_name,
 )
-from sprint_map.storage.segment_model import (
+from sprint_map.storage.index.model import (
     APPROX_KINDS,
     MIN_TRAIN,
     Model,
@@ -72,11 +70,13 @@ from sprint_map.storage.segment_model import (
 )
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.testing.crash import crash_point
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.lazy_faiss import faiss
+    from sprint_map.util.lazy_faiss import faiss
 
 __all__ = ["SegmentedIndex", "tier_plan"]
 
@@ -99,7 +99,7 @@ def tier_plan(committed: int, rows: int, factor: int) -> list[tuple[int, int]]:
 class SegmentedIndex(RetrievalIndex):
     """The segmented approximate index of one map (see the module docstring).
 
-    A :class:`~sprint_map.storage.retrieval_index.RetrievalIndex` (see there for the
+    A :class:`~sprint_map.storage.index.base.RetrievalIndex` (see there for the
     parameters and the contract). :meth:`load` opens the published manifest (False if there
     is none usable: it cannot be built without training, which is :meth:`rebuild`);
     :meth:`rebuild` trains a new generation. Searches re-rank their candidates by exact

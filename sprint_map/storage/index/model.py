@@ -21,16 +21,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.arrays import Descriptors, Int64Array
-from sprint_map.atomic import publish
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.util.arrays import Descriptors, Int64Array
+from sprint_map.util.atomic import publish
 
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.lazy_faiss import faiss
+    from sprint_map.util.lazy_faiss import faiss
 
 __all__ = ["APPROX_KINDS", "CORES", "KMEANS_ITER", "MIN_TRAIN", "Model", "PCA_SAMPLE",
            "POINTS_PER_LIST", "RowReader", "SAMPLE_SEED", "cap_threads", "gather_rows",

@@ -1,7 +1,7 @@
 """Geometric verification of merge candidates on the map's thumbnails.
 
 The merge rule's lookalike tests (the contrast gate and the unmapped-place veto,
-:mod:`sprint_map.merge_rule`) refuse many runs that are right: under rain or snow a drive's
+:mod:`sprint_map.merge.rule`) refuse many runs that are right: under rain or snow a drive's
 match looks no better than a parallel drive of the same street that the map holds unmerged,
 and the tests cannot tell that rival from a lookalike street. Where the drive and the map both
 keep thumbnails (``ingest --thumbnails``), a refused run can be checked on the images
@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.merge_rule import MergeDecision, run_ids, run_members
+from sprint_map.merge.rule import MergeDecision, run_ids, run_members
 
 __all__ = ["CONTROL_OFFSET", "FEATURE_CACHE", "LocalFeatures", "MIN_WIDTH", "REVISIT_SAMPLES",
            "RunVerifier", "SAMPLE_EVERY", "SAMPLE_MIN_INLIERS", "WORK_WIDTH", "inliers",
@@ -191,7 +191,7 @@ class RunVerifier:
         """Which frames of the ``candidates`` (a boolean mask over ``decisions``, the frames
         a merge rule without its lookalike tests accepts) lie on verified stretches.
 
-        Runs are those of :func:`sprint_map.merge_rule.run_ids` (``max_gap``, ``max_rate``);
+        Runs are those of :func:`sprint_map.merge.rule.run_ids` (``max_gap``, ``max_rate``);
         a run whose frames are all in ``skip`` (the frames the merge rule already accepts) is
         not verified.
 
@@ -225,7 +225,7 @@ class RunVerifier:
         """The frames of ``accepted`` (the frames a merge rule accepts) that a *revisit* the
         drive's own images deny leaves unproven: a boolean mask over ``decisions``.
 
-        Two accepted runs (:func:`sprint_map.merge_rule.run_ids`) matched to the same images
+        Two accepted runs (:func:`sprint_map.merge.rule.run_ids`) matched to the same images
         of one map sequence say the drive passed that place twice. The drive's own frames at
         :data:`REVISIT_SAMPLES` images both runs share are then matched with each other: the
         same camera under the same light, so a true second pass shares many inliers with the

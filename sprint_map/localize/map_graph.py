@@ -19,13 +19,13 @@ from typing import Any
 import lmdb
 import numpy as np
 
-from sprint_map.arrays import DescriptorsLike, SearchResult
 from sprint_map.errors import MapCorruptError
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.storage.keys import read_u32, u64
 from sprint_map.storage.records import SequenceRecord
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
+from sprint_map.util.arrays import DescriptorsLike, SearchResult
 
 __all__ = ["MapGraphSource"]
 

@@ -7,7 +7,7 @@ Every file-system call the map makes on its own files (descriptor shards, index 
 directories; not LMDB, which does its own I/O and fsync) goes through the functions of this module.
 They are the map's whole failure surface, and a test seam: :func:`set_file_hook` installs a
 function called before each call, which may raise to inject an I/O error or a simulated power cut
-(see :mod:`sprint_map.storage.faults`). With no hook installed a call costs one ``None`` test.
+(see :mod:`sprint_map.testing.faults`). With no hook installed a call costs one ``None`` test.
 """
 
 from __future__ import annotations

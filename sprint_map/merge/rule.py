@@ -39,7 +39,7 @@ precision (``docs/architecture.md``, "Lifelong merge"). A decision on frame ``i`
    only if it is still a run of ``merge_min_run`` frames.
 
 A decision marked ``verified`` (its run confirmed on the thumbnails by geometric
-verification, :mod:`sprint_map.verification`) is merged even if tests 1-3 and 5 refused it
+verification, :mod:`sprint_map.merge.verification`) is merged even if tests 1-3 and 5 refused it
 (test 7 still applies):
 many keypoints that fit one two-view geometry say "the same place" more surely than a
 lookalike test can say "a lookalike".
@@ -47,7 +47,7 @@ lookalike test can say "a lookalike".
 A decision marked ``confirmed=False`` (the deeper pass of a drive searched with ``smooth_k``
 neighbours, where the rule did not accept the ``k``-neighbour decision; or a run claiming a
 revisit that the drive's own thumbnails deny, :meth:`RunVerifier.contradicted
-<sprint_map.verification.RunVerifier.contradicted>`) is never merged.
+<sprint_map.merge.verification.RunVerifier.contradicted>`) is never merged.
 
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
 drive has been seen, the future of the drive supports or contradicts each frame.
@@ -69,7 +69,7 @@ CALIBRATE_MIN_FRAMES = 10
 
 
 class MergeDecision(Protocol):
-    """What the rule reads of a decision (:class:`sprint_map.localizer.FrameDecision`)."""
+    """What the rule reads of a decision (:class:`sprint_map.localize.localizer.FrameDecision`)."""
 
     @property
     def frame(self) -> int: ...
@@ -127,7 +127,7 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
 
     Examples
     --------
-    >>> from sprint_map.localizer import FrameDecision
+    >>> from sprint_map.localize.localizer import FrameDecision
     >>> ds = [FrameDecision(i, 0, 10 + i, 0.9) for i in range(5)]
     >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
     [True, True, True, True, True]

@@ -30,7 +30,7 @@ import numpy as np
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.lazy_faiss import faiss
+    from sprint_map.util.lazy_faiss import faiss
 
 __all__ = ["BLAS_FROM_QUERIES", "MARGIN", "ExactFlat", "candidate_distances", "certified_search",
            "distance_error_bound", "pair_distances", "row_norm_max"]

@@ -16,17 +16,17 @@ from typing import Any, NoReturn
 
 import click
 
-from sprint_map import dataclass_dict
-from sprint_map.commit import IngestResult
+from sprint_map.cli.progress import progress_display
 from sprint_map.config import MapConfig
-from sprint_map.drives import Drive
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import read_positions
+from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
-from sprint_map.progress import progress_display
-from sprint_map.trace import TraceRecorder
+from sprint_map.merge.commit import IngestResult
+from sprint_map.merge.drives import Drive
+from sprint_map.util import dataclass_dict
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
            "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]

@@ -8,7 +8,7 @@ hands them in whole, :meth:`SprintMap.commit_prepared
 service's writer thread (:mod:`sprint_map.server.writer`) appends them beside the frames and
 commits under its map gate; all of them end in :meth:`DriveWriter.commit`, which
 
-1. runs the map's merge rule (:mod:`sprint_map.merge_rule`) over the drive's decisions and
+1. runs the map's merge rule (:mod:`sprint_map.merge.rule`) over the drive's decisions and
    turns the selected ones into edges (:func:`merge_edges`, both ways if
    ``merge_both_ways``);
 2. commits the sequence with those edges in one LMDB transaction (the commit point; see
@@ -28,13 +28,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.merge_rule import MergeRule, select_merges
+from sprint_map.merge.rule import MergeRule, select_merges
 from sprint_map.storage.records import AddResult, EdgeSpec
 from sprint_map.storage.sequence_writer import SequenceWriter
-from sprint_map.validation import validate_descriptors
+from sprint_map.util.validation import validate_descriptors
 
 if TYPE_CHECKING:  # the decisions' types; ``info`` and ``sequences`` load no HMM
-    from sprint_map.localizer import FrameDecision, Timing
+    from sprint_map.localize.localizer import FrameDecision, Timing
 
 __all__ = ["DriveCommit", "DriveWriter", "IngestResult", "merge_edges"]
 
@@ -196,7 +196,7 @@ def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_way
     """The edges that merging a localised drive adds: one per merged decision.
 
     ``merged`` is the merge rule's verdict per decision
-    (:func:`sprint_map.merge_rule.select_merges`). A merged decision on frame ``i`` matched to
+    (:func:`sprint_map.merge.rule.select_merges`). A merged decision on frame ``i`` matched to
     ``(s, j)`` gives the edge ``(new, i) -> (s, j)`` with weight ``min(prob, 1)``, and with
     ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can later cross from the old drive
     into the new one as well as back.

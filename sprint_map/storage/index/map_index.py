@@ -2,16 +2,16 @@
 
 Which index a map uses follows ``StoreConfig.index_type``:
 
-* ``"flat"``: :class:`~sprint_map.storage.flat_index.FlatIndex`, exact, one file
+* ``"flat"``: :class:`~sprint_map.storage.index.flat.FlatIndex`, exact, one file
   ``flat.<upto>.faiss`` rewritten geometrically (every map created before the approximate
   indexes);
-* ``"ivf-pq"`` / ``"ivf-sq8"``: :class:`~sprint_map.storage.segment_index.SegmentedIndex`,
+* ``"ivf-pq"`` / ``"ivf-sq8"``: :class:`~sprint_map.storage.index.segmented.SegmentedIndex`,
   trained as soon as the map holds ``MIN_TRAIN`` vertices (flat until then);
 * ``"auto"`` (the default): flat until ``vertices * dim`` reaches ``index_auto_vertices``
   128-dimensional vertices' worth, then ``ivf-pq``, trained by the writer when the map
   crosses that size.
 
-Both implement :class:`~sprint_map.storage.retrieval_index.RetrievalIndex`; the store holds
+Both implement :class:`~sprint_map.storage.index.base.RetrievalIndex`; the store holds
 one of them, the *active* index, and switching kind (``index --train``, a map growing past
 the threshold) is replacing it. Both are caches of the shards (LMDB is the truth): files ahead
 of the map or torn are dropped by the writer's open, the in-memory index is caught up from the
@@ -26,13 +26,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sprint_map.arrays import Descriptors, SearchResult
-from sprint_map.storage.flat_index import FlatIndex, file_bytes, file_problem, index_files
-from sprint_map.storage.retrieval_index import RetrievalIndex
-from sprint_map.storage.segment_index import SegmentedIndex
-from sprint_map.storage.segment_model import MIN_TRAIN
+from sprint_map.storage.index.base import RetrievalIndex
+from sprint_map.storage.index.flat import FlatIndex, file_bytes, file_problem, index_files
+from sprint_map.storage.index.model import MIN_TRAIN
+from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.util.arrays import Descriptors, SearchResult
 
 __all__ = ["KINDS", "IndexStore", "approximate_kind", "file_bytes", "file_problem",
            "index_files"]
