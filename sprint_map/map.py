@@ -242,8 +242,8 @@ class SprintMap:
                     for _ in localizer.iter_localize(iter([batch])):
                         pass
                 drive.append(batch)
-            decisions = (localizer.smoothed(thumbnails=thumbnails) if localizer is not None
-                         else [])
+            decisions = (self.smoothed(localizer, thumbnails=thumbnails)
+                         if localizer is not None else [])
             done = drive.commit(decisions, positions, thumbnails=thumbnails)
         return IngestResult(done.added, decisions, localizer.timing if localizer else Timing(),
                             done.merged)
@@ -407,33 +407,64 @@ class SprintMap:
 
         return SharedComponentCache(self.config.hmm.cache_budget_bytes)
 
-    def localizer(self, hmm: HMMConfig | None = None, **overrides: Any) -> Localizer:
+    def localizer(self, hmm: HMMConfig | None = None, *, record: bool = False,
+                  **overrides: Any) -> Localizer:
         """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
 
-        ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``).
+        ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``);
+        ``record`` keeps each frame's hits for :meth:`smoothed`.
         """
         from sprint_map.localize.localizer import Localizer
 
         base = hmm or self.config.hmm
-        return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base)
+        return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base,
+                         record=record)
 
     def localize(self, descriptors: Any, *, smooth: bool = False,
-                 thumbnails: Sequence[bytes] | None = None, **overrides: Any
+                 thumbnails: Sequence[bytes] | None = None,
+                 observe: Callable[[Localizer], None] | None = None,
+                 hmm: HMMConfig | None = None, **overrides: Any
                  ) -> tuple[list[FrameDecision], Timing]:
-        """Localise a whole query sequence without changing the map; batches its searches.
+        """Localise a whole query drive without changing the map: the one call behind
+        ``localize`` (with or without ``--smooth`` and ``--trace``) and ``eval``.
 
-        With ``smooth`` the decisions are re-made from the forward-backward smoothed posterior
-        once the whole sequence has been seen (what ``ingest`` merges, given the same
-        ``thumbnails``: one JPEG per frame, for the geometric verification of
-        :mod:`sprint_map.merge.verification`); without it they are the causal filter's, as a vehicle
-        gets them.
+        ``descriptors`` is an (N, dim) array or an iterable of row batches (streamed; searches
+        are batched). Without ``smooth`` the decisions are the causal filter's, as a vehicle gets
+        them; with it they are the after-drive pipeline's (:func:`sprint_map.merge.smoothing.
+        smoothed_decisions`: what ``ingest`` merges, given the same ``thumbnails``, one JPEG per
+        frame). ``observe`` receives the localizer before the first frame (e.g.
+        :meth:`TraceRecorder.attach <sprint_map.localize.trace.TraceRecorder.attach>`).
+        ``hmm`` and ``overrides`` replace the map's HMM config for this query only.
+
+        Notes
+        -----
+        Per frame: one k-NN search (batched) and one HMM step over the active set; with
+        ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame.
         """
-        localizer = self.localizer(**overrides)
-        if not smooth:
-            return localizer.localize(np.asarray(descriptors)), localizer.timing
-        localizer.record = True
-        localizer.localize(np.asarray(descriptors))
-        return localizer.smoothed(thumbnails=thumbnails), localizer.timing
+        localizer = self.localizer(hmm, record=smooth, **overrides)
+        if observe is not None:
+            observe(localizer)
+        batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
+            else descriptors
+        decisions = localizer.localize(batches)
+        if smooth:
+            decisions = self.smoothed(localizer, thumbnails=thumbnails)
+        return decisions, localizer.timing
+
+    def smoothed(self, localizer: Any, descriptors: DescriptorsLike | None = None,
+                 thumbnails: Sequence[bytes] | None = None) -> list[FrameDecision]:
+        """The after-drive decisions of the drive ``localizer`` has seen (made with
+        ``record=True``), as :func:`sprint_map.merge.smoothing.smoothed_decisions` makes them;
+        a proxy of a localiser in another process (the service's Ray replicas) makes them
+        there, through its own ``smoothed(descriptors)``. ``descriptors`` let the deep pass
+        search a drive recorded shallower than ``smooth_k`` (the service's sessions)."""
+        from sprint_map.localize.localizer import Localizer
+        from sprint_map.merge.smoothing import smoothed_decisions
+
+        if not isinstance(localizer, Localizer):
+            decisions: list[FrameDecision] = localizer.smoothed(descriptors)
+            return decisions
+        return smoothed_decisions(localizer, self, descriptors, thumbnails)
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
                     progress: ProgressCallback | None = None,

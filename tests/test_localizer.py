@@ -218,11 +218,11 @@ def test_a_drive_recorded_k_deep_is_searched_deeper_when_smoothed(tmp_path, rng,
             deep.step(row)
             shallow.step(row)
         assert {len(ids) for ids, _ in shallow.hits} == {m.config.hmm.k}
-        want = deep.smoothed()
-        assert shallow.smoothed(q) == want
+        want = m.smoothed(deep)
+        assert m.smoothed(shallow, q) == want
         assert any(not d.confirmed for d in want)
         with pytest.raises(ValueError, match="descriptors for 130"):
-            shallow.smoothed(q[:50])
+            m.smoothed(shallow, q[:50])
 
 
 def test_novelty_is_calibrated_on_short_consistent_runs_too(tmp_path, rng):

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from sprint_map.localize.localizer import FrameDecision, local_quantiles
+from sprint_map.localize.localizer import FrameDecision
 from sprint_map.merge.rule import MergeRule, run_lengths, select_merges
+from sprint_map.merge.smoothing import local_quantiles
 
 
 def along(n: int, seq: int = 0, start: int = 10, step: int = 1, prob: float = 0.9,

@@ -78,12 +78,9 @@ def build(path: Path, trace: Path, seed: int) -> None:
             desc, xy = drive(rng, where, route)
             m.ingest(desc, name=name, positions=xy)
         desc, _ = drive(rng, town, [0, 1])
-        loc = m.localizer()
         rec = TraceRecorder(m)
-        rec.attach(loc)
-        loc.record = True
-        loc.localize(desc)
-        rec.save(trace, final=loc.smoothed(), meta={"command": "localize", "smoothed": True,
+        final, _ = m.localize(desc, smooth=True, observe=rec.attach)
+        rec.save(trace, final=final, meta={"command": "localize", "smoothed": True,
                                                     "source": "sun.npy"})
 
 

@@ -328,18 +328,14 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
-        localizer = m.localizer(**overrides)
-        localizer.record = smooth
         recorder = TraceRecorder(m) if trace else None
-        if recorder is not None:
-            recorder.attach(localizer)
-        decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
-        if smooth:
-            decisions = localizer.smoothed(thumbnails=src.thumbnails if thumbnails else None)
+        decisions, timing = m.localize(  # streamed, searches batched
+            src.iter_batches(), smooth=smooth, observe=recorder.attach if recorder else None,
+            thumbnails=src.thumbnails if thumbnails else None, **overrides)
         if recorder is not None and trace:
             recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
                                                         "source": str(source)})
-    t = localizer.timing.to_dict()
+    t = timing.to_dict()
     data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
     if out:
         with open(out, "w") as fh:

@@ -238,8 +238,8 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
             knn_correct[mask] = gt.correct(query, qf, name, img[mask])
     has_match = gt.has_match(query, frames, db_names)
 
-    localizer = m.localizer(hmm)
-    localizer.record = smooth  # keep each frame's hits for the smoother (O(k) per frame)
+    # stepped frame by frame (a vehicle's per-frame cost); hits kept for the smoothed decisions
+    localizer = m.localizer(hmm, record=smooth)
     decisions = [localizer.step(row) for row in rows]
     best_correct = _correct(query, [d.best for d in decisions], gt, names)
     result = QueryResult(
@@ -256,7 +256,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
         map_vertices=m.stats()["vertices"],
     )
     if smooth:
-        smoothed = localizer.smoothed(thumbnails=thumbnails)
+        smoothed = m.smoothed(localizer, thumbnails=thumbnails)
         result.score_merge(smoothed, m.select_merges(smoothed), gt, names,
                            _edges_per_decision(m.config))
     return result, decisions

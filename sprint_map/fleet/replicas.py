@@ -63,7 +63,7 @@ class ReplicaWorker:
         return decision, localizer.timing.retrieval_ms[-1], localizer.timing.hmm_ms[-1]
 
     def smoothed(self, session: str) -> list[FrameDecision]:
-        return self.sessions[session].smoothed()
+        return self.map.smoothed(self.sessions[session])
 
     def close(self, session: str) -> None:
         self.sessions.pop(session, None)

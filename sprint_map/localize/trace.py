@@ -51,7 +51,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -60,10 +60,12 @@ from sprint_map.util.arrays import Float32Array, Int64Array
 from sprint_map.util.atomic import publish
 
 if TYPE_CHECKING:
-    from sprint_map.localize.localizer import FrameDecision, Localizer
-    from sprint_map.map import SprintMap
+    from pathlib import Path
 
-__all__ = ["FORMAT", "TOP_N", "VERSION", "Trace", "TraceRecorder", "read_trace"]
+    from sprint_map.localize.localizer import FrameDecision, Localizer
+    from sprint_map.storage.records import SequenceRecord
+
+__all__ = ["FORMAT", "TOP_N", "VERSION", "Trace", "TraceRecorder", "TracedMap", "read_trace"]
 
 FORMAT = "sprint-map-trace"
 VERSION = 1
@@ -71,12 +73,22 @@ VERSION = 1
 TOP_N = 8
 
 
+class TracedMap(Protocol):
+    """What a trace reads of the map it was recorded on (:class:`sprint_map.map.SprintMap` is
+    one): its path and its sequences, to resolve vertex ids on save."""
+
+    @property
+    def path(self) -> Path: ...
+
+    def sequences(self) -> list[SequenceRecord]: ...
+
+
 class TraceRecorder:
     """Collects one drive's per-frame filter state; attach with :meth:`attach`.
 
     Parameters
     ----------
-    smap : SprintMap
+    smap : TracedMap
         The map being localised against (vertex ids are resolved against it on save).
     top_n : int
         Belief states kept per frame.
@@ -87,7 +99,7 @@ class TraceRecorder:
     O(k + active components) kept; nothing when not attached.
     """
 
-    def __init__(self, smap: SprintMap, top_n: int = TOP_N) -> None:
+    def __init__(self, smap: TracedMap, top_n: int = TOP_N) -> None:
         if top_n < 1:
             raise ValueError("top_n must be >= 1")
         self.map = smap
@@ -247,7 +259,7 @@ def read_trace(path: str | os.PathLike[str]) -> Trace:
 class _Resolver:
     """Vertex ids to ``(sequence, image)`` through the map's sequence table (searchsorted)."""
 
-    def __init__(self, smap: SprintMap) -> None:
+    def __init__(self, smap: TracedMap) -> None:
         seqs = sorted(smap.sequences(), key=lambda s: s.first_vertex)
         self.first = np.array([s.first_vertex for s in seqs], np.int64)
         self.length = np.array([s.length for s in seqs], np.int64)

@@ -28,11 +28,18 @@ import faiss
 import numpy as np
 
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localize.localizer import FrameDecision, LocalizableMap, Localizer, Timing
+from sprint_map.localize.localizer import (
+    FrameDecision,
+    LocalizableMap,
+    Localizer,
+    LocalizerConfig,
+    Timing,
+)
+from sprint_map.merge.smoothing import MergeSettings, smoothed_decisions
 from sprint_map.storage.store import MapStore
 from sprint_map.util.arrays import Descriptors, DescriptorsLike
 
-__all__ = ["PreparableMap", "PreparedDrive", "prepare_drive", "stale_reason"]
+__all__ = ["PreparableConfig", "PreparableMap", "PreparedDrive", "prepare_drive", "stale_reason"]
 
 #: Relative margin under which a new vertex's distance counts as reaching a frame's k-th hit.
 TIE_MARGIN = 1e-4
@@ -69,10 +76,19 @@ class PreparedDrive:
     removed: int = 0
 
 
+class PreparableConfig(LocalizerConfig, MergeSettings, Protocol):
+    """What preparing a drive reads of a map's config: the localizer's and the merge's."""
+
+
 class PreparableMap(LocalizableMap, Protocol):
     """What preparing and checking a drive read of a map (:class:`sprint_map.map.SprintMap`
-    is one): its counts, the rows committed since a snapshot, and its store's removed
-    vertices, index and components."""
+    is one): its counts, the rows committed since a snapshot, its thumbnails, and its store's
+    removed vertices, index and components."""
+
+    @property
+    def config(self) -> PreparableConfig: ...
+
+    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None: ...
 
     @property
     def store(self) -> MapStore: ...
@@ -111,7 +127,7 @@ def prepare_drive(smap: PreparableMap, batches: Iterable[DescriptorsLike], *, me
         for batch in batches:
             for _ in localizer.iter_localize(iter([batch])):
                 pass
-        decisions = localizer.smoothed()
+        decisions = smoothed_decisions(localizer, smap)
         k = localizer.search_k
         kth = np.array([float(d[ids >= 0].max()) if int((ids >= 0).sum()) >= k else math.inf
                         for ids, d in localizer.hits])

@@ -339,7 +339,7 @@ class LocalisationService:
         return CommitJob(session.name, rows, list(session.decisions),
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
-                         smoothed=functools.partial(session.localizer.smoothed, rows))
+                         smoothed=functools.partial(self.map.smoothed, session.localizer, rows))
 
     async def commit(self, session_id: str) -> dict[str, Any]:
         """Commit a session's drive; returns once the commit is durable."""

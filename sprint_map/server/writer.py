@@ -38,7 +38,7 @@ class CommitJob:
     """A drive to commit: its descriptors (in frame order) and the decisions it was answered.
 
     ``smoothed``, if given, re-makes the decisions from the whole drive (the session
-    localizer's :meth:`~sprint_map.localize.localizer.Localizer.smoothed`); the writer merges those,
+    localizer's after-drive decisions, :meth:`SprintMap.smoothed <sprint_map.map.SprintMap.smoothed>`); the writer merges those,
     as ``ingest`` does, and calls it in its own thread, never in the event loop.
     """
 
