@@ -45,7 +45,7 @@ from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors
 
-__all__ = ["EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
+__all__ = ["Describe", "EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
            "describe_with_thumbnails", "evaluate_query", "run_evaluation"]
 
 PROTOCOLS = ("lifelong", "pairs")
@@ -278,13 +278,21 @@ def _edges_per_decision(config: MapConfig) -> int:
     return 2 if config.merge_both_ways else 1
 
 
+#: How a traversal becomes rows (and thumbnails): :func:`describe_with_thumbnails` by default.
+Describe = Callable[[SprintMap, Traversal, int], tuple[Descriptors, list[bytes] | None]]
+
+
 def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
-                   hmm: HMMConfig | None = None, log: Log = lambda _: None) -> dict[str, Any]:
+                   hmm: HMMConfig | None = None, log: Log = lambda _: None,
+                   describe: Describe | None = None) -> dict[str, Any]:
     """Run ``options.protocol`` on ``dataset``, building maps under ``work_dir``.
 
-    Returns the results as a JSON-ready dict: one row per query traversal plus an ``overall``
-    row over all query frames.
+    ``describe(map, traversal, stride)`` gives a traversal's descriptors and thumbnails
+    (default :func:`describe_with_thumbnails`; a benchmark passes a cached one). Returns the
+    results as a JSON-ready dict: one row per query traversal plus an ``overall`` row over all
+    query frames.
     """
+    describe_fn = describe or describe_with_thumbnails
     work_dir.mkdir(parents=True, exist_ok=True)
     gt = dataset.ground_truth(options.stride)
     started = time.perf_counter()
@@ -300,18 +308,18 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
             map_dir = _fresh(work_dir / f"map-{db_name}")
             with SprintMap.create(map_dir, config) as m:
                 log(f"mapping {db_name}")
-                db_rows, db_thumbs = describe_with_thumbnails(m, dataset[db_name], options.stride)
+                db_rows, db_thumbs = describe_fn(m, dataset[db_name], options.stride)
                 m.add_sequence(db_rows, name=db_name, thumbnails=db_thumbs,
                                positions=_xy(dataset[db_name].positions(options.stride)))
                 log(f"localising {q_name} against {db_name}")
-                rows, thumbs = describe_with_thumbnails(m, dataset[q_name], options.stride)
+                rows, thumbs = describe_fn(m, dataset[q_name], options.stride)
                 results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
                                               smooth=True, thumbnails=thumbs)[0])
     else:
         map_dir = _fresh(work_dir / "map-lifelong")
         with SprintMap.create(map_dir, config) as m:
             for i, traversal in enumerate(dataset):
-                rows, thumbs = describe_with_thumbnails(m, traversal, options.stride)
+                rows, thumbs = describe_fn(m, traversal, options.stride)
                 positions = _xy(traversal.positions(options.stride))
                 if i == 0:
                     log(f"mapping {traversal.name} (first traversal)")

@@ -44,7 +44,7 @@ POSITIONS_FILE = "positions.csv"
 DESCRIPTORS_FILE = "descriptors.npy"
 
 # dataset.json keys that are metadata, not part of the ground-truth rule.
-_INFO_KEYS = ("description", "generator")
+_INFO_KEYS = ("description", "generator", "twins")
 
 
 class Traversal:
