@@ -13,6 +13,9 @@ repeated ids keep their smallest distance) and kernel scale ``T``:
 * sink ("off the map"): ``log L_s = novelty_margin``; if ``novelty_dist`` is set and
   ``d_1 > novelty_dist``, at least the value of a hit at ``novelty_dist``.
 * a frame without valid hits carries no information: ``log L_s = 0`` like every vertex.
+* another cue (GNSS, :mod:`sprint_map.localize.gnss`) may weigh the frame: each hit's ratio
+  and the sink's are multiplied by the factors it gives (``weights``, ``sink_weight``; a
+  repeated id keeps the factor of the entry kept), then clipped as above.
 
 ``T`` is ``dist_scale`` if set, else ``dist_scale_factor`` times an exponential moving average
 (weight ``dist_scale_ema``) of the frames' spread ``d_far - d_1``: distances are then measured
@@ -161,12 +164,17 @@ class ObservationModel:
         """Likelihood ratio of the sink when ``novelty_dist`` is None (``exp(novelty_margin)``)."""
         return self._sink_const
 
-    def evaluate(self, hit_ids: np.ndarray, hit_dists: np.ndarray
+    def evaluate(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
+                 weights: np.ndarray | None = None, sink_weight: float = 1.0
                  ) -> tuple[list[int], list[float], list[float], float, float]:
         """:meth:`observe` as a plain tuple ``(vertex_ids, distances, lik, sink_lik, scale)``.
 
         The filters' per-frame path uses this form: it skips building the dataclass.
+        ``weights`` (one positive factor per entry of ``hit_ids``) and ``sink_weight`` are
+        another cue's likelihood ratios, multiplied in (None and 1: none; O(k) more).
         """
+        if weights is not None or sink_weight != 1.0:
+            return self._weighted(hit_ids, hit_dists, weights, sink_weight)
         ids = hit_ids if type(hit_ids) is _NDARRAY else np.asarray(hit_ids)
         dists = hit_dists if type(hit_dists) is _NDARRAY else np.asarray(hit_dists)
         shape = ids.shape
@@ -217,6 +225,29 @@ class ObservationModel:
         margin = self._margin
         lik = [math.exp(min((d_far - d) / scale + margin, _CLIP)) for d in ds]
         return vids, ds, lik, self._sink_lik(d_near, d_far, scale), scale
+
+    def _weighted(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
+                  weights: np.ndarray | None, sink_weight: float
+                  ) -> tuple[list[int], list[float], list[float], float, float]:
+        """:meth:`evaluate` with another cue's factors multiplied in (see the module notes)."""
+        vids, ds, lik, sink_lik, scale = self.evaluate(hit_ids, hit_dists)
+        if not math.isfinite(sink_weight) or sink_weight <= 0.0:
+            raise ValueError("sink_weight must be a finite number > 0")
+        sink_lik = math.exp(max(min(math.log(sink_lik * sink_weight), _CLIP), -_CLIP))
+        if weights is None or not vids:
+            return vids, ds, lik, sink_lik, scale
+        ids = np.asarray(hit_ids).ravel().tolist()
+        w = np.asarray(weights, dtype=np.float64).ravel()
+        if len(w) != len(ids) or not (np.isfinite(w) & (w > 0.0)).all():
+            raise ValueError("weights must be one finite factor > 0 per hit")
+        dists = np.asarray(hit_dists, dtype=np.float64).ravel().tolist()
+        factor: dict[int, tuple[float, float]] = {}  # id -> (distance, weight) of the kept entry
+        for v, d, f in zip(ids, dists, w.tolist(), strict=True):
+            if v >= 0 and (v not in factor or d < factor[v][0]):
+                factor[v] = (d, f)
+        lik = [math.exp(max(min(math.log(x * factor[v][1]), _CLIP), -_CLIP))
+               for v, x in zip(vids, lik, strict=True)]
+        return vids, ds, lik, sink_lik, scale
 
     def _scale_now(self) -> float:
         if self._fixed is not None:

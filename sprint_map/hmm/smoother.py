@@ -46,13 +46,17 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition
 
-__all__ = ["FrameBelief", "ForwardBackward", "RIVAL_CONFIRMATIONS", "RIVAL_SLACK", "smooth"]
+__all__ = ["FrameBelief", "ForwardBackward", "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT",
+           "RIVAL_SLACK", "smooth"]
 
 #: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
 #: this many of the 4 frames around it have a hit where the same drive would be then ...
 RIVAL_CONFIRMATIONS = 2
 #: ... within this many images.
 RIVAL_SLACK = 2
+#: A hit another cue weighs below this (GNSS: far beyond the gate of the frame's fix) is ruled
+#: out as a place of the frame: it is no rival of the decided place (contrast).
+RIVAL_MIN_WEIGHT = 0.01
 
 
 @dataclass(slots=True)
@@ -73,6 +77,8 @@ class FrameBelief:
         Their likelihood ratios.
     sink_lik : float
         The sink's likelihood ratio.
+    ruled_out : frozenset of int
+        Hits another cue weighed below :data:`RIVAL_MIN_WEIGHT` (no rivals).
     """
 
     parts: list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
@@ -81,6 +87,7 @@ class FrameBelief:
     hit_dists: list[float]
     hit_lik: list[float]
     sink_lik: float
+    ruled_out: frozenset[int] = frozenset()
 
 
 class ForwardBackward:
@@ -128,15 +135,21 @@ class ForwardBackward:
         self.filter.set_novelty_dist(value)
         self._obs.novelty_dist = value
 
-    def forward(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> None:
-        """Filter one frame (as :meth:`SprintFilter.update`) and keep its belief."""
+    def forward(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
+                weights: np.ndarray | None = None, sink_weight: float = 1.0) -> None:
+        """Filter one frame (as :meth:`SprintFilter.update`, with another cue's ``weights``
+        and ``sink_weight`` if given) and keep its belief."""
         ids = np.asarray(hit_ids)
         dists = np.asarray(hit_dists)
-        self.filter.update(ids, dists)  # validates the hits first
-        vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, dists)
+        self.filter.update(ids, dists, weights, sink_weight)  # validates the hits first
+        vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, dists, weights, sink_weight)
         parts, sink = self.filter.live_belief()
+        ruled_out: frozenset[int] = frozenset()
+        if weights is not None:
+            low = np.asarray(weights).ravel() < RIVAL_MIN_WEIGHT
+            ruled_out = frozenset(ids.ravel()[low].tolist())
         self.frames.append(FrameBelief(parts, sink, vids, [float(d) for d in vdists], lik,
-                                       sink_lik))
+                                       sink_lik, ruled_out))
 
     def posteriors(self) -> list[tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
                                        float]]:
@@ -205,12 +218,15 @@ class ForwardBackward:
 
     def _nearest_hits(self, t: int) -> tuple[list[int], list[float]]:
         """Frame ``t``'s ``k`` nearest distinct hits (as the causal filter reads them, whatever
-        ``smooth_k`` the drive was searched with)."""
+        ``smooth_k`` the drive was searched with), less those another cue ruled out."""
         frame = self.frames[t]
         ids, dists = frame.hit_ids, frame.hit_dists
         if len(ids) > self.config.k:
             order = sorted(range(len(ids)), key=dists.__getitem__)[:self.config.k]
             ids, dists = [ids[i] for i in order], [dists[i] for i in order]
+        if frame.ruled_out:
+            keep = [i for i, v in enumerate(ids) if v not in frame.ruled_out]
+            ids, dists = [ids[i] for i in keep], [dists[i] for i in keep]
         return ids, dists
 
     def _backward(self) -> Iterable[tuple[list[tuple[ComponentTransition, np.ndarray,

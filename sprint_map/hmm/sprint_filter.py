@@ -229,7 +229,8 @@ class SprintFilter:
         return out, self._sink * z
 
     # ------------------------------------------------------------------ per frame
-    def step(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> Decision:
+    def step(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
+             weights: np.ndarray | None = None, sink_weight: float = 1.0) -> Decision:
         """Filter one query frame and decide where it is.
 
         Parameters
@@ -238,6 +239,9 @@ class SprintFilter:
             Retrieved global vertex ids over the whole map; ``-1`` pads.
         hit_dists : ndarray of float, same shape
             Their squared-L2 distances.
+        weights, sink_weight : optional
+            Another cue's likelihood ratios of the hits and of the sink (GNSS:
+            :mod:`sprint_map.localize.gnss`; :meth:`ObservationModel.evaluate`).
 
         Returns
         -------
@@ -252,10 +256,11 @@ class SprintFilter:
         -----
         :meth:`update` then :meth:`decide`; see the class notes for the cost.
         """
-        self.update(hit_ids, hit_dists)
+        self.update(hit_ids, hit_dists, weights, sink_weight)
         return self.decide()
 
-    def update(self, hit_ids: np.ndarray, hit_dists: np.ndarray) -> None:
+    def update(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
+               weights: np.ndarray | None = None, sink_weight: float = 1.0) -> None:
         """Propagate the belief one frame and fold in the frame's hits (no decision).
 
         This is the HMM inference step proper (what the paper and ``tools/bench_fig4.py`` time).
@@ -269,9 +274,11 @@ class SprintFilter:
         # (one active component, the hit in or just ahead of its single window: a vehicle on
         # one mapped road, or in a lifelong map whose drives merged into one giant component)
         # is inline, and only a frame that prunes, trims or opens a window runs _finish.
-        vid = self._obs.single_hit(hit_ids, hit_dists) if self._started else -1
+        plain = weights is None and sink_weight == 1.0
+        vid = self._obs.single_hit(hit_ids, hit_dists) if self._started and plain else -1
         if vid < 0:
-            vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists)
+            vids, _, liks, sink_lik, _ = self._obs.evaluate(hit_ids, hit_dists, weights,
+                                                            sink_weight)
             self._update_any(vids, liks, sink_lik)
             return
         comps = self._active.comps
