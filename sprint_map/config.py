@@ -12,6 +12,7 @@ from typing import Any
 
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.localize.gnss import GnssConfig
 from sprint_map.merge.rule import MergeRule
 from sprint_map.storage.store_config import (
     INDEX_TYPES,
@@ -22,7 +23,7 @@ from sprint_map.storage.store_config import (
 from sprint_map.util import dataclass_dict
 
 __all__ = ["DESCRIPTOR_KINDS", "INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION",
-           "HMMConfig", "MapConfig"]
+           "GnssConfig", "HMMConfig", "MapConfig"]
 
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
 DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm")
@@ -116,6 +117,9 @@ class MapConfig:
         later cross between the two drives either way. The paper keeps one direction.
     hmm : HMMConfig
         Parameters of the place-recognition HMM.
+    gnss : GnssConfig
+        How a drive's GNSS fixes weigh localisation and merging, where the map stores positions
+        (:mod:`sprint_map.localize.gnss`; a map stored without it takes the defaults).
     """
 
     dim: int
@@ -147,6 +151,7 @@ class MapConfig:
     merge_verify_inliers: int = 35
     merge_both_ways: bool = True
     hmm: HMMConfig = field(default_factory=HMMConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
 
     def __post_init__(self) -> None:
         if not isinstance(self.dim, int) or self.dim < 1:

@@ -56,6 +56,7 @@ if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM
     from sprint_map.export.report import ExportReport
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.hmm.cache import ComponentCache
+    from sprint_map.localize.gnss import GnssAid, PositionIndex
     from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
     from sprint_map.merge.prepared import PreparedDrive
     from sprint_map.storage.removal import RemovedRanges
@@ -83,6 +84,9 @@ class SprintMap:
     def __init__(self, store: MapStore) -> None:
         self.store = store
         self._config = stored_config(store.config_record)
+        #: positions read so far (seq_id -> (first vertex, rows)) and the index of a snapshot
+        self._placed: dict[int, tuple[int, Float64Array]] = {}
+        self._position_index: tuple[tuple[Any, ...], PositionIndex] | None = None
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -188,6 +192,7 @@ class SprintMap:
         source: str = "",
         observe: Callable[[Localizer], None] | None = None,
         thumbnails: Sequence[bytes] | None = None,
+        fixes: np.ndarray | None = None,
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
@@ -214,6 +219,11 @@ class SprintMap:
             commit: about 2 KiB per frame. They also let the merge verify, against the map's
             own thumbnails, the runs its lookalike tests refuse (``merge_verify_inliers``,
             :mod:`sprint_map.merge.verification`).
+        fixes : ndarray (N, 2 or 3), optional
+            The drive's GNSS fixes ``x, y[, sigma_m]`` (NaN rows: frames without a fix), in
+            the planar frame of the map's positions: where the map stores positions they weigh
+            localisation and veto merges far from them (:mod:`sprint_map.localize.gnss`).
+            Usually the same as ``positions``, which are what the map stores.
 
         Notes
         -----
@@ -232,8 +242,11 @@ class SprintMap:
                        for i in range(0, len(descriptors), SEARCH_BATCH))
         else:
             batches = descriptors
-        localizer = (Localizer(self, hmm, record=True) if merge and self.stats()["vertices"]
-                     else None)
+        n = len(descriptors) if isinstance(descriptors, np.ndarray) else None
+        localizer = (Localizer(self, hmm, record=True, gnss=self.gnss_aid(fixes, n))
+                     if merge and self.stats()["vertices"] else None)
+        if localizer is None and fixes is not None:
+            self.gnss_aid(fixes, n, index=False)  # checked all the same
         if localizer is not None and observe is not None:
             observe(localizer)
         with self.begin_drive(name, source) as drive:
@@ -242,6 +255,8 @@ class SprintMap:
                     for _ in localizer.iter_localize(iter([batch])):
                         pass
                 drive.append(batch)
+            if fixes is not None and n is None:  # streamed: the drive's length known now
+                self.gnss_aid(fixes, drive.frames, index=False)
             decisions = (self.smoothed(localizer, thumbnails=thumbnails)
                          if localizer is not None else [])
             done = drive.commit(decisions, positions, thumbnails=thumbnails)
@@ -408,23 +423,76 @@ class SprintMap:
         return SharedComponentCache(self.config.hmm.cache_budget_bytes)
 
     def localizer(self, hmm: HMMConfig | None = None, *, record: bool = False,
-                  **overrides: Any) -> Localizer:
+                  fixes: np.ndarray | None = None, **overrides: Any) -> Localizer:
         """A streaming :class:`Localizer` for one query sequence (read-only use of the map).
 
         ``overrides`` replace fields of the HMM config for this query only (e.g. ``k=5``);
-        ``record`` keeps each frame's hits for :meth:`smoothed`.
+        ``record`` keeps each frame's hits for :meth:`smoothed`; ``fixes`` are the drive's
+        GNSS fixes (see :meth:`ingest`), frame ``i`` the ``i``-th step.
         """
         from sprint_map.localize.localizer import Localizer
 
         base = hmm or self.config.hmm
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base,
-                         record=record)
+                         record=record, gnss=self.gnss_aid(fixes, None))
+
+    def gnss_aid(self, fixes: np.ndarray | None, frames: int | None, *, index: bool = True
+                 ) -> GnssAid | None:
+        """A drive's GNSS ``fixes`` (see :meth:`ingest`) against the map's positions, or None
+        when there are no fixes or the map stores no position (GNSS changes nothing then).
+        ``frames`` is the drive's length, if known; ``index=False`` only checks the fixes.
+
+        Raises
+        ------
+        InputError
+            Fixes not one per frame, out of range, or with a ``sigma_m`` <= 0
+            (:func:`sprint_map.localize.gnss.validate_fixes`).
+        """
+        from sprint_map.localize.gnss import GnssAid, validate_fixes
+
+        if fixes is None:
+            return None
+        checked = validate_fixes(fixes, frames, self.config.gnss.sigma_m)
+        if not index:
+            return None
+        positions = self.position_index()
+        return GnssAid(self.config.gnss, positions, checked) if positions.size else None
+
+    def position_index(self) -> PositionIndex:
+        """The positions the map stores, by vertex and in a KD-tree, as of now
+        (:class:`sprint_map.localize.gnss.PositionIndex`); kept until the map changes.
+
+        Notes
+        -----
+        O(n log n) for the n placed vertices when the map changed (positions of sequences
+        read before are kept: each sequence is read once); O(1) otherwise.
+        """
+        from sprint_map.localize.gnss import PositionIndex
+
+        stats = self.stats()
+        key = (stats["vertices"], stats["sequences"], self.store.removed_vertices(),
+               str(self.store.data_path))
+        if self._position_index is not None and self._position_index[0] == key:
+            return self._position_index[1]
+        live = {seq.seq_id: seq for seq in self.sequences()}
+        placed = {i: p for i, p in self._placed.items()
+                  if i in live and live[i].first_vertex == p[0]}
+        for seq_id, seq in live.items():
+            if seq_id not in placed:
+                rows = self.positions(seq_id)
+                placed[seq_id] = (seq.first_vertex, rows if rows is not None
+                                  else np.empty((0, 2)))
+        self._placed = placed
+        index = PositionIndex(stats["vertices"], [p for p in placed.values() if len(p[1])],
+                              self.config.gnss.map_sigma_m)
+        self._position_index = (key, index)
+        return index
 
     def localize(self, descriptors: Any, *, smooth: bool = False,
                  thumbnails: Sequence[bytes] | None = None,
                  observe: Callable[[Localizer], None] | None = None,
-                 hmm: HMMConfig | None = None, **overrides: Any
-                 ) -> tuple[list[FrameDecision], Timing]:
+                 hmm: HMMConfig | None = None, fixes: np.ndarray | None = None,
+                 **overrides: Any) -> tuple[list[FrameDecision], Timing]:
         """Localise a whole query drive without changing the map: the one call behind
         ``localize`` (with or without ``--smooth`` and ``--trace``) and ``eval``.
 
@@ -434,19 +502,24 @@ class SprintMap:
         smoothed_decisions`: what ``ingest`` merges, given the same ``thumbnails``, one JPEG per
         frame). ``observe`` receives the localizer before the first frame (e.g.
         :meth:`TraceRecorder.attach <sprint_map.localize.trace.TraceRecorder.attach>`).
-        ``hmm`` and ``overrides`` replace the map's HMM config for this query only.
+        ``hmm`` and ``overrides`` replace the map's HMM config for this query only. ``fixes``
+        are the drive's GNSS fixes (see :meth:`ingest`; one per frame, checked).
 
         Notes
         -----
         Per frame: one k-NN search (batched) and one HMM step over the active set; with
         ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame.
         """
-        localizer = self.localizer(hmm, record=smooth, **overrides)
-        if observe is not None:
-            observe(localizer)
         batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
             else descriptors
+        if fixes is not None and isinstance(batches, np.ndarray):
+            self.gnss_aid(fixes, len(batches), index=False)
+        localizer = self.localizer(hmm, record=smooth, fixes=fixes, **overrides)
+        if observe is not None:
+            observe(localizer)
         decisions = localizer.localize(batches)
+        if fixes is not None:
+            self.gnss_aid(fixes, len(decisions), index=False)
         if smooth:
             decisions = self.smoothed(localizer, thumbnails=thumbnails)
         return decisions, localizer.timing

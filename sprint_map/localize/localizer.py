@@ -11,6 +11,7 @@ the deep pass, verification) is :mod:`sprint_map.merge.smoothing`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -26,6 +27,7 @@ from sprint_map.hmm.decision import Decision
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
+from sprint_map.localize.gnss import GnssAid
 from sprint_map.util.arrays import DescriptorsLike, SearchResult
 from sprint_map.util.validation import validate_descriptors
 
@@ -98,7 +100,10 @@ class FrameDecision:
     a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
     was not accepted (:meth:`Localizer.smoothed`), or one on a run that claims a revisit the
     drive's own thumbnails deny, outside its verified stretches
-    (:meth:`sprint_map.merge.verification.RunVerifier.contradicted`). ``verified`` is True for a smoothed
+    (:meth:`sprint_map.merge.verification.RunVerifier.contradicted`), or one whose place lies
+    beyond the gate of the frame's GNSS fix (:mod:`sprint_map.localize.gnss`). ``gnss_dist_m``
+    is the distance (metres) from the frame's fix to the decided place's mapped position (NaN
+    without a fix, a decided place or its position). ``verified`` is True for a smoothed
     decision on a run that geometric verification on the thumbnails confirmed
     (:mod:`sprint_map.merge.verification`): the merge rule merges it even if a lookalike test
     refused it.
@@ -115,6 +120,7 @@ class FrameDecision:
     contrast: float = math.nan
     confirmed: bool = True
     verified: bool = False
+    gnss_dist_m: float = math.nan
 
     @property
     def is_match(self) -> bool:
@@ -125,7 +131,9 @@ class FrameDecision:
                 "prob": round(float(self.prob), 6), "novel_prob": round(float(self.novel_prob), 6),
                 "distance": round(self.distance, 6) if math.isfinite(self.distance) else None,
                 "contrast": round(self.contrast, 6) if math.isfinite(self.contrast) else None,
-                "confirmed": self.confirmed, "verified": self.verified}
+                "confirmed": self.confirmed, "verified": self.verified,
+                "gnss_dist_m": (round(self.gnss_dist_m, 3) if math.isfinite(self.gnss_dist_m)
+                                else None)}
 
 
 @dataclass
@@ -180,17 +188,21 @@ class Localizer:
     cache : ComponentCache, optional
         Where loaded components are kept; default a private one of
         ``config.cache_budget_bytes``.
+    gnss : GnssAid, optional
+        The drive's GNSS fixes against the map's positions (:mod:`sprint_map.localize.gnss`):
+        frame ``i`` (counted from the last :meth:`reset`) is weighed by fix ``i``.
 
     Notes
     -----
     Per-frame cost: one k-NN search over the map, plus the HMM update in
     O(W * n_active + nnz(U_active)) where ``n_active`` counts the vertices of the active
-    components only, plus loading components that join the active set (LRU-cached).
+    components only, plus loading components that join the active set (LRU-cached); with
+    ``gnss``, O(log n) more for the look-up of the fix among the map's n positions.
     """
 
     def __init__(self, smap: LocalizableMap, hmm: HMMConfig | None = None,
                  cache: ComponentCache | None = None, *, record: bool = False,
-                 record_k: int | None = None) -> None:
+                 record_k: int | None = None, gnss: GnssAid | None = None) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
         self.source = smap.view()
@@ -209,6 +221,7 @@ class Localizer:
         #: Called after every frame with ``(decision, hit ids, hit distances)`` (e.g. a
         #: :class:`sprint_map.localize.trace.TraceRecorder`, which reads ``filter`` too); None: nothing.
         self.observer: Callable[[FrameDecision, np.ndarray, np.ndarray], None] | None = None
+        self.gnss = gnss
 
     def reset(self) -> None:
         """Start a new query sequence."""
@@ -233,7 +246,11 @@ class Localizer:
             if novelty is not None:
                 nd = float(novelty[t])
                 fb.set_novelty_dist(nd if math.isfinite(nd) else None)
-            fb.forward(ids, dists)
+            cue = self.gnss.cue(t, ids, dists) if self.gnss is not None else None
+            if cue is None:
+                fb.forward(ids, dists)
+            else:
+                fb.forward(*cue)
         return [self.frame_decision(i, d, nearest_distance(*hits[i]))
                 for i, d in enumerate(fb.decisions())]
 
@@ -335,7 +352,10 @@ class Localizer:
         start = time.perf_counter()
         k = self.config.k
         # the search returns the nearest first: the causal filter reads the k nearest
-        decision = self.filter.step(ids[:k], dists[:k])
+        cue = (self.gnss.cue(self.frames_seen, ids[:k], dists[:k]) if self.gnss is not None
+               else None)
+        decision = (self.filter.step(ids[:k], dists[:k]) if cue is None
+                    else self.filter.step(*cue))
         self.timing.hmm_ms.append((time.perf_counter() - start) * 1e3)
         self.timing.retrieval_ms.append(retrieval_ms)
         self.timing.active_vertices.append(int(decision.n_active_vertices))
@@ -350,6 +370,15 @@ class Localizer:
         return out
 
     def frame_decision(self, frame: int, decision: Decision, distance: float
+                        ) -> FrameDecision:
+        out = self._frame_decision(frame, decision, distance)
+        if self.gnss is None or out.vertex_id is None:
+            return out
+        gnss_dist, plausible = self.gnss.distance(frame, out.vertex_id)
+        return dataclasses.replace(out, gnss_dist_m=gnss_dist,
+                                   confirmed=out.confirmed and plausible)
+
+    def _frame_decision(self, frame: int, decision: Decision, distance: float
                         ) -> FrameDecision:
         if decision.vertex_id is None or decision.seq_id is None or decision.image_id is None:
             best = None

@@ -53,7 +53,8 @@ class Drive:
 
     ``descriptors`` is an ``(N, dim)`` array or an iterable of ``(n_i, dim)`` batches (e.g.
     ``FrameSource.iter_batches()``, streamed); ``name`` the sequence name (default
-    ``seq-<id>``); ``positions`` per-frame ``x, y[, heading]``; ``source`` free text.
+    ``seq-<id>``); ``positions`` per-frame ``x, y[, heading]``; ``source`` free text;
+    ``fixes`` per-frame GNSS ``x, y[, sigma_m]`` (see :meth:`SprintMap.ingest`).
     """
 
     descriptors: DescriptorsLike | Iterable[DescriptorsLike]
@@ -62,6 +63,7 @@ class Drive:
     source: str = ""
     #: One small JPEG per frame, committed with the drive (see :meth:`SprintMap.ingest`).
     thumbnails: Sequence[bytes] | None = None
+    fixes: np.ndarray | None = None
 
 
 class IngestingMap(Protocol):
@@ -79,6 +81,7 @@ class IngestingMap(Protocol):
         source: str = "",
         observe: Callable[[Localizer], None] | None = None,
         thumbnails: Sequence[bytes] | None = None,
+        fixes: np.ndarray | None = None,
     ) -> IngestResult: ...
 
     def group_commit(self) -> AbstractContextManager[None]: ...
@@ -144,7 +147,8 @@ def ingest_drives(
                                                  positions=drive.positions, merge=merge,
                                                  hmm=hmm, source=drive.source,
                                                  observe=observe,
-                                                 thumbnails=drive.thumbnails))
+                                                 thumbnails=drive.thumbnails,
+                                                 fixes=drive.fixes))
                 else:
                     append_group(smap, drives[start : start + group_drives], group)
         finally:  # the drives committed before a failure are reported too
