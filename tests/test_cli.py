@@ -58,7 +58,8 @@ def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
     second = json.loads(run("ingest", map_path, drives[1], "--json").output)
     assert len(second["decisions"]) == 60
     assert set(second["decisions"][0]) == {"frame", "seq_id", "image_id", "prob", "novel_prob",
-                                           "distance", "contrast", "confirmed", "verified", "merged"}
+                                           "distance", "contrast", "confirmed", "verified",
+                                           "gnss_dist_m", "merged"}
     assert second["edges_added"] > 0 and second["component"] == 0
     assert {"retrieval_ms_per_frame", "hmm_ms_per_frame"} <= set(second["timing"])
     third = json.loads(run("ingest", map_path, drives[2], "--no-merge", "--json").output)

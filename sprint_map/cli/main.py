@@ -21,7 +21,7 @@ from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.positions import read_positions
+from sprint_map.frontend.positions import gnss_fixes, read_positions, stored_form
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -181,7 +181,9 @@ def _model_options(f: Any) -> Any:
 @click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name; one "
               "SOURCE only).")
 @click.option("--positions", type=click.Path(dir_okay=False),
-              help="CSV frame,x,y[,heading_deg] with a header row (one SOURCE only).")
+              help="CSV frame,x,y[,heading_deg][,sigma_m] with a header row (one SOURCE "
+              "only): stored with the drive, and its GNSS fixes where the map has positions "
+              "(a frame without a row: no fix).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
               "(images and video; about 2 KiB a frame), for viewers and to verify merges on "
@@ -251,11 +253,12 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
             src = m.open_source(source, stride=stride, thumbnails=thumbnails,
                                 progress=stack.enter_context(progress_display(label, quiet)))
-            pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
+            table = read_positions(positions, src.count, stride) if positions else None
             # Streamed: each batch is described, localised and written (uncommitted) in turn.
             # An empty --name is refused by the name rules, not replaced by the source's name.
-            drives.append(Drive(src.iter_batches(), src.name if name is None else name, pos,
-                                str(source), src.thumbnails))
+            drives.append(Drive(src.iter_batches(), src.name if name is None else name,
+                                None if table is None else stored_form(table), str(source),
+                                src.thumbnails, None if table is None else gnss_fixes(table)))
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
@@ -307,11 +310,15 @@ def _ingest_line(out: dict[str, Any]) -> str:
               help="With --smooth: verify on the images, against the map's thumbnails, the "
                    "runs the merge rule's lookalike tests refuse, as ingest --thumbnails does "
                    "(images and video).")
+@click.option("--positions", type=click.Path(dir_okay=False),
+              help="CSV frame,x,y[,heading_deg][,sigma_m]: the drive's GNSS fixes, weighed "
+              "against the map's positions (each decision's gnss_dist_m).")
 @_trace_option
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             thumbnails: bool, trace: str | None, stride: int, quiet: bool, k: int | None,
-             window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+             thumbnails: bool, positions: str | None, trace: str | None, stride: int,
+             quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]
+             ) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
     \b
@@ -321,6 +328,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map drives/friday/ --smooth --thumbnails --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
+      sprint-map localize city.map friday.npy --smooth --positions friday.csv --json  # GNSS
     """
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
@@ -328,10 +336,12 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
+        fixes = (gnss_fixes(read_positions(positions, src.count, stride)) if positions
+                 else None)
         recorder = TraceRecorder(m) if trace else None
         decisions, timing = m.localize(  # streamed, searches batched
             src.iter_batches(), smooth=smooth, observe=recorder.attach if recorder else None,
-            thumbnails=src.thumbnails if thumbnails else None, **overrides)
+            thumbnails=src.thumbnails if thumbnails else None, fixes=fixes, **overrides)
         if recorder is not None and trace:
             recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
                                                         "source": str(source)})
@@ -607,6 +617,14 @@ def index(map_path: str, action: str | None, as_json: bool) -> None:
     _emit(data, as_json, "\n".join(done + [f"index: {data['index']['type']}"]))
 
 
+def _gnss_option(f: Any) -> Any:
+    return click.option(
+        "--gnss-sigma", type=float, default=0.0, show_default=True, metavar="M",
+        help="Also run GNSS-aided: fixes simulated from the ground-truth positions with M "
+        "metres of drift per axis, dropouts and multipath jumps (docs/frontend.md), reported "
+        "beside the image-only figures (results.json \"gnss\"); 0: off.")(f)
+
+
 def _log(quiet: bool) -> Any:
     return (lambda _msg: None) if quiet else (lambda msg: click.echo(msg, err=True))
 
@@ -631,11 +649,12 @@ def _log(quiet: bool) -> Any:
 @click.option("--map-config", "map_pairs", multiple=True, metavar="KEY=VALUE",
               help="Override a MapConfig field of the evaluation maps (repeatable, JSON "
               "values), e.g. index_type=ivf-pq.")
+@_gnss_option
 @_model_options
 def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None,
           query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
-          stride: int, quiet: bool, k: int | None, window: str | None,
+          gnss_sigma: float, stride: int, quiet: bool, k: int | None, window: str | None,
           hmm_pairs: tuple[str, ...]) -> None:
     """Evaluate k-NN and SPRINT on DATASET (one folder per traversal); write JSON, markdown, PNGs.
 
@@ -647,6 +666,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
       sprint-map eval ../shared/data/nordland --protocol pairs --database summer \\
           --query winter --alignment frame --tolerance 1 --map-config index_type=ivf-pq \\
           --map-config index_nlist=64 --map-config index_segment_rows=256
+      sprint-map eval data/city --gnss-sigma 10   # also GNSS-aided, side by side
     """
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
@@ -664,7 +684,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
     overrides = _hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     options = EvalOptions(protocol=protocol, database=database, query=query,
-                          both_directions=both_directions, stride=stride)
+                          both_directions=both_directions, stride=stride, gnss_sigma=gnss_sigma)
     out = Path(out_dir or f"eval-{data.path.resolve().name}")
     results = run_evaluation(data, out / "maps", config, options, hmm, log=_log(quiet))
     paths = write_report(results, out)
@@ -682,8 +702,9 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
               "city-novel: a harder city (mostly novel streets, some driven the other way, "
               "aliased streets); latent: descriptor-level drives over latent places (another "
               "world family, no rendering).")
+@_gnss_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress messages.")
-def demo(out_dir: str, which: str, quiet: bool) -> None:
+def demo(out_dir: str, which: str, gnss_sigma: float, quiet: bool) -> None:
     """Build a map from the embedded default data, evaluate it, print the table and plots.
 
     With no data to download: the generated city (rendered images, several drives with
@@ -695,11 +716,12 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
       sprint-map demo --out sprint-demo
       sprint-map demo --dataset city-novel --out sprint-demo-novel
       sprint-map demo --dataset latent --out sprint-demo-latent
+      sprint-map demo --dataset city --gnss-sigma 10   # image only and GNSS-aided
     """
     from sprint_map.evaluation.demo import run_demo
     from sprint_map.evaluation.report import markdown_table
 
-    results, paths = run_demo(Path(out_dir), which, log=_log(quiet))
+    results, paths = run_demo(Path(out_dir), which, log=_log(quiet), gnss_sigma=gnss_sigma)
     click.echo(markdown_table(results))
     click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
 

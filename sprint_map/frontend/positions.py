@@ -1,10 +1,12 @@
 """Reading per-frame positions (ground truth) from a CSV file.
 
-Format: a header line naming the columns ``frame,x,y`` or ``frame,x,y,heading_deg`` (in any order,
+Format: a header line naming the columns ``frame,x,y[,heading_deg][,sigma_m]`` (in any order,
 names case-insensitive), then one row per frame of the source *before* any stride, frames
 numbered from 0. ``x``/``y`` are metres in any fixed planar frame; ``heading_deg`` is the
 direction of travel in degrees (any convention, as long as all traversals of a data set share
-it). Blank lines and lines starting with ``#`` are skipped.
+it); ``sigma_m`` the accuracy of a GNSS fix (one standard deviation, metres, > 0). A frame
+without a row is a frame without a fix (NaN). Blank lines and lines starting with ``#`` are
+skipped.
 """
 
 from __future__ import annotations
@@ -18,10 +20,11 @@ import numpy as np
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
 
-__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_positions"]
+__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "gnss_fixes", "read_positions", "stored_form"]
 
 REQUIRED_COLUMNS = ("frame", "x", "y")
-OPTIONAL_COLUMNS = ("heading_deg",)
+OPTIONAL_COLUMNS = ("heading_deg", "sigma_m")
+_EXPECTED = "frame,x,y[,heading_deg][,sigma_m]"
 
 
 def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Float64Array:
@@ -35,23 +38,24 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
         Frames the source yielded (after ``stride``); ``None`` accepts any number of rows
         (frames ``0..M-1``), for a video whose length is unknown (``stride`` must then be 1).
     stride : int
-        The source's stride: the CSV describes the original frames, of which frames
-        ``0, stride, 2*stride, ...`` were kept. The CSV must then hold between
-        ``(n_frames - 1) * stride + 1`` and ``n_frames * stride`` rows (the original frame
-        count is only known up to the stride); with ``stride=1`` exactly ``n_frames``.
+        The source's stride: the CSV numbers the original frames, of which frames
+        ``0, stride, 2*stride, ...`` were kept. A row for frame ``n_frames * stride`` or
+        later describes a frame the drive does not have.
 
     Returns
     -------
-    ndarray of float64, shape (n_frames, 3) or (n_frames, 4)
-        Columns ``frame, x, y[, heading_deg]`` for the kept frames, in frame order; ``frame``
-        is the original frame number (``i * stride``).
+    ndarray of float64, shape (n_frames, 3), (n_frames, 4) or (n_frames, 5)
+        Columns ``frame, x, y[, heading_deg[, sigma_m]]`` for the kept frames, in frame order
+        (``heading_deg`` NaN when only ``sigma_m`` is given); ``frame`` is the original frame
+        number (``i * stride``); NaN ``x, y`` (and the rest) for a frame without a row.
 
     Raises
     ------
     InputError
         Missing or unreadable file, a bad header, a non-numeric or non-finite value, a
-        non-integer, negative, repeated or missing frame number, or a frame count that does
-        not match the source. The message names the file and, where it applies, the line.
+        ``sigma_m`` <= 0, a non-integer, negative or repeated frame number, a frame beyond the
+        drive (a file longer than its drive), or no row. The message names the file and,
+        where it applies, the line. O(rows).
     """
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
@@ -70,11 +74,12 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not a UTF-8 text file") from exc
     if not lines:
-        raise InputError(f"{path}: empty positions file (expected header frame,x,y[,heading_deg])")
+        raise InputError(f"{path}: empty positions file (expected header {_EXPECTED})")
 
     columns = _parse_header(path, *lines[0])
     width = len(columns)
-    rows: dict[int, tuple[int, list[float]]] = {}  # frame -> (line number, [x, y(, heading)])
+    width_out = 5 if "sigma_m" in columns else 4 if "heading_deg" in columns else 3
+    rows: dict[int, tuple[int, list[float]]] = {}  # frame -> (line number, [x, y, ...])
     for number, line in lines[1:]:
         fields = next(csv.reader([line]))
         if len(fields) != width:
@@ -98,35 +103,42 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
             raise InputError(
                 f"{path}:{number}: frame {frame} repeated (first on line {rows[frame][0]})"
             )
-        data = [values["x"], values["y"]]
-        if "heading_deg" in values:
-            data.append(values["heading_deg"])
+        if values.get("sigma_m", 1.0) <= 0:
+            raise InputError(f"{path}:{number}: sigma_m must be > 0 metres, got "
+                             f"{values['sigma_m']:g}")
+        if n_frames is not None and frame >= n_frames * stride:
+            raise InputError(
+                f"{path}:{number}: frame {frame} is beyond the drive ({n_frames} frames"
+                + (f" kept with stride {stride}" if stride > 1 else "") + "): a positions "
+                "file longer than its drive"
+            )
+        data = [values["x"], values["y"], values.get("heading_deg", math.nan),
+                values.get("sigma_m", math.nan)][:width_out - 1]
         rows[frame] = (number, data)
 
     if not rows:
         raise InputError(f"{path}: no position rows after the header")
     if n_frames is None:
-        n_frames = len(rows)
-    low, high = (n_frames - 1) * stride + 1, n_frames * stride
-    if not low <= len(rows) <= high:
-        expected = str(n_frames) if stride == 1 else f"{low} to {high} (stride {stride})"
-        raise InputError(
-            f"{path}: {len(rows)} position rows for {n_frames} frames; expected {expected} rows"
-        )
-    beyond = [(number, frame) for frame, (number, _) in rows.items() if frame >= len(rows)]
-    if beyond:
-        # Unique frames, as many as rows, one too large: some frame below it is missing.
-        missing = min(set(range(len(rows))) - rows.keys())
-        number, frame = min(beyond)
-        raise InputError(
-            f"{path}:{number}: frame {frame} but frame {missing} is missing; "
-            f"frames must be numbered 0..{len(rows) - 1} without gaps"
-        )
-    out = np.empty((n_frames, width), dtype=np.float64)
+        n_frames = max(rows) + 1
+    out = np.full((n_frames, width_out), np.nan)
+    out[:, 0] = np.arange(n_frames) * stride
     for i in range(n_frames):
-        out[i, 0] = i * stride
-        out[i, 1:] = rows[i * stride][1]
+        row = rows.get(i * stride)
+        if row is not None:
+            out[i, 1:] = row[1]
     return out
+
+
+def stored_form(table: Float64Array) -> Float64Array:
+    """Positions as a map stores them (``x, y, heading_deg``, NaN rows: no fix) from
+    :func:`read_positions`' table. O(n)."""
+    return table[:, 1:4]
+
+
+def gnss_fixes(table: Float64Array) -> Float64Array:
+    """A drive's GNSS fixes (``x, y[, sigma_m]``, NaN rows: no fix) from :func:`read_positions`'
+    table. O(n)."""
+    return table[:, [1, 2, 4]] if table.shape[1] > 4 else table[:, 1:3]
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
@@ -143,6 +155,6 @@ def _parse_header(path: Path, number: int, line: str) -> list[str]:
             else "repeated column"
         )
         raise InputError(
-            f"{path}:{number}: bad header ({problem}); expected frame,x,y[,heading_deg]"
+            f"{path}:{number}: bad header ({problem}); expected {_EXPECTED}"
         )
     return names

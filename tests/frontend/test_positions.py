@@ -1,4 +1,4 @@
-"""Reading positions.csv: frame,x,y[,heading_deg]."""
+"""Reading positions.csv: frame,x,y[,heading_deg][,sigma_m]."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import pytest
 
 from sprint_map.errors import InputError
 from sprint_map.frontend import read_positions
+from sprint_map.frontend.positions import gnss_fixes, stored_form
 
 
 def write(tmp_path, text: str):
@@ -36,14 +37,34 @@ def test_stride_selects_original_frames(tmp_path, rows, n_frames):
     np.testing.assert_array_equal(out[:, 1], np.arange(n_frames) * 30)
 
 
-@pytest.mark.parametrize(("rows", "n_frames"), [(9, 4), (13, 4)])
-def test_stride_with_inconsistent_row_count(tmp_path, rows, n_frames):
-    text = "frame,x,y\n" + "".join(f"{i},0,0\n" for i in range(rows))
-    with pytest.raises(InputError, match="stride 3"):
-        read_positions(write(tmp_path, text), n_frames, stride=3)
+def test_stride_file_longer_than_the_drive(tmp_path):
+    text = "frame,x,y\n" + "".join(f"{i},0,0\n" for i in range(13))
+    with pytest.raises(InputError, match=r":14: frame 12 is beyond the drive \(4 frames kept "
+                                         r"with stride 3\)"):
+        read_positions(write(tmp_path, text), 4, stride=3)
 
 
-def test_unknown_length_accepts_any_complete_file(tmp_path):
+@pytest.mark.parametrize("header", ["frame,x,y,sigma_m", "sigma_m,y,frame,x"])
+def test_sigma_column(tmp_path, header):
+    names = [n.strip() for n in header.split(",")]
+    values = [{"frame": 0, "x": 1, "y": 2, "sigma_m": 0.5}, {"frame": 2, "x": 3, "y": 4,
+                                                             "sigma_m": 3}]
+    body = "".join(",".join(str(v[n]) for n in names) + "\n" for v in values)
+    out = read_positions(write(tmp_path, header + "\n" + body), 3)
+    assert out.shape == (3, 5) and np.isnan(out[:, 3]).all()  # no heading: NaN
+    np.testing.assert_array_equal(out[:, 4], [0.5, np.nan, 3])
+    np.testing.assert_array_equal(gnss_fixes(out), [[1, 2, 0.5], [np.nan] * 3, [3, 4, 3]])
+    np.testing.assert_array_equal(stored_form(out)[[0, 2], :2], [[1, 2], [3, 4]])
+
+
+def test_missing_rows_are_frames_without_a_fix(tmp_path):
+    out = read_positions(write(tmp_path, "frame,x,y\n0,1,2\n3,3,4\n"), 5)
+    np.testing.assert_array_equal(np.isfinite(out[:, 1]), [True, False, False, True, False])
+    np.testing.assert_array_equal(out[:, 0], np.arange(5))
+    assert gnss_fixes(out).shape == (5, 2)
+
+
+def test_unknown_length_accepts_any_file(tmp_path):
     out = read_positions(write(tmp_path, "frame,x,y\n1,1,1\n0,0,0\n"), None)
     np.testing.assert_array_equal(out[:, 0], [0, 1])
 
@@ -59,12 +80,13 @@ def test_unknown_length_accepts_any_complete_file(tmp_path):
         ("frame,x,y\n0,1\n", 1, ":2: expected 3 fields, got 2"),
         ("frame,x,y\n0,1,north\n", 1, ":2: y is not a number: 'north'"),
         ("frame,x,y\n0,nan,1\n", 1, ":2: x is not finite"),
+        ("frame,x,y,sigma_m\n0,1,1,nan\n", 1, ":2: sigma_m is not finite"),
+        ("frame,x,y,sigma_m\n0,1,1,0\n", 1, ":2: sigma_m must be > 0 metres, got 0"),
+        ("frame,x,y,sigma_m\n0,1,1,-2\n", 1, ":2: sigma_m must be > 0 metres, got -2"),
         ("frame,x,y\n0,1,2\n0.5,1,2\n", 2, ":3: frame must be a non-negative integer"),
         ("frame,x,y\n-1,1,2\n", 1, ":2: frame must be a non-negative integer"),
         ("# c\nframe,x,y\n0,1,2\n0,3,4\n", 2, ":4: frame 0 repeated \\(first on line 3\\)"),
-        ("frame,x,y\n0,1,2\n2,3,4\n", 2, ":3: frame 2 but frame 1 is missing"),
-        ("frame,x,y\n0,1,2\n1,3,4\n", 3, "2 position rows for 3 frames; expected 3 rows"),
-        ("frame,x,y\n0,1,2\n1,3,4\n", 1, "2 position rows for 1 frames"),
+        ("frame,x,y\n0,1,2\n1,3,4\n", 1, r":3: frame 1 is beyond the drive \(1 frames\)"),
     ],
 )
 def test_errors_name_the_file_and_line(tmp_path, text, n_frames, message):
