@@ -52,15 +52,18 @@ def find_nordland() -> Path | None:
     return None
 
 
-def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
-             ) -> tuple[dict[str, Any], dict[str, Path]]:
+def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None,
+             gnss_sigma: float = 0.0) -> tuple[dict[str, Any], dict[str, Path]]:
     """Evaluate on Nordland (if ``which`` allows and it is present) or a generated city.
 
     ``which`` is one of :data:`DATASETS`; ``auto`` and ``city`` render ``city``, and each
     generated world is written once into ``out_dir/<name>`` and reused by later runs.
+    ``gnss_sigma`` > 0 adds the GNSS-aided run (:class:`~sprint_map.evaluation.runner.
+    EvalOptions`).
     """
     if which not in DATASETS:
         raise ConfigError(f"dataset must be one of {', '.join(DATASETS)}")
+    EvalOptions(gnss_sigma=gnss_sigma)  # a bad sigma is refused before any work
     nordland = find_nordland() if which in ("auto", "nordland") else None
     if which == "nordland" and nordland is None:
         raise InputError(f"Nordland not found; set ${NORDLAND_ENV} to its folder")
@@ -69,7 +72,7 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
         log(f"Nordland found at {nordland}: summer <-> winter, tolerance +/- 1 frame")
         dataset = Dataset.open(nordland, {"alignment": "frame", "tolerance_frames": 1})
         options = EvalOptions(protocol="pairs", database="summer", query="winter",
-                              both_directions=True)
+                              both_directions=True, gnss_sigma=gnss_sigma)
     elif which == "latent":
         from sprint_map.synth.latent import LATENT_PRESETS, generate_latent
 
@@ -81,7 +84,7 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
                             config=LATENT_PRESETS["latent"])
         dataset = Dataset.open(world)
         config = config_for(dataset)
-        options = EvalOptions(protocol="lifelong")
+        options = EvalOptions(protocol="lifelong", gnss_sigma=gnss_sigma)
     else:
         from sprint_map.synth.city import PRESETS, generate_city
 
@@ -92,6 +95,6 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
             generate_city(city, n_traversals=CITY_TRAVERSALS, frames_per_traversal=CITY_FRAMES,
                           seed=0, config=PRESETS[name])
         dataset = Dataset.open(city)
-        options = EvalOptions(protocol="lifelong")
+        options = EvalOptions(protocol="lifelong", gnss_sigma=gnss_sigma)
     results = run_evaluation(dataset, out_dir / "maps", config, options, log=log)
     return results, write_report(results, out_dir)

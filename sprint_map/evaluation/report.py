@@ -69,7 +69,32 @@ def markdown_table(results: dict[str, Any]) -> str:
         f"Protocol {results['protocol']}, ground truth {results['ground_truth']}, "
         f"{results['seconds']} s in all.",
     ]
+    if "gnss" in results:
+        lines += ["", *_gnss_table(results)]
     return "\n".join(lines) + "\n"
+
+
+#: The side-by-side table of an evaluation with ``--gnss-sigma``.
+GNSS_COLUMNS = (("sprint_recall@1", "SPRINT@1"), ("smoothed_recall@1", "smoothed@1"),
+                ("merge_precision", "merge P"), ("merge_recall", "merge R"),
+                ("edges_added", "edges (wrong)"), ("novel_merged", "novel merged"))
+
+
+def _gnss_table(results: dict[str, Any]) -> list[str]:
+    """Image only beside GNSS-aided, per query and overall (``results["gnss"]``)."""
+    gnss = results["gnss"]
+    lines = [f"GNSS-aided beside image only (fixes simulated at sigma {gnss['sigma_m']} m, "
+             "seed {}):".format(gnss["seed"]), "",
+             "| query | run | " + " | ".join(t for _, t in GNSS_COLUMNS) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in GNSS_COLUMNS) + " |"]
+    pairs = list(zip(results["queries"], gnss["queries"], strict=True))
+    if len(pairs) > 1:
+        pairs.append((results["overall"], gnss["overall"]))
+    for plain, aided in pairs:
+        for run, row in (("image only", plain), ("GNSS-aided", aided)):
+            lines.append(f"| {row['query']} | {run} | "
+                         + " | ".join(_cell(row, k) for k, _ in GNSS_COLUMNS) + " |")
+    return lines
 
 
 def write_report(results: dict[str, Any], out_dir: Path) -> dict[str, Path]:

@@ -22,6 +22,13 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 
 A decision is correct when its place is a true match of its frame by the data set's ground
 truth; a merged decision on a frame without a true match is wrong.
+
+With ``gnss_sigma`` > 0 the protocol runs a second time, GNSS-aided: every traversal gets fixes
+simulated from its ground-truth positions (:func:`sprint_map.frontend.gnss.simulate_fixes`:
+drift, dropouts, multipath), which the maps store as its positions and its localisation and
+merge use (:mod:`sprint_map.localize.gnss`). The results gain ``"gnss"``: ``sigma_m``, the
+receiver ``model``, its ``seed``, and ``queries`` / ``overall`` rows with the same keys as the
+image-only ones (``results["gnss"]["overall"]["merge_precision"]``, ...).
 """
 
 from __future__ import annotations
@@ -40,9 +47,11 @@ from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
 from sprint_map.frontend.dataset import Dataset, Traversal
+from sprint_map.frontend.gnss import GnssModel, simulate_fixes
 from sprint_map.frontend.groundtruth import GroundTruth
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
+from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Descriptors
 
 __all__ = ["Describe", "EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
@@ -67,6 +76,10 @@ class EvalOptions:
         Keep every ``stride``-th frame of every traversal.
     ks : tuple of int
         k of the k-NN recall baselines.
+    gnss_sigma : float
+        Metres (per axis) of the simulated GNSS fixes of the aided run; 0: no aided run.
+    gnss_seed : int
+        Seed of the simulated fixes (traversal ``i`` draws from ``(gnss_seed, i)``).
     """
 
     protocol: str = "lifelong"
@@ -75,10 +88,15 @@ class EvalOptions:
     both_directions: bool = False
     stride: int = 1
     ks: tuple[int, ...] = (1, 5, 10)
+    gnss_sigma: float = 0.0
+    gnss_seed: int = 0
 
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
             raise InputError(f"protocol must be one of {', '.join(PROTOCOLS)}")
+        if not (np.isfinite(self.gnss_sigma) and self.gnss_sigma >= 0):
+            raise InputError(f"--gnss-sigma must be a finite number >= 0 metres (0: off), got "
+                             f"{self.gnss_sigma}")
 
 
 @dataclass
@@ -210,7 +228,7 @@ def describe_with_thumbnails(m: SprintMap, traversal: Traversal, stride: int,
 
 def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
                    ks: tuple[int, ...], hmm: HMMConfig | None, *, smooth: bool = False,
-                   thumbnails: Sequence[bytes] | None = None
+                   thumbnails: Sequence[bytes] | None = None, fixes: np.ndarray | None = None
                    ) -> tuple[QueryResult, list[FrameDecision]]:
     """Answer every frame of ``rows`` by exact k-NN and by streamed SPRINT, and score both.
 
@@ -218,7 +236,8 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     (what :meth:`SprintMap.localize` with ``smooth=True`` gives, from the hits of the streamed
     pass) and the map's merge rule is scored on it (:meth:`QueryResult.score_merge`): what
     merging the query would add, its runs verified on ``thumbnails`` as ``ingest`` would).
-    The returned decisions are the streamed (causal) ones.
+    The returned decisions are the streamed (causal) ones. ``fixes``: the query's GNSS fixes
+    (:meth:`SprintMap.ingest`), for SPRINT's answers (k-NN is image only).
     """
     names = {s.seq_id: s.name for s in m.sequences()}
     db_names = list(names.values())
@@ -239,7 +258,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     has_match = gt.has_match(query, frames, db_names)
 
     # stepped frame by frame (a vehicle's per-frame cost); hits kept for the smoothed decisions
-    localizer = m.localizer(hmm, record=smooth)
+    localizer = m.localizer(hmm, record=smooth, fixes=fixes)
     decisions = [localizer.step(row) for row in rows]
     best_correct = _correct(query, [d.best for d in decisions], gt, names)
     result = QueryResult(
@@ -292,52 +311,39 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
     results as a JSON-ready dict: one row per query traversal plus an ``overall`` row over all
     query frames.
     """
-    describe_fn = describe or describe_with_thumbnails
     work_dir.mkdir(parents=True, exist_ok=True)
     gt = dataset.ground_truth(options.stride)
     started = time.perf_counter()
-    results: list[QueryResult] = []
-    if options.protocol == "pairs":
-        names = dataset.names
-        if len(names) < 2 and not (options.database and options.query):
-            raise InputError(f"{dataset.path}: the pairs protocol needs two traversals")
-        db = options.database or names[0]
-        query = options.query or next(n for n in names if n != db)
-        pairs = [(db, query)] + ([(query, db)] if options.both_directions else [])
-        for db_name, q_name in pairs:
-            map_dir = _fresh(work_dir / f"map-{db_name}")
-            with SprintMap.create(map_dir, config) as m:
-                log(f"mapping {db_name}")
-                db_rows, db_thumbs = describe_fn(m, dataset[db_name], options.stride)
-                m.add_sequence(db_rows, name=db_name, thumbnails=db_thumbs,
-                               positions=_xy(dataset[db_name].positions(options.stride)))
-                log(f"localising {q_name} against {db_name}")
-                rows, thumbs = describe_fn(m, dataset[q_name], options.stride)
-                results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
-                                              smooth=True, thumbnails=thumbs)[0])
-    else:
-        map_dir = _fresh(work_dir / "map-lifelong")
-        with SprintMap.create(map_dir, config) as m:
-            for i, traversal in enumerate(dataset):
-                rows, thumbs = describe_fn(m, traversal, options.stride)
-                positions = _xy(traversal.positions(options.stride))
-                if i == 0:
-                    log(f"mapping {traversal.name} (first traversal)")
-                    m.add_sequence(rows, name=traversal.name, positions=positions,
-                                   thumbnails=thumbs)
-                    continue
-                log(f"localising {traversal.name} against {i} earlier traversal(s), then merging")
-                seq_names = {s.seq_id: s.name for s in m.sequences()}
-                result, _ = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm)
-                ingested = m.ingest(rows, name=traversal.name, positions=positions, hmm=hmm,
-                                    thumbnails=thumbs)
-                result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
-                                   _edges_per_decision(m.config))
-                result.edges_added = ingested.added.edges_added
-                results.append(result)
+    described: dict[str, tuple[Descriptors, list[bytes] | None]] = {}
+
+    def describe_once(m: SprintMap, traversal: Traversal, stride: int
+                      ) -> tuple[Descriptors, list[bytes] | None]:
+        if traversal.name not in described:  # the aided run reads the same rows
+            described[traversal.name] = (describe or describe_with_thumbnails)(m, traversal,
+                                                                               stride)
+        return described[traversal.name]
+
+    results = _run_protocol(dataset, work_dir, config, options, hmm, log, describe_once, gt,
+                            None)
+    aided: list[QueryResult] = []
+    model = GnssModel(sigma=options.gnss_sigma) if options.gnss_sigma > 0 else None
+    if model is not None:
+        index = {name: i for i, name in enumerate(dataset.names)}
+
+        def fixes_of(traversal: Traversal) -> np.ndarray:
+            truth = traversal.positions(options.stride)
+            if truth is None:
+                raise InputError(f"{traversal.folder}: --gnss-sigma simulates fixes from "
+                                 "positions, and this traversal has none")
+            seed = np.random.SeedSequence([options.gnss_seed, index[traversal.name]])
+            return simulate_fixes(truth[:, 1:3], model, seed)
+
+        log(f"GNSS-aided run: fixes simulated at sigma {options.gnss_sigma} m")
+        aided = _run_protocol(dataset, work_dir, config, options, hmm, log, describe_once, gt,
+                              fixes_of)
     rows_out = [r.summary(options.ks) for r in results]
     overall = _overall(results, options.ks)
-    return {
+    out = {
         "dataset": str(dataset.path),
         "protocol": options.protocol,
         "stride": options.stride,
@@ -358,6 +364,73 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         "_latency": {"retrieval_ms": sum((r.retrieval_ms for r in results), []),
                      "hmm_ms": sum((r.hmm_ms for r in results), [])},
     }
+    if model is not None:
+        out["gnss"] = {"sigma_m": options.gnss_sigma, "seed": options.gnss_seed,
+                       "model": model.to_dict(), "config": dataclass_dict.to_dict(config.gnss),
+                       "queries": [r.summary(options.ks) for r in aided],
+                       "overall": _overall(aided, options.ks)}
+    return out
+
+
+FixesOf = Callable[[Traversal], np.ndarray]
+
+
+def _run_protocol(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
+                  hmm: HMMConfig | None, log: Log, describe_fn: Describe, gt: GroundTruth,
+                  fixes_of: FixesOf | None) -> list[QueryResult]:
+    """One run of ``options.protocol``: image only (``fixes_of`` None; the maps store the
+    ground-truth positions), or GNSS-aided (each traversal's fixes ``fixes_of(traversal)`` are
+    what its sequence stores and what its localisation reads; maps in ``*-gnss`` folders)."""
+    suffix = "" if fixes_of is None else "-gnss"
+    results: list[QueryResult] = []
+
+    def placed(traversal: Traversal) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if fixes_of is None:
+            return _xy(traversal.positions(options.stride)), None
+        fixes = fixes_of(traversal)
+        return fixes[:, :2], fixes
+
+    if options.protocol == "pairs":
+        names = dataset.names
+        if len(names) < 2 and not (options.database and options.query):
+            raise InputError(f"{dataset.path}: the pairs protocol needs two traversals")
+        db = options.database or names[0]
+        query = options.query or next(n for n in names if n != db)
+        pairs = [(db, query)] + ([(query, db)] if options.both_directions else [])
+        for db_name, q_name in pairs:
+            map_dir = _fresh(work_dir / f"map-{db_name}{suffix}")
+            with SprintMap.create(map_dir, config) as m:
+                log(f"mapping {db_name}")
+                db_rows, db_thumbs = describe_fn(m, dataset[db_name], options.stride)
+                m.add_sequence(db_rows, name=db_name, thumbnails=db_thumbs,
+                               positions=placed(dataset[db_name])[0])
+                log(f"localising {q_name} against {db_name}")
+                rows, thumbs = describe_fn(m, dataset[q_name], options.stride)
+                results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
+                                              smooth=True, thumbnails=thumbs,
+                                              fixes=placed(dataset[q_name])[1])[0])
+    else:
+        map_dir = _fresh(work_dir / f"map-lifelong{suffix}")
+        with SprintMap.create(map_dir, config) as m:
+            for i, traversal in enumerate(dataset):
+                rows, thumbs = describe_fn(m, traversal, options.stride)
+                positions, fixes = placed(traversal)
+                if i == 0:
+                    log(f"mapping {traversal.name} (first traversal)")
+                    m.add_sequence(rows, name=traversal.name, positions=positions,
+                                   thumbnails=thumbs)
+                    continue
+                log(f"localising {traversal.name} against {i} earlier traversal(s), then merging")
+                seq_names = {s.seq_id: s.name for s in m.sequences()}
+                result, _ = evaluate_query(m, traversal.name, rows, gt, options.ks, hmm,
+                                           fixes=fixes)
+                ingested = m.ingest(rows, name=traversal.name, positions=positions, hmm=hmm,
+                                    thumbnails=thumbs, fixes=fixes)
+                result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
+                                   _edges_per_decision(m.config))
+                result.edges_added = ingested.added.edges_added
+                results.append(result)
+    return results
 
 
 def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
