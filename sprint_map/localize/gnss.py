@@ -7,16 +7,23 @@ vertices, each frame with a fix is weighed by where it is (``docs/hmm.md``, "GNS
 * the **gate** of a fix and a mapped position is
   ``max(gate_m, n_sigma * sqrt(sigma_fix^2 + sigma_map^2))``: farther apart, the two cannot be
   the same place (beyond the receivers' accuracy and a slow drift of both);
-* (a) a decision whose place lies beyond the gate of the frame's fix is marked
-  ``confirmed=False``: answered, never merged (:mod:`sprint_map.merge.rule`);
+* the **direction of travel** of a frame is read from its drive's track (the fixes, or the
+  positions the map stores, ``HEADING_HALF`` frames either side; unknown over less than
+  ``HEADING_MIN_SPAN_M``): a place whose mapped direction differs from the frame's by more than
+  ``heading_gate_deg`` is not where the vehicle is either (a street driven the other way, a
+  crossing street at an intersection), however near;
+* (a) a decision whose place lies beyond the gate of the frame's fix (or against its
+  direction) is marked ``confirmed=False``: answered, never merged
+  (:mod:`sprint_map.merge.rule`);
 * (b) the ``max_added`` map vertices nearest the fix inside the gate (the nearest of each
   sequence there first, then the second nearest of each, ...) join the frame's retrieval hits,
   at the distance of its farthest hit, so a retrieval miss near a good fix can still be
   recovered;
 * every hit is weighed by ``w(d) = exp(-min(far_log_cap, ((d - gate) / sigma)^2 / 2))`` for
   its distance ``d`` to the fix beyond the gate (1 inside), ``sigma`` the two accuracies
-  combined: a hit on a lookalike (or an identical twin) street elsewhere loses to the place
-  where the vehicle is; the cap bounds what one wrong fix (multipath) can veto;
+  combined, and by ``exp(-far_log_cap)`` against the frame's direction: a hit on a lookalike
+  (or an identical twin) street elsewhere loses to the place where the vehicle is; the cap
+  bounds what one wrong fix can veto;
 * (c) the unmapped place's likelihood is divided by ``w`` of the nearest mapped position when
   every hit of the frame has a position: a fix far from every mapped place raises
   ``novel_prob``.
@@ -42,12 +49,16 @@ import numpy as np
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
 
-__all__ = ["MAX_COORD_M", "GnssAid", "GnssConfig", "PositionIndex", "consistent", "validate_fixes"]
+__all__ = ["HEADING_HALF", "HEADING_MIN_SPAN_M", "MAX_COORD_M", "GnssAid", "GnssConfig", "PositionIndex", "consistent", "validate_fixes"]
 
 #: Planar coordinates beyond this many metres lie on no map of the Earth: a bad fix.
 MAX_COORD_M = 1e8
 #: Nearest mapped vertices read per look-up, before one per sequence is kept.
 _QUERY_K = 32
+#: A frame's direction of travel: from its track this many frames before to as many after...
+HEADING_HALF = 4
+#: ... when those lie at least this many metres apart (else unknown).
+HEADING_MIN_SPAN_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,14 @@ class GnssConfig:
         not a hit's evidence).
     consistency_window : int
         Frames either side of a fix its drive's track is read over (0: every fix is kept).
+    heading_gate_deg : float
+        Largest difference (degrees) between a frame's direction of travel and its place's
+        (both from their tracks) for the place to be where the vehicle is (180: any).
+    offset_m : float
+        Along a drive's decisions on one sequence, the offset from each fix to its place's
+        mapped position drifts slowly (both drifts do); a decision whose offset lies farther
+        than this from the median offset of those within ``consistency_window`` frames is not
+        confirmed (a place stuck while the drive moves on; 0: off).
     """
 
     sigma_m: float = 10.0
@@ -84,6 +103,8 @@ class GnssConfig:
     far_log_cap: float = 8.0
     added_log_weight: float = -1.0
     consistency_window: int = 8
+    heading_gate_deg: float = 45.0
+    offset_m: float = 20.0
 
     def __post_init__(self) -> None:
         for name in ("sigma_m", "map_sigma_m", "gate_m", "n_sigma", "far_log_cap"):
@@ -97,6 +118,10 @@ class GnssConfig:
             raise ValueError("added_log_weight must be in [-far_log_cap, 0]")
         if not isinstance(self.consistency_window, int) or self.consistency_window < 0:
             raise ValueError("consistency_window must be an integer >= 0")
+        if not (math.isfinite(self.offset_m) and self.offset_m >= 0):
+            raise ValueError("offset_m must be a finite number >= 0")
+        if not 0 < self.heading_gate_deg <= 180:
+            raise ValueError("heading_gate_deg must be in (0, 180]")
 
     def gate(self, sigma_fix: Any, sigma_map: Any) -> Any:
         """The gate (metres) of fixes of these accuracies (arrays broadcast). O(size)."""
@@ -171,6 +196,8 @@ class PositionIndex:
 
         self.xy = np.full((vertices, 2), np.nan)
         self.sigma = np.full(vertices, np.nan)
+        #: direction of travel (radians) of each vertex from its sequence's track (NaN: unknown)
+        self.heading = np.full(vertices, np.nan)
         seq = np.full(vertices, -1, dtype=np.int64)
         for i, (first, rows) in enumerate(placed):
             rows = np.asarray(rows, dtype=np.float64)
@@ -178,10 +205,12 @@ class PositionIndex:
             xy, sigma = _bridged(rows[:stop - first], map_sigma)
             self.xy[first:stop] = xy
             self.sigma[first:stop] = sigma
+            self.heading[first:stop] = track_heading(xy)
             seq[first:stop] = i
         known = np.isfinite(self.xy).all(axis=1)
         self.ids = np.flatnonzero(known)
         self.seq = seq[self.ids]
+        self._seq_of = seq
         self.tree = cKDTree(self.xy[self.ids]) if self.ids.size else None
 
     @property
@@ -189,16 +218,26 @@ class PositionIndex:
         """Vertices with a position (bridged ones included)."""
         return int(self.ids.size)
 
-    def position(self, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(xy (m, 2), sigma (m,))`` of vertices (NaN: no position, or an id beyond the
-        snapshot). O(m)."""
+    def position(self, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(xy (m, 2), sigma (m,), heading (m,))`` of vertices (NaN: unknown, or an id beyond
+        the snapshot). O(m)."""
         v = np.asarray(vertex_ids, dtype=np.int64)
         inside = (v >= 0) & (v < len(self.sigma))
         xy = np.full((len(v), 2), np.nan)
         sigma = np.full(len(v), np.nan)
+        heading = np.full(len(v), np.nan)
         xy[inside] = self.xy[v[inside]]
         sigma[inside] = self.sigma[v[inside]]
-        return xy, sigma
+        heading[inside] = self.heading[v[inside]]
+        return xy, sigma, heading
+
+    def sequence_of(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """Index (in the order placed) of each vertex's sequence; -1: none. O(m)."""
+        v = np.asarray(vertex_ids, dtype=np.int64)
+        out = np.full(len(v), -1, dtype=np.int64)
+        inside = (v >= 0) & (v < len(self._seq_of))
+        out[inside] = self._seq_of[v[inside]]
+        return out
 
     def near(self, x: float, y: float, k: int = _QUERY_K) -> tuple[np.ndarray, np.ndarray,
                                                                    np.ndarray]:
@@ -233,6 +272,9 @@ class GnssAid:
         self.config = config
         self.index = index
         self.fixes = np.where(consistent(fixes, config)[:, None], fixes, np.nan)
+        #: each frame's direction of travel from the kept fixes (bridged over dropouts)
+        self.heading = track_heading(_bridged(self.fixes, config.sigma_m)[0])
+        self._cos_gate = math.cos(math.radians(config.heading_gate_deg))
 
     def fix(self, frame: int) -> tuple[float, float, float] | None:
         """``(x, y, sigma_m)`` of frame ``frame``, or None without a fix."""
@@ -256,7 +298,8 @@ class GnssAid:
         valid = ids >= 0
         near_ids, near_m, near_seq = self.index.near(x, y)
         near_sigma = self.index.sigma[near_ids]
-        inside = near_m <= cfg.gate(sigma_fix, near_sigma)
+        inside = (near_m <= cfg.gate(sigma_fix, near_sigma)) & self._along(
+            frame, self.index.heading[near_ids])
         n_image = len(ids)
         if cfg.max_added and inside.any() and valid.any():
             added = near_ids[inside][_round_robin(near_seq[inside])]
@@ -266,12 +309,13 @@ class GnssAid:
                 ids = np.concatenate([ids, added])
                 dists = np.concatenate([dists, np.full(added.size, far, dtype=dists.dtype)])
                 valid = ids >= 0
-        xy, sigma_map = self.index.position(np.where(valid, ids, -1))
+        xy, sigma_map, heading = self.index.position(np.where(valid, ids, -1))
         placed = np.isfinite(xy[:, 0])
         weights = np.ones(len(ids))
         weights[n_image:] = math.exp(cfg.added_log_weight)
         d = np.hypot(xy[placed, 0] - x, xy[placed, 1] - y)
         weights[placed] *= cfg.weight(d, sigma_fix, sigma_map[placed])
+        weights[placed & ~self._along(frame, heading)] *= math.exp(-cfg.far_log_cap)
         sink_weight = 1.0
         if valid.any() and placed[valid].all() and near_m.size:
             sink_weight = 1.0 / float(cfg.weight(near_m[0], sigma_fix, near_sigma[0]))
@@ -279,15 +323,51 @@ class GnssAid:
 
     def distance(self, frame: int, vertex_id: int | None) -> tuple[float, bool]:
         """Metres from frame ``frame``'s fix to vertex ``vertex_id``'s position (NaN without
-        either) and whether that lies inside their gate. O(1)."""
+        either) and whether the vertex is plausible: inside their gate, and along the frame's
+        direction of travel where both are known. O(1)."""
         fix = self.fix(frame)
         if fix is None or vertex_id is None:
             return math.nan, True
-        xy, sigma = self.index.position(np.array([vertex_id]))
+        xy, sigma, heading = self.index.position(np.array([vertex_id]))
         if math.isnan(xy[0, 0]):
             return math.nan, True
         d = math.hypot(xy[0, 0] - fix[0], xy[0, 1] - fix[1])
-        return d, bool(d <= self.config.gate(fix[2], sigma[0]))
+        return d, bool(d <= self.config.gate(fix[2], sigma[0])
+                       and self._along(frame, heading)[0])
+
+    def off_track(self, frames: np.ndarray, vertex_ids: np.ndarray) -> np.ndarray:
+        """Which decisions (frame, decided vertex; -1: none) break their run's offset: the
+        fix minus the place's mapped position lies farther than ``offset_m`` from the median
+        of that offset over the decisions on the same sequence within ``consistency_window``
+        frames (at least 3 of them). O(n w)."""
+        cfg = self.config
+        n = len(frames)
+        out = np.zeros(n, dtype=bool)
+        if not cfg.offset_m or not cfg.consistency_window or not n:
+            return out
+        xy, _, _ = self.index.position(vertex_ids)
+        fixes = self.fixes[np.clip(frames, 0, len(self.fixes) - 1)][:, :2]
+        fixes[(frames < 0) | (frames >= len(self.fixes))] = np.nan
+        offset = fixes - xy
+        known = np.isfinite(offset).all(axis=1) & (vertex_ids >= 0)
+        seq = self.index.sequence_of(vertex_ids)
+        w = cfg.consistency_window
+        for i in np.flatnonzero(known).tolist():
+            lo, hi = max(i - w, 0), min(i + w + 1, n)
+            near = known[lo:hi] & (seq[lo:hi] == seq[i])
+            if near.sum() >= 3:
+                median = np.median(offset[lo:hi][near], axis=0)
+                out[i] = bool(np.hypot(*(offset[i] - median)) > cfg.offset_m)
+        return out
+
+    def _along(self, frame: int, heading: np.ndarray) -> np.ndarray:
+        """Whether places of these directions (radians, NaN: unknown) agree with frame
+        ``frame``'s direction of travel (True where either is unknown). O(m)."""
+        h = float(self.heading[frame]) if 0 <= frame < len(self.heading) else math.nan
+        if math.isnan(h):
+            return np.ones(len(heading), dtype=bool)
+        out: np.ndarray = ~(np.cos(heading - h) < self._cos_gate)  # NaN compares False
+        return out
 
 
 def _round_robin(seq: np.ndarray) -> np.ndarray:
@@ -344,4 +424,20 @@ def consistent(fixes: Float64Array, config: GnssConfig) -> np.ndarray:
         off = np.hypot(*(fixes[enough, :2] - median).T)
         limit = np.maximum(config.gate_m, 1.5 * fixes[enough, 2])
         out[np.flatnonzero(enough)] = off <= limit
+    return out
+
+
+def track_heading(xy: np.ndarray) -> np.ndarray:
+    """Direction of travel (radians) of each frame of a track (``(n, 2)``, NaN rows: no
+    position): from the position :data:`HEADING_HALF` frames before to as many after (clipped
+    at the ends); NaN where either is unknown or they lie less than
+    :data:`HEADING_MIN_SPAN_M` apart. O(n)."""
+    n = len(xy)
+    idx = np.arange(n)
+    a = xy[np.maximum(idx - HEADING_HALF, 0)]
+    b = xy[np.minimum(idx + HEADING_HALF, n - 1)]
+    d = b - a
+    out: np.ndarray = np.arctan2(d[:, 1], d[:, 0])
+    with np.errstate(invalid="ignore"):
+        out[~(np.hypot(d[:, 0], d[:, 1]) >= HEADING_MIN_SPAN_M)] = np.nan
     return out

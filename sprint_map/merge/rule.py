@@ -47,7 +47,8 @@ lookalike test can say "a lookalike".
 A decision marked ``confirmed=False`` (the deeper pass of a drive searched with ``smooth_k``
 neighbours, where the rule did not accept the ``k``-neighbour decision; or a run claiming a
 revisit that the drive's own thumbnails deny, :meth:`RunVerifier.contradicted
-<sprint_map.merge.verification.RunVerifier.contradicted>`) is never merged.
+<sprint_map.merge.verification.RunVerifier.contradicted>`; or one whose place lies beyond the
+gate of its frame's GNSS fix, :mod:`sprint_map.localize.gnss`) is never merged.
 
 The decisions are usually the smoothed ones (:mod:`sprint_map.hmm.smoother`): after the whole
 drive has been seen, the future of the drive supports or contradicts each frame.

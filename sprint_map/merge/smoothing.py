@@ -10,7 +10,10 @@ in up to four steps (``docs/hmm.md``, "Decision: place mass and novelty"):
    unmapped-place distance, and a second pass gives every decision its ``novel_prob``;
 3. **verification** on the thumbnails (:mod:`sprint_map.merge.verification`), with them;
 4. the **deep pass** over all ``smooth_k`` hits, when deeper than ``k``: frames the rule does not
-   accept take its place, marked ``confirmed=False`` (answered, never merged).
+   accept take its place, marked ``confirmed=False`` (answered, never merged);
+5. with GNSS fixes, decisions whose fix-to-place offset breaks their run's
+   (:meth:`GnssAid.off_track <sprint_map.localize.gnss.GnssAid.off_track>`) are marked
+   ``confirmed=False``.
 
 :func:`smoothed_decisions` is the one entry: ``ingest``, ``localize --smooth``, ``eval``, the
 service's commit and the ingest farm all call it.
@@ -106,6 +109,12 @@ def smoothed_decisions(localizer: Localizer, smap: MergeableMap,
             out = _verify(out, thumbnails, smap)
         if deep:
             out = _deep_decisions(localizer, smap.config.merge_rule, out, deep_hits)
+        if localizer.gnss is not None:  # a place stuck while the fixes move on
+            stuck = localizer.gnss.off_track(
+                np.array([d.frame for d in out]),
+                np.array([-1 if d.vertex_id is None else d.vertex_id for d in out]))
+            out = [dataclasses.replace(d, confirmed=False) if x else d
+                   for d, x in zip(out, stuck.tolist(), strict=True)]
     localizer.timing.smooth_ms = (time.perf_counter() - start) * 1e3
     return out
 

@@ -115,7 +115,8 @@ def test_map_config_stored_without_gnss_opens_with_the_defaults():
     stored = MapConfig(dim=8).to_dict()
     assert stored["gnss"] == {"sigma_m": 10.0, "map_sigma_m": 10.0, "gate_m": 25.0,
                               "n_sigma": 3.0, "max_added": 4, "far_log_cap": 8.0,
-                              "added_log_weight": -1.0, "consistency_window": 8}
+                              "added_log_weight": -1.0, "consistency_window": 8,
+                              "heading_gate_deg": 45.0, "offset_m": 20.0}
     del stored["gnss"]  # a map written before GNSS
     assert MapConfig.from_dict(stored).gnss == GnssConfig()
 
@@ -128,7 +129,9 @@ def test_position_index_by_vertex_and_nearest():
                        np.full(5, 2.0)]
     index = PositionIndex(20, [(0, rows), (12, with_sigma)], map_sigma=9.0)
     assert index.size == 14
-    xy, sigma = index.position(np.array([0, 3, 9, 11, 13, 99, -1]))
+    xy, sigma, heading = index.position(np.array([0, 3, 9, 11, 13, 99, -1]))
+    np.testing.assert_allclose(heading[[0, 1]], 0.0)  # east along the track
+    assert np.isnan(heading[[3, 5, 6]]).all()
     np.testing.assert_array_equal(xy[:2], [[0, 0], [15, 0]])  # bridged on the line
     assert np.isnan(xy[[2, 3, 5, 6]]).all()  # no fix after it, no position, beyond the map
     np.testing.assert_array_equal(sigma[[0, 1, 4]], [9.0, 9.0 + 0.25 * 10, 2.0])
@@ -170,6 +173,37 @@ def test_fixes_off_the_drives_track_are_dropped():
     assert not kept[np.isnan(jumpy[:, 0])].any()
     everything = consistent(jumpy, GnssConfig(consistency_window=0))
     np.testing.assert_array_equal(everything, ~np.isnan(jumpy[:, 0]))
+
+
+def test_a_place_against_the_direction_of_travel_is_not_plausible():
+    """The same street driven the other way: as near as can be, but facing the other way."""
+    rows = np.c_[np.arange(100) * 5.0, np.zeros(100)]
+    index = PositionIndex(100, [(0, rows)], map_sigma=10.0)
+    east = np.c_[np.arange(40, 60) * 5.0, np.full(20, 2.0)]
+    for track, expected in ((east, True), (east[::-1], False)):
+        aid = GnssAid(GnssConfig(), index, validate_fixes(track, None, 10.0))
+        assert aid.distance(10, 50)[1] is expected
+        cue = aid.cue(10, np.array([50]), np.array([1.0]))
+        assert cue is not None and bool(cue[2][0] == 1.0) is expected
+        added = cue[0][1:]
+        assert added.size == (4 if expected else 0)  # nothing added against the direction
+    aid = GnssAid(GnssConfig(heading_gate_deg=180.0), index,
+                  validate_fixes(east[::-1], None, 10.0))
+    assert aid.distance(10, 50)[1]
+
+
+def test_a_place_stuck_while_the_fixes_move_on_is_off_track():
+    rows = np.c_[np.arange(100) * 5.0, np.zeros(100)]
+    index = PositionIndex(100, [(0, rows)], map_sigma=10.0)
+    truth = np.c_[np.arange(30, 60) * 5.0, np.zeros(30)]
+    aid = GnssAid(GnssConfig(), index, validate_fixes(truth + [4.0, 3.0], None, 10.0))
+    frames = np.arange(30)
+    places = 30 + frames.copy()
+    places[10:20] = 40  # stuck on one image for ten frames (50 m)
+    off = aid.off_track(frames, places)
+    assert not off[:14].any() and off[16:20].all() and not off[21:].any()
+    assert not GnssAid(GnssConfig(offset_m=0.0), index, aid.fixes).off_track(frames,
+                                                                             places).any()
 
 
 def test_cue_far_from_every_mapped_place_raises_the_unmapped_place():
