@@ -6,6 +6,7 @@ from ground truth plus white noise.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -354,3 +355,32 @@ def test_bad_fixes_leave_the_map_unchanged(twins, bad):
         with pytest.raises(InputError, match="GNSS fixes"):  # streamed: checked at the end
             m.ingest(iter([query[:50], query[50:]]), name="drive", fixes=fixes)
         assert m.stats() == before
+
+
+def test_localize_and_ingest_commands_read_fixes_from_positions(one_street, tmp_path):
+    from click.testing import CliRunner
+
+    from sprint_map.cli.main import main
+
+    path, query, truth = one_street
+    fixes = fixes_for(truth, 40)
+    np.save(tmp_path / "drive.npy", query)
+    csv = tmp_path / "drive.csv"  # frames without a fix have no row
+    csv.write_text("frame,x,y,sigma_m\n" + "".join(
+        f"{i},{x},{y},{s}\n" for i, (x, y, s) in enumerate(fixes.tolist()) if not math.isnan(x)))
+    out = CliRunner().invoke(main, ["localize", str(path), str(tmp_path / "drive.npy"),
+                                    "--smooth", "--positions", str(csv), "--json"])
+    assert out.exit_code == 0, out.output
+    decisions = json.loads(out.output)["decisions"]
+    dists = [d["gnss_dist_m"] for d in decisions]
+    assert all(d is None for d, f in zip(dists, fixes, strict=True) if math.isnan(f[0]))
+    assert np.median([d for d in dists if d is not None]) < 30
+    out = CliRunner().invoke(main, ["ingest", str(path), str(tmp_path / "drive.npy"),
+                                    "--positions", str(csv), "--json"])
+    assert out.exit_code == 0, out.output
+    result = json.loads(out.output)
+    assert result["edges_added"] > 0
+    assert any(d["gnss_dist_m"] is not None for d in result["decisions"])
+    with SprintMap.open(path, readonly=True) as m:
+        stored = m.positions(result["seq_id"])
+    assert stored is not None and np.isnan(stored[np.isnan(fixes[:, 0]), 0]).all()
