@@ -196,7 +196,7 @@ class SprintMap:
         seen its decisions are re-made from the forward-backward smoothed posterior over the
         same sparse active set (:mod:`sprint_map.hmm.smoother`), and the merge rule
         (:mod:`sprint_map.merge.rule`: confident, not novel, temporally consistent) selects
-        those that become edges (both ways if ``config.merge_both_ways``). The sequence, its
+        those that become edges (both ways if ``config.merge.both_ways``). The sequence, its
         edges and the union-find merges are committed in one transaction. With
         ``merge=False``, or on an empty map, the sequence is appended as it is, without
         localisation or edges.
@@ -260,7 +260,7 @@ class SprintMap:
         drive at a time per writer.
         """
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
-                           self.config.merge_rule, self.config.merge_both_ways,
+                           self.config.merge, self.config.merge.both_ways,
                            self.store.component_of)
 
     def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
@@ -325,7 +325,7 @@ class SprintMap:
         See :mod:`sprint_map.merge.rule`; the rule's parameters are the ``merge_*`` fields of
         the map's config.
         """
-        return select_merges(decisions, self.config.merge_rule)
+        return select_merges(decisions, self.config.merge)
 
     def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
               positions: np.ndarray | None = None, source: str = "") -> AddResult:

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
 
@@ -208,7 +208,7 @@ class MapFactory:
         edges : int
             Random edges from each sequence (after the first) to earlier ones.
         """
-        built = self.empty(MapConfig(dim=dim, shard_rows=shard_rows, **config))
+        built = self.empty(MapConfig(dim=dim, **config, store=StoreOptions(shard_rows=shard_rows)))
         with MapStore.create(built.path, built.config) as store:
             for i, length in enumerate(lengths):
                 self.add_random(store, built, length, positions=positions, edges=edges, index=i)

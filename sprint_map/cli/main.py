@@ -660,7 +660,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
     data = Dataset.open(dataset, gt or None)
     config = config_for(data, descriptor)
     if map_pairs:
-        config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
+        config = config.replace(**_key_values(map_pairs, "--map-config"))
     overrides = _hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     options = EvalOptions(protocol=protocol, database=database, query=query,

@@ -18,7 +18,7 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 - ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
   (:meth:`SprintMap.select_merges <sprint_map.map.SprintMap.select_merges>`), and
   ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
-  decision when ``config.merge_both_ways``).
+  decision when ``config.merge.both_ways``).
 
 A decision is correct when its place is a true match of its frame by the data set's ground
 truth; a merged decision on a frame without a true match is wrong.
@@ -275,7 +275,7 @@ def _correct(query: str, places: list[tuple[int, int] | None], gt: GroundTruth,
 
 def _edges_per_decision(config: MapConfig) -> int:
     """Edges one merged decision makes (:func:`sprint_map.merge.commit.merge_edges`)."""
-    return 2 if config.merge_both_ways else 1
+    return 2 if config.merge.both_ways else 1
 
 
 def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
@@ -336,8 +336,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         "ground_truth": gt.spec.to_dict(),
         "config": config.to_dict(),
         "hmm": (hmm or config.hmm).to_dict(),
-        "merge_rule": {**config.merge_rule.to_dict(), "merge_both_ways": config.merge_both_ways,
-                       "merge_verify_inliers": config.merge_verify_inliers},
+        "merge_rule": config.merge.reported(),
         "queries": rows_out,
         "overall": overall,
         "recall_by_traversal": [

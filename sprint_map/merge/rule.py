@@ -55,9 +55,10 @@ drive has been seen, the future of the drive supports or contradicts each frame.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -94,25 +95,81 @@ class MergeDecision(Protocol):
 
 @dataclass(frozen=True)
 class MergeRule:
-    """The merge rule's parameters (fields of :class:`sprint_map.config.MapConfig`)."""
+    """Which decisions of a drive become edges: the rule's parameters (``MapConfig.merge``).
+
+    Parameters
+    ----------
+    threshold : float
+        Minimum place probability of a merged decision.
+    max_novel : float
+        A decision whose probability of being an unmapped place exceeds this is not merged.
+    window : int
+        Largest frame gap between consecutive frames of a run (and the ``min_agree`` window).
+    min_agree : int
+        Neighbours within ``window`` that must agree along the same sequence (0: off).
+    max_rate : float
+        Images of the matched sequence a run may advance per frame.
+    min_run : int
+        Frames of the shortest merged run (0 or 1: off).
+    dist_quantile : float
+        A merged frame's best-hit distance is at most this quantile of the drive's frames that
+        pass every other test (0: off).
+    min_advance : float
+        Images per frame a run advances, at least, around each frame.
+    max_contrast : float
+        Largest median contrast of a merged run (0: off).
+    verify_inliers : int
+        Median inliers of a stretch that geometric verification on thumbnails confirms
+        (:mod:`sprint_map.merge.verification`; 0: off).
+    both_ways : bool
+        Store each merge edge in both directions (query -> map and map -> query).
+    """
 
     threshold: float = 0.5
-    max_novel: float = 1.0
-    window: int = 0
+    max_novel: float = 0.2
+    window: int = 3
     min_agree: int = 0
     max_rate: float = 3.0
-    min_run: int = 0
+    min_run: int = 20
     dist_quantile: float = 0.0
-    min_advance: float = 0.0
-    max_contrast: float = 0.0
+    min_advance: float = 0.3
+    max_contrast: float = 0.95
+    verify_inliers: int = 35
+    both_ways: bool = True
 
-    def to_dict(self) -> dict[str, float]:
-        return {"merge_threshold": self.threshold, "merge_max_novel": self.max_novel,
-                "merge_window": self.window, "merge_min_agree": self.min_agree,
-                "merge_max_rate": self.max_rate, "merge_min_run": self.min_run,
-                "merge_dist_quantile": self.dist_quantile,
-                "merge_min_advance": self.min_advance,
-                "merge_max_contrast": self.max_contrast}
+    def __post_init__(self) -> None:
+        if not 0 <= self.threshold <= 1:
+            raise ValueError("threshold must be in [0, 1]")
+        if not 0 <= self.max_novel <= 1:
+            raise ValueError("max_novel must be in [0, 1]")
+        if not isinstance(self.window, int) or self.window < 0:
+            raise ValueError("window must be an integer >= 0")
+        if not isinstance(self.min_agree, int) or not 0 <= self.min_agree <= 2 * self.window:
+            raise ValueError("min_agree must be an integer in [0, 2 * window]")
+        if not self.max_rate > 0:
+            raise ValueError("max_rate must be > 0")
+        if not isinstance(self.min_run, int) or self.min_run < 0:
+            raise ValueError("min_run must be an integer >= 0")
+        if not 0 <= self.dist_quantile <= 1:
+            raise ValueError("dist_quantile must be in [0, 1]")
+        if not 0 <= self.min_advance <= self.max_rate:
+            raise ValueError("min_advance must be in [0, max_rate]")
+        if not 0 <= self.max_contrast < math.inf:
+            raise ValueError("max_contrast must be a finite number >= 0")
+        if not isinstance(self.verify_inliers, int) or self.verify_inliers < 0:
+            raise ValueError("verify_inliers must be an integer >= 0")
+
+    @classmethod
+    def permissive(cls, **changes: Any) -> MergeRule:
+        """Every test off but the probability threshold (a baseline for experiments and
+        tests), with ``changes``: ``MergeRule.permissive(min_run=5)`` tests runs alone."""
+        base = {"max_novel": 1.0, "window": 0, "min_run": 0, "min_advance": 0.0,
+                "max_contrast": 0.0, "verify_inliers": 0}
+        return cls(**{**base, **changes})
+
+    def reported(self) -> dict[str, float | bool]:
+        """The rule as ``results.json``'s ``merge_rule`` reports it (``merge_``-prefixed)."""
+        return {f"merge_{f.name}": getattr(self, f.name) for f in fields(self)}
 
 
 def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.ndarray:
@@ -129,14 +186,14 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     --------
     >>> from sprint_map.localize.localizer import FrameDecision
     >>> ds = [FrameDecision(i, 0, 10 + i, 0.9) for i in range(5)]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_agree=1)).tolist()
     [True, True, True, True, True]
     >>> ds[2] = FrameDecision(2, 1, 40, 0.9)  # a jump to another drive: no neighbour agrees
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_agree=1)).tolist()
     [True, True, False, True, True]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=3)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_run=3)).tolist()
     [True, True, False, True, True]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=5)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_run=5)).tolist()
     [False, False, False, False, False]
     """
     n = len(decisions)

@@ -93,9 +93,7 @@ def test_protocols_score_knn_and_sprint(tmp_path, dataset, protocol):
         # every frame has a match here: nothing merged is novel
         assert q["merged_decisions"] > 0 and q["novel_merged"] == 0
     _check_rows(results)
-    assert results["merge_rule"] == {**config.merge_rule.to_dict(),
-                                     "merge_both_ways": config.merge_both_ways,
-                                     "merge_verify_inliers": config.merge_verify_inliers}
+    assert results["merge_rule"] == config.merge.reported()
     by_traversal = results["recall_by_traversal"]
     assert [r["query"] for r in by_traversal] == [q["query"] for q in queries]
     assert [r["sprint_recall@1"] for r in by_traversal] == [q["sprint_recall@1"] for q in queries]
@@ -116,7 +114,7 @@ def test_protocols_score_knn_and_sprint(tmp_path, dataset, protocol):
     assert "| query |" in table and "| merge P | merge R | edges (wrong) |" in table
     o = results["overall"]
     assert f"| {o['edges_added']} ({o['edges_wrong']}) |" in table
-    assert f"threshold {config.merge_threshold}" in table
+    assert f"threshold {config.merge.threshold}" in table
 
 
 def test_lifelong_merge_metrics_match_the_edges_committed(tmp_path, detour_dataset):

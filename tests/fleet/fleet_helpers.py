@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.map import SprintMap
 
 DIM = 32
@@ -32,7 +32,7 @@ def drive(places: np.ndarray, rng: np.random.Generator, noise: float = 0.25) -> 
 
 def base_map(path: Path, areas: list[np.ndarray], rng: np.random.Generator) -> Path:
     """A map with one drive over each area (no edges)."""
-    with SprintMap.create(path, MapConfig(dim=DIM, index_type="flat")) as m:
+    with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
         for n, places in enumerate(areas):
             m.add_sequence(drive(places, rng), name=f"base{n}")
     return path

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from fleet_helpers import base_map, copy_map, drive, save_drives, serial_ingest, snapshot, world
 
+from sprint_map.config import StoreOptions
 from sprint_map.fleet.farm import farm_ingest
 from sprint_map.map import SprintMap
 
@@ -58,7 +59,7 @@ def test_farm_on_an_empty_map_equals_serial(cluster: object, tmp_path: Path,
 
     from sprint_map.config import MapConfig
 
-    SprintMap.create(empty, MapConfig(dim=DIM, index_type="flat")).close()
+    SprintMap.create(empty, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))).close()
     serial = copy_map(empty, tmp_path / "serial.map")
     serial_ingest(serial, sources)
     farmed = copy_map(empty, tmp_path / "farm.map")

@@ -91,7 +91,7 @@ def _verify(path, fleets: list[Fleet], first: np.ndarray) -> int:
                 other = dst if mine == src else src
                 assert first_v <= mine < first_v + length and other < first_v, name
                 assert frame == mine - first_v and 0 < weight <= 1, name
-                if config.merge_both_ways:
+                if config.merge.both_ways:
                     assert got[(dst, src)][0] == weight, name
             assert len(answers[name]) == length, name
         report = m.check()

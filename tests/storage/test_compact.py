@@ -15,6 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli.main import main
+from sprint_map.config import StoreOptions
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
@@ -244,7 +245,7 @@ def test_remove_and_compact_with_the_approximate_index(tmp_path, rng):
     from sprint_map.config import MapConfig
 
     place = rng.standard_normal((1000, 32)).astype(np.float32)
-    config = MapConfig(dim=32, index_type="ivf-sq8", index_nlist=16, index_segment_rows=500)
+    config = MapConfig(dim=32, store=StoreOptions(index_type="ivf-sq8", index_nlist=16, index_segment_rows=500))
     with MapStore.create(tmp_path / "m", config) as store:
         for _ in range(6):
             store.add_sequence(place + 0.3 * rng.standard_normal((1000, 32)).astype(np.float32))

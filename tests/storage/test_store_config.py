@@ -7,6 +7,7 @@ import dataclasses
 import pytest
 
 from sprint_map import MapConfig
+from sprint_map.config import StoreOptions
 from sprint_map.storage.store_config import StoreConfig
 
 STORE_FIELDS = {f.name: f for f in dataclasses.fields(StoreConfig)}
@@ -26,6 +27,6 @@ def test_same_type_and_default_as_map_config(name: str) -> None:
 
 
 def test_map_config_hands_storage_its_values() -> None:
-    config = MapConfig(dim=8, shard_rows=128, index_nlist=64, initial_map_size=1 << 22)
+    config = MapConfig(dim=8, store=StoreOptions(shard_rows=128, index_nlist=64, initial_map_size=1 << 22))
     assert config.storage == StoreConfig(dim=8, shard_rows=128, index_nlist=64,
                                          initial_map_size=1 << 22)
