@@ -9,7 +9,8 @@ config: HoG for the city, the world's precomputed descriptors for latent). Descr
 thumbnails of the city worlds are cached too (the HoG and the JPEG thumbnails are what ``eval``
 computes from the images; the cache only skips recomputing them).
 
-Per family and seed: merge precision and recall, share of frames without a true match that were
+Per family and seed: merge precision (also without the merges of frames on identical twins, the
+image-only figure) and recall, share of frames without a true match that were
 merged (``novel merged``), the worst query's merge precision (over queries that merged anything),
 smoothed SPRINT@1, exact k-NN@1 / @10, merged decisions, frames on identical twins (and their
 merges) where the world declares twins, and seconds; then the mean over seeds per family.
@@ -56,7 +57,7 @@ from sprint_map.util import dataclass_dict
 FAMILIES = ("city", "city-novel", "latent")
 #: As ``sprint-map demo``: city worlds 6 x 300 frames, the latent world 10 x 300.
 DEFAULT_SIZE = {"city": (6, 300), "city-novel": (6, 300), "latent": (10, 300)}
-METRICS = ("merge_precision", "merge_recall", "novel_merged", "worst_query_precision",
+METRICS = ("merge_precision", "merge_precision_no_twins", "merge_recall", "novel_merged", "worst_query_precision",
            "smoothed_recall@1", "knn_recall@1", "knn_recall@10", "merged_decisions")
 
 
@@ -170,13 +171,18 @@ def figures(results: dict[str, Any]) -> dict[str, Any]:
     """The table's figures of one evaluation's results."""
     overall = results["overall"]
     merged = [q for q in results["queries"] if q["merged_decisions"] > 0]
-    out = {key: overall[key] for key in METRICS if key in overall}
+    out: dict[str, Any] = {key: overall[key] for key in METRICS if key in overall}
     out["worst_query_precision"] = min((q["merge_precision"] for q in merged), default=None)
     out["worst_query"] = (min(merged, key=lambda q: q["merge_precision"])["query"]
                           if merged else None)
     for key in ("twin_frames", "twin_merged", "twin_merged_wrong"):
         if key in overall:
             out[key] = overall[key]
+    if "twin_merged" in overall:  # the image-only figure: identical twins left out
+        wrong = round(overall["merged_decisions"] * (1 - overall["merge_precision"]))
+        kept = overall["merged_decisions"] - overall["twin_merged"]
+        out["merge_precision_no_twins"] = (
+            round(1 - (wrong - overall["twin_merged_wrong"]) / kept, 4) if kept else 1.0)
     out["seconds"] = results["seconds"]
     return out
 
@@ -212,13 +218,14 @@ def pct(value: float | None) -> str:
 
 def print_table(family: str, rows: list[tuple[str, str, dict[str, Any]]]) -> None:
     print(f"\n{family}")
-    print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'mergeR':>6} {'novelM':>6} "
+    print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'P-twin':>6} {'mergeR':>6} {'novelM':>6} "
           f"{'worstQ':>6} {'smooth':>6} | {'kNN@1':>6} {'kNN@10':>6} | {'merged':>6} "
           f"{'twins':>9} | {'s':>5}")
     for seed, arm, r in rows:
         twins = (f"{r['twin_merged_wrong']}/{r['twin_merged']}/{r['twin_frames']}"
                  if "twin_frames" in r else "-")
         print(f"{seed:>5} {arm:>8} | {pct(r.get('merge_precision')):>6} "
+              f"{pct(r.get('merge_precision_no_twins')):>6} "
               f"{pct(r.get('merge_recall')):>6} {pct(r.get('novel_merged')):>6} "
               f"{pct(r.get('worst_query_precision')):>6} {pct(r.get('smoothed_recall@1')):>6} | "
               f"{pct(r.get('knn_recall@1')):>6} {pct(r.get('knn_recall@10')):>6} | "
@@ -281,8 +288,9 @@ def main(argv: list[str] | None = None) -> int:
                      for arm, _, _ in arms}}
     seconds = time.perf_counter() - started
     out["seconds"] = round(seconds, 1)
-    print(f"\n{seconds:.0f} s in all (merge P/R, novel merged, worst query precision, smoothed "
-          "SPRINT@1, exact k-NN; twins: wrong/merged/frames on identical twins)")
+    print(f"\n{seconds:.0f} s in all (merge P, merge P without the identical twins' merges, merge "
+          "R, novel merged, worst query precision, smoothed SPRINT@1, exact k-NN; twins: "
+          "wrong/merged/frames on identical twins)")
     if args.json:
         partial = args.json.with_name(args.json.name + ".partial")
         partial.write_text(json.dumps(out, indent=2) + "\n")
