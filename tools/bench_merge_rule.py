@@ -3,7 +3,7 @@
 For each ``--family`` (``city``, ``city-novel``: rendered images described by HoG, as ``sprint-map
 demo`` does; ``latent``: descriptor-level drives over latent places, :mod:`sprint_map.synth.latent`)
 and each ``--seeds`` seed, a world is generated (once: cached under ``--cache``, keyed by family,
-seed, traversals, frames and generator config) and the lifelong protocol of ``sprint-map eval`` is
+seed, traversals, frames, generator config and the generator's source) and the lifelong protocol of ``sprint-map eval`` is
 run on it (:func:`sprint_map.evaluation.runner.run_evaluation`, the same code, the same default
 config: HoG for the city, the world's precomputed descriptors for latent). Descriptors and
 thumbnails of the city worlds are cached too (the HoG and the JPEG thumbnails are what ``eval``
@@ -78,10 +78,25 @@ def generator_config(family: str) -> dict[str, Any]:
     return PRESETS[family].to_dict()
 
 
+def generator_source(family: str) -> str:
+    """Digest of the generator's source files: a changed generator is a new cache entry."""
+    import sprint_map.synth as synth
+
+    folder = Path(synth.__file__).parent
+    names = ["latent.py"] if family == "latent" else sorted(
+        p.name for p in folder.glob("*.py") if p.name != "latent.py")
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update((folder / name).read_bytes())
+    return digest.hexdigest()
+
+
 def world(cache: Path, family: str, seed: int, traversals: int, frames: int) -> Path:
-    """The cached data set of ``family``/``seed`` (generated on first use)."""
+    """The cached data set of ``family``/``seed`` (generated on first use), keyed by family,
+    seed, size, generator config and generator source."""
     config = generator_config(family)
-    key = hashlib.sha256(json.dumps([family, seed, traversals, frames, config],
+    key = hashlib.sha256(json.dumps([family, seed, traversals, frames, config,
+                                     generator_source(family)],
                                     sort_keys=True).encode()).hexdigest()[:12]
     path = cache / f"{family}-s{seed}-{traversals}x{frames}-{key}"
     if (path / "dataset.json").is_file():

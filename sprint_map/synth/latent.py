@@ -207,8 +207,12 @@ class LatentWorld:
     config: LatentConfig
     seed: int
     traversals: list[LatentTraversal] = field(default_factory=list)
+    #: Street -> (the street it looks like, share ``rho`` of its place latent taken).
     lookalikes: dict[int, tuple[int, float]] = field(default_factory=dict)
+    #: Street -> the street it is an identical twin of.
     twins: dict[int, int] = field(default_factory=dict)
+    #: Per directed street (``2 * street + direction``): its latents, one row per metre.
+    latents: list[np.ndarray] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
@@ -500,7 +504,8 @@ def make_latent(n_traversals: int = 10, frames_per_traversal: int = 300, seed: i
         raise ValueError("n_traversals and frames_per_traversal must be >= 1")
     net = _Network(config, np.random.default_rng([seed, 0]))
     look = _Appearance(config, seed)
-    world = LatentWorld(config, seed, lookalikes=net.lookalikes, twins=net.twins)
+    world = LatentWorld(config, seed, lookalikes=net.lookalikes, twins=net.twins,
+                        latents=net.latents)
     twin_streets = set(net.twins) | set(net.twins.values())
     driven: set[int] = set()
     earlier_xy: list[np.ndarray] = []
@@ -555,7 +560,7 @@ def _novel_route(net: _Network, config: LatentConfig, i: int, seed: int, length:
                                      config.heading_deg)
         shortfall = (4 * max(0.0, config.novel_fraction - (1 - matched.mean()))
                      + 2 * max(0.0, config.reverse_fraction - opposite.mean())
-                     + max(0.0, MIN_MATCHED - matched.mean()))
+                     + 3 * max(0.0, MIN_MATCHED - matched.mean()))
         if best is None or shortfall < best[0]:
             best = (shortfall, route)
         if shortfall == 0:
