@@ -676,11 +676,12 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="sprint-demo",
               show_default=True, help="Where the data, maps, results and plots go.")
 @click.option("--dataset", "which",
-              type=click.Choice(["auto", "city", "city-novel", "nordland"]),
+              type=click.Choice(["auto", "city", "city-novel", "latent", "nordland"]),
               default="auto", show_default=True,
               help="auto: Nordland when it is present on this machine, else the generated city; "
               "city-novel: a harder city (mostly novel streets, some driven the other way, "
-              "aliased streets).")
+              "aliased streets); latent: descriptor-level drives over latent places (another "
+              "world family, no rendering).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress messages.")
 def demo(out_dir: str, which: str, quiet: bool) -> None:
     """Build a map from the embedded default data, evaluate it, print the table and plots.
@@ -693,6 +694,7 @@ def demo(out_dir: str, which: str, quiet: bool) -> None:
     Examples:
       sprint-map demo --out sprint-demo
       sprint-map demo --dataset city-novel --out sprint-demo-novel
+      sprint-map demo --dataset latent --out sprint-demo-latent
     """
     from sprint_map.evaluation.demo import run_demo
     from sprint_map.evaluation.report import markdown_table

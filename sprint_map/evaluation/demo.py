@@ -8,6 +8,8 @@ checkout) ``auto`` evaluates on it instead, in both directions, with the paper's
 drives spend most of their frames on streets no earlier drive saw, or saw the other way, and
 some streets are copies of others, so "no match" and false merges are exercised, not only
 recall.
+``latent`` is a world of another family (:mod:`sprint_map.synth.latent`): descriptor-level
+drives over latent places, no rendering, evaluated on its precomputed descriptors.
 """
 
 from __future__ import annotations
@@ -19,18 +21,21 @@ from typing import Any
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.evaluation.report import write_report
-from sprint_map.evaluation.runner import EvalOptions, Log, run_evaluation
+from sprint_map.evaluation.runner import EvalOptions, Log, config_for, run_evaluation
 from sprint_map.frontend.dataset import Dataset
 
-__all__ = ["CITY_FRAMES", "CITY_TRAVERSALS", "DATASETS", "NORDLAND_ENV", "find_nordland",
-           "run_demo"]
+__all__ = ["CITY_FRAMES", "CITY_TRAVERSALS", "DATASETS", "LATENT_FRAMES", "LATENT_TRAVERSALS",
+           "NORDLAND_ENV", "find_nordland", "run_demo"]
 
 NORDLAND_ENV = "SPRINT_MAP_NORDLAND"
 #: Demo city: small enough to render, map and evaluate well within the two-minute budget.
 CITY_TRAVERSALS = 6
 CITY_FRAMES = 300
 #: ``run_demo``'s choices (``sprint-map demo --dataset``).
-DATASETS = ("auto", "city", "city-novel", "nordland")
+DATASETS = ("auto", "city", "city-novel", "latent", "nordland")
+#: Demo latent world (:mod:`sprint_map.synth.latent`): descriptors only, so cheap to generate.
+LATENT_TRAVERSALS = 10
+LATENT_FRAMES = 300
 
 
 def find_nordland() -> Path | None:
@@ -51,8 +56,8 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
              ) -> tuple[dict[str, Any], dict[str, Path]]:
     """Evaluate on Nordland (if ``which`` allows and it is present) or a generated city.
 
-    ``which`` is one of :data:`DATASETS`; ``auto`` and ``city`` render ``city``, and each city
-    is rendered once into ``out_dir/<name>`` and reused by later runs.
+    ``which`` is one of :data:`DATASETS`; ``auto`` and ``city`` render ``city``, and each
+    generated world is written once into ``out_dir/<name>`` and reused by later runs.
     """
     if which not in DATASETS:
         raise ConfigError(f"dataset must be one of {', '.join(DATASETS)}")
@@ -65,6 +70,18 @@ def run_demo(out_dir: Path, which: str = "auto", log: Log = lambda _: None
         dataset = Dataset.open(nordland, {"alignment": "frame", "tolerance_frames": 1})
         options = EvalOptions(protocol="pairs", database="summer", query="winter",
                               both_directions=True)
+    elif which == "latent":
+        from sprint_map.synth.latent import LATENT_PRESETS, generate_latent
+
+        world = out_dir / "latent"
+        if not (world / "dataset.json").is_file():
+            log(f"generating the latent world into {world}")
+            generate_latent(world, n_traversals=LATENT_TRAVERSALS,
+                            frames_per_traversal=LATENT_FRAMES, seed=0,
+                            config=LATENT_PRESETS["latent"])
+        dataset = Dataset.open(world)
+        config = config_for(dataset)
+        options = EvalOptions(protocol="lifelong")
     else:
         from sprint_map.synth.city import PRESETS, generate_city
 

@@ -45,7 +45,7 @@ from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors
 
-__all__ = ["EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
+__all__ = ["Describe", "EvalOptions", "Log", "PROTOCOLS", "QueryResult", "config_for", "describe",
            "describe_with_thumbnails", "evaluate_query", "run_evaluation"]
 
 PROTOCOLS = ("lifelong", "pairs")
@@ -107,6 +107,9 @@ class QueryResult:
     merged_correct: np.ndarray | None = None
     #: Edges one merged decision makes: 2 with ``merge_both_ways``, else 1.
     edges_per_decision: int = 2
+    #: (Q,) bool: frames on an identical twin (a place pixel- or latent-identical to another,
+    #: declared by the data set, :meth:`Dataset.twin_frames`); None when it declares none.
+    twin: np.ndarray | None = None
 
     def score_merge(self, decisions: list[FrameDecision], merged: np.ndarray, gt: GroundTruth,
                     names: dict[int, str], edges_per_decision: int) -> None:
@@ -174,7 +177,20 @@ class QueryResult:
             "edges_added": merge.edges_added if self.edges_added is None else self.edges_added,
             "edges_wrong": merge.edges_wrong,
             "novel_merged": round(merge.novel_merged, 4),
+            **self._twin_summary(),
         }
+
+    def _twin_summary(self) -> dict[str, int]:
+        """``twin_frames``, and of them ``twin_merged`` and ``twin_merged_wrong``; nothing
+        when the data set declares no twins."""
+        if self.twin is None:
+            return {}
+        merged = self.merged if self.merged is not None else np.zeros(len(self.twin), bool)
+        right = (self.merged_correct if self.merged_correct is not None
+                 else np.zeros(len(self.twin), bool))
+        on_twin = self.twin & merged
+        return {"twin_frames": int(self.twin.sum()), "twin_merged": int(on_twin.sum()),
+                "twin_merged_wrong": int((on_twin & ~(right & self.has_match)).sum())}
 
 
 def config_for(dataset: Dataset, descriptor: str = "auto") -> MapConfig:
@@ -278,13 +294,21 @@ def _edges_per_decision(config: MapConfig) -> int:
     return 2 if config.merge.both_ways else 1
 
 
+#: How a traversal becomes rows (and thumbnails): :func:`describe_with_thumbnails` by default.
+Describe = Callable[[SprintMap, Traversal, int], tuple[Descriptors, list[bytes] | None]]
+
+
 def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options: EvalOptions,
-                   hmm: HMMConfig | None = None, log: Log = lambda _: None) -> dict[str, Any]:
+                   hmm: HMMConfig | None = None, log: Log = lambda _: None,
+                   describe: Describe | None = None) -> dict[str, Any]:
     """Run ``options.protocol`` on ``dataset``, building maps under ``work_dir``.
 
-    Returns the results as a JSON-ready dict: one row per query traversal plus an ``overall``
-    row over all query frames.
+    ``describe(map, traversal, stride)`` gives a traversal's descriptors and thumbnails
+    (default :func:`describe_with_thumbnails`; a benchmark passes a cached one). Returns the
+    results as a JSON-ready dict: one row per query traversal plus an ``overall`` row over all
+    query frames.
     """
+    describe_fn = describe or describe_with_thumbnails
     work_dir.mkdir(parents=True, exist_ok=True)
     gt = dataset.ground_truth(options.stride)
     started = time.perf_counter()
@@ -300,18 +324,19 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
             map_dir = _fresh(work_dir / f"map-{db_name}")
             with SprintMap.create(map_dir, config) as m:
                 log(f"mapping {db_name}")
-                db_rows, db_thumbs = describe_with_thumbnails(m, dataset[db_name], options.stride)
+                db_rows, db_thumbs = describe_fn(m, dataset[db_name], options.stride)
                 m.add_sequence(db_rows, name=db_name, thumbnails=db_thumbs,
                                positions=_xy(dataset[db_name].positions(options.stride)))
                 log(f"localising {q_name} against {db_name}")
-                rows, thumbs = describe_with_thumbnails(m, dataset[q_name], options.stride)
+                rows, thumbs = describe_fn(m, dataset[q_name], options.stride)
                 results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
                                               smooth=True, thumbnails=thumbs)[0])
+                results[-1].twin = dataset.twin_frames(q_name, options.stride)
     else:
         map_dir = _fresh(work_dir / "map-lifelong")
         with SprintMap.create(map_dir, config) as m:
             for i, traversal in enumerate(dataset):
-                rows, thumbs = describe_with_thumbnails(m, traversal, options.stride)
+                rows, thumbs = describe_fn(m, traversal, options.stride)
                 positions = _xy(traversal.positions(options.stride))
                 if i == 0:
                     log(f"mapping {traversal.name} (first traversal)")
@@ -326,6 +351,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
                 result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
                                    _edges_per_decision(m.config))
                 result.edges_added = ingested.added.edges_added
+                result.twin = dataset.twin_frames(traversal.name, options.stride)
                 results.append(result)
     rows_out = [r.summary(options.ks) for r in results]
     overall = _overall(results, options.ks)
@@ -372,6 +398,7 @@ def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
         merged=_joined(results, "merged"),
         merged_correct=_joined(results, "merged_correct"),
         edges_per_decision=results[0].edges_per_decision,
+        twin=(None if all(r.twin is None for r in results) else _joined(results, "twin")),
     )
     return joined.summary(ks)
 

@@ -16,7 +16,9 @@ Layout::
 
 Traversals are the non-hidden sub-folders, in natural order. Other top-level files (a README)
 are ignored. ``dataset.json`` may also hold ``"description"`` and ``"generator"`` entries,
-which are kept in :attr:`Dataset.info` but not interpreted.
+which are kept in :attr:`Dataset.info` but not interpreted, and ``"twins"`` (traversal ->
+``[start, stop)`` frame ranges on identical-twin places, :meth:`Dataset.twin_frames`), which
+evaluations report separately.
 """
 
 from __future__ import annotations
@@ -37,14 +39,15 @@ from sprint_map.frontend.positions import read_positions
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.util.arrays import Float64Array
 
-__all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal"]
+__all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal",
+           "frame_ranges"]
 
 DATASET_FILE = "dataset.json"
 POSITIONS_FILE = "positions.csv"
 DESCRIPTORS_FILE = "descriptors.npy"
 
 # dataset.json keys that are metadata, not part of the ground-truth rule.
-_INFO_KEYS = ("description", "generator")
+_INFO_KEYS = ("description", "generator", "twins")
 
 
 class Traversal:
@@ -255,6 +258,32 @@ class Dataset:
             return GroundTruth(self.gt_spec, lengths=lengths, stride=stride)
         return GroundTruth(self.gt_spec, positions=_LazyPositions(self, stride), stride=stride)
 
+    def twin_frames(self, name: str, stride: int = 1) -> np.ndarray | None:
+        """Which frames of traversal ``name`` (kept with ``stride``) lie on an identical twin,
+        by ``dataset.json``'s ``twins`` (traversal -> ``[start, stop)`` frame ranges); None
+        when it declares no twins. O(frames).
+
+        Raises
+        ------
+        InputError
+            If ``twins`` is malformed or the traversal's frame count is unknown (a video).
+        """
+        declared = self.info.get("twins")
+        if declared is None:
+            return None
+        count = self[name].count
+        if not isinstance(declared, dict) or count is None:
+            raise InputError(f"{self.path / DATASET_FILE}: 'twins' must map traversals to "
+                             "frame ranges of image or .npy traversals")
+        mask = np.zeros(count, dtype=bool)
+        try:
+            for start, stop in declared.get(name, []):
+                mask[int(start):int(stop)] = True
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{self.path / DATASET_FILE}: 'twins' of {name!r}: expected "
+                             f"[start, stop) pairs ({exc})") from exc
+        return mask[::stride]
+
     def __repr__(self) -> str:
         return f"Dataset({str(self.path)!r}, traversals={self.names}, ground_truth={self.gt_spec})"
 
@@ -302,3 +331,11 @@ def _read_dataset_json(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from exc
     return data, info
+
+
+def frame_ranges(mask: np.ndarray) -> list[list[int]]:
+    """``[start, stop)`` ranges of the True runs of a boolean mask (the form of ``dataset.json``'s
+    ``twins``). O(len(mask))."""
+    padded = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2], strict=True)]

@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from sprint_map.errors import ConfigError, InputError
+from sprint_map.frontend.dataset import frame_ranges
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.parallel import default_workers
 from sprint_map.synth.atlas import Atlas, build_atlas
@@ -98,8 +99,12 @@ class CityConfig:
         Ground truth written to ``dataset.json``: same place within ``radius_m`` metres and
         ``heading_deg`` degrees of heading.
     alias_streets : float
-        Share of the streets (at most 0.5) that are copies of another street: same buildings
-        and textures, so only context tells them apart (see :func:`.layout.build_layout`).
+        Share of the streets (at most 0.5) that are copies of another street: the same facade
+        styles and rhythm of buildings, but other buildings, signs and gaps (lookalikes, see
+        :func:`.layout.build_layout`).
+    identical_twins : int
+        How many of those copies are pixel-identical instead (no image tells them apart); their
+        frames are listed in ``dataset.json`` (``twins``) so evaluations report them apart.
     novel_fraction : float
         Target share of each traversal's frames (after the first) with no true match among
         earlier traversals, by the ground truth above. 0: routes are plain walks preferring
@@ -128,6 +133,7 @@ class CityConfig:
     radius_m: float = 8.0
     heading_deg: float = 45.0
     alias_streets: float = 0.0
+    identical_twins: int = 1
     novel_fraction: float = 0.0
     reverse_fraction: float = 0.0
 
@@ -142,6 +148,8 @@ class CityConfig:
             raise ValueError("revisit must be > 0")
         if not 0 <= self.alias_streets <= 0.5:
             raise ValueError("alias_streets must be in [0, 0.5]")
+        if self.identical_twins < 0:
+            raise ValueError("identical_twins must be >= 0")
         if not 0 <= self.reverse_fraction <= self.novel_fraction <= 1 - MIN_MATCHED:
             raise ValueError(
                 f"need 0 <= reverse_fraction <= novel_fraction <= {1 - MIN_MATCHED}")
@@ -239,7 +247,7 @@ class _World:
         rng = np.random.default_rng([seed, 0])
         self.layout: CityLayout = build_layout(
             rng, config.grid[0], config.grid[1], config.block_m, config.street_m, config.n_styles,
-            config.alias_streets,
+            config.alias_streets, config.identical_twins,
         )
         self.atlas: Atlas = build_atlas(self.layout, rng, detail=config.detail)
         self.camera = Camera(config.width, config.height, config.fov_deg)
@@ -437,7 +445,8 @@ def generate_city(
 
     Layout::
 
-        out_dir/dataset.json               {"alignment": "position", "radius_m": ..., ...}
+        out_dir/dataset.json               {"alignment": "position", "radius_m": ..., ...,
+                                            "twins": {traversal: [[start, stop), ...]]}}
         out_dir/t00-day/000000.png ...     the images
         out_dir/t00-day/positions.csv      frame,x,y,heading_deg
         out_dir/t01-overcast/ ...
@@ -495,18 +504,22 @@ def generate_city(
     try:
         with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
             list(pool.map(one, world.plans))
+        twins = ({"twins": {plan.name: frame_ranges(world.layout.on_twin(plan.trajectory.xy))
+                            for plan in world.plans}} if world.layout.twins else {})
         description = {
             **config.ground_truth_spec().to_dict(),
             "description": (
                 f"Synthetic city (sprint_map.synth), {n_traversals} traversals x "
                 f"{frames_per_traversal} frames, seed {seed}"
             ),
+            **twins,
             "generator": {
                 "module": "sprint_map.synth.city",
                 "seed": seed,
                 "frames_per_traversal": frames_per_traversal,
                 "config": config.to_dict(),
                 "traversals": [plan.to_dict() for plan in world.plans],
+                "twin_streets": [[list(a), list(b)] for a, b in world.layout.twins],
             },
         }
         (staging / "dataset.json").write_text(json.dumps(description, indent=2) + "\n")
