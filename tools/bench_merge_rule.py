@@ -52,7 +52,6 @@ from sprint_map.evaluation.runner import (
 )
 from sprint_map.frontend.dataset import Dataset, Traversal
 from sprint_map.map import SprintMap
-from sprint_map.util import dataclass_dict
 
 FAMILIES = ("city", "city-novel", "latent")
 #: As ``sprint-map demo``: city worlds 6 x 300 frames, the latent world 10 x 300.
@@ -145,13 +144,13 @@ class CachedDescribe:
         return rows, thumbs
 
 
-def parse_overrides(pairs: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``KEY=VALUE`` pairs -> (MapConfig changes, HMMConfig changes); values are JSON (else
-    text). ``hmm.KEY`` or a bare HMMConfig field goes to the HMM."""
-    map_fields = {f.name for f in dataclasses.fields(MapConfig)}
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs -> changes of the MapConfig record; values are JSON (else text).
+    ``part.field`` (``merge.max_contrast``, ``hmm.k``, ``store.index_type``) or the flat names
+    MapConfig reads (``merge_max_contrast``, ``index_type``); a bare HMMConfig field goes to
+    the HMM."""
     hmm_fields = {f.name for f in dataclasses.fields(HMMConfig)}
-    map_changes: dict[str, Any] = {}
-    hmm_changes: dict[str, Any] = {}
+    changes: dict[str, Any] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
         if not sep:
@@ -160,26 +159,25 @@ def parse_overrides(pairs: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
             value = json.loads(text)
         except json.JSONDecodeError:
             value = text
-        name = key.removeprefix("hmm.")
-        if key.startswith("hmm.") or (name in hmm_fields and name not in map_fields):
-            if name not in hmm_fields:
-                raise ConfigError(f"--set {key}: no such HMMConfig field")
-            hmm_changes[name] = value
-        elif key in map_fields and key != "hmm":
-            map_changes[key] = value
+        part, dot, name = key.partition(".")
+        if not dot and key in hmm_fields:
+            part, name = "hmm", key
+        if dot or part == "hmm":
+            changes.setdefault(part, {})[name] = value
         else:
-            raise ConfigError(f"--set {key}: no such MapConfig or HMMConfig field")
-    return map_changes, hmm_changes
+            changes[key] = value
+    return changes
 
 
-def configured(base: MapConfig, map_changes: dict[str, Any], hmm_changes: dict[str, Any]
-               ) -> MapConfig:
+def configured(base: MapConfig, changes: dict[str, Any]) -> MapConfig:
     """``base`` with the overrides (validated as the map validates them)."""
-    config = dataclass_dict.replace(base, **map_changes) if map_changes else base
-    if hmm_changes:
-        config = dataclass_dict.replace(
-            config, hmm=dataclass_dict.replace(config.hmm, **hmm_changes).to_dict())
-    return config
+    record = base.to_dict()
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(record.get(key), dict):
+            record[key] = {**record[key], **value}
+        else:
+            record[key] = value
+    return MapConfig.from_dict(record)
 
 
 def figures(results: dict[str, Any]) -> dict[str, Any]:
@@ -202,12 +200,12 @@ def figures(results: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_one(path: Path, family: str, map_changes: dict[str, Any],
-            hmm_changes: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def run_one(path: Path, family: str, changes: dict[str, Any]
+            ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate one cached world; returns (figures, full results without private keys)."""
     dataset = Dataset.open(path)
     base = config_for(dataset) if family == "latent" else MapConfig.for_descriptor("hog")
-    config = configured(base, map_changes, hmm_changes)
+    config = configured(base, changes)
     with tempfile.TemporaryDirectory(prefix="bench-merge-") as tmp:
         results = run_evaluation(dataset, Path(tmp), config, EvalOptions(protocol="lifelong"),
                                  describe=CachedDescribe(path))
@@ -264,17 +262,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write every figure (and full results) here")
     args = parser.parse_args(argv)
     try:
-        map_changes, hmm_changes = parse_overrides(args.overrides)
-        configured(MapConfig(dim=8), map_changes, hmm_changes)  # fail before any work
+        changes = parse_overrides(args.overrides)
+        configured(MapConfig(dim=8), changes)  # fail before any work
     except ConfigError as exc:
         parser.error(str(exc))
-    arms = [("tuned", map_changes, hmm_changes)] if args.overrides else []
+    arms: list[tuple[str, dict[str, Any]]] = [("tuned", changes)] if args.overrides else []
     if not args.overrides or not args.no_baseline:
-        arms.insert(0, ("default", {}, {}))
+        arms.insert(0, ("default", {}))
     started = time.perf_counter()
     out: dict[str, Any] = {"args": {k: str(v) if isinstance(v, Path) else v
                                     for k, v in vars(args).items()},
-                           "overrides": {"map": map_changes, "hmm": hmm_changes},
+                           "overrides": changes,
                            "families": {}}
     for family in args.family:
         traversals, frames = DEFAULT_SIZE[family]
@@ -287,20 +285,20 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             path = world(args.cache, family, seed, traversals, frames)
             made = time.perf_counter() - t0
-            for arm, mc, hc in arms:
-                row, results = run_one(path, family, mc, hc)
+            for arm, arm_changes in arms:
+                row, results = run_one(path, family, arm_changes)
                 table.append((str(seed), arm, row))
                 runs.append({"seed": seed, "arm": arm, "world": str(path),
                              "world_seconds": round(made, 1), "figures": row,
                              "results": results})
                 made = 0.0
-        for arm, _, _ in arms:
+        for arm, _ in arms:
             table.append(("mean", arm, mean_row([r for _, a, r in table if a == arm])))
         print_table(f"{family} ({traversals} x {frames} frames per seed)", table)
         out["families"][family] = {
             "traversals": traversals, "frames": frames, "runs": runs,
             "mean": {arm: mean_row([r["figures"] for r in runs if r["arm"] == arm])
-                     for arm, _, _ in arms}}
+                     for arm, _ in arms}}
     seconds = time.perf_counter() - started
     out["seconds"] = round(seconds, 1)
     print(f"\n{seconds:.0f} s in all (merge P, merge P without the identical twins' merges, merge "
