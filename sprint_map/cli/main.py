@@ -20,8 +20,10 @@ from sprint_map.cli.progress import progress_display
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
+from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.positions import read_positions
+from sprint_map.frontend.positions import drive_positions
+from sprint_map.frontend.sources import drive_names
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -163,6 +165,16 @@ def _trace_option(f: Any) -> Any:
                              "states to OUT (.npz) for `sprint-map view --trace OUT`.")(f)
 
 
+def _bag_options(f: Any) -> Any:
+    f = click.option("--every-m", type=float, metavar="M", help="ROS bags: keep a frame each "
+                     "M metres travelled (by GNSS), after --stride.")(f)
+    f = click.option("--gnss-topic", metavar="TOPIC", help="ROS bags: the NavSatFix topic of "
+                     "the positions (default: the only one, if any).")(f)
+    f = click.option("--image-topic", metavar="TOPIC", help="ROS bags: the Image or "
+                     "CompressedImage topic (default: the only one).")(f)
+    return f
+
+
 def _model_options(f: Any) -> Any:
     f = click.option("--hmm", "hmm_pairs", multiple=True, metavar="KEY=VALUE",
                      help="Override any HMM parameter for this call (repeatable).")(f)
@@ -181,7 +193,9 @@ def _model_options(f: Any) -> Any:
 @click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name; one "
               "SOURCE only).")
 @click.option("--positions", type=click.Path(dir_okay=False),
-              help="CSV frame,x,y[,heading_deg] with a header row (one SOURCE only).")
+              help="CSV frame,x,y[,heading_deg][,sigma_m] or frame,lat,lon[,...] with a header "
+              "row (one SOURCE only; default: the drive folder's own positions.csv, or a "
+              "bag's GNSS).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
               "(images and video; about 2 KiB a frame), for viewers and to verify merges on "
@@ -191,18 +205,22 @@ def _model_options(f: Any) -> Any:
 @click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (drives "
               "described and localised in parallel as Ray tasks, committed in order here).")
 @_trace_option
+@_bag_options
 @_model_options
 def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions: str | None,
            no_merge: bool, thumbnails: bool, as_json: bool, ray_spec: str | None,
-           trace: str | None, stride: int, quiet: bool, k: int | None, window: str | None,
+           trace: str | None, image_topic: str | None, gnss_topic: str | None,
+           every_m: float | None, stride: int, quiet: bool, k: int | None, window: str | None,
            hmm_pairs: tuple[str, ...]) -> None:
     """Localise each drive SOURCE against MAP, then merge it with its decisions as edges.
 
-    SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
-    drive of an empty map is added as it is. Several SOURCEs are ingested in the order given,
-    each its own sequence (named after its source) localised against the map holding the
-    earlier ones, as separate commands would, and committed in groups. A failure stops there:
-    the drives before it stay committed.
+    SOURCE is a folder of images, a video file, a .npy of N x D descriptors, or a ROS bag
+    (.bag, .mcap, a ROS 2 bag folder; pip install "sprint-map[ros]"). The first drive of an
+    empty map is added as it is. Several SOURCEs are ingested in the order given, each its own
+    sequence (named after its source, or after its folder where two sources share a name)
+    localised against the map holding the earlier ones, as separate commands would, and
+    committed in groups. A failure stops there: the drives before it stay committed. Each
+    drive's positions: --positions, else a bag's GNSS, else its folder's positions.csv.
 
     \b
     Examples:
@@ -213,7 +231,10 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
       sprint-map ingest city.map drives/friday/ --thumbnails
       sprint-map ingest city.map mon.npy tue.npy wed.npy   # three drives, in this order
       sprint-map ingest city.map drives/*/ --ray auto      # on the Ray cluster joined here
+      sprint-map ingest city.map drive.bag --image-topic /cam/image --every-m 2
+      sprint-map ingest city.map drives/*/descriptors.npy  # each with its positions.csv
     """
+    bag = BagOptions(image_topic, gnss_topic, every_m)
     single = {"--name": name, "--positions": positions, "--trace": trace}
     for option, value in single.items():
         if value is not None and len(sources) > 1:
@@ -221,7 +242,8 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                              "named after its source)")
     if ray_spec is not None:
         given = {"--positions": positions is not None, "--trace": trace is not None,
-                 "--thumbnails": thumbnails}
+                 "--thumbnails": thumbnails, "--image-topic/--gnss-topic/--every-m":
+                 bag != BagOptions()}
         for option in (option for option, on in given.items() if on):
             raise InputError(f"{option} is not available with --ray")
     overrides = _hmm_overrides(k, window, hmm_pairs)
@@ -246,16 +268,19 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                             hmm=hmm, on_commit=lambda r: report([r.result]))
             except SprintMapError as exc:
                 _stop_after(exc, sources, done, as_json)
-        drives = []
+        opened = []
         for source in sources if ray_spec is None else ():  # each opened (and checked) first
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
-            src = m.open_source(source, stride=stride, thumbnails=thumbnails,
+            src = m.open_source(source, stride=stride, thumbnails=thumbnails, bag=bag,
                                 progress=stack.enter_context(progress_display(label, quiet)))
-            pos = read_positions(positions, src.count, stride)[:, 1:] if positions else None
-            # Streamed: each batch is described, localised and written (uncommitted) in turn.
-            # An empty --name is refused by the name rules, not replaced by the source's name.
-            drives.append(Drive(src.iter_batches(), src.name if name is None else name, pos,
-                                str(source), src.thumbnails))
+            opened.append((src, drive_positions(src, source, positions, stride)))
+        names = (drive_names([Path(s) for s in sources], [src.name for src, _ in opened])
+                 if opened and name is None else [name] * len(opened))
+        # Streamed: each batch is described, localised and written (uncommitted) in turn.
+        # An empty --name is refused by the name rules, not replaced by the source's name.
+        drives = [Drive(src.iter_batches(), label, m.metric_positions(table), str(source),
+                        src.thumbnails)
+                  for (src, table), label, source in zip(opened, names, sources, strict=False)]
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
@@ -308,10 +333,12 @@ def _ingest_line(out: dict[str, Any]) -> str:
                    "runs the merge rule's lookalike tests refuse, as ingest --thumbnails does "
                    "(images and video).")
 @_trace_option
+@_bag_options
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             thumbnails: bool, trace: str | None, stride: int, quiet: bool, k: int | None,
-             window: str | None, hmm_pairs: tuple[str, ...]) -> None:
+             thumbnails: bool, trace: str | None, image_topic: str | None,
+             gnss_topic: str | None, every_m: float | None, stride: int, quiet: bool,
+             k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
     \b
@@ -321,13 +348,15 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map drives/friday/ --smooth --thumbnails --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
+      sprint-map localize city.map friday.mcap --image-topic /cam/compressed --json
     """
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
-        src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
+        src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails,
+                            bag=BagOptions(image_topic, gnss_topic, every_m))
         localizer = m.localizer(**overrides)
         localizer.record = smooth
         recorder = TraceRecorder(m) if trace else None

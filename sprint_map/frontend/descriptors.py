@@ -119,6 +119,11 @@ class DescriptorSpec:
         return hash((self.kind, tuple(sorted(self.params.items()))))
 
     @property
+    def grayscale(self) -> bool:
+        """Whether the descriptor reads gray images (so sources may decode them gray)."""
+        return True
+
+    @property
     def dim(self) -> int:
         """Number of dimensions of one descriptor."""
         p: dict[str, int] = self.params
