@@ -79,23 +79,43 @@ def main() -> None:
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.option("--dim", type=int, help="Descriptor dimension (for precomputed .npy descriptors).")
-@click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm"]),
-              default=None, help="Descriptor kind; hog/patchnorm set the dimension themselves.")
+@click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm", "onnx"]),
+              default=None, help="Descriptor kind; hog/patchnorm/onnx set the dimension "
+              "themselves.")
+@click.option("--model", type=click.Path(dir_okay=False), help="onnx: the ONNX model file "
+              "(one descriptor per image; pip install \"sprint-map[onnx]\"). Its SHA-256 is "
+              "stored: a different file there later is refused.")
+@click.option("--model-card", type=click.Path(dir_okay=False), help="onnx: JSON card "
+              "{input_size, channels, mean, std, normalize} (default: MODEL's .card.json "
+              "beside it, else its fixed input size, RGB, ImageNet mean/std, l2).")
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
               help="JSON file of further MapConfig fields, e.g. {\"index_type\": \"flat\", "
               "\"hmm\": {\"k\": 20}} (docs/hmm.md, \"HMMConfig\").")
-def init(map_path: str, dim: int | None, descriptor: str | None, config_json: str | None) -> None:
+def init(map_path: str, dim: int | None, descriptor: str | None, model: str | None,
+         model_card: str | None, config_json: str | None) -> None:
     """Create an empty map in MAP (which must be absent or empty).
 
     \b
     Examples:
       sprint-map init city.map --descriptor hog      # images and video, the paper's HoG
       sprint-map init city.map --dim 256             # precomputed .npy descriptors
+      sprint-map init city.map --descriptor onnx --model eigenplaces.onnx
     """
     options = _read_json_config(config_json)
     kind = descriptor or options.pop("descriptor", None) or (
-        "precomputed" if dim is not None else "hog")
-    if kind == "precomputed":
+        "onnx" if model is not None else "precomputed" if dim is not None else "hog")
+    if (model is not None or model_card is not None) != (kind == "onnx"):
+        raise InputError("--descriptor onnx needs --model FILE" if kind == "onnx"
+                         else "--model and --model-card are for --descriptor onnx")
+    if kind == "onnx":
+        from sprint_map.frontend.onnx_model import onnx_params
+
+        params = onnx_params(str(model), model_card)
+        if dim is not None and dim != params["dim"]:
+            raise InputError(f"{model}: the model gives {params['dim']} dimensions, not {dim}")
+        config = MapConfig.from_dict({**options, "descriptor": kind, "descriptor_params": params,
+                                      "dim": params["dim"]})
+    elif kind == "precomputed":
         if dim is None:
             raise InputError("--dim is required for precomputed descriptors")
         config = MapConfig.from_dict({**options, "dim": dim, "descriptor": kind})

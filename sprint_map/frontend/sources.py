@@ -189,23 +189,19 @@ def _single_threaded_opencv() -> None:
 
 def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
     """Decode and describe a chunk of image files (runs in a worker)."""
-    out = np.empty((len(paths), spec.dim), dtype=np.float32)
-    for i, path in enumerate(paths):
-        out[i] = spec.describe(read_image(path, grayscale=True))
-    return out
+    return spec.describe_batch([read_image(path, grayscale=spec.grayscale) for path in paths])
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
                                ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
-    out = np.empty((len(paths), spec.dim), dtype=np.float32)
-    thumbs = []
-    for i, path in enumerate(paths):
+    images, thumbs = [], []
+    for path in paths:
         data = read_image_bytes(path)
-        gray = decode_image(data, str(path), grayscale=True)
-        out[i] = spec.describe(gray)
-        thumbs.append(thumbnail_of_file(data, str(path), gray.shape[1]))
-    return out, thumbs
+        image = decode_image(data, str(path), grayscale=spec.grayscale)
+        images.append(image)
+        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1]))
+    return spec.describe_batch(images), thumbs
 
 
 def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
