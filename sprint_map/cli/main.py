@@ -666,6 +666,10 @@ def _log(quiet: bool) -> Any:
 
 @main.command(name="eval")
 @click.argument("dataset", type=click.Path(exists=True, file_okay=False))
+@click.option("--layout", type=click.Choice(["traversals", "vpr"]), default="traversals",
+              show_default=True, help="traversals: one folder per traversal; vpr: database/ "
+              "and queries/ folders of @UTM-named images (recall@1/5/10/20 of k-NN and SPRINT "
+              "in results.json; --radius default 25 m).")
 @click.option("--protocol", type=click.Choice(["lifelong", "pairs"]), default="lifelong",
               show_default=True, help="lifelong: each traversal localised against all earlier "
               "ones, then merged; pairs: one database, one query traversal.")
@@ -685,7 +689,7 @@ def _log(quiet: bool) -> Any:
               help="Override a MapConfig field of the evaluation maps (repeatable, JSON "
               "values), e.g. index_type=ivf-pq.")
 @_model_options
-def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None,
+def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, database: str | None,
           query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
           stride: int, quiet: bool, k: int | None, window: str | None,
@@ -700,7 +704,11 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
       sprint-map eval ../shared/data/nordland --protocol pairs --database summer \\
           --query winter --alignment frame --tolerance 1 --map-config index_type=ivf-pq \\
           --map-config index_nlist=64 --map-config index_segment_rows=256
+      sprint-map eval datasets/pitts30k --layout vpr --radius 25 --out eval-pitts
     """
+    if layout == "vpr":
+        _eval_vpr(dataset, out_dir, descriptor, radius, map_pairs, k, window, hmm_pairs, quiet)
+        return
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
     from sprint_map.frontend.dataset import Dataset
@@ -723,6 +731,28 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
     paths = write_report(results, out)
     click.echo(markdown_table(results))
     click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+
+
+def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str, radius: float | None,
+              map_pairs: tuple[str, ...], k: int | None, window: str | None,
+              hmm_pairs: tuple[str, ...], quiet: bool) -> None:
+    """``eval --layout vpr``: recall@1/5/10/20 of k-NN and SPRINT into results.json."""
+    from sprint_map.evaluation.vpr import markdown_recall, run_vpr_evaluation
+    from sprint_map.frontend.vpr import VprDataset
+
+    if descriptor == "precomputed":
+        raise InputError("--layout vpr describes the images: --descriptor auto, hog or patchnorm")
+    data = VprDataset.open(dataset)
+    config = MapConfig.for_descriptor("hog" if descriptor == "auto" else descriptor)
+    if map_pairs:
+        config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
+    overrides = _hmm_overrides(k, window, hmm_pairs)
+    hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
+    out = Path(out_dir or f"eval-{data.path.resolve().name}")
+    results = run_vpr_evaluation(data, out, config, hmm, 25.0 if radius is None else radius,
+                                 log=_log(quiet))
+    click.echo(markdown_recall(results))
+    click.echo(f"results: {out / 'results.json'}")
 
 
 @main.command()

@@ -56,6 +56,7 @@ from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
+from sprint_map.frontend.vpr import is_vpr_name, vpr_order, vpr_positions
 
 __all__ = ["BagSource", "FrameSource", "ImageDirSource", "NpySource", "ProgressCallback",
            "SOURCE_KINDS", "VideoSource", "open_source"]
@@ -254,7 +255,17 @@ class ImageDirSource(FrameSource):
 
     def __init__(self, path: Path, spec: DescriptorSpec, options: _Options) -> None:
         super().__init__(path, spec, spec.dim, options)
-        self.files: list[Path] = list_images(path)[:: self.stride]
+        files = list_images(path)
+        #: How the files are ordered: natural file-name order, or the timestamps of
+        #: VPR-layout names (:mod:`sprint_map.frontend.vpr`), which also give positions.
+        self.order = "file name"
+        if all(is_vpr_name(f.name) for f in files):
+            files, self.order = vpr_order(files)
+            kept = np.arange(0, len(files), self.stride)
+            self.positions = vpr_positions(files).subset(kept)
+            self.positions = Positions(kept, self.positions.xy, time=self.positions.time,
+                                       geographic=True)
+        self.files: list[Path] = files[:: self.stride]
 
     @property
     def count(self) -> int:
