@@ -51,7 +51,7 @@ INSTALL_HINT = 'ONNX descriptors need the onnx extra: pip install "sprint-map[on
 #: Images per ``session.run``: the sources hand over chunks of up to 32 frames.
 MAX_BATCH = 32
 
-_sessions: dict[tuple[str, str], Any] = {}
+_sessions: dict[tuple[str, str, int, int, int], Any] = {}
 _sessions_lock = threading.Lock()
 _run_lock = threading.Lock()
 
@@ -237,15 +237,19 @@ def _run(session: Any, params: Mapping[str, Any], batch: np.ndarray, label: str)
 
 
 def _session(params: Mapping[str, Any]) -> Any:
-    """The process's session of the map's model, loaded once after checking its digest."""
-    key = (params["model"], params["digest"])
+    """The process's session of the map's model, loaded after checking its digest; loaded
+    again (and checked again) when the file changed since (size, mtime, inode). O(1) when
+    cached, else O(model file)."""
+    path = Path(params["model"])
+    try:
+        st = path.stat()
+    except OSError:
+        raise InputError(f"{path}: the map's ONNX model is missing (the map was made with it; "
+                         "put it back at this path)") from None
+    key = (params["model"], params["digest"], st.st_size, st.st_mtime_ns, st.st_ino)
     with _sessions_lock:
         session = _sessions.get(key)
         if session is None:
-            path = Path(params["model"])
-            if not path.is_file():
-                raise InputError(f"{path}: the map's ONNX model is missing (the map was made "
-                                 "with it; put it back at this path)")
             digest = file_digest(path)
             if digest != params["digest"]:
                 raise InputError(f"{path}: a different model (sha256 {digest[:12]}...) than the "

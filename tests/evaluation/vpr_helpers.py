@@ -27,7 +27,8 @@ def place_images(n: int, seed: int, size: int = 64) -> list[np.ndarray]:
 
 
 def make_vpr_dataset(root: Path, n_places: int = 30, spacing_m: float = 10.0, seed: int = 0,
-                     db_timestamps: bool = True, query_every: int = 2) -> Path:
+                     db_timestamps: bool = True, query_every: int = 2,
+                     noise: float = 12.0) -> Path:
     """Places every ``spacing_m`` metres north; the database sees each once (names with
     timestamps, which order them differently from their names), the queries every
     ``query_every``-th place again, with noise and a brightness change (no timestamps)."""
@@ -40,10 +41,11 @@ def make_vpr_dataset(root: Path, n_places: int = 30, spacing_m: float = 10.0, se
         noisy = np.clip(image + rng.normal(0, 8, image.shape), 0, 255).astype(np.uint8)
         stamp = f"{1000 + i}" if db_timestamps else ""
         # eastings that decrease along the route: name order is the reverse of time order
-        name = vpr_name(east0 - i * 0.5, north0 + i * spacing_m, stamp)
+        name = vpr_name(east0 - i * 0.05, north0 + i * spacing_m, stamp)
         cv2.imwrite(str(root / "database" / name), noisy)
     for i in range(0, n_places, query_every):
-        shaken = np.clip(places[i] * 0.8 + 20 + rng.normal(0, 12, places[i].shape), 0, 255)
-        name = vpr_name(east0 + i * 0.5 + 3.0, north0 + i * spacing_m + 2.0)  # name order = time
+        shaken = np.clip(places[i] * 0.8 + 20 + rng.normal(0, noise, places[i].shape), 0, 255)
+        # one easting: name order (by northing) is time order
+        name = vpr_name(east0 + 1.0, north0 + i * spacing_m + 2.0)
         cv2.imwrite(str(root / "queries" / name), shaken.astype(np.uint8))
     return root
