@@ -22,8 +22,7 @@ from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.positions import drive_positions
-from sprint_map.frontend.sources import drive_names
+from sprint_map.frontend.sources import drive_names, drive_positions
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult

@@ -262,13 +262,13 @@ def preprocess(image: Image, params: Mapping[str, Any]) -> np.ndarray:
     """One gray/BGR/BGRA uint8 image as the model's ``(C, H, W)`` float32 input. O(pixels)."""
     import cv2
 
-    from sprint_map.frontend.descriptors import to_gray
-
     height, width = params["input_size"]
     if image.dtype == np.uint16:
         image = (np.asarray(image, dtype=np.uint16) >> 8).astype(np.uint8)
     if params["channels"] == "gray":
-        pixels = to_gray(image)
+        pixels = image if image.ndim == 2 else image[:, :, 0] if image.shape[2] == 1 else (
+            cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3
+                         else cv2.COLOR_BGRA2GRAY))
     else:
         if image.ndim == 2:
             pixels = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)

@@ -19,7 +19,6 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -27,7 +26,7 @@ from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
 from sprint_map.util.geo import GeoFrame
 
-__all__ = ["OPTIONAL_COLUMNS", "Positions", "drive_positions", "read_positions"]
+__all__ = ["OPTIONAL_COLUMNS", "Positions", "read_positions"]
 
 OPTIONAL_COLUMNS = ("heading_deg", "sigma_m")
 _PLANAR, _GEOGRAPHIC = ("x", "y"), ("lat", "lon")
@@ -239,22 +238,3 @@ def _parse_header(path: Path, number: int, line: str) -> list[str]:
         )
         raise InputError(f"{path}:{number}: bad header ({problem}); expected {_EXPECTED}")
     return names
-
-
-def drive_positions(source: Any, path: str | Path, positions: str | Path | None,
-                    stride: int) -> Positions | None:
-    """A drive's positions: the file ``positions`` if given, else what the source carries (a
-    bag's GNSS: ``source.positions``), else the drive's own ``positions.csv``
-    (:func:`~sprint_map.frontend.sources.own_positions`), else None. ``source`` is the
-    opened :class:`~sprint_map.frontend.sources.FrameSource` of ``path``. O(rows)."""
-    from sprint_map.frontend.sources import own_positions
-
-    if positions is None and source.positions is not None:
-        return source.positions  # type: ignore[no-any-return]
-    found = Path(positions) if positions is not None else own_positions(path)
-    if found is None:
-        return None
-    if source.count is None:  # a video: its frame count is known only once decoded
-        table = read_positions(found, None)
-        return table.subset(np.arange(0, len(table), stride))
-    return read_positions(found, source.count, stride)

@@ -50,7 +50,7 @@ from sprint_map.frontend.imagefiles import (
     read_image_bytes,
 )
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
-from sprint_map.frontend.positions import Positions
+from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
 
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
@@ -58,8 +58,9 @@ if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
 from sprint_map.frontend.vpr import is_vpr_name, vpr_order, vpr_positions
 
-__all__ = ["BagSource", "FrameSource", "ImageDirSource", "NpySource", "ProgressCallback",
-           "SOURCE_KINDS", "VideoSource", "open_source"]
+__all__ = ["SOURCE_KINDS", "BagSource", "FrameSource", "ImageDirSource", "NpySource",
+           "ProgressCallback", "VideoSource", "drive_names", "drive_positions", "open_source",
+           "own_positions"]
 
 #: ``progress(frames_done, total_or_None)``, called after each batch.
 ProgressCallback = Callable[[int, int | None], None]
@@ -609,3 +610,20 @@ def drive_names(paths: list[Path], names: list[str]) -> list[str]:
                              "(by their file and by their folder): ingest them one by one "
                              "with --name")
     return out
+
+
+def drive_positions(source: FrameSource, path: str | Path, positions: str | Path | None,
+                    stride: int) -> Positions | None:
+    """A drive's positions: the file ``positions`` if given, else what the source carries (a
+    bag's GNSS: ``source.positions``), else the drive's own ``positions.csv``
+    (:func:`~sprint_map.frontend.sources.own_positions`), else None. ``source`` is the
+    opened :class:`~sprint_map.frontend.sources.FrameSource` of ``path``. O(rows)."""
+    if positions is None and source.positions is not None:
+        return source.positions
+    found = Path(positions) if positions is not None else own_positions(path)
+    if found is None:
+        return None
+    if source.count is None:  # a video: its frame count is known only once decoded
+        table = read_positions(found, None)
+        return table.subset(np.arange(0, len(table), stride))
+    return read_positions(found, source.count, stride)
