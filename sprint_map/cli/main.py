@@ -680,6 +680,10 @@ def _log(quiet: bool) -> Any:
 @click.option("--descriptor", type=click.Choice(["auto", "hog", "patchnorm", "precomputed"]),
               default="auto", show_default=True,
               help="auto: the traversals' descriptors.npy if they have them, else HoG of images.")
+@click.option("--model", type=click.Path(dir_okay=False), help="vpr layout: describe the "
+              "images with this ONNX model (as init --descriptor onnx --model).")
+@click.option("--model-card", type=click.Path(dir_okay=False), help="vpr layout: the "
+              "model's card (default: beside it, or the model's own input size).")
 @click.option("--alignment", type=click.Choice(["frame", "position"]),
               help="Ground truth, if the data set has no dataset.json (Nordland: frame).")
 @click.option("--tolerance", type=int, help="Frame alignment: +/- frames counted correct.")
@@ -689,7 +693,8 @@ def _log(quiet: bool) -> Any:
               "values), e.g. index_type=ivf-pq.")
 @_model_options
 def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, database: str | None,
-          query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
+          query: str | None, both_directions: bool, descriptor: str, model: str | None,
+          model_card: str | None, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
           stride: int, quiet: bool, k: int | None, window: str | None,
           hmm_pairs: tuple[str, ...]) -> None:
@@ -704,10 +709,15 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
           --query winter --alignment frame --tolerance 1 --map-config index_type=ivf-pq \\
           --map-config index_nlist=64 --map-config index_segment_rows=256
       sprint-map eval datasets/pitts30k --layout vpr --radius 25 --out eval-pitts
+      sprint-map eval datasets/pitts30k --layout vpr --model eigenplaces.onnx
     """
     if layout == "vpr":
-        _eval_vpr(dataset, out_dir, descriptor, radius, map_pairs, k, window, hmm_pairs, quiet)
+        _eval_vpr(dataset, out_dir, descriptor, (model, model_card), radius, map_pairs, k,
+                  window, hmm_pairs, quiet)
         return
+    if model is not None or model_card is not None:
+        raise InputError("--model is for --layout vpr (a traversal data set's map: init "
+                         "--descriptor onnx, then ingest)")
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
     from sprint_map.frontend.dataset import Dataset
@@ -732,7 +742,8 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
     click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
 
 
-def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str, radius: float | None,
+def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,
+              model: tuple[str | None, str | None], radius: float | None,
               map_pairs: tuple[str, ...], k: int | None, window: str | None,
               hmm_pairs: tuple[str, ...], quiet: bool) -> None:
     """``eval --layout vpr``: recall@1/5/10/20 of k-NN and SPRINT into results.json."""
@@ -742,7 +753,15 @@ def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str, radius: float 
     if descriptor == "precomputed":
         raise InputError("--layout vpr describes the images: --descriptor auto, hog or patchnorm")
     data = VprDataset.open(dataset)
-    config = MapConfig.for_descriptor("hog" if descriptor == "auto" else descriptor)
+    if model[0] is not None:
+        from sprint_map.frontend.onnx_model import onnx_params
+
+        params = onnx_params(model[0], model[1])
+        config = MapConfig(dim=params["dim"], descriptor="onnx", descriptor_params=params)
+    elif model[1] is not None:
+        raise InputError("--model-card needs --model FILE")
+    else:
+        config = MapConfig.for_descriptor("hog" if descriptor == "auto" else descriptor)
     if map_pairs:
         config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
     overrides = _hmm_overrides(k, window, hmm_pairs)

@@ -111,3 +111,22 @@ def test_benchmark_download_layout(tmp_path):
     root = make_vpr_dataset(tmp_path / "pitts" / "images" / "test", n_places=4)
     assert VprDataset.open(tmp_path / "pitts").database[0].parent == root / "database"
     assert os.path.basename(vpr_name(1.0, 2.0)).count("@") == 15
+
+
+def test_vpr_with_an_onnx_model(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "frontend"))
+    from onnx_graphs import projection_model
+
+    model = projection_model(tmp_path / "m.onnx", size=(16, 16), dim=32)
+    root = make_vpr_dataset(tmp_path / "vpr", n_places=12, query_every=1)
+    result = _cli("eval", root, "--layout", "vpr", "--model", model, "--out", tmp_path / "o",
+                  "-q")
+    assert result.exit_code == 0, result.output
+    out = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert (out["descriptor"], out["dim"]) == ("onnx", 32)
+    assert 0 < out["methods"]["knn"]["recall@20"] <= 1

@@ -146,3 +146,19 @@ def test_cli_option_errors(tmp_path, args, message):
     result = _cli("init", tmp_path / "map", *args)
     assert result.exit_code == InputError.exit_code and message in result.output
     assert not (tmp_path / "map").exists()
+
+
+@pytest.mark.parametrize(("make", "card", "message"), [
+    ({"output": "map"}, None, "expected one vector per image"),
+    ({}, {"input_size": [4, 4]}, "but the model takes 8x8 images"),
+])
+def test_cli_refused_model_or_card_creates_no_map(tmp_path, make, card, message):
+    model = projection_model(tmp_path / "m.onnx", **make)
+    args = ["init", tmp_path / "map", "--descriptor", "onnx", "--model", model]
+    if card is not None:
+        (tmp_path / "c.json").write_text(json.dumps(card))
+        args += ["--model-card", tmp_path / "c.json"]
+    result = _cli(*args)
+    assert result.exit_code == InputError.exit_code
+    assert message in result.output and result.output.count("\n") == 1
+    assert not (tmp_path / "map").exists()
