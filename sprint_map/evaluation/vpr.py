@@ -77,11 +77,11 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
     k = max(RECALL_NS)
     with SprintMap.create(map_dir, config) as m:
         log(f"mapping {len(data.database)} database images")
-        db = m.open_source(data.path / _rel(data, data.database[0]).parent)
+        db = m.open_source(data.database[0].parent)
         m.add_sequence(db.read_all(), name="database",
                        positions=m.metric_positions(db.positions))
         log(f"localising {len(data.queries)} queries")
-        queries = m.open_source(data.path / _rel(data, data.queries[0]).parent).read_all()
+        queries = m.open_source(data.queries[0].parent).read_all()
         _, ids = m.search(queries, min(k, len(data.database)))
         knn = np.full((len(queries), k), -1, dtype=np.int64)
         knn[:, : ids.shape[1]] = ids  # one sequence from vertex 0: vertex id = database index
@@ -105,10 +105,6 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
     }
     publish_bytes(out_dir / "results.json", (json.dumps(results, indent=2) + "\n").encode())
     return results
-
-
-def _rel(data: VprDataset, file: Path) -> Path:
-    return file.relative_to(data.path)
 
 
 def markdown_recall(results: dict[str, Any]) -> str:
