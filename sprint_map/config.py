@@ -25,7 +25,7 @@ __all__ = ["DESCRIPTOR_KINDS", "INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEM
            "HMMConfig", "MapConfig", "MergeRule", "StoreOptions", "nest_flat_keys"]
 
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
-DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm")
+DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm", "onnx")
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,8 @@ class MapConfig:
         Descriptor dimension; every sequence added must match it.
     descriptor : str
         Which descriptor the map holds: ``"precomputed"`` (given as arrays), ``"hog"`` (the
-        paper's: 64x64 grayscale HoG, 1764 dims) or ``"patchnorm"`` (SeqSLAM-style).
+        paper's: 64x64 grayscale HoG, 1764 dims), ``"patchnorm"`` (SeqSLAM-style) or
+        ``"onnx"`` (a user's model: :mod:`sprint_map.frontend.onnx_model`).
     descriptor_params : dict
         Parameters of the descriptor kind (:class:`sprint_map.frontend.descriptors.DescriptorSpec`).
     store : StoreOptions

@@ -50,10 +50,13 @@ from sprint_map.storage.store import MapStore
 from sprint_map.storage.store_config import decode_stored_config
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.util.geo import GeoFrame
 from sprint_map.util.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
     from sprint_map.export.report import ExportReport
+    from sprint_map.frontend.bags import BagOptions
+    from sprint_map.frontend.positions import Positions
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.hmm.cache import ComponentCache
     from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
@@ -468,11 +471,13 @@ class SprintMap:
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
                     progress: ProgressCallback | None = None,
-                    thumbnails: bool = False) -> FrameSource:
-        """Open images, a video or a ``.npy`` as descriptors that fit this map.
+                    thumbnails: bool = False, bag: BagOptions | None = None) -> FrameSource:
+        """Open images, a video, a ``.npy`` or a ROS bag as descriptors that fit this map.
 
         With ``thumbnails`` the source also makes a small JPEG of each frame
-        (``source.thumbnails``, for :meth:`ingest`); images and video only.
+        (``source.thumbnails``, for :meth:`ingest`); images, video and bags only. ``bag``:
+        a bag's topics and ``every_m`` (:mod:`sprint_map.frontend.bags`); a bag's GNSS
+        positions are ``source.positions`` (for :meth:`metric_positions`).
 
         Raises
         ------
@@ -495,7 +500,7 @@ class SprintMap:
         from sprint_map.frontend.sources import open_source
 
         source = open_source(src, spec, stride=stride, progress=progress,
-                             thumbnails=thumbnails)
+                             thumbnails=thumbnails, bag=bag)
         if source.dim != self.config.dim:
             raise DescriptorShapeError(
                 f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
@@ -605,7 +610,40 @@ class SprintMap:
         return self.store.descriptors(seq_id)
 
     def positions(self, seq_id: int) -> Float64Array | None:
+        """``(length, 4)`` ``x, y, heading_deg, timestamp`` of a sequence (a fifth column
+        ``sigma_m`` when a fix has an accuracy; NaN rows: frames without a fix), or None.
+        O(length)."""
         return self.store.positions(seq_id)
+
+    def geo_frame(self) -> GeoFrame | None:
+        """The UTM zone this map keeps latitude/longitude in (set by the first geographic
+        positions it was given), or None. O(1)."""
+        record = self.store.geo_frame()
+        return None if record is None else GeoFrame.from_dict(record)
+
+    def metric_positions(self, positions: Positions | None) -> Float64Array | None:
+        """Positions as the map stores them (``(n, 5)`` ``x, y, heading, time, sigma_m``):
+        latitude/longitude are projected into the map's UTM zone, which the first geographic
+        positions a map is given choose (the zone of their first fix) and store, once, in a
+        transaction of their own. Planar positions are taken as they are. O(n).
+
+        Raises
+        ------
+        InputError
+            Geographic positions without a single fix.
+        """
+        if positions is None:
+            return None
+        if not positions.geographic:
+            return positions.rows()
+        frame = self.geo_frame()
+        if frame is None:
+            fix = positions.first_fix()
+            if fix is None:
+                raise InputError("geographic positions without any fix: nothing to place")
+            frame = GeoFrame.from_dict(self.store.set_geo_frame(
+                GeoFrame.for_fix(*fix).to_dict()))
+        return positions.metric(frame).rows()
 
     def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
         """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the

@@ -133,7 +133,10 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # Positions for the 3 frames of images/ (or the 40 of good.npy).
     frames3 = [f"{i},{i}.0,0" for i in range(3)]
     (root / "pos_ok.csv").write_text(_csv(frames3))
-    (root / "pos_short.csv").write_text(_csv(frames3[:2]))
+    (root / "pos_sigma.csv").write_text(_csv([f"{i},{i}.0,0,{1 - i}" for i in range(3)],
+                                             header="frame,x,y,sigma_m"))
+    (root / "pos_lat.csv").write_text(_csv(["0,59.9,10.7", "1,95.0,10.7"],
+                                           header="frame,lat,lon"))
     (root / "pos_long.csv").write_text(_csv([*frames3, "3,3.0,0"]))
     (root / "pos_header.csv").write_text(_csv(frames3, header="t,east,north"))
     (root / "pos_nan.csv").write_text(_csv([*frames3[:2], "2,nan,0"]))
@@ -285,10 +288,15 @@ CASES: dict[str, Case] = {
     "npy-into-hog-map": Case("ingest {map} {in}/good.npy", DescriptorShapeError,
                              "descriptors have 16 dimensions", map="img"),
     # Positions that do not match the frames (images/ has 4 frames).
-    "positions-short": Case("ingest {map} {in}/images --name x --positions {in}/pos_short.csv",
-                            InputError, "2 position rows for 3 frames", map="img"),
+    # (a frame without a row is a frame without a fix, not an error)
     "positions-long": Case("ingest {map} {in}/images --name x --positions {in}/pos_long.csv",
-                           InputError, "4 position rows for 3 frames", map="img"),
+                           InputError, "pos_long.csv:5: frame 3 is beyond the drive (3 frames)",
+                           map="img"),
+    "positions-sigma": Case("ingest {map} {in}/images --name x --positions {in}/pos_sigma.csv",
+                            InputError, "pos_sigma.csv:3: sigma_m must be > 0 metres, got 0",
+                            map="img"),
+    "positions-lat": Case("ingest {map} {in}/images --name x --positions {in}/pos_lat.csv",
+                          InputError, "pos_lat.csv:3: lat 95 is outside [-90, 90]", map="img"),
     "positions-header": Case("ingest {map} {in}/images --name x --positions {in}/pos_header.csv",
                              InputError, "pos_header.csv:1: bad header", map="img"),
     "positions-nan": Case("ingest {map} {in}/images --name x --positions {in}/pos_nan.csv",
@@ -301,8 +309,6 @@ CASES: dict[str, Case] = {
                              InputError, "pos_binary.csv", map="img"),
     "positions-missing": Case("ingest {map} {in}/images --name x --positions {in}/absent.csv",
                               InputError, "absent.csv: cannot read positions", map="img"),
-    "positions-for-npy": Case("ingest {map} {in}/good.npy --name x --positions {in}/pos_ok.csv",
-                              InputError, "3 position rows for 40 frames"),
     # serve: refused before anything is served (a token file is any non-empty text file).
     "serve-public-no-token": Case("serve {map} --host 0.0.0.0", UnsafeServeError,
                                   "refusing to listen on 0.0.0.0 without a bearer token"),

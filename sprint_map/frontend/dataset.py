@@ -35,9 +35,10 @@ from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.imagefiles import is_image_name, is_video_name, list_images, natural_key
-from sprint_map.frontend.positions import read_positions
+from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.geo import GeoFrame
 
 __all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal",
            "frame_ranges"]
@@ -127,18 +128,32 @@ class Traversal:
         source.name = self.name
         return source
 
-    def positions(self, stride: int = 1) -> Float64Array | None:
-        """Positions of the frames kept with ``stride``, or ``None`` without ``positions.csv``.
+    def positions(self, stride: int = 1, frame: GeoFrame | None = None
+                  ) -> Float64Array | None:
+        """Positions ``frame, x, y[, heading_deg]`` of the frames kept with ``stride`` (NaN
+        for a frame without a fix), or ``None`` without ``positions.csv``; latitude/longitude
+        are projected into ``frame`` (default: the UTM zone of the first fix).
 
-        For a video, whose frame count is unknown before decoding, the CSV's own row count is
-        trusted; for images and descriptors it must match the frame count.
+        For a video, whose frame count is unknown before decoding, the CSV's last frame is
+        trusted; for images and descriptors no row may lie beyond the frame count.
         """
+        table = self.position_table(stride)
+        if table is None:
+            return None
+        if table.geographic:
+            fix = table.first_fix()
+            frame = frame or (GeoFrame.for_fix(*fix) if fix else GeoFrame(31))
+        return table.metric(frame).table()
+
+    def position_table(self, stride: int = 1) -> Positions | None:
+        """The :class:`~sprint_map.frontend.positions.Positions` of ``positions.csv`` for the
+        frames kept with ``stride`` (as read: latitude/longitude stay so), or None."""
         if self.positions_path is None:
             return None
         count = self.count
         if count is None:
-            rows = read_positions(self.positions_path, None)
-            return rows[::stride]
+            table = read_positions(self.positions_path, None)
+            return table.subset(np.arange(0, len(table), stride))
         return read_positions(self.positions_path, -(-count // stride), stride)
 
     def __repr__(self) -> str:
@@ -216,6 +231,19 @@ class Dataset:
         if not folders:
             raise InputError(f"{path}: data set has no traversal folders")
         return cls(path, [Traversal(folder) for folder in folders], gt_spec, info)
+
+    def geo_frame(self) -> GeoFrame | None:
+        """The UTM zone of the first fix of the first traversal whose ``positions.csv`` holds
+        latitude/longitude (all traversals are projected into it), or None. O(CSV rows)."""
+        if not hasattr(self, "_geo_frame"):
+            self._geo_frame: GeoFrame | None = None
+            for traversal in self.traversals:
+                table = traversal.position_table()
+                fix = table.first_fix() if table is not None and table.geographic else None
+                if fix is not None:
+                    self._geo_frame = GeoFrame.for_fix(*fix)
+                    break
+        return self._geo_frame
 
     @property
     def names(self) -> list[str]:
@@ -299,7 +327,7 @@ class _LazyPositions(Mapping[str, Float64Array]):
     def __getitem__(self, name: str) -> Float64Array:
         if name not in self._cache:
             traversal = self._dataset[name]
-            rows = traversal.positions(self._stride)
+            rows = traversal.positions(self._stride, self._dataset.geo_frame())
             if rows is None:
                 raise InputError(
                     f"{traversal.folder}: no {POSITIONS_FILE}, needed by position alignment"

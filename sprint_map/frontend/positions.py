@@ -1,30 +1,113 @@
-"""Reading per-frame positions (ground truth) from a CSV file.
+"""Reading per-frame positions (ground truth, GNSS fixes) from a CSV file.
 
-Format: a header line naming the columns ``frame,x,y`` or ``frame,x,y,heading_deg`` (in any order,
-names case-insensitive), then one row per frame of the source *before* any stride, frames
-numbered from 0. ``x``/``y`` are metres in any fixed planar frame; ``heading_deg`` is the
-direction of travel in degrees (any convention, as long as all traversals of a data set share
-it). Blank lines and lines starting with ``#`` are skipped.
+Format: a header line naming the columns, in any order and case, one of
+
+- ``frame,x,y[,heading_deg][,sigma_m]``: ``x``/``y`` metres in any fixed planar frame;
+- ``frame,lat,lon[,heading_deg][,sigma_m]``: WGS84 latitude/longitude in degrees, which a map
+  projects into the one UTM zone it stores (:class:`sprint_map.util.geo.GeoFrame`);
+
+then one row per frame of the source *before* any stride, frames numbered from 0.
+``heading_deg`` is the direction of travel in degrees (any convention, as long as all traversals
+of a data set share it); ``sigma_m`` the fix's accuracy (one standard deviation, metres, > 0).
+A frame without a row is a frame without a fix (its position is NaN). Blank lines and lines
+starting with ``#`` are skipped.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.geo import GeoFrame
 
-__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "read_positions"]
+__all__ = ["OPTIONAL_COLUMNS", "Positions", "read_positions"]
 
-REQUIRED_COLUMNS = ("frame", "x", "y")
-OPTIONAL_COLUMNS = ("heading_deg",)
+OPTIONAL_COLUMNS = ("heading_deg", "sigma_m")
+_PLANAR, _GEOGRAPHIC = ("x", "y"), ("lat", "lon")
+_EXPECTED = "frame,x,y[,heading_deg][,sigma_m] or frame,lat,lon[,heading_deg][,sigma_m]"
 
 
-def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Float64Array:
+@dataclass(frozen=True)
+class Positions:
+    """Per-frame positions of a drive's kept frames; NaN rows are frames without a fix.
+
+    Attributes
+    ----------
+    frames : ndarray of int64, (n,)
+        Original frame numbers (``i * stride``).
+    xy : ndarray of float64, (n, 2)
+        ``x, y`` metres, or ``lat, lon`` degrees when :attr:`geographic`.
+    heading_deg, sigma_m, time : ndarray of float64, (n,), or None
+        Heading, fix accuracy (metres) and time (seconds), None when the source has none.
+    geographic : bool
+        Whether :attr:`xy` holds latitude/longitude.
+    """
+
+    frames: np.ndarray
+    xy: Float64Array
+    heading_deg: Float64Array | None = None
+    sigma_m: Float64Array | None = None
+    time: Float64Array | None = None
+    geographic: bool = False
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(n,) bool: the frames with a fix."""
+        return np.asarray(np.isfinite(self.xy).all(axis=1))
+
+    def first_fix(self) -> tuple[float, float] | None:
+        """``(lat, lon)`` (or ``(x, y)``) of the first frame with a fix, None without one."""
+        idx = np.flatnonzero(self.fixed)
+        return None if not len(idx) else (float(self.xy[idx[0], 0]), float(self.xy[idx[0], 1]))
+
+    def metric(self, frame: GeoFrame | None) -> Positions:
+        """These positions in metres: latitude/longitude projected into ``frame`` (required
+        then); planar ones unchanged. O(n)."""
+        if not self.geographic:
+            return self
+        if frame is None:
+            raise ValueError("geographic positions need a GeoFrame")
+        return Positions(self.frames, frame.project(self.xy[:, 0], self.xy[:, 1]),
+                         self.heading_deg, self.sigma_m, self.time, geographic=False)
+
+    def rows(self) -> Float64Array:
+        """The stored form: ``(n, 5)`` ``x, y, heading_deg, time, sigma_m`` (NaN where
+        unknown; x, y NaN for a frame without a fix). Metric positions only. O(n)."""
+        if self.geographic:
+            raise ValueError("project geographic positions first (Positions.metric)")
+        out = np.full((len(self), 5), np.nan)
+        out[:, :2] = self.xy
+        for col, values in ((2, self.heading_deg), (3, self.time), (4, self.sigma_m)):
+            if values is not None:
+                out[:, col] = values
+        return out
+
+    def table(self) -> Float64Array:
+        """``(n, 3 or 4)`` ``frame, x, y[, heading_deg]`` (ground truth's form). O(n)."""
+        cols = [self.frames.astype(np.float64), self.xy[:, 0], self.xy[:, 1]]
+        if self.heading_deg is not None:
+            cols.append(self.heading_deg)
+        return np.stack(cols, axis=1)
+
+    def subset(self, keep: np.ndarray) -> Positions:
+        """The rows ``keep`` (indices or a mask), frames renumbered as given. O(n)."""
+        def pick(values: Float64Array | None) -> Float64Array | None:
+            return None if values is None else values[keep]
+
+        return Positions(self.frames[keep], self.xy[keep], pick(self.heading_deg),
+                         pick(self.sigma_m), pick(self.time), self.geographic)
+
+
+def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Positions:
     """Read the positions of the ``n_frames`` frames a source yielded.
 
     Parameters
@@ -32,26 +115,25 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
     path : str or Path
         The CSV file.
     n_frames : int or None
-        Frames the source yielded (after ``stride``); ``None`` accepts any number of rows
-        (frames ``0..M-1``), for a video whose length is unknown (``stride`` must then be 1).
+        Frames the source yielded (after ``stride``); ``None`` (a video, whose length is
+        unknown; ``stride`` must then be 1) takes frames ``0..max frame``.
     stride : int
-        The source's stride: the CSV describes the original frames, of which frames
-        ``0, stride, 2*stride, ...`` were kept. The CSV must then hold between
-        ``(n_frames - 1) * stride + 1`` and ``n_frames * stride`` rows (the original frame
-        count is only known up to the stride); with ``stride=1`` exactly ``n_frames``.
+        The source's stride: the CSV numbers the original frames, of which frames
+        ``0, stride, 2*stride, ...`` were kept. A row for frame ``n_frames * stride`` or later
+        describes a frame the drive does not have: an error.
 
     Returns
     -------
-    ndarray of float64, shape (n_frames, 3) or (n_frames, 4)
-        Columns ``frame, x, y[, heading_deg]`` for the kept frames, in frame order; ``frame``
-        is the original frame number (``i * stride``).
+    Positions
+        One row per kept frame, NaN where the file has no row.
 
     Raises
     ------
     InputError
-        Missing or unreadable file, a bad header, a non-numeric or non-finite value, a
-        non-integer, negative, repeated or missing frame number, or a frame count that does
-        not match the source. The message names the file and, where it applies, the line.
+        One line naming the file (and the line): a missing or unreadable file, a bad header,
+        a non-numeric or non-finite value, ``sigma_m <= 0``, a latitude outside [-90, 90] or a
+        longitude outside [-180, 180], a non-integer, negative or repeated frame number, a
+        frame beyond the drive, or no row at all. O(rows).
     """
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
@@ -70,11 +152,13 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not a UTF-8 text file") from exc
     if not lines:
-        raise InputError(f"{path}: empty positions file (expected header frame,x,y[,heading_deg])")
+        raise InputError(f"{path}: empty positions file (expected header {_EXPECTED})")
 
     columns = _parse_header(path, *lines[0])
+    geographic = "lat" in columns
+    first, second = _GEOGRAPHIC if geographic else _PLANAR
     width = len(columns)
-    rows: dict[int, tuple[int, list[float]]] = {}  # frame -> (line number, [x, y(, heading)])
+    rows: dict[int, tuple[int, dict[str, float]]] = {}  # frame -> (line number, values)
     for number, line in lines[1:]:
         fields = next(csv.reader([line]))
         if len(fields) != width:
@@ -90,6 +174,7 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
             if not math.isfinite(value):
                 raise InputError(f"{path}:{number}: {name} is not finite: {text.strip()!r}")
             values[name] = value
+        _check_values(path, number, values)
         frame_value = values["frame"]
         if frame_value != int(frame_value) or frame_value < 0:
             raise InputError(f"{path}:{number}: frame must be a non-negative integer")
@@ -98,42 +183,51 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
             raise InputError(
                 f"{path}:{number}: frame {frame} repeated (first on line {rows[frame][0]})"
             )
-        data = [values["x"], values["y"]]
-        if "heading_deg" in values:
-            data.append(values["heading_deg"])
-        rows[frame] = (number, data)
+        if n_frames is not None and frame >= n_frames * stride:
+            raise InputError(
+                f"{path}:{number}: frame {frame} is beyond the drive ({n_frames} frames"
+                + (f" kept with stride {stride}" if stride > 1 else "") + "): a positions "
+                "file longer than its drive"
+            )
+        rows[frame] = (number, values)
 
     if not rows:
         raise InputError(f"{path}: no position rows after the header")
     if n_frames is None:
-        n_frames = len(rows)
-    low, high = (n_frames - 1) * stride + 1, n_frames * stride
-    if not low <= len(rows) <= high:
-        expected = str(n_frames) if stride == 1 else f"{low} to {high} (stride {stride})"
-        raise InputError(
-            f"{path}: {len(rows)} position rows for {n_frames} frames; expected {expected} rows"
-        )
-    beyond = [(number, frame) for frame, (number, _) in rows.items() if frame >= len(rows)]
-    if beyond:
-        # Unique frames, as many as rows, one too large: some frame below it is missing.
-        missing = min(set(range(len(rows))) - rows.keys())
-        number, frame = min(beyond)
-        raise InputError(
-            f"{path}:{number}: frame {frame} but frame {missing} is missing; "
-            f"frames must be numbered 0..{len(rows) - 1} without gaps"
-        )
-    out = np.empty((n_frames, width), dtype=np.float64)
-    for i in range(n_frames):
-        out[i, 0] = i * stride
-        out[i, 1:] = rows[i * stride][1]
-    return out
+        n_frames = max(rows) + 1
+    frames = np.arange(n_frames, dtype=np.int64) * stride
+    xy = np.full((n_frames, 2), np.nan)
+    optional = {name: np.full(n_frames, np.nan) for name in OPTIONAL_COLUMNS if name in columns}
+    for i, frame in enumerate(frames.tolist()):
+        row = rows.get(frame)
+        if row is None:
+            continue
+        values = row[1]
+        xy[i] = values[first], values[second]
+        for name, array in optional.items():
+            array[i] = values[name]
+    return Positions(frames, xy, optional.get("heading_deg"), optional.get("sigma_m"),
+                     geographic=geographic)
+
+
+def _check_values(path: Path, number: int, values: dict[str, float]) -> None:
+    sigma = values.get("sigma_m")
+    if sigma is not None and sigma <= 0:
+        raise InputError(f"{path}:{number}: sigma_m must be > 0 metres, got {sigma:g}")
+    lat, lon = values.get("lat"), values.get("lon")
+    if lat is not None and not -90 <= lat <= 90:
+        raise InputError(f"{path}:{number}: lat {lat:g} is outside [-90, 90]")
+    if lon is not None and not -180 <= lon <= 180:
+        raise InputError(f"{path}:{number}: lon {lon:g} is outside [-180, 180]")
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
     names = [name.strip().lower() for name in next(csv.reader([line]))]
-    known = set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS)
+    pair = _GEOGRAPHIC if "lat" in names or "lon" in names else _PLANAR
+    required = ("frame", *pair)
+    known = set(required) | set(OPTIONAL_COLUMNS)
     unknown = [name for name in names if name not in known]
-    missing = [name for name in REQUIRED_COLUMNS if name not in names]
+    missing = [name for name in required if name not in names]
     if unknown or missing or len(set(names)) != len(names):
         problem = (
             f"unknown column(s) {', '.join(repr(n) for n in unknown)}"
@@ -142,7 +236,5 @@ def _parse_header(path: Path, number: int, line: str) -> list[str]:
             if missing
             else "repeated column"
         )
-        raise InputError(
-            f"{path}:{number}: bad header ({problem}); expected frame,x,y[,heading_deg]"
-        )
+        raise InputError(f"{path}:{number}: bad header ({problem}); expected {_EXPECTED}")
     return names

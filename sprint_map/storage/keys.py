@@ -22,7 +22,8 @@ from typing import Any
 from sprint_map.errors import MapCorruptError
 
 __all__ = ["COMP_VAL", "DIGEST_BYTES", "EDGE_KEY", "EDGE_VAL", "NO_QUERY", "REMOVED_VAL", "Raw",
-           "RecordStruct", "THUMB_KEY", "U32", "U64", "UF_VAL", "VERTEX_VAL", "decode_json",
+           "RecordStruct", "THUMB_KEY", "U32", "U64", "UF_VAL", "VERTEX_VAL", "VERTEX_VAL_SIGMA",
+           "decode_json", "decode_vertex",
            "decode_number", "decode_text", "read_u32", "read_u64", "u32", "u64"]
 
 
@@ -53,6 +54,19 @@ UF_VAL = RecordStruct(">II")
 COMP_VAL = RecordStruct(">QQ")
 #: optional per-vertex data: x, y, heading (deg, NaN if unknown), timestamp (NaN if unknown)
 VERTEX_VAL = RecordStruct(">dddd")
+#: the same with the fix's accuracy (sigma, metres) after it: written only for a vertex that
+#: has one, so a map without accuracies keeps the 32-byte records (and older readers)
+VERTEX_VAL_SIGMA = RecordStruct(">ddddd")
+
+
+def decode_vertex(raw: Raw) -> tuple[float, float, float, float, float]:
+    """``x, y, heading, timestamp, sigma`` of a ``vertex_data`` value of either width (sigma
+    NaN for the 32-byte form); MapCorruptError for any other width. O(1)."""
+    if len(raw) == VERTEX_VAL.size:
+        x, y, heading, when = VERTEX_VAL.unpack(raw)
+        return x, y, heading, when, float("nan")
+    x, y, heading, when, sigma = VERTEX_VAL_SIGMA.unpack(raw)
+    return x, y, heading, when, sigma
 
 #: removed vertex range, keyed by its last vertex: first vertex, seq id it belonged to
 REMOVED_VAL = RecordStruct(">QI")

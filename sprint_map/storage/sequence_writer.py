@@ -40,7 +40,15 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
-from sprint_map.storage.keys import DIGEST_BYTES, EDGE_KEY, VERTEX_VAL, read_u32, u32, u64
+from sprint_map.storage.keys import (
+    DIGEST_BYTES,
+    EDGE_KEY,
+    VERTEX_VAL,
+    VERTEX_VAL_SIGMA,
+    read_u32,
+    u32,
+    u64,
+)
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
 from sprint_map.storage.shards import ShardSet
@@ -476,9 +484,10 @@ def write_sequence(store: WritableMap, txn: lmdb.Transaction, record: SequenceRe
     store.put_lookups(txn, record)
     if pos is not None:
         vdb = db("vertex_data")
-        txn.cursor(db=vdb).putmulti(
-            ((u64(record.first_vertex + i), VERTEX_VAL.pack(*row))
-             for i, row in enumerate(pos.tolist())),
+        txn.cursor(db=vdb).putmulti(  # frames without a fix get no record
+            ((u64(record.first_vertex + i),
+              VERTEX_VAL.pack(*row[:4]) if math.isnan(row[4]) else VERTEX_VAL_SIGMA.pack(*row))
+             for i, row in enumerate(pos.tolist()) if not math.isnan(row[0])),
             append=True,
         )
     for shard, length in lengths.items():

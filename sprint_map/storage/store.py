@@ -53,6 +53,7 @@ from sprint_map.storage.keys import (
     VERTEX_VAL,
     decode_json,
     decode_number,
+    decode_vertex,
     read_u32,
     read_u64,
     u32,
@@ -501,31 +502,68 @@ class MapStore:
         return self.shards.rows(seq.first_vertex, seq.first_vertex + seq.length, total)
 
     def positions(self, seq_id: int) -> Float64Array | None:
-        """Per-vertex ``(x, y, heading, timestamp)`` of a sequence, or None if none were given."""
+        """Per-vertex ``(x, y, heading, timestamp)`` of a sequence, with a fifth column
+        ``sigma_m`` when any of its fixes has an accuracy; NaN rows for frames without a fix;
+        None if none were given. O(length) reads."""
         with self.env.read() as txn:
             seq = self.sequence(seq_id, txn)
             db = self.env.db("vertex_data")
-            if txn.get(u64(seq.first_vertex), db=db) is None:
-                return None
-            out = np.full((seq.length, 4), np.nan)
             cursor = txn.cursor(db=db)
-            cursor.set_range(u64(seq.first_vertex))
+            last = u64(seq.last_vertex)
+            if not cursor.set_range(u64(seq.first_vertex)) or bytes(cursor.key()) > last:
+                return None
             # raw records gathered, then decoded at once (per record: ~10x less Python)
-            last, size = u64(seq.last_vertex), VERTEX_VAL.size
             keys, values = [], []
+            wide = False
             for key, value in cursor:
                 if len(key) != 8 or bytes(key) > last:  # fixed-width big-endian: as the ids
                     if len(key) != 8:
                         read_u64(key)  # a corrupt key: its error
                     break
-                if len(value) != size:
-                    VERTEX_VAL.unpack(value)  # a corrupt record: its error
+                if len(value) != VERTEX_VAL.size:
+                    decode_vertex(value)  # a corrupt record raises; else the sigma form
+                    wide = True
                 keys.append(key)
                 values.append(value)
             vids = np.frombuffer(b"".join(keys), dtype=">u8").astype(np.int64)
-            out[vids - seq.first_vertex] = np.frombuffer(b"".join(values), dtype=">f8"
-                                                         ).reshape(-1, 4)
+            out = np.full((seq.length, 5 if wide else 4), np.nan)
+            if not wide:
+                out[vids - seq.first_vertex] = np.frombuffer(b"".join(values), dtype=">f8"
+                                                             ).reshape(-1, 4)
+            else:
+                out[vids - seq.first_vertex] = [decode_vertex(v) for v in values]
         return out
+
+    def geo_frame(self) -> dict[str, Any] | None:
+        """The geographic frame record the map keeps its latitude/longitude positions in
+        (a JSON object; its meaning is the caller's), or None. O(1)."""
+        with self.env.read() as txn:
+            raw = txn.get(b"geo_frame", db=self.env.db("meta"))
+        if raw is None:
+            return None
+        record = decode_json(raw, "geo_frame")
+        if not isinstance(record, dict):
+            raise MapCorruptError("corrupt geo_frame record: not a JSON object")
+        return record
+
+    def set_geo_frame(self, record: dict[str, Any]) -> dict[str, Any]:
+        """Store ``record`` as the map's geographic frame unless it has one; return the one
+        it keeps (set once, never replaced). One small LMDB transaction. O(1)."""
+        self.require_writer()
+        meta = self.env.db("meta")
+
+        def body(txn: lmdb.Transaction) -> dict[str, Any]:
+            raw = txn.get(b"geo_frame", db=meta)
+            if raw is not None:
+                kept = decode_json(raw, "geo_frame")
+                if not isinstance(kept, dict):
+                    raise MapCorruptError("corrupt geo_frame record: not a JSON object")
+                return kept
+            txn.put(b"geo_frame", json.dumps(record).encode(), db=meta)
+            return record
+
+        result: dict[str, Any] = self.env.write(body)
+        return result
 
     def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
         """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None if the

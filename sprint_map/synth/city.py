@@ -206,7 +206,7 @@ class SyntheticTraversal:
         Preset name (the jittered parameters are in ``plan.condition``).
     images : ndarray of uint8, (N, H, W, 3) BGR
     positions : ndarray of float64, (N, 4)
-        ``frame, x, y, heading_deg`` as :func:`~sprint_map.frontend.positions.read_positions`
+        ``frame, x, y, heading_deg`` as :meth:`~sprint_map.frontend.positions.Positions.table`
         returns them.
     plan : TraversalPlan
     """

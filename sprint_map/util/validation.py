@@ -48,18 +48,35 @@ def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> De
 
 
 def validate_positions(positions: Any, n: int) -> Float64Array | None:
-    """Positions as an (n, 4) float64 array ``x, y, heading_deg, timestamp`` (NaN if not given)."""
+    """Positions as an (n, 5) float64 array ``x, y, heading_deg, timestamp, sigma_m`` (NaN
+    where not given); a row whose ``x`` and ``y`` are both NaN is a frame without a fix (not
+    stored). None when no frame has a fix. O(n).
+
+    Raises
+    ------
+    InputError
+        Not ``n`` rows of 2 to 5 columns; only one of ``x``, ``y`` NaN, or either infinite;
+        a ``sigma_m`` that is not NaN or a finite value > 0.
+    """
     if positions is None:
         return None
     pos = np.asarray(positions, dtype=np.float64)
-    if pos.ndim != 2 or pos.shape[0] != n or not 2 <= pos.shape[1] <= 4:
+    if pos.ndim != 2 or pos.shape[0] != n or not 2 <= pos.shape[1] <= 5:
         raise InputError(
-            f"positions must be {n} rows of x, y[, heading[, time]], got shape {pos.shape}"
+            f"positions must be {n} rows of x, y[, heading[, time[, sigma]]], got shape "
+            f"{pos.shape}"
         )
-    out = np.full((n, 4), np.nan)
+    out = np.full((n, 5), np.nan)
     out[:, : pos.shape[1]] = pos
-    if not np.isfinite(out[:, :2]).all():
-        raise InputError("positions contain NaN or Inf in x or y")
+    missing = np.isnan(out[:, :2])
+    if (missing[:, 0] != missing[:, 1]).any() or np.isinf(out[:, :2]).any():
+        raise InputError("positions contain NaN or Inf in x or y (a frame without a fix has "
+                         "both NaN)")
+    sigma = out[:, 4]
+    if not (np.isnan(sigma) | (np.isfinite(sigma) & (sigma > 0))).all():
+        raise InputError("positions: sigma_m must be NaN or a finite value > 0 metres")
+    if missing[:, 0].all():
+        return None
     return out
 
 
