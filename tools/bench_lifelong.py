@@ -210,8 +210,10 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             merged = [d for d, keep in zip(result.decisions, np.asarray(result.merged).tolist(),
                                            strict=True) if keep and merge]
             row["merged"] = len(merged)
-            row["merged_wrong"] = sum(not gt.correct(drive.name, d.frame, names[d.seq_id],
-                                                     d.image_id) for d in merged)
+            row["merged_wrong"] = sum(
+                d.seq_id is None or d.image_id is None
+                or not gt.correct(drive.name, d.frame, names[d.seq_id], d.image_id)
+                for d in merged)
             stats = m.stats()
             row.update(edges_added=result.added.edges_added, components=stats["components"],
                        seconds=round(time.perf_counter() - start, 2))

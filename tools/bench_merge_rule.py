@@ -233,16 +233,17 @@ def print_table(family: str, rows: list[tuple[str, str, dict[str, Any]]]) -> Non
     print(f"\n{family}")
     print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'P-twin':>6} {'mergeR':>6} {'novelM':>6} "
           f"{'worstQ':>6} {'smooth':>6} | {'kNN@1':>6} {'kNN@10':>6} | {'merged':>6} "
-          f"{'twins':>9} | {'s':>5}")
+          f"{'twins':>11} | {'s':>5}")
     for seed, arm, r in rows:
-        twins = (f"{r['twin_merged_wrong']}/{r['twin_merged']}/{r['twin_frames']}"
+        twins = ("/".join(f"{r[k]:.0f}" for k in ("twin_merged_wrong", "twin_merged",
+                                                   "twin_frames"))
                  if "twin_frames" in r else "-")
         print(f"{seed:>5} {arm:>8} | {pct(r.get('merge_precision')):>6} "
               f"{pct(r.get('merge_precision_no_twins')):>6} "
               f"{pct(r.get('merge_recall')):>6} {pct(r.get('novel_merged')):>6} "
               f"{pct(r.get('worst_query_precision')):>6} {pct(r.get('smoothed_recall@1')):>6} | "
               f"{pct(r.get('knn_recall@1')):>6} {pct(r.get('knn_recall@10')):>6} | "
-              f"{r.get('merged_decisions', 0):>6.0f} {twins:>9} | {r['seconds']:5.0f}",
+              f"{r.get('merged_decisions', 0):>6.0f} {twins:>11} | {r['seconds']:5.0f}",
               flush=True)
 
 
