@@ -166,6 +166,7 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
             changes.setdefault(part, {})[name] = value
         else:
             changes[key] = value
+    configured(MapConfig(dim=8), changes)  # an unknown field or a bad value: ConfigError now
     return changes
 
 

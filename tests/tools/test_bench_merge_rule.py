@@ -13,12 +13,13 @@ from tools import bench_merge_rule as bench
 
 
 def test_overrides_go_to_the_map_or_the_hmm_config() -> None:
-    map_changes, hmm_changes = bench.parse_overrides(
-        ["merge_max_contrast=0.9", "merge_min_run=12", "k=14", "hmm.window=[0.5, 0.5]"])
-    assert map_changes == {"merge_max_contrast": 0.9, "merge_min_run": 12}
-    assert hmm_changes == {"k": 14, "window": [0.5, 0.5]}
-    config = bench.configured(MapConfig(dim=8), map_changes, hmm_changes)
-    assert (config.merge_max_contrast, config.merge_min_run, config.hmm.k) == (0.9, 12, 14)
+    changes = bench.parse_overrides(["merge_max_contrast=0.9", "merge.min_run=12", "k=14",
+                                      "hmm.window=[0.5, 0.5]", "store.index_type=flat"])
+    assert changes == {"merge_max_contrast": 0.9, "merge": {"min_run": 12},
+                       "hmm": {"k": 14, "window": [0.5, 0.5]}, "store": {"index_type": "flat"}}
+    config = bench.configured(MapConfig(dim=8), changes)
+    assert (config.merge.max_contrast, config.merge.min_run, config.hmm.k) == (0.9, 12, 14)
+    assert config.store.index_type == "flat"
     assert config.hmm.window == (0.5, 0.5)
     assert config.dim == 8
 
