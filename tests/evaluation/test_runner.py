@@ -187,3 +187,32 @@ def test_eval_command_prints_the_table(tmp_path, dataset):
     assert result.exit_code == 0, result.output
     assert "SPRINT@1" in result.output and (tmp_path / "ev" / "pr_curve.png").is_file()
     assert "merge P" in result.output and "Merge rule:" in result.output
+
+
+def test_twin_frames_are_reported_apart_when_the_data_set_declares_them(tmp_path, detour_dataset):
+    """``dataset.json`` ``twins``: each row gains ``twin_frames`` / ``twin_merged`` /
+    ``twin_merged_wrong``, counted on the declared frames; without it, no such keys."""
+    plain = run_evaluation(Dataset.open(detour_dataset), tmp_path / "plain", MapConfig(dim=DIM),
+                           EvalOptions(protocol="lifelong"))
+    assert all("twin_frames" not in row for row in [*plain["queries"], plain["overall"]])
+    info = json.loads((detour_dataset / "dataset.json").read_text())
+    # All of c-detour declared twin; b-autumn's first 30 frames.
+    info["twins"] = {"b-autumn": [[0, 30]], "c-detour": [[0, FRAMES + DETOUR]]}
+    (detour_dataset / "dataset.json").write_text(json.dumps(info))
+    results = run_evaluation(Dataset.open(detour_dataset), tmp_path / "twins",
+                             MapConfig(dim=DIM), EvalOptions(protocol="lifelong"))
+    autumn, detour = results["queries"]
+    assert (autumn["twin_frames"], detour["twin_frames"]) == (30, FRAMES + DETOUR)
+    assert 0 <= autumn["twin_merged"] <= 30
+    assert detour["merged_decisions"] > 0
+    assert detour["twin_merged"] == detour["merged_decisions"]
+    wrong = round(detour["merged_decisions"] * (1 - detour["merge_precision"]))
+    assert detour["twin_merged_wrong"] == wrong
+    overall = results["overall"]
+    for key in ("twin_frames", "twin_merged", "twin_merged_wrong"):
+        assert overall[key] == autumn[key] + detour[key]
+    # The other keys do not change.
+    for a, b in zip(plain["queries"], results["queries"], strict=True):
+        assert {k: v for k, v in a.items() if k not in ("retrieval_ms", "hmm_ms")} == {
+            k: v for k, v in b.items()
+            if k not in ("retrieval_ms", "hmm_ms") and not k.startswith("twin_")}
