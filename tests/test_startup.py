@@ -101,3 +101,20 @@ def test_faiss_loads_with_the_first_search(small_map):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split()
     assert out == ["False", "True"]
+
+
+def test_no_module_imports_faiss_at_load():
+    """Every module of the package imports FAISS through ``util.lazy_faiss`` (on first use):
+    importing all of them (those whose optional extra is installed) loads no FAISS."""
+    code = ("import importlib, pkgutil, sys, sprint_map\n"
+            "for mod in pkgutil.walk_packages(sprint_map.__path__, 'sprint_map.'):\n"
+            "    try:\n"
+            "        importlib.import_module(mod.name)\n"
+            "    except ModuleNotFoundError as exc:\n"
+            "        if (exc.name or '').startswith('sprint_map'):\n"
+            "            raise\n"
+            "print(len([m for m in sys.modules if m.startswith('sprint_map.')]),\n"
+            "      'faiss' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert int(out[0]) > 100 and out[1] == "False", out

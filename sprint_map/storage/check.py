@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import faiss
 import lmdb
 import networkx as nx
 import numpy as np
@@ -51,6 +50,7 @@ from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
+from sprint_map.util.lazy_faiss import faiss  # imported on first use
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
            "check_map", "check_sequences", "check_shards", "check_thumbnails", "edge_added_by",
