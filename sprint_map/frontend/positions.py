@@ -25,33 +25,20 @@ OPTIONAL_COLUMNS = ("heading_deg",)
 
 
 def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Float64Array:
-    """Read the positions of the ``n_frames`` frames a source yielded.
+    """Read the positions of the ``n_frames`` frames a source yielded from the CSV ``path``.
 
-    Parameters
-    ----------
-    path : str or Path
-        The CSV file.
-    n_frames : int or None
-        Frames the source yielded (after ``stride``); ``None`` accepts any number of rows
-        (frames ``0..M-1``), for a video whose length is unknown (``stride`` must then be 1).
-    stride : int
-        The source's stride: the CSV describes the original frames, of which frames
-        ``0, stride, 2*stride, ...`` were kept. The CSV must then hold between
-        ``(n_frames - 1) * stride + 1`` and ``n_frames * stride`` rows (the original frame
-        count is only known up to the stride); with ``stride=1`` exactly ``n_frames``.
+    ``n_frames``: frames the source yielded (after ``stride``), or ``None`` to accept any number
+    of rows (frames ``0..M-1``; a video of unknown length, ``stride`` 1). ``stride``: the
+    source's; the CSV describes the original frames, of which ``0, stride, 2*stride, ...`` were
+    kept, so it must hold between ``(n_frames - 1) * stride + 1`` and ``n_frames * stride`` rows
+    (exactly ``n_frames`` with ``stride=1``).
 
-    Returns
-    -------
-    ndarray of float64, shape (n_frames, 3) or (n_frames, 4)
-        Columns ``frame, x, y[, heading_deg]`` for the kept frames, in frame order; ``frame``
-        is the original frame number (``i * stride``).
-
-    Raises
-    ------
-    InputError
-        Missing or unreadable file, a bad header, a non-numeric or non-finite value, a
-        non-integer, negative, repeated or missing frame number, or a frame count that does
-        not match the source. The message names the file and, where it applies, the line.
+    Returns float64 ``(n_frames, 3)`` or ``(n_frames, 4)``: columns ``frame, x, y[,
+    heading_deg]`` of the kept frames in frame order, ``frame`` the original number
+    (``i * stride``). Raises :class:`InputError`, naming the file and where it applies the line,
+    on a missing or unreadable file, a bad header, a non-numeric or non-finite value, a
+    non-integer, negative, repeated or missing frame number, or a frame count that does not
+    match the source. O(rows).
     """
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
