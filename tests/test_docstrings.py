@@ -17,7 +17,6 @@ MAX_LINES = 25
 ALLOWED = {
     "config.py:MapConfig",
     "hmm/decision.py:place_contrast",
-    "localize/localizer.py:Localizer.smoothed",
     "map.py:SprintMap.ingest",
     "merge/commit.py:DriveWriter.commit",
     "merge/drives.py:ingest_drives",
