@@ -16,7 +16,7 @@ the store hides them (``SprintMap.removed_ranges().search_live`` over the fanned
 How a search reaches the shards: by default over a direct TCP connection to each one
 (:mod:`sprint_map.fleet.channel`: raw float32 queries out, raw ids and distances back), not a
 Ray actor call per shard, whose task submission, gRPC and numpy serialisation cost more than a
-small search (``docs/benchmarks.md``, "Ray"); Ray places, loads, catches up and ends the
+small search (``docs/benchmarks.md``, "Ray: retrieval shards and the ingest farm"); Ray places, loads, catches up and ends the
 actors. A shard lost (killed, its node gone) is a :class:`~sprint_map.errors.ReplicaLostError`.
 
 Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
@@ -236,7 +236,7 @@ class ShardedIndex:
     before it counts as lost.
 
     One search sends the queries to every shard at once and merges each shard's k best,
-    O(q * S k log S k); its round trip to 3 shards is in ``docs/benchmarks.md`` ("Ray"). Only
+    O(q * S k log S k); its round trip to 3 shards is in ``docs/benchmarks.md`` ("Ray: retrieval shards and the ingest farm"). Only
     the process that made the index searches through it; its threads take turns on each socket.
     :meth:`search` raises :class:`ReplicaLostError` once a shard died (actor killed, node lost,
     no answer within ``timeout``): the index cannot answer exactly without it; make a new one.

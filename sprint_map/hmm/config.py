@@ -17,7 +17,7 @@ class HMMConfig:
 
     ``docs/hmm.md`` ("The model") gives the equations each field enters; every field is
     described by the comment above it. Validated on construction (``ValueError``); O(1).
-    Why the defaults are what they are: ``docs/decisions.md`` ("HMM defaults").
+    Why the defaults are what they are: ``docs/decisions.md`` ("The HMM").
     """
 
     #: Neighbours the caller retrieves per query frame (the facade's retrieval setting, kept

@@ -496,7 +496,7 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     -----
     O(file size) to read the newest file, O(upto * dim) to compare it with the shards, in
     blocks of ``CHECK_BLOCK`` rows (measured: about 1 s per million 128-d vectors, see
-    ``docs/benchmarks.md``, "check at 1M vertices"). ``seed`` is unused by the exact index (every vector is
+    ``docs/benchmarks.md``, "check, forgetting, robustness"). ``seed`` is unused by the exact index (every vector is
     compared) and kept for the segmented index's sample of codes.
     """
     dim = store.config.dim
