@@ -86,6 +86,18 @@ def test_reading_commands_import_no_hmm_opencv_or_scipy(small_map, args):
     assert not heavy_loaded(modules), sorted(heavy_loaded(modules))
 
 
+#: Standard modules a command that only reads LMDB has no use for: the index's sealing thread
+#: pool (and logging with it), OpenSSL's hashes (digests are written or checked, not read), the
+#: positions' CSV reader.
+UNNEEDED_STDLIB = ("concurrent", "logging", "hashlib", "_hashlib", "csv")
+
+
+def test_info_loads_no_standard_module_it_does_not_need(small_map):
+    proc, modules = cli_modules("info", str(small_map), "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not {m.split(".")[0] for m in modules} & set(UNNEEDED_STDLIB)
+
+
 def test_sprint_map_cli_imports_no_opencv():
     assert "cv2" not in loaded_after("import sprint_map.cli.main")
 

@@ -9,7 +9,6 @@ it). Blank lines and lines starting with ``#`` are skipped.
 
 from __future__ import annotations
 
-import csv
 import math
 from pathlib import Path
 
@@ -40,6 +39,8 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
     non-integer, negative, repeated or missing frame number, or a frame count that does not
     match the source. O(rows).
     """
+    import csv  # (here: the CLI loads this module for every command)
+
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
         raise ValueError("n_frames and stride must be >= 1")
@@ -117,6 +118,8 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
+    import csv
+
     names = [name.strip().lower() for name in next(csv.reader([line]))]
     known = set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS)
     unknown = [name for name in names if name not in known]
