@@ -195,9 +195,10 @@ class RowWriterContract:
 
     @pytest.fixture
     def store(self, tmp_path: Path, rng: np.random.Generator) -> Any:
-        from sprint_map.config import MapConfig
+        from sprint_map.config import MapConfig, StoreOptions
 
-        store = MapStore.create(tmp_path / "m", MapConfig(dim=self.DIM, shard_rows=16))
+        config = MapConfig(dim=self.DIM, store=StoreOptions(shard_rows=16))
+        store = MapStore.create(tmp_path / "m", config)
         store.add_sequence(rng.standard_normal((10, self.DIM)).astype(np.float32), name="base")
         yield store
         store.close()

@@ -13,6 +13,7 @@ from sprint_map.hmm.graph import MemoryGraphSource
 from sprint_map.localize.map_graph import MapGraphSource
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
+from sprint_map.storage.store_config import StoreOptions
 from tests.helpers.contracts import Edge, GraphSourceContract
 
 
@@ -28,7 +29,7 @@ class TestMapGraphSource(GraphSourceContract):
     def make(self, tmp_path: Path, lengths: Sequence[int], edges: Sequence[Edge]):
         firsts = np.concatenate([[0], np.cumsum(lengths)])
         rng = np.random.default_rng(0)
-        store = MapStore.create(tmp_path / "m", MapConfig(dim=4, shard_rows=8))
+        store = MapStore.create(tmp_path / "m", MapConfig(dim=4, store=StoreOptions(shard_rows=8)))
         seq_ids = []
         for s, length in enumerate(lengths):
             def end(vertex: int, s: int = s) -> tuple[int | None, int]:

@@ -10,6 +10,7 @@ from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 from sprint_map.merge.prepared import prepare_drive, stale_reason
 from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.store_config import StoreOptions
 from tests.helpers.worlds import drive, random_places
 
 DIM = 16
@@ -24,7 +25,7 @@ def areas(rng):
 @pytest.fixture
 def smap(tmp_path, rng, areas):
     """A map (exact flat index) with one drive over each area."""
-    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, index_type="flat")) as m:
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
         for n, places in enumerate(areas):
             m.add_sequence(drive(places, rng, 0.1), name=f"base{n}")
         yield m
@@ -48,7 +49,7 @@ def test_a_drive_appended_without_merging_is_never_stale(smap, rng, areas):
 
 def test_a_drive_prepared_on_an_empty_map_is_stale_once_the_map_has_rows(tmp_path, rng, areas):
     rows = drive(areas[0], rng, 0.1)
-    with SprintMap.create(tmp_path / "e", MapConfig(dim=DIM, index_type="flat")) as m:
+    with SprintMap.create(tmp_path / "e", MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
         kept = prepared(m, rows)
         assert not kept.localised and stale_reason(m, kept, rows) is None
         m.add_sequence(drive(areas[1], rng, 0.1), name="first")
