@@ -13,31 +13,15 @@ from sprint_map.localize.localizer import FrameDecision, Localizer
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import merge_edges
 from sprint_map.merge.rule import MergeRule, select_merges
+from tests.helpers.worlds import road_places, traverse, unit
 
 DIM = 48
-
-
-def unit(x: np.ndarray) -> np.ndarray:
-    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
 
 
 @pytest.fixture
 def world(rng):
     """Appearance of 400 places along one long road; neighbours look alike (aliasing)."""
-    cur = unit(rng.standard_normal(DIM))
-    places = []
-    for _ in range(400):
-        cur = unit(0.95 * cur + np.sqrt(1 - 0.95**2) * unit(rng.standard_normal(DIM)))
-        places.append(cur)
-    return np.array(places)
-
-
-def traverse(rng, world, start, frames, noise, speed=(0.8, 1.25)):
-    """A drive over places start.. at a varying speed under its own appearance change."""
-    pos = start + np.cumsum(rng.uniform(*speed, frames)) - 1
-    places = np.clip(pos.astype(int), 0, len(world) - 1)
-    shift = unit(rng.standard_normal(DIM)) * 0.3
-    return unit(world[places] + shift + noise * unit(rng.standard_normal((frames, DIM)))), places
+    return road_places(rng, 400, DIM, corr=0.95)
 
 
 def test_temporal_inference_beats_knn_and_merges(tmp_path, rng, world):

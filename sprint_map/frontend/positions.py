@@ -15,7 +15,6 @@ starting with ``#`` are skipped.
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,6 +134,8 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> P
         longitude outside [-180, 180], a non-integer, negative or repeated frame number, a
         frame beyond the drive, or no row at all. O(rows).
     """
+    import csv  # (here: the CLI loads this module for every command)
+
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
         raise ValueError("n_frames and stride must be >= 1")
@@ -222,6 +223,8 @@ def _check_values(path: Path, number: int, values: dict[str, float]) -> None:
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
+    import csv
+
     names = [name.strip().lower() for name in next(csv.reader([line]))]
     pair = _GEOGRAPHIC if "lat" in names or "lon" in names else _PLANAR
     required = ("frame", *pair)

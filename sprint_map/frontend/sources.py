@@ -85,33 +85,18 @@ class _Options:
 class FrameSource(ABC):
     """A sequence of frames, delivered as descriptor batches. Build one with :func:`open_source`.
 
-    Attributes
-    ----------
-    kind : str
-        ``"images"``, ``"video"`` or ``"npy"``.
-    path : Path
-        The directory or file.
-    name : str
-        Default sequence name: the directory name, or the file name without its extension.
-    spec : DescriptorSpec or None
-        How frames are described (``None`` for a ``.npy``, which holds descriptors already).
-    dim : int
-        Descriptor dimension.
-    count : int or None
-        Number of frames :meth:`iter_batches` will yield (after ``stride``), or ``None`` when
-        unknown before reading (a video: container frame counts are estimates).
-    stride : int
-        Every ``stride``-th frame is kept, starting with the first.
-    batch_size : int
-        Rows per yielded batch (the last one may be shorter).
-    workers : int
-        Parallel decode/describe workers.
-    progress : callable or None
-        Default progress callback of :meth:`iter_batches`.
-    thumbnails : list of bytes or None
-        With ``thumbnails=True`` (images and video only), one small JPEG per frame
-        (:mod:`sprint_map.frontend.thumbnails`), appended in frame order while
-        :meth:`iter_batches` runs: complete once the iteration has ended. ``None`` otherwise.
+    - ``kind``: ``"images"``, ``"video"`` or ``"npy"``; ``path``: the directory or file.
+    - ``name``: default sequence name (the directory name, or the file name without extension).
+    - ``spec``: how frames are described (:class:`DescriptorSpec`; ``None`` for a ``.npy``,
+      which holds descriptors already); ``dim``: descriptor dimension.
+    - ``count``: frames :meth:`iter_batches` will yield (after ``stride``), or ``None`` when
+      unknown before reading (a video: container frame counts are estimates).
+    - ``stride``: every ``stride``-th frame is kept, from the first; ``batch_size``: rows per
+      batch (the last may be shorter); ``workers``: parallel decode/describe workers.
+    - ``progress``: default progress callback of :meth:`iter_batches`.
+    - ``thumbnails``: with ``thumbnails=True`` (images and video only), one small JPEG per
+      frame (:mod:`sprint_map.frontend.thumbnails`), appended in frame order while
+      :meth:`iter_batches` runs (complete once it has ended); ``None`` otherwise.
     """
 
     kind: str
@@ -490,47 +475,27 @@ def open_source(
 ) -> FrameSource:
     """Open a directory of images, a video file, a ``.npy`` of descriptors or a bag.
 
-    Parameters
-    ----------
-    path : str or Path
-        A directory (its image files, natural order; other files are ignored), a video
-        (``.mp4 .avi .mov .mkv .m4v .mpg .mpeg .webm``), a ``.npy`` of shape (frames, dims),
-        or a ROS bag (``.bag``, ``.mcap``, ``.db3`` or a ROS 2 bag folder with
-        ``metadata.yaml``; the ``[ros]`` extra).
-    spec : DescriptorSpec, optional
-        Descriptor for images and video; default ``DescriptorSpec("hog")``, the paper's. For a
-        ``.npy`` it is only checked against the file's dimension.
-    stride : int
-        Keep every ``stride``-th frame (frames 0, stride, 2*stride, ...).
-    batch_size : int
-        Rows per batch from :meth:`FrameSource.iter_batches`.
-    workers : int, optional
-        Decode/describe workers; default: the cores available to this process.
-    executor : {"thread", "process"}
-        Worker kind for image directories (a video always uses threads). Threads are the
-        default: OpenCV releases the GIL, and they start instantly.
-    progress : callable, optional
-        ``progress(frames_done, total_or_None)`` after each batch.
-    thumbnails : bool
-        Also make a small JPEG of each frame (:attr:`FrameSource.thumbnails`); images and
-        video only. Each image file is then decoded a second time, in colour.
-    bag : BagOptions, optional
-        A bag's image and GNSS topics and ``every_m`` (:mod:`sprint_map.frontend.bags`);
-        refused for any other source.
+    - ``path``: a directory (its image files in natural order; other files ignored), a video
+      (``.mp4 .avi .mov .mkv .m4v .mpg .mpeg .webm``), a ``.npy`` of shape (frames, dims) or
+      a ROS bag (``.bag``, ``.mcap``, ``.db3`` or a ROS 2 bag folder; the ``[ros]`` extra).
+    - ``spec``: the descriptor of images and video (default ``DescriptorSpec("hog")``, the
+      paper's); for a ``.npy`` only checked against the file's dimension.
+    - ``stride``: keep frames 0, stride, 2*stride, ...; ``batch_size``: rows per batch of
+      :meth:`FrameSource.iter_batches`.
+    - ``workers``: decode/describe workers (default: the cores available to this process);
+      ``executor``: ``"thread"`` (default: OpenCV releases the GIL, threads start instantly) or
+      ``"process"``, for image directories (a video always uses threads).
+    - ``progress``: ``progress(frames_done, total_or_None)`` after each batch.
+    - ``thumbnails``: also make a small JPEG of each frame (:attr:`FrameSource.thumbnails`;
+      images and video only; each image file is then decoded a second time, in colour).
+    - ``bag``: a bag's image and GNSS topics and ``every_m`` (:mod:`sprint_map.frontend.bags`);
+      refused for any other source.
 
-    Returns
-    -------
-    FrameSource
-
-    Raises
-    ------
-    InputError
-        Missing path, a directory without images, an unsupported file type, a video that cannot
-        be opened or has no frame, an unreadable ``.npy``, thumbnails asked of a ``.npy``.
-    DescriptorShapeError
-        A ``.npy`` that is not 2-D float, or does not match ``spec.dim``.
-    InvalidDescriptorError
-        A ``.npy`` containing NaN or Inf.
+    Raises :class:`InputError` (missing path, a directory without images, an unsupported file
+    type, a video that cannot be opened or has no frame, an unreadable ``.npy``, thumbnails
+    asked of a ``.npy``), :class:`DescriptorShapeError` (a ``.npy`` not 2-D float or not of
+    ``spec.dim``), :class:`InvalidDescriptorError` (a ``.npy`` with NaN or Inf). O(1): frames
+    are read by :meth:`FrameSource.iter_batches`.
     """
     path = Path(path)
     for name, value in (("stride", stride), ("batch_size", batch_size)):

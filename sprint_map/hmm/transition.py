@@ -94,50 +94,27 @@ def _kernels_of(window: tuple[float, ...], restart_prob: float, new_place_prob: 
 
 
 class ComponentTransition:
-    """The transition operator of one component, over a gutter slot layout.
+    """The transition operator of one component (``graph``, with ``config``'s window, edge
+    weight, restart and new-place probabilities), over a gutter slot layout.
 
-    Parameters
-    ----------
-    graph : ComponentGraph
-        The component.
-    config : HMMConfig
-        Window, edge weight, restart and new-place probabilities.
+    Attributes (read-only):
 
-    Attributes
-    ----------
-    graph : ComponentGraph
-    gutter : int
-        ``g = max(W - 1, 1)``, the zero slots after every sequence: room for what a window at
-        the sequence end pushes past it, and at least :attr:`gap`, so that windows of two
-        sequences never touch (with ``W = 1`` and no gutter they would merge into one window
-        spanning both, and the end clip would send the second one's mass to the sink).
-    spread : int
-        ``W - 1``: how far one step moves mass (and grows a window).
-    n_state : int
-        Vertices plus ``g`` gutter slots after every sequence but the last (the layout of
-        :meth:`propagate`).
-    n_slots : int
-        ``n_state + g``: the length of a belief vector for :meth:`propagate_windows`, whose last
-        sequence has its gutter too (a window at its end spills there).
-    slot_first, seq_end : ndarray of int64, shape (S,)
-        Slot of image 0 of each sequence (``seq_ids`` order), and one past its last image.
-    gap : int
-        Smallest distance between two windows (:func:`sprint_map.hmm.support.merge_gap`).
-    has_edges : bool
-        Whether any edge carries mass (``beta > 0`` and a positive weight).
-    krev : ndarray of float64, shape (W,)
-        The scaled window reversed (``np.correlate`` with it is the convolution).
-    ranges : list of (int, int, int)
-        ``(first vertex id, length, first slot)`` of every sequence (the active set's index).
-    edge_src, edge_dst, edge_coef : ndarray
-        The live edges as slots, sorted by source slot, and the share ``beta c_e / R_u`` of the
-        source's mass each carries.
+    - ``gutter``: ``g = max(W - 1, 1)`` zero slots after every sequence: room for what a window
+      at a sequence end pushes past it, and at least ``gap``, so windows of two sequences never
+      touch (with ``W = 1`` and no gutter they would merge, and the end clip would send the
+      second one's mass to the sink). ``spread``: ``W - 1``, how far one step moves mass.
+    - ``n_state``: vertices plus ``g`` after every sequence but the last (:meth:`propagate`);
+      ``n_slots``: ``n_state + g``, a belief vector for :meth:`propagate_windows`.
+    - ``slot_first``, ``seq_end`` (int64, S): slot of image 0 of each sequence (``seq_ids``
+      order), one past its last; ``ranges``: ``(first vertex id, length, first slot)`` of each.
+    - ``gap``: smallest distance between two windows (:func:`.support.merge_gap`).
+    - ``has_edges``: whether any edge carries mass; ``edge_src``, ``edge_dst``, ``edge_coef``:
+      the live edges as slots, sorted by source, each with its share ``beta c_e / R_u`` of the
+      source's mass; ``krev``: the scaled window reversed (``np.correlate`` with it convolves).
 
-    Notes
-    -----
-    Construction is O(S + E log E), plus O(n_vertices) for the reciprocal row sums (a dense
-    vector over the slots) when the component has edges.
-    :meth:`propagate_windows` is O(W live + edges leaving the windows), never O(n_vertices).
+    Construction is O(S + E log E), plus O(n_vertices) for the reciprocal row sums when the
+    component has edges. :meth:`propagate_windows` is O(W live + edges leaving the windows),
+    never O(n_vertices).
     """
 
     __slots__ = ("_edge_src_list", "_first_list", "_rinv", "edge_coef", "edge_dst", "edge_src",
@@ -234,33 +211,19 @@ class ComponentTransition:
                           ) -> tuple[np.ndarray, np.ndarray, float, float, int]:
         """Propagate the belief held in windows ``[lo, hi)`` of ``x``, in place.
 
-        Parameters
-        ----------
-        x : ndarray of float64, shape (n_slots,)
-            Belief in slot layout; every slot outside the windows holds 0.
-        lo, hi : ndarray of int64
-            Sorted windows, each inside one sequence, at least :attr:`gap` slots apart.
+        ``x`` (float64, ``n_slots``) is the belief in slot layout, 0 outside the windows; ``lo``,
+        ``hi`` (int64) are sorted windows, each inside one sequence, at least :attr:`gap` apart.
 
-        Returns
-        -------
-        lo, hi : ndarray of int64
-            The windows after the step: grown by ``W - 1`` (clipped at sequence ends) and
-            joined by one window per edge target outside them (merged where closer than
-            :attr:`gap`). ``x`` is zero outside them again.
-        overflow : float
-            Mass that ran past sequence ends (scaled like the belief; goes to the sink).
-        mass : float
-            Belief left in the windows.
-        n_propagated : int
-            Slots propagated: the input windows, edge targets included.
+        Returns ``(lo, hi, overflow, mass, n_propagated)``: the windows after the step (grown by
+        ``W - 1``, clipped at sequence ends, joined by one window per edge target outside them,
+        merged where closer than :attr:`gap`; ``x`` is 0 outside them again), the mass that ran past
+        sequence ends (scaled like the belief; it goes to the sink), the belief left in the windows,
+        and the slots propagated (the input windows, edge targets included).
 
-        Notes
-        -----
-        O(W live + edges leaving the windows), about 25 numpy calls whatever the number of
-        windows: the windows are gathered into one compact vector, each followed by its own
-        ``W - 1`` zero slots (they are at least that far apart in ``x``, or followed by a
-        gutter), convolved once and scattered back. Edges leaving the windows are found by two
-        binary searches in the source-sorted edge list.
+        O(W live + edges leaving the windows), about 25 numpy calls whatever the number of windows:
+        the windows are gathered into one compact vector, each followed by its own ``W - 1`` zero
+        slots, convolved once and scattered back; edges leaving them are found by two binary
+        searches in the source-sorted edge list.
         """
         g = self.spread
         n_edges = 0

@@ -26,7 +26,7 @@ and the batcher (stepping the next session) then traded the GIL at every answer,
 wake-up and a context switch, and a wait of up to the interpreter's switch interval (5 ms) for
 the thread that lost it: on Nordland, 16 vehicles, the server's CPU per frame went from
 0.89-0.94 ms to 0.64-0.69 ms and the p50 from ~15 to ~11 ms when the answers went in bulk
-(``docs/benchmarks.md``, "Fleet").
+(``docs/benchmarks.md``, "Service").
 
 Cost per batch: one search of B rows, then B HMM steps (Python, serial: the GIL would
 serialise them anyway).

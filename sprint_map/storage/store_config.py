@@ -46,54 +46,42 @@ class ConfigRecord(Protocol):
 
 @dataclass(frozen=True)
 class StoreOptions:
-    """How a map stores and indexes its rows: ``MapConfig.store``.
+    """How a map stores and indexes its rows: ``MapConfig.store``. Raises ``ValueError`` for a
+    value out of range.
 
-    Parameters
-    ----------
-    shard_rows : int
-        Rows per descriptor shard file; a shard is sealed (never written again) once full.
-    index_type : str
-        Retrieval index (:mod:`sprint_map.storage.index.map_index`): ``"flat"`` (exact L2),
-        ``"ivf-pq"`` / ``"ivf-sq8"`` (segmented FAISS IVF with PQ / 8-bit SQ codes, optionally
-        after PCA, candidates re-ranked exactly from the shards) or ``"auto"`` (flat while the
-        map is small, ``ivf-pq`` from ``index_auto_vertices``).
-    index_nlist, index_nprobe : int
-        IVF lists (coarse centroids), and lists scanned per query (at most ``index_nlist``).
-    index_pq_m : int
-        PQ sub-quantizers (must divide the indexed dimension); 0 picks the largest divisor with
-        at least 8 dimensions per sub-quantizer.
-    index_pca_dim : int
-        Descriptors longer than this are reduced by a PCA trained with the quantizer (0: never).
-    index_rerank : int
-        Candidates re-ranked with exact distances from the shards per query (at least k).
-    index_segment_rows, index_merge_factor : int
-        Vertices per sealed index segment; this many sealed segments of one size are merged.
-    index_auto_vertices : int
-        ``auto`` switches to the approximate index at this many 128-dimensional vertices' worth.
-    index_train_sample : int
-        Vertices sampled (seeded) to train PCA and the quantizer.
-    index_persist_every, index_persist_growth : int, float
-        A writer persists the index once this many vertices were added since the last file and
-        the map grew by ``index_persist_growth`` times that file's size (0: every time).
-    initial_map_size : int
-        LMDB map size at creation in bytes (sparse file; it doubles on demand).
-
-    Raises ``ValueError`` for a value out of range.
+    Each field is described by the comment above it.
     """
 
+    #: Rows per descriptor shard file; a shard is sealed (never written again) once full.
     shard_rows: int = 65536
+    #: Retrieval index (:mod:`sprint_map.storage.index.map_index`): ``"flat"`` (exact L2),
+    #: ``"ivf-pq"`` / ``"ivf-sq8"`` (segmented FAISS IVF with PQ / 8-bit SQ codes, optionally
+    #: after PCA, candidates re-ranked exactly from the shards) or ``"auto"`` (flat while the map
+    #: is small, ``ivf-pq`` from ``index_auto_vertices``).
     index_type: str = "auto"
+    #: IVF lists (coarse centroids), and lists scanned per query (at most ``index_nlist``).
     index_nlist: int = 1024
     index_nprobe: int = 16
+    #: PQ sub-quantizers (must divide the indexed dimension); 0 picks the largest divisor with at
+    #: least 8 dimensions per sub-quantizer.
     index_pq_m: int = 0
+    #: Descriptors longer than this are reduced by a PCA trained with the quantizer (0: never).
     index_pca_dim: int = 128
+    #: Candidates re-ranked with exact distances from the shards per query (at least k).
     index_rerank: int = 100
+    #: Vertices per sealed index segment; ``index_merge_factor`` sealed segments of one size are
+    #: merged.
     index_segment_rows: int = 16384
     index_merge_factor: int = 8
+    #: ``auto`` switches to the approximate index at this many 128-dimensional vertices' worth.
     index_auto_vertices: int = 200_000
+    #: Vertices sampled (seeded) to train PCA and the quantizer.
     index_train_sample: int = 65536
+    #: A writer persists the index once this many vertices were added since the last file and the
+    #: map grew by ``index_persist_growth`` times that file's size (0: every time).
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
+    #: LMDB map size at creation in bytes (sparse file; it doubles on demand).
     initial_map_size: int = 1 << 30
 
     def __post_init__(self) -> None:

@@ -20,10 +20,11 @@ from typing import Any
 
 import httpx
 import numpy as np
-from serve_helpers import DIM, drive
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
+from tests.helpers.serve import DIM
+from tests.helpers.worlds import drive
 
 FRAMES = 15
 

@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -21,6 +20,7 @@ from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import SHARDS_DIR, MapStore
+from tests.helpers import crash_worker
 
 logical_state = crash_worker.logical_state
 

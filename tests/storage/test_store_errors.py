@@ -34,8 +34,9 @@ from sprint_map.storage.lmdb_env import DB_NAMES, MAX_DBS
 from sprint_map.storage.lock import LOCK_NAME
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
+from tests.helpers import crash_worker
 
-WORKER = Path(__file__).resolve().parents[1] / "crash_worker.py"
+WORKER = Path(crash_worker.__file__)
 DIM = 4
 
 

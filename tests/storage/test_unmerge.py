@@ -8,7 +8,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import lmdb
 import networkx as nx
 import numpy as np
@@ -23,6 +22,7 @@ from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.provenance import list_edges
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import LMDB_DIR, MapStore
+from tests.helpers import crash_worker
 
 logical_state = crash_worker.logical_state
 
