@@ -194,38 +194,23 @@ class SprintMap:
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
-        The lifelong step of the paper, with a smoothed merge: every frame is localised
-        against the map as it stands (causally, batch by batch); once the whole drive has been
-        seen its decisions are re-made from the forward-backward smoothed posterior over the
-        same sparse active set (:mod:`sprint_map.hmm.smoother`), and the merge rule
-        (:mod:`sprint_map.merge.rule`: confident, not novel, temporally consistent) selects
-        those that become edges (both ways if ``config.merge.both_ways``). The sequence, its
-        edges and the union-find merges are committed in one transaction. With
-        ``merge=False``, or on an empty map, the sequence is appended as it is, without
-        localisation or edges.
+        Every frame is localised causally, batch by batch; once the drive has been seen whole, the
+        after-drive pipeline (:func:`sprint_map.merge.smoothing.smoothed_decisions`) re-makes its
+        decisions and the merge rule (:mod:`sprint_map.merge.rule`) selects the edges. The sequence,
+        its edges and the union-find merges are committed in one transaction. With ``merge=False``,
+        or on an empty map, the drive is appended as it is.
 
-        Parameters
-        ----------
-        descriptors : ndarray (N, dim), or an iterable of (n_i, dim) batches
-            A batch iterable (e.g. ``FrameSource.iter_batches()``) is streamed: each batch is
-            localised and written to the shards (uncommitted) as it arrives, so descriptor
-            memory is bounded by the batch, not the drive.
-        thumbnails : sequence of bytes, optional
-            One small JPEG per frame, committed with the drive (``FrameSource.thumbnails`` of
-            a source opened with ``thumbnails=True``: read after the batches, so a list the
-            source fills while it streams is complete by then). Held in memory until the
-            commit: about 2 KiB per frame. They also let the merge verify, against the map's
-            own thumbnails, the runs its lookalike tests refuse (``merge_verify_inliers``,
-            :mod:`sprint_map.merge.verification`).
+        ``descriptors`` is an (N, dim) array or an iterable of batches, streamed: each batch is
+        localised and written to the shards (uncommitted) as it arrives. ``thumbnails``, one JPEG
+        per frame (read after the batches), are committed with the drive and let the merge verify
+        refused runs on the images. ``observe`` receives the localizer before the first frame (e.g.
+        :meth:`sprint_map.localize.trace.TraceRecorder.attach`).
 
         Notes
         -----
-        Per frame: one k-NN search (batched), one HMM step over the active set, and one
-        backward step of the smoother over the same support; the smoother keeps the frame's
-        hits and its sparse forward belief (O(live) per frame) until the drive ends.
-        ``observe`` receives the localizer before the first frame (e.g.
-        :meth:`sprint_map.localize.trace.TraceRecorder.attach`); it is not called when the drive is
-        appended without localisation.
+        Per frame: one k-NN search (batched), one HMM step over the active set and the pipeline's
+        passes, O(live) each; O(k) hits and the sparse forward belief kept per frame until the drive
+        ends; about 2 KiB of thumbnail per frame.
         """
         from sprint_map.localize.localizer import SEARCH_BATCH, Localizer, Timing
 

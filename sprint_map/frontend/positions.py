@@ -107,32 +107,17 @@ class Positions:
 
 
 def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Positions:
-    """Read the positions of the ``n_frames`` frames a source yielded.
+    """Read the positions of the ``n_frames`` frames a source yielded from the CSV ``path``.
 
-    Parameters
-    ----------
-    path : str or Path
-        The CSV file.
-    n_frames : int or None
-        Frames the source yielded (after ``stride``); ``None`` (a video, whose length is
-        unknown; ``stride`` must then be 1) takes frames ``0..max frame``.
-    stride : int
-        The source's stride: the CSV numbers the original frames, of which frames
-        ``0, stride, 2*stride, ...`` were kept. A row for frame ``n_frames * stride`` or later
-        describes a frame the drive does not have: an error.
+    ``n_frames``: frames the source yielded (after ``stride``), or ``None`` (a video of unknown
+    length, ``stride`` 1) for frames ``0..max frame``. The CSV numbers the original frames, of
+    which ``0, stride, 2*stride, ...`` were kept; a row for frame ``n_frames * stride`` or later
+    is an error. Returns one row per kept frame, NaN where the file has no row.
 
-    Returns
-    -------
-    Positions
-        One row per kept frame, NaN where the file has no row.
-
-    Raises
-    ------
-    InputError
-        One line naming the file (and the line): a missing or unreadable file, a bad header,
-        a non-numeric or non-finite value, ``sigma_m <= 0``, a latitude outside [-90, 90] or a
-        longitude outside [-180, 180], a non-integer, negative or repeated frame number, a
-        frame beyond the drive, or no row at all. O(rows).
+    Raises :class:`InputError`, one line naming the file (and the line): a missing or
+    unreadable file, a bad header, a non-numeric or non-finite value, ``sigma_m <= 0``, a
+    latitude outside [-90, 90] or a longitude outside [-180, 180], a non-integer, negative or
+    repeated frame number, a frame beyond the drive, or no row at all. O(rows).
     """
     import csv  # (here: the CLI loads this module for every command)
 

@@ -95,46 +95,30 @@ class MergeDecision(Protocol):
 
 @dataclass(frozen=True)
 class MergeRule:
-    """Which decisions of a drive become edges: the rule's parameters (``MapConfig.merge``).
+    """Which decisions of a drive become edges: the rule's parameters (``MapConfig.merge``);
+    the module docstring says what each test does. ValueError for a value out of range."""
 
-    Parameters
-    ----------
-    threshold : float
-        Minimum place probability of a merged decision.
-    max_novel : float
-        A decision whose probability of being an unmapped place exceeds this is not merged.
-    window : int
-        Largest frame gap between consecutive frames of a run (and the ``min_agree`` window).
-    min_agree : int
-        Neighbours within ``window`` that must agree along the same sequence (0: off).
-    max_rate : float
-        Images of the matched sequence a run may advance per frame.
-    min_run : int
-        Frames of the shortest merged run (0 or 1: off).
-    dist_quantile : float
-        A merged frame's best-hit distance is at most this quantile of the drive's frames that
-        pass every other test (0: off).
-    min_advance : float
-        Images per frame a run advances, at least, around each frame.
-    max_contrast : float
-        Largest median contrast of a merged run (0: off).
-    verify_inliers : int
-        Median inliers of a stretch that geometric verification on thumbnails confirms
-        (:mod:`sprint_map.merge.verification`; 0: off).
-    both_ways : bool
-        Store each merge edge in both directions (query -> map and map -> query).
-    """
-
+    #: Minimum place probability of a merged decision.
     threshold: float = 0.5
+    #: A decision more likely than this to be an unmapped place is not merged.
     max_novel: float = 0.2
+    #: Largest frame gap between consecutive frames of a run (and the agreement window).
     window: int = 3
+    #: Neighbours within ``window`` that must agree along the same sequence (0: off).
     min_agree: int = 0
+    #: Images of the matched sequence a run may advance per frame.
     max_rate: float = 3.0
+    #: Frames of the shortest merged run (0 or 1: off).
     min_run: int = 20
+    #: A merged frame is at most this quantile of the drive's accepted best-hit distances (0: off).
     dist_quantile: float = 0.0
+    #: Images per frame a run advances, at least, around each frame.
     min_advance: float = 0.3
+    #: Largest median contrast of a merged run (0: off).
     max_contrast: float = 0.95
+    #: Median inliers for geometric verification on thumbnails to confirm a stretch (0: off).
     verify_inliers: int = 35
+    #: Store each merge edge in both directions (query -> map and map -> query).
     both_ways: bool = True
 
     def __post_init__(self) -> None:
@@ -256,16 +240,12 @@ def _without_teleports(merged: np.ndarray, seq: np.ndarray, img: np.ndarray, gap
 def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> np.ndarray:
     """The contested frames of teleports: a boolean mask over the frames.
 
-    Two runs on one sequence whose images overlap on ``shared`` images, the second coming to
-    them ``gap`` frames after the first left them, say the drive came back to the places of
-    the first run (runs that alternate on them, ``gap <= 0``, are not two passes). To come
-    back, a drive must leave the place it has just passed and return to it facing the same
-    way, which takes far longer than driving the stretch once; a second run
-    that re-enters more than ``max_rate * (gap + max_gap)`` shared images (as many as the
-    runs could advance through in the gap, plus one gap's slack for a run that stalls and
-    restarts a few images back) came back sooner than any drive can. The drive saw the same
-    stretch twice in a row: a street and its copy, driven one after the other, or a lookalike
-    of a stretch just driven. The frames of either run on the images both claim are contested.
+    Two runs on one sequence that share images, the second coming to them ``gap`` frames after
+    the first left them (``gap > 0``), claim the drive came back. A second run that re-enters
+    more than ``max_rate * (gap + max_gap)`` shared images came back sooner than a drive can
+    (it must leave and return facing the same way): a street and its copy driven one after the
+    other, or a lookalike of a stretch just driven. The frames of either run on the images both
+    claim are contested.
 
     Notes
     -----
