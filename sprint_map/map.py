@@ -408,7 +408,7 @@ class SprintMap:
         return Localizer(self, dataclass_dict.replace(base, **overrides) if overrides else base,
                          record=record)
 
-    def localize(self, descriptors: Any, *, smooth: bool = False,
+    def localize(self, descriptors: Any, *, smooth: bool = False, lag: int = 0,
                  thumbnails: Sequence[bytes] | None = None,
                  observe: Callable[[Localizer], None] | None = None,
                  hmm: HMMConfig | None = None, **overrides: Any
@@ -423,12 +423,29 @@ class SprintMap:
         frame). ``observe`` receives the localizer before the first frame (e.g.
         :meth:`TraceRecorder.attach <sprint_map.localize.trace.TraceRecorder.attach>`).
         ``hmm`` and ``overrides`` replace the map's HMM config for this query only.
+        ``lag`` (frames) answers each frame once ``lag`` more were seen, from the fixed-lag
+        smoothed posterior (:class:`~sprint_map.localize.lagged.LaggedLocalizer`; 0: causal);
+        it excludes ``smooth`` and ``observe`` (:class:`InputError`).
 
         Notes
         -----
         Per frame: one k-NN search (batched) and one HMM step over the active set; with
-        ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame.
+        ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame;
+        with ``lag``, ``lag`` backward steps more per frame.
         """
+        if lag:
+            from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
+
+            validate_lag(lag)
+            if smooth or observe is not None or thumbnails is not None:
+                raise InputError("a lag answers frames as the drive goes: it cannot be "
+                                 "combined with smoothing the whole drive, thumbnails or a trace")
+            base = hmm or self.config.hmm
+            lagged = LaggedLocalizer(self, lag, dataclass_dict.replace(base, **overrides)
+                                     if overrides else base)
+            batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
+                else descriptors
+            return lagged.localize(batches), lagged.timing
         localizer = self.localizer(hmm, record=smooth, **overrides)
         if observe is not None:
             observe(localizer)

@@ -351,11 +351,14 @@ def _ingest_line(out: dict[str, Any]) -> str:
               help="With --smooth: verify on the images, against the map's thumbnails, the "
                    "runs the merge rule's lookalike tests refuse, as ingest --thumbnails does "
                    "(images and video).")
+@click.option("--lag", type=int, default=0, show_default=True, metavar="L",
+              help="Answer each frame once L more frames were seen (fixed-lag smoothing, "
+                   "0..10000; 0: causal); one answer per frame, in frame order.")
 @_trace_option
 @_bag_options
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             thumbnails: bool, trace: str | None, image_topic: str | None,
+             thumbnails: bool, lag: int, trace: str | None, image_topic: str | None,
              gnss_topic: str | None, every_m: float | None, stride: int, quiet: bool,
              k: int | None, window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
@@ -364,6 +367,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     Examples:
       sprint-map localize city.map drives/friday/ --json
       sprint-map localize city.map friday.npy --smooth --json
+      sprint-map localize city.map friday.npy --lag 10 --json      # each answer 10 frames late
       sprint-map localize city.map drives/friday/ --smooth --thumbnails --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
@@ -371,6 +375,13 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     """
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
+    if lag:
+        from sprint_map.localize.lagged import validate_lag
+
+        validate_lag(lag)
+    if lag and (smooth or trace):
+        raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
+                         "--smooth (the whole drive) or --trace")
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
@@ -378,7 +389,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
                             bag=BagOptions(image_topic, gnss_topic, every_m))
         recorder = TraceRecorder(m) if trace else None
         decisions, timing = m.localize(  # streamed, searches batched
-            src.iter_batches(), smooth=smooth, observe=recorder.attach if recorder else None,
+            src.iter_batches(), smooth=smooth, lag=lag,
+            observe=recorder.attach if recorder else None,
             thumbnails=src.thumbnails if thumbnails else None, **overrides)
         if recorder is not None and trace:
             recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,

@@ -299,6 +299,15 @@ class SprintFilter:
                 self._rescale()
         self.frames += 1
 
+    def update_observed(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
+        """:meth:`update` for a frame already evaluated by an
+        :class:`~sprint_map.hmm.observation.ObservationModel` of this config that has seen the
+        same frames (its distinct valid hits, their likelihood ratios and the sink's): the
+        smoothers evaluate each frame once, for the filter and for themselves. The same
+        floats as :meth:`update` (its one-hit path is the same arithmetic); raises as it does
+        for a hit the source does not know, before the belief is touched."""
+        self._update_any(vids, liks, sink_lik)
+
     def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
         """:meth:`update` for any frame: the general path (the one-hit path is inline there)."""
         n_hits = len(vids)
@@ -374,6 +383,11 @@ class SprintFilter:
                 active.remove(cid)
             raise
         return out
+
+    def transition(self, component_id: int) -> ComponentTransition:
+        """The transition of a component, as the filter propagates it (through the cache; its
+        set-up memoised per graph): what the fixed-lag smoother re-maps waiting frames onto."""
+        return self._transition(component_id)
 
     def _transition(self, component_id: int) -> ComponentTransition:
         """The transition of a component (through the cache; set-up memoised per graph)."""

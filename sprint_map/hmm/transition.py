@@ -37,7 +37,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
 from sprint_map.hmm.support import merge, merge_gap, ranges
 
-__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "correlate",
+__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator", "correlate",
            "full_transition_matrix", "window_kernel"]
 
 _I64 = np.int64
@@ -318,6 +318,72 @@ class ComponentTransition:
                 owner = np.repeat(np.arange(slots.size, dtype=_I64), counts)
                 moved = ahead(self.edge_dst[eidx]) * self.edge_coef[eidx]
                 out += np.bincount(owner, weights=moved, minlength=slots.size)
+        return out
+
+
+    def pull_operator(self, slots: np.ndarray, m_slots: np.ndarray) -> PullOperator:
+        """:meth:`pull` from ``slots`` onto ``m_slots`` as a linear operator, built once and
+        applied to many ``m`` (the fixed-lag smoother pulls every pair of frames ``L`` times).
+
+        ``pull(slots, m_slots, m_vals, m_sink)`` equals ``op.apply(m_vals, m_sink)`` (to
+        rounding: the sums are taken in another order).
+
+        Notes
+        -----
+        Built in O((|slots| + E_out) W log |m_slots|), as one :meth:`pull`; it holds at most
+        ``(|slots| + E_out) W`` weights.
+        """
+        slots = np.asarray(slots, dtype=_I64)
+        m_slots = np.asarray(m_slots, dtype=_I64)
+        n = slots.size
+        kernel = self.kernel
+        origin, row, factor = slots, np.arange(n, dtype=_I64), None
+        if self.has_edges and n:
+            factor = self._rinv[slots]
+            e_lo = self.edge_src.searchsorted(slots)
+            counts = self.edge_src.searchsorted(slots, "right") - e_lo
+            n_edges = int(counts.sum())
+            if n_edges:
+                eidx = ranges(e_lo, counts, n_edges)
+                origin = np.concatenate((slots, self.edge_dst[eidx]))
+                row = np.concatenate((row, np.repeat(row, counts)))
+                factor = np.concatenate((factor, self.edge_coef[eidx]))
+        end = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1]
+        tgt = origin[:, None] + np.arange(len(kernel), dtype=_I64)
+        weights = kernel * factor[:, None] if factor is not None else np.broadcast_to(
+            kernel, tgt.shape)
+        past = tgt >= end[:, None]
+        sink = np.bincount(row, weights=np.where(past, weights, 0.0).sum(axis=1), minlength=n)
+        if m_slots.size:
+            pos = np.minimum(m_slots.searchsorted(tgt), m_slots.size - 1)
+            found = (m_slots[pos] == tgt) & ~past
+            rows = np.broadcast_to(row[:, None], tgt.shape)[found]
+            return PullOperator(n, rows, pos[found], weights[found], sink)
+        return PullOperator(n, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, sink)
+
+
+class PullOperator:
+    """A :meth:`ComponentTransition.pull` fixed in its source and target slots: ``apply(m,
+    m_sink)`` is ``sum_j A(u, j) m(j)`` for every source slot ``u`` (``rows``/``cols``/
+    ``weights``: the entries of ``A`` into the target slots, ``sink``: each source's mass
+    that leaves its sequence). O(entries) per application, three numpy calls."""
+
+    __slots__ = ("cols", "n", "rows", "sink", "weights")
+
+    def __init__(self, n: int, rows: np.ndarray, cols: np.ndarray, weights: np.ndarray,
+                 sink: np.ndarray) -> None:
+        self.n = n
+        self.rows = rows
+        self.cols = cols
+        self.weights = weights
+        self.sink = sink
+
+    def apply(self, m_vals: np.ndarray, m_sink: float) -> np.ndarray:
+        """The pulled values of the ``n`` source slots."""
+        out: np.ndarray = self.sink * m_sink
+        if self.rows.size:
+            out += np.bincount(self.rows, weights=self.weights * m_vals[self.cols],
+                               minlength=self.n)
         return out
 
 
