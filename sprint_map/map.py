@@ -50,10 +50,13 @@ from sprint_map.storage.store import MapStore
 from sprint_map.storage.store_config import decode_stored_config
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.util.geo import GeoFrame
 from sprint_map.util.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
     from sprint_map.export.report import ExportReport
+    from sprint_map.frontend.bags import BagOptions
+    from sprint_map.frontend.positions import Positions
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.hmm.cache import ComponentCache
     from sprint_map.localize.gnss import GnssAid, PositionIndex
@@ -196,43 +199,26 @@ class SprintMap:
     ) -> IngestResult:
         """Localise a drive against the map, then commit it with its decisions as edges.
 
-        The lifelong step of the paper, with a smoothed merge: every frame is localised
-        against the map as it stands (causally, batch by batch); once the whole drive has been
-        seen its decisions are re-made from the forward-backward smoothed posterior over the
-        same sparse active set (:mod:`sprint_map.hmm.smoother`), and the merge rule
-        (:mod:`sprint_map.merge.rule`: confident, not novel, temporally consistent) selects
-        those that become edges (both ways if ``config.merge_both_ways``). The sequence, its
-        edges and the union-find merges are committed in one transaction. With
-        ``merge=False``, or on an empty map, the sequence is appended as it is, without
-        localisation or edges.
+        Every frame is localised causally, batch by batch; once the drive has been seen whole, the
+        after-drive pipeline (:func:`sprint_map.merge.smoothing.smoothed_decisions`) re-makes its
+        decisions and the merge rule (:mod:`sprint_map.merge.rule`) selects the edges. The sequence,
+        its edges and the union-find merges are committed in one transaction. With ``merge=False``,
+        or on an empty map, the drive is appended as it is.
 
-        Parameters
-        ----------
-        descriptors : ndarray (N, dim), or an iterable of (n_i, dim) batches
-            A batch iterable (e.g. ``FrameSource.iter_batches()``) is streamed: each batch is
-            localised and written to the shards (uncommitted) as it arrives, so descriptor
-            memory is bounded by the batch, not the drive.
-        thumbnails : sequence of bytes, optional
-            One small JPEG per frame, committed with the drive (``FrameSource.thumbnails`` of
-            a source opened with ``thumbnails=True``: read after the batches, so a list the
-            source fills while it streams is complete by then). Held in memory until the
-            commit: about 2 KiB per frame. They also let the merge verify, against the map's
-            own thumbnails, the runs its lookalike tests refuse (``merge_verify_inliers``,
-            :mod:`sprint_map.merge.verification`).
-        fixes : ndarray (N, 2 or 3), optional
-            The drive's GNSS fixes ``x, y[, sigma_m]`` (NaN rows: frames without a fix), in
-            the planar frame of the map's positions: where the map stores positions they weigh
-            localisation and veto merges far from them (:mod:`sprint_map.localize.gnss`).
-            Usually the same as ``positions``, which are what the map stores.
+        ``descriptors`` is an (N, dim) array or an iterable of batches, streamed: each batch is
+        localised and written to the shards (uncommitted) as it arrives. ``thumbnails``, one JPEG
+        per frame (read after the batches), are committed with the drive and let the merge verify
+        refused runs on the images. ``observe`` receives the localizer before the first frame (e.g.
+        :meth:`sprint_map.localize.trace.TraceRecorder.attach`). ``fixes`` (N, 2 or 3): the
+        drive's GNSS fixes ``x, y[, sigma_m]`` (NaN rows: none) in the frame of the map's
+        positions; where the map stores positions they weigh localisation and veto far merges
+        (:mod:`sprint_map.localize.gnss`).
 
         Notes
         -----
-        Per frame: one k-NN search (batched), one HMM step over the active set, and one
-        backward step of the smoother over the same support; the smoother keeps the frame's
-        hits and its sparse forward belief (O(live) per frame) until the drive ends.
-        ``observe`` receives the localizer before the first frame (e.g.
-        :meth:`sprint_map.localize.trace.TraceRecorder.attach`); it is not called when the drive is
-        appended without localisation.
+        Per frame: one k-NN search (batched), one HMM step over the active set and the pipeline's
+        passes, O(live) each; O(k) hits and the sparse forward belief kept per frame until the drive
+        ends; about 2 KiB of thumbnail per frame.
         """
         from sprint_map.localize.localizer import SEARCH_BATCH, Localizer, Timing
 
@@ -275,7 +261,7 @@ class SprintMap:
         drive at a time per writer.
         """
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
-                           self.config.merge_rule, self.config.merge_both_ways,
+                           self.config.merge, self.config.merge.both_ways,
                            self.store.component_of)
 
     def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
@@ -340,7 +326,7 @@ class SprintMap:
         See :mod:`sprint_map.merge.rule`; the rule's parameters are the ``merge_*`` fields of
         the map's config.
         """
-        return select_merges(decisions, self.config.merge_rule)
+        return select_merges(decisions, self.config.merge)
 
     def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
               positions: np.ndarray | None = None, source: str = "") -> AddResult:
@@ -488,7 +474,7 @@ class SprintMap:
         self._position_index = (key, index)
         return index
 
-    def localize(self, descriptors: Any, *, smooth: bool = False,
+    def localize(self, descriptors: Any, *, smooth: bool = False, lag: int = 0,
                  thumbnails: Sequence[bytes] | None = None,
                  observe: Callable[[Localizer], None] | None = None,
                  hmm: HMMConfig | None = None, fixes: np.ndarray | None = None,
@@ -502,14 +488,34 @@ class SprintMap:
         smoothed_decisions`: what ``ingest`` merges, given the same ``thumbnails``, one JPEG per
         frame). ``observe`` receives the localizer before the first frame (e.g.
         :meth:`TraceRecorder.attach <sprint_map.localize.trace.TraceRecorder.attach>`).
-        ``hmm`` and ``overrides`` replace the map's HMM config for this query only. ``fixes``
+        ``hmm`` and ``overrides`` replace the map's HMM config for this query only.
+        ``lag`` (frames) answers each frame once ``lag`` more were seen, from the fixed-lag
+        smoothed posterior (:class:`~sprint_map.localize.lagged.LaggedLocalizer`; 0: causal);
+        it excludes ``smooth``, ``observe`` and ``fixes`` (:class:`InputError`). ``fixes``
         are the drive's GNSS fixes (see :meth:`ingest`; one per frame, checked).
 
         Notes
         -----
         Per frame: one k-NN search (batched) and one HMM step over the active set; with
-        ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame.
+        ``smooth``, the pipeline's passes (O(live) per frame each) and O(k) hits kept per frame;
+        with ``lag``, ``lag`` backward steps more per frame.
         """
+        if lag:
+            from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
+
+            validate_lag(lag)
+            if smooth or observe is not None or thumbnails is not None:
+                raise InputError("a lag answers frames as the drive goes: it cannot be "
+                                 "combined with smoothing the whole drive, thumbnails or a trace")
+            if fixes is not None:
+                raise InputError("GNSS fixes are not supported with a lag: localise with "
+                                 "--positions without --lag, or with --lag without positions")
+            base = hmm or self.config.hmm
+            lagged = LaggedLocalizer(self, lag, dataclass_dict.replace(base, **overrides)
+                                     if overrides else base)
+            batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
+                else descriptors
+            return lagged.localize(batches), lagged.timing
         batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
             else descriptors
         if fixes is not None and isinstance(batches, np.ndarray):
@@ -541,11 +547,13 @@ class SprintMap:
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,
                     progress: ProgressCallback | None = None,
-                    thumbnails: bool = False) -> FrameSource:
-        """Open images, a video or a ``.npy`` as descriptors that fit this map.
+                    thumbnails: bool = False, bag: BagOptions | None = None) -> FrameSource:
+        """Open images, a video, a ``.npy`` or a ROS bag as descriptors that fit this map.
 
         With ``thumbnails`` the source also makes a small JPEG of each frame
-        (``source.thumbnails``, for :meth:`ingest`); images and video only.
+        (``source.thumbnails``, for :meth:`ingest`); images, video and bags only. ``bag``:
+        a bag's topics and ``every_m`` (:mod:`sprint_map.frontend.bags`); a bag's GNSS
+        positions are ``source.positions`` (for :meth:`metric_positions`).
 
         Raises
         ------
@@ -568,7 +576,7 @@ class SprintMap:
         from sprint_map.frontend.sources import open_source
 
         source = open_source(src, spec, stride=stride, progress=progress,
-                             thumbnails=thumbnails)
+                             thumbnails=thumbnails, bag=bag)
         if source.dim != self.config.dim:
             raise DescriptorShapeError(
                 f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
@@ -678,7 +686,40 @@ class SprintMap:
         return self.store.descriptors(seq_id)
 
     def positions(self, seq_id: int) -> Float64Array | None:
+        """``(length, 4)`` ``x, y, heading_deg, timestamp`` of a sequence (a fifth column
+        ``sigma_m`` when a fix has an accuracy; NaN rows: frames without a fix), or None.
+        O(length)."""
         return self.store.positions(seq_id)
+
+    def geo_frame(self) -> GeoFrame | None:
+        """The UTM zone this map keeps latitude/longitude in (set by the first geographic
+        positions it was given), or None. O(1)."""
+        record = self.store.geo_frame()
+        return None if record is None else GeoFrame.from_dict(record)
+
+    def metric_positions(self, positions: Positions | None) -> Float64Array | None:
+        """Positions as the map stores them (``(n, 5)`` ``x, y, heading, time, sigma_m``):
+        latitude/longitude are projected into the map's UTM zone, which the first geographic
+        positions a map is given choose (the zone of their first fix) and store, once, in a
+        transaction of their own. Planar positions are taken as they are. O(n).
+
+        Raises
+        ------
+        InputError
+            Geographic positions without a single fix.
+        """
+        if positions is None:
+            return None
+        if not positions.geographic:
+            return positions.rows()
+        frame = self.geo_frame()
+        if frame is None:
+            fix = positions.first_fix()
+            if fix is None:
+                raise InputError("geographic positions without any fix: nothing to place")
+            frame = GeoFrame.from_dict(self.store.set_geo_frame(
+                GeoFrame.for_fix(*fix).to_dict()))
+        return positions.metric(frame).rows()
 
     def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
         """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the

@@ -7,9 +7,7 @@ fixture).
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -21,31 +19,13 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
+from tests.helpers.road_map import RoadMap, build_road_map
 
 SEED = 20200531
 
-
-def _load_crash_worker() -> None:
-    """Load ``tests/crash_worker.py`` (the crash harness) as module ``crash_worker``.
-
-    By path, so that it works whatever pytest's import mode puts on ``sys.path``; registered in
-    ``sys.modules`` (its dataclasses resolve their module by name), so test modules anywhere
-    under ``tests/`` just ``import crash_worker``.
-    """
-    if "crash_worker" in sys.modules:
-        return
-    spec = importlib.util.spec_from_file_location(
-        "crash_worker", Path(__file__).with_name("crash_worker.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["crash_worker"] = module
-    spec.loader.exec_module(module)
-
-
-_load_crash_worker()
 
 # CI replays the same hypothesis examples every run (a red CI is reproducible by rerunning it);
 # local runs keep exploring new ones, which is how the W = 1 gutter bug was found.
@@ -208,7 +188,7 @@ class MapFactory:
         edges : int
             Random edges from each sequence (after the first) to earlier ones.
         """
-        built = self.empty(MapConfig(dim=dim, shard_rows=shard_rows, **config))
+        built = self.empty(MapConfig(dim=dim, **config, store=StoreOptions(shard_rows=shard_rows)))
         with MapStore.create(built.path, built.config) as store:
             for i, length in enumerate(lengths):
                 self.add_random(store, built, length, positions=positions, edges=edges, index=i)
@@ -278,3 +258,16 @@ def assert_map_matches(store: MapStore, built: BuiltMap) -> None:
 def expect_map() -> Callable[[MapStore, BuiltMap], None]:
     """The :func:`assert_map_matches` helper, as a fixture for test modules."""
     return assert_map_matches
+
+
+@pytest.fixture
+def road_map(tmp_path: Path, rng: np.random.Generator, request: pytest.FixtureRequest
+             ) -> RoadMap:
+    """A closed map of drives over one road, with positions, plus a drive elsewhere
+    (:func:`tests.helpers.road_map.build_road_map`). Its size: ``drives=3, frames=100``, or
+    the arguments of the closest ``@pytest.mark.road_map(drives=..., frames=...,
+    with_thumbnails=...)``."""
+    marker = request.node.get_closest_marker("road_map")
+    kwargs = {"drives": 3, "frames": 100, **(marker.kwargs if marker else {})}
+    road, ids = build_road_map(tmp_path / "m", rng, **kwargs)
+    return RoadMap(tmp_path / "m", road, ids)

@@ -38,7 +38,7 @@ from click.testing import CliRunner
 
 from sprint_map import errors
 from sprint_map.cli.main import main
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import SCHEMA_VERSION, MapConfig, MergeRule
 from sprint_map.errors import (
     ConfigError,
     DescriptorShapeError,
@@ -136,6 +136,8 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (root / "pos_range.csv").write_text(_csv(["0,0,0", "1,3e9,0", "2,2,0"]))
     (root / "pos_sigma.csv").write_text(_csv([f"{i},{i}.0,0,{1 - i}" for i in range(3)],
                                              header="frame,x,y,sigma_m"))
+    (root / "pos_lat.csv").write_text(_csv(["0,59.9,10.7", "1,95.0,10.7"],
+                                           header="frame,lat,lon"))
     (root / "pos_long.csv").write_text(_csv([*frames3, "3,3.0,0"]))
     (root / "pos_header.csv").write_text(_csv(frames3, header="t,east,north"))
     (root / "pos_nan.csv").write_text(_csv([*frames3[:2], "2,nan,0"]))
@@ -181,7 +183,8 @@ def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[st
     meta = env.open_db(b"meta")
     with env.begin(write=True) as txn:
         config = json.loads(txn.get(b"config", db=meta))
-        txn.put(b"config", json.dumps({**config, "shard_rows": 1.5}).encode(), db=meta)
+        config["store"]["shard_rows"] = 1.5
+        txn.put(b"config", json.dumps(config).encode(), db=meta)
     env.close()
     return paths
 
@@ -300,6 +303,8 @@ CASES: dict[str, Case] = {
                                      "{in}/pos_sigma.csv", InputError,
                                      "pos_sigma.csv:3: sigma_m must be > 0 metres, got 0",
                                      map="img"),
+    "positions-lat": Case("ingest {map} {in}/images --name x --positions {in}/pos_lat.csv",
+                          InputError, "pos_lat.csv:3: lat 95 is outside [-90, 90]", map="img"),
     "positions-header": Case("ingest {map} {in}/images --name x --positions {in}/pos_header.csv",
                              InputError, "pos_header.csv:1: bad header", map="img"),
     "positions-nan": Case("ingest {map} {in}/images --name x --positions {in}/pos_nan.csv",
@@ -334,19 +339,19 @@ CASES: dict[str, Case] = {
     "init-bad-config": Case("init {map} --config {in}/bad_config.json", InputError,
                             "cannot read config", map="missing"),
     "init-float-shard-rows": Case("init {map} --dim 4 --config {in}/config_shard_rows.json",
-                                  ConfigError, "MapConfig: shard_rows must be an integer, got 1.5",
+                                  ConfigError, "MapConfig.store: shard_rows must be an integer, got 1.5",
                                   map="missing"),
     "init-string-bool": Case("init {map} --dim 4 --config {in}/config_merge_both_ways.json",
-                             ConfigError, "MapConfig: merge_both_ways must be true or false, "
+                             ConfigError, "MapConfig.merge: both_ways must be true or false, "
                              "got 'no'", map="missing"),
     "init-float-pca-dim": Case("init {map} --dim 4 --config {in}/config_index_pca_dim.json",
-                               ConfigError, "MapConfig: index_pca_dim must be an integer, got 1.5",
+                               ConfigError, "MapConfig.store: index_pca_dim must be an integer, got 1.5",
                                map="missing"),
     "init-nested-window": Case("init {map} --dim 4 --config {in}/config_hmm.json", ConfigError,
                                "MapConfig.hmm: window must be a list of numbers", map="missing"),
     # A stored config that fails validation is a corrupt map (it was a crash in every command).
     **{f"stored-config-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/one.npy" if cmd in (
-        "ingest", "localize") else ""), MapCorruptError, "corrupt map record config: MapConfig: "
+        "ingest", "localize") else ""), MapCorruptError, "corrupt map record config: MapConfig.store: "
         "shard_rows must be an integer, got 1.5", map="badconfig")
        for cmd in ("info", "check", "ingest", "localize")},
     "hmm-float-k": Case("localize {map} {in}/good.npy --hmm k=1.5", ConfigError,
@@ -545,7 +550,7 @@ def test_one_frame_sequences_are_valid_everywhere(tmp_path, inputs):
     merged into a map of one-frame sequences: added, localised, matched."""
     good = np.load(inputs / "good.npy")
     # (The default merge rule wants a run of frames along a drive: no one-frame drive passes.)
-    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, merge_min_run=0)) as m:
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, merge=MergeRule(min_run=0))) as m:
         m.add_sequence(good[:1], name="only")
         single = m.ingest(good[:1] + 0.001, name="again")  # a one-frame drive, localised
         assert single.decisions[0].seq_id == 0 and single.added.edges_added > 0

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, MergeRule
 from sprint_map.errors import DuplicateNameError, InputError, UnknownSequenceError
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
@@ -28,8 +28,7 @@ def decision(frame: int, seq: int | None, image: int | None, prob: float = 0.9) 
 @pytest.fixture
 def smap(tmp_path, rng):
     """Two drives in separate components (ids 0 and 1); every decision may merge."""
-    config = MapConfig(dim=DIM, merge_min_run=0, merge_dist_quantile=0.0, merge_min_advance=0.0,
-                       merge_both_ways=False)
+    config = MapConfig(dim=DIM, merge=MergeRule(min_run=0, dist_quantile=0.0, min_advance=0.0, both_ways=False))
     with SprintMap.create(tmp_path / "m", config) as m:
         m.add_sequence(rng.standard_normal((6, DIM)), name="a")
         m.add_sequence(rng.standard_normal((6, DIM)), name="b")

@@ -58,13 +58,14 @@ PLAN = textwrap.dedent("""
 
 WRITER = PLAN + textwrap.dedent("""
     import json, os, sys, time
-    from sprint_map.config import MapConfig
+    from sprint_map.config import MapConfig, StoreOptions
     from sprint_map.map import SprintMap
 
     path, count, progress = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     # Created here: the 1 MiB initial map size lasts for this session, so the map must grow.
-    config = MapConfig(dim=DIM, shard_rows=4096, initial_map_size=1 << 20,
-                       index_persist_every=20, index_persist_growth=0.05)
+    config = MapConfig(dim=DIM, store=StoreOptions(shard_rows=4096, initial_map_size=1 << 20,
+                                                   index_persist_every=20,
+                                                   index_persist_growth=0.05))
     with SprintMap.create(path, config) as m:
         print(json.dumps({"ready": True}), flush=True)
         sys.stdin.readline()  # the readers are up

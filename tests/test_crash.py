@@ -5,7 +5,7 @@ persisting the index, a writer's recovery at open, ``check --repair``); (b) writ
 at random instants, over and over, and restarted. After every kill the map must pass ``check``,
 hold every acknowledged sequence bit for bit, hold each other sequence either wholly or not at
 all, and have the components of its edges. Writers add the deterministic stream of
-``tests/crash_worker.py``, so the test regenerates what each sequence must contain.
+``tests/helpers/crash_worker.py``, so the test regenerates what each sequence must contain.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import faiss
 import numpy as np
 import pytest
@@ -42,6 +41,7 @@ from sprint_map.testing.crash import (
     SEGMENT_POINTS,
     UNMERGE_POINTS,
 )
+from tests.helpers import crash_worker
 
 worker = crash_worker
 verify = worker.verify
@@ -240,7 +240,7 @@ def test_kill_at_each_repair_point(tmp_path, zygote, point):
 
 def test_every_crash_point_is_in_the_code_and_tested():
     names = set()
-    for source in Path(worker.__file__).parents[1].joinpath("sprint_map").rglob("*.py"):
+    for source in Path(worker.__file__).parents[2].joinpath("sprint_map").rglob("*.py"):
         names |= set(re.findall(r'crash_point\("([^"]+)"\)', source.read_text()))
     assert names == set(CRASH_POINTS)
     tested = set(ADD_POINTS + INDEX_POINTS) | set(RECOVER_POINTS) | set(REPAIR_POINTS)

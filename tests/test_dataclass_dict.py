@@ -69,10 +69,10 @@ def test_defaults_round_trip_through_json(cls, base):
 
 
 def test_the_issue_cases_and_what_stays_accepted():
-    for key, value, says in (("shard_rows", 1.5, "shard_rows must be an integer, got 1.5"),
-                             ("merge_both_ways", "no", "merge_both_ways must be true or false"),
-                             ("index_pca_dim", 1.5, "index_pca_dim must be an integer")):
-        with pytest.raises(ConfigError, match=f"^MapConfig: {says}"):
+    for key, value, says in (("shard_rows", 1.5, r"store: shard_rows must be an integer, got 1.5"),
+                             ("merge_both_ways", "no", r"merge: both_ways must be true or false"),
+                             ("index_pca_dim", 1.5, r"store: index_pca_dim must be an integer")):
+        with pytest.raises(ConfigError, match=rf"^MapConfig\.{says}"):
             MapConfig.from_dict({"dim": 8, key: value})
     with pytest.raises(ConfigError, match=r"^MapConfig\.hmm: k must be an integer, got 2\.0$"):
         MapConfig.from_dict({"dim": 8, "hmm": {"k": 2.0}})
@@ -85,7 +85,7 @@ def test_the_issue_cases_and_what_stays_accepted():
     # An integer is a number; a JSON list is a tuple; None where None is allowed.
     config = MapConfig.from_dict({"dim": 8, "merge_threshold": 1, "index_persist_growth": 2,
                                   "hmm": {"window": [1, 2], "dist_scale": None}})
-    assert config.merge_threshold == 1.0 and isinstance(config.merge_threshold, float)
+    assert config.merge.threshold == 1.0 and isinstance(config.merge.threshold, float)
     assert config.hmm.window == (1.0, 2.0) and config.hmm.dist_scale is None
     # A nested config may also be given as such (dataclass_dict.replace).
     hmm = HMMConfig(k=3)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from sprint_map import Drive, MapConfig, SprintMap
+from sprint_map.config import StoreOptions
 from sprint_map.errors import DuplicateNameError, InputError, InvalidDescriptorError
 from sprint_map.testing.crash import CRASH_ENV, GROUP_POINTS
 
@@ -90,7 +91,7 @@ def test_failed_drive_leaves_earlier_committed_and_later_absent(tmp_path, drives
 
 
 def test_group_defers_the_index_persist_to_its_end(tmp_path, drives):
-    config = MapConfig(dim=DIM, index_persist_every=1, index_persist_growth=0)
+    config = MapConfig(dim=DIM, store=StoreOptions(index_persist_every=1, index_persist_growth=0))
     with SprintMap.create(tmp_path / "m", config) as m:
         files = []
         with m.store.group_commit():
@@ -139,7 +140,7 @@ def test_crash_between_drives_keeps_the_earlier_ones(tmp_path, drives):
 
 
 def append_serially(path: Path, drives: list[np.ndarray], names: list[str]) -> None:
-    with SprintMap.create(path, MapConfig(dim=DIM, shard_rows=100)) as m:
+    with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(shard_rows=100))) as m:
         for d, name in zip(drives, names, strict=True):
             m.ingest(d, name=name, merge=False, source=name)
 
@@ -149,7 +150,7 @@ def test_appended_drives_equal_serial_appends_in_one_transaction(tmp_path, drive
                                                                  group_drives):
     names = [f"d{i}" for i in range(4)]
     append_serially(tmp_path / "serial", drives, names)
-    with SprintMap.create(tmp_path / "grouped", MapConfig(dim=DIM, shard_rows=100)) as m:
+    with SprintMap.create(tmp_path / "grouped", MapConfig(dim=DIM, store=StoreOptions(shard_rows=100))) as m:
         txn_before = m.store.env.env.info()["last_txnid"]
         results = m.ingest_drives(
             [Drive(d if i % 2 else iter([d[:30], d[30:]]), n, None, n)
@@ -173,7 +174,7 @@ def test_a_failing_appended_drive_commits_the_ones_before_it(tmp_path, drives):
         yield bad
 
     reported: list[list[str]] = []
-    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, shard_rows=100)) as m:
+    with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM, store=StoreOptions(shard_rows=100))) as m:
         with pytest.raises(InvalidDescriptorError, match="frame 55"):
             m.ingest_drives([Drive(drives[0], "a"), Drive(drives[1], "b"),
                              Drive(broken(), "c"), Drive(drives[3], "d")], merge=False,
@@ -222,7 +223,7 @@ def test_kill_inside_an_appended_group(tmp_path, drives, point):
     same command run again completes the map as serial appends would."""
     sources = cli_sources(tmp_path, drives)
     path = tmp_path / "m"
-    with SprintMap.create(path, MapConfig(dim=DIM, shard_rows=100)):
+    with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(shard_rows=100))):
         pass
     first = subprocess.run([*CLI, "ingest", str(path), str(sources[0]), "--no-merge"],
                            capture_output=True, text=True, timeout=120)

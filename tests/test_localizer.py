@@ -13,31 +13,15 @@ from sprint_map.localize.localizer import FrameDecision, Localizer
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import merge_edges
 from sprint_map.merge.rule import MergeRule, select_merges
+from tests.helpers.worlds import road_places, traverse, unit
 
 DIM = 48
-
-
-def unit(x: np.ndarray) -> np.ndarray:
-    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
 
 
 @pytest.fixture
 def world(rng):
     """Appearance of 400 places along one long road; neighbours look alike (aliasing)."""
-    cur = unit(rng.standard_normal(DIM))
-    places = []
-    for _ in range(400):
-        cur = unit(0.95 * cur + np.sqrt(1 - 0.95**2) * unit(rng.standard_normal(DIM)))
-        places.append(cur)
-    return np.array(places)
-
-
-def traverse(rng, world, start, frames, noise, speed=(0.8, 1.25)):
-    """A drive over places start.. at a varying speed under its own appearance change."""
-    pos = start + np.cumsum(rng.uniform(*speed, frames)) - 1
-    places = np.clip(pos.astype(int), 0, len(world) - 1)
-    shift = unit(rng.standard_normal(DIM)) * 0.3
-    return unit(world[places] + shift + noise * unit(rng.standard_normal((frames, DIM)))), places
+    return road_places(rng, 400, DIM, corr=0.95)
 
 
 def test_temporal_inference_beats_knn_and_merges(tmp_path, rng, world):
@@ -139,7 +123,7 @@ def test_merge_edges_from_confident_decisions(both, expected):
         FrameDecision(2, 3, 9, 0.4, 102),  # below the threshold
         FrameDecision(3, 4, 1, 0.5, 200),
     ]
-    merged = select_merges(decisions, MergeRule(threshold=0.5))
+    merged = select_merges(decisions, MergeRule.permissive(threshold=0.5))
     assert merged.tolist() == [True, False, False, True]
     edges = merge_edges(decisions, merged, both_ways=both)
     assert len(edges) == expected
@@ -152,16 +136,16 @@ def test_merge_rule_needs_neighbours_that_agree():
     along = [FrameDecision(i, 2, 10 + i, 0.9) for i in range(7)]
     along[3] = FrameDecision(3, 5, 80, 0.99)  # a jump to another drive
     along[5] = FrameDecision(5, None, None, 0.1)
-    rule = MergeRule(threshold=0.5, window=2, min_agree=2)
+    rule = MergeRule.permissive(threshold=0.5, window=2, min_agree=2)
     # (the last frame has one agreeing neighbour left: 4; 5 is no match)
     assert select_merges(along, rule).tolist() == [True, True, True, False, True, False, False]
     # Not novel: a decision the filter thinks unmapped is not merged however confident.
     novel = [FrameDecision(i, 2, 10 + i, 0.9, novel_prob=0.6 if i == 1 else 0.0)
              for i in range(3)]
-    assert select_merges(novel, MergeRule(max_novel=0.5)).tolist() == [True, False, True]
+    assert select_merges(novel, MergeRule.permissive(max_novel=0.5)).tolist() == [True, False, True]
     # A neighbour that runs backwards along the drive does not agree.
     back = [FrameDecision(i, 2, 50 - 3 * i, 0.9) for i in range(5)]
-    assert not select_merges(back, MergeRule(window=2, min_agree=1)).any()
+    assert not select_merges(back, MergeRule.permissive(window=2, min_agree=1)).any()
 
 
 def test_ingest_merges_smoothed_decisions(tmp_path, rng, world):
@@ -272,7 +256,7 @@ def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
         assert min(d.novel_prob for d in smoothed[153:167]) > 0.5
         # What the calibration takes away (with the distance gate off: it catches this too).
         plain, _ = m.localize(query, smooth=True, novelty_quantile=0.0)
-        ungated = dataclasses.replace(m.config.merge_rule, dist_quantile=0.0)
+        ungated = dataclasses.replace(m.config.merge, dist_quantile=0.0)
         assert select_merges(plain, ungated)[detour].sum() >= 15
         assert not select_merges(smoothed, ungated)[detour].any()
         assert [d.best for d in plain] == [d.best for d in smoothed]  # the places stay

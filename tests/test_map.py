@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import SCHEMA_VERSION, MapConfig, MergeRule, StoreOptions
 from sprint_map.errors import MapLockedError, NotAMapError, ReadOnlyMapError
 from sprint_map.map import SprintMap
 from sprint_map.storage.index.map_index import index_files
@@ -17,7 +17,7 @@ DIM = 6
 
 @pytest.fixture
 def config() -> MapConfig:
-    return MapConfig(dim=DIM, shard_rows=10, index_persist_every=1000, merge_threshold=0.3)
+    return MapConfig(dim=DIM, store=StoreOptions(shard_rows=10, index_persist_every=1000), merge=MergeRule(threshold=0.3))
 
 
 @pytest.fixture

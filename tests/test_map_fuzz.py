@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import SprintMapError
 from sprint_map.storage.store import MapStore
 
@@ -72,7 +72,7 @@ def cli(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cli]:
 
 
 def _compacted_flat_map(path: Path, rng: np.random.Generator) -> None:
-    with MapStore.create(path, MapConfig(dim=DIM, shard_rows=64, index_type="flat")) as store:
+    with MapStore.create(path, MapConfig(dim=DIM, store=StoreOptions(shard_rows=64, index_type="flat"))) as store:
         for i in range(4):
             store.add_sequence(rng.standard_normal((50, DIM)).astype(np.float32), name=f"d{i}")
         store.remove_sequences([1])
@@ -81,8 +81,7 @@ def _compacted_flat_map(path: Path, rng: np.random.Generator) -> None:
 
 
 def _segmented_map(path: Path, rng: np.random.Generator) -> None:
-    config = MapConfig(dim=DIM, index_type="ivf-sq8", index_segment_rows=128, index_nlist=4,
-                       index_nprobe=2, index_merge_factor=4)
+    config = MapConfig(dim=DIM, store=StoreOptions(index_type="ivf-sq8", index_segment_rows=128, index_nlist=4, index_nprobe=2, index_merge_factor=4))
     with MapStore.create(path, config) as store:
         for i in range(3):
             store.add_sequence(rng.standard_normal((200, DIM)).astype(np.float32), name=f"d{i}")

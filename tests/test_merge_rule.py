@@ -43,14 +43,14 @@ def test_a_stalled_stretch_of_a_run_is_not_merged():
 def test_min_run_rejects_short_lookalike_stretches():
     drive = along(30) + along(8, seq=1, start=200, first_frame=30) + along(30, first_frame=38,
                                                                           start=60)
-    merged = select_merges(drive, MergeRule(window=3, min_run=20))
+    merged = select_merges(drive, MergeRule.permissive(window=3, min_run=20))
     assert merged[:30].all() and not merged[30:38].any() and merged[38:].all()
 
 
 def test_distance_gate_is_calibrated_on_the_drive():
     near = along(200, distance=0.1)
     far = along(20, seq=1, start=300, first_frame=200, distance=0.3)  # under 10 % of the drive
-    rule = MergeRule(window=3, min_run=20, dist_quantile=0.9)
+    rule = MergeRule.permissive(window=3, min_run=20, dist_quantile=0.9)
     merged = select_merges(near + far, rule)
     assert merged[:200].all() and not merged[200:].any()
     # the same distances, all scaled (another light or weather): the same verdict
@@ -58,21 +58,21 @@ def test_distance_gate_is_calibrated_on_the_drive():
               for d in near + far]
     assert (select_merges(scaled, rule) == merged).all()
     # without the gate both stretches are long enough
-    assert select_merges(near + far, MergeRule(window=3, min_run=20)).all()
+    assert select_merges(near + far, MergeRule.permissive(window=3, min_run=20)).all()
 
 
 def test_novel_and_unconfident_decisions_are_never_merged():
     drive = along(30)
     drive[5] = FrameDecision(5, 0, 15, 0.9, novel_prob=0.6)
     drive[6] = FrameDecision(6, 0, 16, 0.2)
-    merged = select_merges(drive, MergeRule(threshold=0.5, max_novel=0.5, window=3, min_run=20))
+    merged = select_merges(drive, MergeRule.permissive(threshold=0.5, max_novel=0.5, window=3, min_run=20))
     assert not merged[5] and not merged[6] and merged[:5].all() and merged[7:].all()
 
 
 def test_unconfirmed_decisions_are_never_merged():
     drive = along(30)
     drive[5] = FrameDecision(5, 0, 15, 0.9, confirmed=False)  # a deeper pass's answer only
-    merged = select_merges(drive, MergeRule(threshold=0.5, window=3, min_run=20))
+    merged = select_merges(drive, MergeRule.permissive(threshold=0.5, window=3, min_run=20))
     assert not merged[5] and merged[:5].all() and merged[6:].all()
 
 
@@ -104,10 +104,10 @@ def test_a_run_that_does_not_stand_out_from_the_map_is_not_merged():
     # is as close (contrast 1.05).
     drive = with_contrast(along(30), 0.7) + with_contrast(
         along(30, seq=1, start=200, first_frame=30), 1.05)
-    rule = MergeRule(window=3, min_run=20, max_contrast=0.95)
+    rule = MergeRule.permissive(window=3, min_run=20, max_contrast=0.95)
     merged = select_merges(drive, rule)
     assert merged[:30].all() and not merged[30:].any()
-    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()  # gate off
+    assert select_merges(drive, MergeRule.permissive(window=3, min_run=20)).all()  # gate off
 
 
 def test_the_contrast_gate_reads_the_runs_median():
@@ -117,16 +117,16 @@ def test_the_contrast_gate_reads_the_runs_median():
     bad = [1.1] * 20 + [0.5] * 10
     drive = with_contrast(along(30), good) + with_contrast(
         along(30, seq=1, start=200, first_frame=30), bad)
-    merged = select_merges(drive, MergeRule(window=3, min_run=20, max_contrast=0.95))
+    merged = select_merges(drive, MergeRule.permissive(window=3, min_run=20, max_contrast=0.95))
     assert merged[:30].all() and not merged[30:].any()
 
 
 def test_decisions_without_contrast_are_not_gated():
     # causal decisions (NaN contrast) pass; NaN frames are left out of a run's median
     drive = along(30)
-    assert select_merges(drive, MergeRule(window=3, min_run=20, max_contrast=0.5)).all()
+    assert select_merges(drive, MergeRule.permissive(window=3, min_run=20, max_contrast=0.5)).all()
     mixed = with_contrast(along(30), [math.nan] * 25 + [2.0] * 5)
-    assert not select_merges(mixed, MergeRule(window=3, min_run=20, max_contrast=0.95)).any()
+    assert not select_merges(mixed, MergeRule.permissive(window=3, min_run=20, max_contrast=0.95)).any()
 
 
 def test_a_drive_cannot_come_back_to_a_stretch_it_has_just_left():
@@ -137,7 +137,7 @@ def test_a_drive_cannot_come_back_to_a_stretch_it_has_just_left():
     copy = along(43, start=128, first_frame=50)
     verified = [FrameDecision(d.frame, d.seq_id, d.image_id, d.prob, verified=True)
                 for d in first + copy]
-    rule = MergeRule(window=3, min_run=20)
+    rule = MergeRule.permissive(window=3, min_run=20)
     for drive in (first + copy, verified):
         assert not select_merges(drive, rule).any()
     # the same two passes a loop apart (120 frames elsewhere): a true revisit, both merged
@@ -150,21 +150,21 @@ def test_only_the_images_both_runs_claim_are_refused():
     # a long right run, then a lookalike of its last 20 images at once: the run keeps the 80
     # frames nothing contests; the lookalike, all contested, goes
     drive = along(100, start=0) + along(20, start=80, first_frame=100)
-    merged = select_merges(drive, MergeRule(window=3, min_run=20))
+    merged = select_merges(drive, MergeRule.permissive(window=3, min_run=20))
     assert merged[:80].all() and not merged[80:].any()
     # what is left must still be a run of min_run frames
     merged = select_merges(along(30, start=0) + along(20, start=15, first_frame=30),
-                           MergeRule(window=3, min_run=20))
+                           MergeRule.permissive(window=3, min_run=20))
     assert not merged.any()
 
 
 @pytest.mark.parametrize("back", [1, 3, 9])
 def test_a_run_that_stalls_and_restarts_a_few_images_back_is_kept(back):
     drive = along(30) + along(30, start=39 - back, first_frame=30)
-    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()
+    assert select_merges(drive, MergeRule.permissive(window=3, min_run=20)).all()
 
 
 def test_runs_on_images_the_other_run_never_saw_are_no_teleport():
     # the map drive looped: its images 233-264 and 148-203 are neighbouring streets
     drive = along(40, start=233) + along(40, start=148, first_frame=40)
-    assert select_merges(drive, MergeRule(window=3, min_run=20)).all()
+    assert select_merges(drive, MergeRule.permissive(window=3, min_run=20)).all()

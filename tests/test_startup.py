@@ -86,6 +86,18 @@ def test_reading_commands_import_no_hmm_opencv_or_scipy(small_map, args):
     assert not heavy_loaded(modules), sorted(heavy_loaded(modules))
 
 
+#: Standard modules a command that only reads LMDB has no use for: the index's sealing thread
+#: pool (and logging with it), OpenSSL's hashes (digests are written or checked, not read), the
+#: positions' CSV reader.
+UNNEEDED_STDLIB = ("concurrent", "logging", "hashlib", "_hashlib", "csv")
+
+
+def test_info_loads_no_standard_module_it_does_not_need(small_map):
+    proc, modules = cli_modules("info", str(small_map), "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not {m.split(".")[0] for m in modules} & set(UNNEEDED_STDLIB)
+
+
 def test_sprint_map_cli_imports_no_opencv():
     assert "cv2" not in loaded_after("import sprint_map.cli.main")
 
@@ -101,3 +113,20 @@ def test_faiss_loads_with_the_first_search(small_map):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.split()
     assert out == ["False", "True"]
+
+
+def test_no_module_imports_faiss_at_load():
+    """Every module of the package imports FAISS through ``util.lazy_faiss`` (on first use):
+    importing all of them (those whose optional extra is installed) loads no FAISS."""
+    code = ("import importlib, pkgutil, sys, sprint_map\n"
+            "for mod in pkgutil.walk_packages(sprint_map.__path__, 'sprint_map.'):\n"
+            "    try:\n"
+            "        importlib.import_module(mod.name)\n"
+            "    except ModuleNotFoundError as exc:\n"
+            "        if (exc.name or '').startswith('sprint_map'):\n"
+            "            raise\n"
+            "print(len([m for m in sys.modules if m.startswith('sprint_map.')]),\n"
+            "      'faiss' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert int(out[0]) > 100 and out[1] == "False", out

@@ -7,25 +7,26 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from sample_maps import build_road_map
 
 from sprint_map.cli.main import main
 from sprint_map.errors import InputError
 from sprint_map.localize.trace import FORMAT, VERSION, TraceRecorder, read_trace
 from sprint_map.map import SprintMap
 
+pytestmark = pytest.mark.road_map(drives=3, frames=120)
+
 
 @pytest.fixture
-def road_map(tmp_path, rng):
-    road, ids = build_road_map(tmp_path / "m", rng, drives=3, frames=120)
-    query, _ = road.drive(rng, 100, start=10)
-    np.save(tmp_path / "q.npy", query)
-    return tmp_path / "m", tmp_path / "q.npy", ids
+def query(tmp_path, rng, road_map):
+    """A drive over the road map's road, saved as ``q.npy``."""
+    rows, _ = road_map.road.drive(rng, 100, start=10)
+    np.save(tmp_path / "q.npy", rows)
+    return tmp_path / "q.npy"
 
 
 @pytest.mark.parametrize("top_n", [1, 5])
-def test_trace_records_each_frame_as_the_localizer_decided(tmp_path, road_map, top_n):
-    path, query, _ = road_map
+def test_trace_records_each_frame_as_the_localizer_decided(tmp_path, road_map, query, top_n):
+    path = road_map.path
     with SprintMap.open(path, readonly=True) as m:
         loc = m.localizer()
         rec = TraceRecorder(m, top_n=top_n)
@@ -57,8 +58,8 @@ def test_trace_records_each_frame_as_the_localizer_decided(tmp_path, road_map, t
     assert (t["n_active_vertices"][1:] > 0).all()
 
 
-def test_localize_and_ingest_write_traces_from_the_cli(tmp_path, road_map):
-    path, query, ids = road_map
+def test_localize_and_ingest_write_traces_from_the_cli(tmp_path, road_map, query):
+    path = road_map.path
     runner = CliRunner()
     out = runner.invoke(main, ["localize", str(path), str(query), "--smooth", "--json", "-q",
                                "--trace", str(tmp_path / "loc.npz")])

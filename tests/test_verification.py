@@ -199,7 +199,7 @@ def test_a_drive_that_contradicts_itself_does_not_merge_the_revisit(drives, tmp_
 def test_the_merge_rule_merges_verified_decisions_only_if_confirmed():
     # A run the contrast gate refuses (a lookalike as close as the match).
     ds = [FrameDecision(i, 0, i, 0.99, contrast=1.2) for i in range(30)]
-    rule = MergeRule(threshold=0.5, window=3, min_run=20, max_contrast=0.95)
+    rule = MergeRule.permissive(threshold=0.5, window=3, min_run=20, max_contrast=0.95)
     assert not select_merges(ds, rule).any()
     verified = [dataclasses.replace(d, verified=True) for d in ds]
     assert select_merges(verified, rule).all()
@@ -236,8 +236,7 @@ def test_verification_only_adds_merges_and_they_are_right(drives, tmp_path):
 def test_no_verification_without_the_maps_thumbnails_or_when_off(drives, tmp_path):
     traversals, rows, thumbs, _ = drives
     configs = {"no map thumbnails": MapConfig.for_descriptor("hog"),
-               "off": dataclasses.replace(MapConfig.for_descriptor("hog"),
-                                          merge_verify_inliers=0)}
+               "off": MapConfig.for_descriptor("hog").replace(merge_verify_inliers=0)}
     for label, config in configs.items():
         with SprintMap.create(tmp_path / label, config) as m:
             m.add_sequence(rows[0], name=traversals[0].name,
@@ -246,9 +245,9 @@ def test_no_verification_without_the_maps_thumbnails_or_when_off(drives, tmp_pat
             assert not any(d.verified for d in decisions), label
 
 
-def test_merge_verify_inliers_is_checked_and_old_configs_get_the_default():
-    with pytest.raises(ValueError, match="merge_verify_inliers"):
-        MapConfig(dim=8, merge_verify_inliers=-1)
+def test_verify_inliers_is_checked_and_old_configs_get_the_default():
+    with pytest.raises(ValueError, match="verify_inliers"):
+        MapConfig(dim=8, merge=MergeRule(verify_inliers=-1))
     stored = MapConfig(dim=8).to_dict()
-    del stored["merge_verify_inliers"]  # a map written before the field existed
-    assert MapConfig.from_dict(stored).merge_verify_inliers == 35
+    del stored["merge"]["verify_inliers"]  # a map written before the field existed
+    assert MapConfig.from_dict(stored).merge.verify_inliers == 35

@@ -91,3 +91,17 @@ print(result.added.edges_added, sum(d.is_match for d in decisions), "cv2" in sys
     assert proc.returncode == 0, proc.stderr[-2000:]
     edges, matched, cv2_loaded = proc.stdout.split()
     assert int(edges) > 0 and int(matched) > 150 and cv2_loaded == "False"
+
+
+def test_latent_worlds_need_no_opencv(tmp_path):
+    """The latent family is numpy only: generated and opened as a data set with cv2 blocked."""
+    code = ("from sprint_map.synth.latent import LATENT_PRESETS, generate_latent\n"
+            "import dataclasses, sys\n"
+            "from sprint_map.frontend.dataset import Dataset\n"
+            "config = dataclasses.replace(LATENT_PRESETS['latent'], grid=(3, 3), dim=16)\n"
+            "out = generate_latent('world', 2, 40, seed=0, config=config)\n"
+            "data = Dataset.open(out)\n"
+            "print(data.names, data.twin_frames(data.names[1]).shape, 'cv2' in sys.modules)\n")
+    proc = run_without_opencv(code, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "['t00-day', 't01-overcast'] (40,) False"

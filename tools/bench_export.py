@@ -72,7 +72,7 @@ class AnonPeak:
 
 def build(path: Path, n_vertices: int, args: argparse.Namespace) -> dict[str, Any]:
     """Build the map streaming (one drive in memory at a time)."""
-    from sprint_map.config import MapConfig
+    from sprint_map.config import MapConfig, StoreOptions
     from sprint_map.map import SprintMap
     from sprint_map.storage.records import EdgeSpec
 
@@ -83,7 +83,7 @@ def build(path: Path, n_vertices: int, args: argparse.Namespace) -> dict[str, An
     angle = rng.uniform(0, 2 * np.pi, n_streets)
     last_seq = np.full(n_streets * args.street_len, -1, dtype=np.int64)
     last_img = np.zeros(n_streets * args.street_len, dtype=np.int64)
-    config = MapConfig(dim=args.dim, index_type="flat")
+    config = MapConfig(dim=args.dim, store=StoreOptions(index_type="flat"))
     started = time.perf_counter()
     committed = 0
     with SprintMap.create(path, config) as m:

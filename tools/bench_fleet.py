@@ -24,6 +24,7 @@ Usage::
     python tools/bench_fleet.py                              # everything, Nordland
     python tools/bench_fleet.py --vehicles 16 --frames 200 --json fleet.json
     python tools/bench_fleet.py --skip-ingest --vehicles 1 16 64
+    python tools/bench_fleet.py --skip-ingest --vehicles 16 --frames 100 --lag 10  # lagged sessions
     python tools/bench_fleet.py --skip-service --skip-localised --ingest-repeats 7
     python tools/bench_fleet.py --quick                      # a small synthetic map (tests)
     python tools/bench_fleet.py --skip-service --skip-ingest --ray   # tools/bench_ray.py only
@@ -62,6 +63,8 @@ class Vehicle:
 
     index: int
     rows: np.ndarray
+    #: The session's lag (``{"lag": L}``): answers name the frame they answer, L frames back.
+    lag: int = 0
     answers: list[dict[str, Any]] = field(default_factory=list)
     latency_ms: list[float] = field(default_factory=list)
     statuses: dict[int, int] = field(default_factory=dict)
@@ -90,7 +93,8 @@ async def _drive(v: Vehicle, host: str, port: int, opened: list[int], start: asy
     try:
         reader, writer = await asyncio.open_connection(host, port)
         try:
-            status, body = await _request(reader, writer, "POST", "/v1/sessions", b"{}")
+            status, body = await _request(reader, writer, "POST", "/v1/sessions",
+                                          json.dumps({"lag": v.lag} if v.lag else {}).encode())
             opened.append(status)
             if status != 201:
                 v.error = f"session: HTTP {status} {body[:200]!r}"
@@ -181,33 +185,38 @@ def stop_server(proc: subprocess.Popen[str]) -> int:
     return proc.wait(120)
 
 
-def make_vehicles(n: int, frames: int, rows: np.ndarray) -> list[Vehicle]:
+def make_vehicles(n: int, frames: int, rows: np.ndarray, lag: int = 0) -> list[Vehicle]:
     """Vehicle i drives ``frames`` consecutive frames from offset ``i * (len - frames) / n``."""
     frames = min(frames, len(rows))
     span = max(len(rows) - frames, 0)
-    return [Vehicle(i, rows[span * i // max(n, 1):][:frames]) for i in range(n)]
+    return [Vehicle(i, rows[span * i // max(n, 1):][:frames], lag=lag) for i in range(n)]
 
 
 def offline_equal(map_path: Path, vehicles: list[Vehicle]) -> dict[str, int]:
     """Frames whose answer equals the offline ``localize`` of the same frames (the place and
-    the probability, as the answer rounds it)."""
+    the probability, as the answer rounds it); with a lag, ``localize --lag`` of the frames
+    posted, for the frames answered (the last ``lag`` are answered by a commit, not sent)."""
     same = frames = 0
     with SprintMap.open(map_path, readonly=True) as m:
         for v in vehicles:
             if v.answers:
-                found, _ = m.localize(v.rows[: len(v.answers)])
-                for d, a in zip(found, v.answers, strict=True):
+                found, _ = m.localize(v.rows[: len(v.answers)], lag=v.lag)
+                answered = [a for a in v.answers if a["frame"] is not None]
+                for a in answered:
                     frames += 1
-                    mine = d.to_dict()  # the answer's fields: the same, bit for bit
+                    mine = found[a["frame"]].to_dict()  # the same fields, bit for bit
                     same += all(mine[key] == a[key]
                                 for key in ("frame", "seq_id", "image_id", "prob"))
     return {"frames": frames, "equal": same}
 
 
-def baseline(map_path: Path, rows: np.ndarray) -> float:
-    """Frames/s of ``Localizer.step`` in process, one frame at a time, no HTTP."""
+def baseline(map_path: Path, rows: np.ndarray, lag: int = 0) -> float:
+    """Frames/s of ``Localizer.step`` (with a lag: ``LaggedLocalizer.step``) in process, one
+    frame at a time, no HTTP."""
+    from sprint_map.localize.lagged import LaggedLocalizer
+
     with SprintMap.open(map_path, readonly=True) as m:
-        localizer = m.localizer()
+        localizer = LaggedLocalizer(m, lag)
         localizer.step(rows[0])
         t0 = time.perf_counter()
         for row in rows:
@@ -236,7 +245,7 @@ def service_row(mode: str, n: int, vehicles: list[Vehicle], seconds: float,
 
 def bench_service(map_path: Path, rows: np.ndarray, args: argparse.Namespace, work: Path
                   ) -> tuple[list[dict[str, Any]], float]:
-    base_fps = baseline(map_path, rows[: args.frames])
+    base_fps = baseline(map_path, rows[: args.frames], args.lag)
     modes = [("batched", {}), ("one-at-a-time", {"batch_max_frames": 0})]
     runs = [(mode, conf, n) for mode, conf in modes for n in args.vehicles]
     if args.overload:
@@ -245,7 +254,7 @@ def bench_service(map_path: Path, rows: np.ndarray, args: argparse.Namespace, wo
     for mode, conf, n in runs:
         proc, url = start_server(map_path, conf, work / f"serve-{len(out)}.log")
         try:
-            vehicles = make_vehicles(n, args.frames, rows)
+            vehicles = make_vehicles(n, args.frames, rows, args.lag)
             cpu0, client0 = cpu_seconds(proc.pid), time.process_time()
             seconds = drive_fleet(vehicles, url, args.duration)
             cpu1, client1 = cpu_seconds(proc.pid), time.process_time()
@@ -393,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="Also the Ray sections (tools/bench_ray.py: the ingest farm vs "
                         "serial ingest, a search fanned out to shards vs in process, the "
                         "per-segment figures; needs the ray extra).")
+    parser.add_argument("--lag", type=int, default=0,
+                        help="Sessions answer each frame L frames late ({\"lag\": L}); the "
+                        "baseline is LaggedLocalizer.step with the same lag.")
     parser.add_argument("--json", type=Path, help="Write the results here.")
     args = parser.parse_args(argv)
 

@@ -10,6 +10,12 @@ forward-backward pass) and retrieval time of each drive.
     python tools/bench_growth.py --json growth.json --png growth.png
     python tools/bench_growth.py --quick            # 20 drives, for a smoke run
     python tools/bench_growth.py --quick --gnss 10  # with GNSS fixes (sigma 10 m) on every drive
+    python tools/bench_growth.py --quick --lag 10   # also each drive localised 10 frames late
+
+With ``--lag L`` every drive is also localised read-only before its ingest, causally and with
+answers ``L`` frames late (``SprintMap.localize(lag=L)``), and both per-frame HMM times are
+recorded (``causal_ms``, ``lag_ms``): the lag's cost against the causal step's in the same run,
+and whether it stays flat as the map grows.
 
 Goal: flat; the last 10 drives no slower than 1.5x the first 10 that had a map to match. With
 ``--gnss M`` the streets lie on a plane (a grid of straight streets, 5 m between places), every
@@ -92,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="20 drives of 300 frames")
     parser.add_argument("--gnss", type=float, default=0.0, metavar="M",
                         help="drives carry simulated GNSS fixes of M metres (0: none)")
+    parser.add_argument("--lag", type=int, default=0,
+                        help="also localise each drive L frames late (and causally) first")
     parser.add_argument("--json", type=Path, help="write the rows here")
     parser.add_argument("--png", type=Path, help="plot here")
     args = parser.parse_args(argv)
@@ -128,6 +136,16 @@ def main(argv: list[str] | None = None) -> int:
                                     np.random.SeedSequence([args.seed, i]))
                      if args.gnss else None)
             before = m.stats()["vertices"]
+            lagged = {}
+            if args.lag and i:
+                causal_t = m.localize(seq)[1].to_dict()
+                lag_t = m.localize(seq, lag=args.lag)[1].to_dict()
+                lagged = {"causal_ms": causal_t["hmm_ms_per_frame"],
+                          "lag_ms": lag_t["hmm_ms_per_frame"],
+                          "causal_total_ms": round(causal_t["hmm_ms_per_frame"]
+                                                   + causal_t["retrieval_ms_per_frame"], 4),
+                          "lag_total_ms": round(lag_t["hmm_ms_per_frame"]
+                                                + lag_t["retrieval_ms_per_frame"], 4)}
             gnss_s[:] = [0.0, 0]
             start = time.perf_counter()
             result = m.ingest(seq, name=f"drive-{i:03d}", fixes=fixes,
@@ -147,13 +165,16 @@ def main(argv: list[str] | None = None) -> int:
                 # the GNSS step, per frame it ran on (causal and smoothing passes alike)
                 "gnss_ms_per_frame": (round(gnss_s[0] * 1e3 / gnss_s[1], 5)
                                       if gnss_s[1] else None),
+                **lagged,
             }
             rows.append(row)
             print(f"{i:>4} {len(seq):>6} {before:>12} {row['hmm_ms_per_frame'] or 0:>8.4f} "
                   f"{row['retrieval_ms_per_frame'] or 0:>8.4f} "
                   f"{row['smooth_ms_per_frame'] or 0:>9.4f} "
                   f"{row['active_vertices_mean'] or 0:>8.0f} {row['edges_added']:>6} "
-                  f"{row['components']:>5} {row['gnss_ms_per_frame'] or 0:>8.4f}", flush=True)
+                  f"{row['components']:>5} {row['gnss_ms_per_frame'] or 0:>8.4f}"
+                  + (f"  causal {lagged['causal_ms']:.4f} lag {lagged['lag_ms']:.4f} ms"
+                     if lagged else ""), flush=True)
     timed = [r for r in rows if r["hmm_ms_per_frame"] is not None]
     first = float(np.mean([r["hmm_ms_per_frame"] for r in timed[:10]]))
     last = float(np.mean([r["hmm_ms_per_frame"] for r in timed[-10:]]))
@@ -165,6 +186,15 @@ def main(argv: list[str] | None = None) -> int:
           f"ratio {ratio:.2f} (goal <= 1.5)")
     print(f"smoothed merge ms/frame: first 10 {s_first:.4f}, last 10 {s_last:.4f}, "
           f"ratio {s_ratio:.2f} (goal <= 1.5)")
+    if args.lag:
+        lag_rows = [r for r in timed if "lag_ms" in r]
+        l_first = float(np.mean([r["lag_ms"] for r in lag_rows[:10]]))
+        l_last = float(np.mean([r["lag_ms"] for r in lag_rows[-10:]]))
+        vs_causal = float(np.mean([r["lag_ms"] / r["causal_ms"] for r in lag_rows]))
+        vs_total = float(np.mean([r["lag_total_ms"] / r["causal_total_ms"] for r in lag_rows]))
+        print(f"lag {args.lag} HMM ms/frame: first 10 {l_first:.4f}, last 10 {l_last:.4f}, "
+              f"ratio {l_last / l_first:.2f}; vs the causal step of the same drive: HMM "
+              f"{vs_causal:.2f}x, with retrieval {vs_total:.2f}x")
     out = {"rows": rows, "first10_hmm_ms": first, "last10_hmm_ms": last, "ratio": ratio,
            "first10_smooth_ms": s_first, "last10_smooth_ms": s_last, "smooth_ratio": s_ratio,
            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}

@@ -43,6 +43,14 @@ the same way. ``--no-thumbnails`` measures without them.
 
 ``--world hard`` drives a 4 x 4 grid with one facade style under dusk / rain / fog / snow in
 turn: exact k-NN@1 is ~70 % instead of ~85 %, so belief split over parallel drives matters more.
+
+``--world latent`` is the other world family (:mod:`sprint_map.synth.latent`, preset
+``latent-lifelong``): descriptor-level drives over latent places on a 4 x 4 street network,
+lookalike streets and one identical twin, its six conditions in turn, each drive after the
+first aiming at 20 % of its frames on streets the map has not seen; exact k-NN@1 ~36 %, @10
+~75 %. Its drives have no images, so no thumbnails (the merge verifies nothing on images).
+
+    python tools/bench_lifelong.py --world latent --json lifelong-latent.json   # ~3 min/seed
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ from sprint_map.frontend.thumbnails import make_thumbnail
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.synth import CityConfig, iter_city
+from sprint_map.synth.latent import LATENT_PRESETS, LatentConfig, make_latent
 
 #: Conditions in turn: traversal i is driven under CONDITIONS[i % 4].
 CONDITIONS = ("day", "dusk", "rain", "snow")
@@ -78,6 +87,8 @@ WORLDS = {
     "easy": CITY,
     "hard": CityConfig(grid=(4, 4), revisit=1000.0, conditions=HARD_CONDITIONS, n_styles=1),
 }
+#: ``--world latent``: the descriptor-level family.
+LATENT = LATENT_PRESETS["latent-lifelong"]
 KS = (1, 10)
 ARMS = ("merge", "no-merge")
 
@@ -115,6 +126,16 @@ def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
     return drives, gt, time.perf_counter() - start
 
 
+def latent_drives(seed: int, traversals: int, frames: int, config: LatentConfig
+                  ) -> tuple[list[Drive], GroundTruth, float]:
+    """The latent world's drives (descriptors and positions; no images, so no thumbnails)."""
+    start = time.perf_counter()
+    world = make_latent(traversals, frames, seed, config)
+    drives = [Drive(t.name, t.condition, t.descriptors, t.positions[:, 1:3].copy(), None)
+              for t in world.traversals]
+    return drives, world.ground_truth(), time.perf_counter() - start
+
+
 def score(decisions: list[FrameDecision], query: str, gt: GroundTruth, names: dict[int, str],
           has_match: np.ndarray) -> dict[str, Any]:
     """SPRINT recall@1 and the precision of accepted decisions, by the ground truth."""
@@ -144,10 +165,12 @@ def score(decisions: list[FrameDecision], query: str, gt: GroundTruth, names: di
     }
 
 
-def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> list[dict[str, Any]]:
-    """The lifelong protocol on one fresh map; one row per traversal after the first."""
+def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
+            config: MapConfig | None = None) -> list[dict[str, Any]]:
+    """The lifelong protocol on one fresh map (default config: HoG); one row per traversal
+    after the first."""
     rows_out: list[dict[str, Any]] = []
-    config = MapConfig.for_descriptor("hog")
+    config = config or MapConfig.for_descriptor("hog")
     with SprintMap.create(work / ("merge.map" if merge else "no-merge.map"), config) as m:
         for i, drive in enumerate(drives):
             if i == 0:
@@ -187,8 +210,10 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path) -> li
             merged = [d for d, keep in zip(result.decisions, np.asarray(result.merged).tolist(),
                                            strict=True) if keep and merge]
             row["merged"] = len(merged)
-            row["merged_wrong"] = sum(not gt.correct(drive.name, d.frame, names[d.seq_id],
-                                                     d.image_id) for d in merged)
+            row["merged_wrong"] = sum(
+                d.seq_id is None or d.image_id is None
+                or not gt.correct(drive.name, d.frame, names[d.seq_id], d.image_id)
+                for d in merged)
             stats = m.stats()
             row.update(edges_added=result.added.edges_added, components=stats["components"],
                        seconds=round(time.perf_counter() - start, 2))
@@ -360,9 +385,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=300, help="frames per traversal")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                         help="one city per seed; each is reported, then the mean")
-    parser.add_argument("--world", choices=sorted(WORLDS), default="easy",
+    parser.add_argument("--world", choices=[*sorted(WORLDS), "latent"], default="easy",
                         help="easy: the 3 x 3 city; hard: 4 x 4, one facade style, harsh "
-                             "conditions")
+                             "conditions; latent: the descriptor-level world family")
     parser.add_argument("--quick", action="store_true",
                         help="8 traversals x 60 frames, one seed (a smoke run)")
     parser.add_argument("--workers", type=int, default=None, help="rendering threads")
@@ -375,18 +400,23 @@ def main(argv: list[str] | None = None) -> int:
         args.traversals, args.frames, args.seeds = 8, 60, args.seeds[:1]
     if args.traversals < 4 or args.frames < 10:
         parser.error("need --traversals >= 4 and --frames >= 10")
-    city = WORLDS[args.world]
+    city: CityConfig | LatentConfig = WORLDS.get(args.world, LATENT)
+    map_config = (MapConfig(dim=LATENT.dim) if args.world == "latent"
+                  else MapConfig.for_descriptor("hog"))
     started = time.perf_counter()
     results = []
     for seed in args.seeds:
-        drives, gt, render_s = render_drives(seed, args.traversals, args.frames, city,
-                                             args.workers, not args.no_thumbnails)
+        if isinstance(city, LatentConfig):
+            drives, gt, render_s = latent_drives(seed, args.traversals, args.frames, city)
+        else:
+            drives, gt, render_s = render_drives(seed, args.traversals, args.frames, city,
+                                                 args.workers, not args.no_thumbnails)
         print(f"seed {seed}: rendered and described {len(drives)} x {args.frames} frames in "
               f"{render_s:.1f} s", flush=True)
         arms = {}
         with tempfile.TemporaryDirectory() as tmp:
             for arm in ARMS:
-                arms[arm] = run_arm(drives, gt, arm == "merge", Path(tmp))
+                arms[arm] = run_arm(drives, gt, arm == "merge", Path(tmp), map_config)
         print_rows(seed, arms)
         summary = summarise(arms)
         print_summary(f"seed {seed}", summary)
@@ -401,7 +431,8 @@ def main(argv: list[str] | None = None) -> int:
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "city": city.to_dict(),
         "ground_truth": city.ground_truth_spec().to_dict(),
-        "map_config": MapConfig.for_descriptor("hog").to_dict(),
+        "world": args.world,
+        "map_config": map_config.to_dict(),
         "seeds": results,
         "mean": mean,
         "seconds": round(seconds, 1),

@@ -3,13 +3,14 @@
 For each ``--family`` (``city``, ``city-novel``: rendered images described by HoG, as ``sprint-map
 demo`` does; ``latent``: descriptor-level drives over latent places, :mod:`sprint_map.synth.latent`)
 and each ``--seeds`` seed, a world is generated (once: cached under ``--cache``, keyed by family,
-seed, traversals, frames and generator config) and the lifelong protocol of ``sprint-map eval`` is
+seed, traversals, frames, generator config and the generator's source) and the lifelong protocol of ``sprint-map eval`` is
 run on it (:func:`sprint_map.evaluation.runner.run_evaluation`, the same code, the same default
 config: HoG for the city, the world's precomputed descriptors for latent). Descriptors and
 thumbnails of the city worlds are cached too (the HoG and the JPEG thumbnails are what ``eval``
 computes from the images; the cache only skips recomputing them).
 
-Per family and seed: merge precision and recall, share of frames without a true match that were
+Per family and seed: merge precision (also without the merges of frames on identical twins, the
+image-only figure) and recall, share of frames without a true match that were
 merged (``novel merged``), the worst query's merge precision (over queries that merged anything),
 smoothed SPRINT@1, exact k-NN@1 / @10, merged decisions, frames on identical twins (and their
 merges) where the world declares twins, and seconds; then the mean over seeds per family.
@@ -51,12 +52,11 @@ from sprint_map.evaluation.runner import (
 )
 from sprint_map.frontend.dataset import Dataset, Traversal
 from sprint_map.map import SprintMap
-from sprint_map.util import dataclass_dict
 
 FAMILIES = ("city", "city-novel", "latent")
 #: As ``sprint-map demo``: city worlds 6 x 300 frames, the latent world 10 x 300.
 DEFAULT_SIZE = {"city": (6, 300), "city-novel": (6, 300), "latent": (10, 300)}
-METRICS = ("merge_precision", "merge_recall", "novel_merged", "worst_query_precision",
+METRICS = ("merge_precision", "merge_precision_no_twins", "merge_recall", "novel_merged", "worst_query_precision",
            "smoothed_recall@1", "knn_recall@1", "knn_recall@10", "merged_decisions")
 
 
@@ -77,10 +77,25 @@ def generator_config(family: str) -> dict[str, Any]:
     return PRESETS[family].to_dict()
 
 
+def generator_source(family: str) -> str:
+    """Digest of the generator's source files: a changed generator is a new cache entry."""
+    import sprint_map.synth as synth
+
+    folder = Path(synth.__file__).parent
+    names = ["latent.py"] if family == "latent" else sorted(
+        p.name for p in folder.glob("*.py") if p.name != "latent.py")
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update((folder / name).read_bytes())
+    return digest.hexdigest()
+
+
 def world(cache: Path, family: str, seed: int, traversals: int, frames: int) -> Path:
-    """The cached data set of ``family``/``seed`` (generated on first use)."""
+    """The cached data set of ``family``/``seed`` (generated on first use), keyed by family,
+    seed, size, generator config and generator source."""
     config = generator_config(family)
-    key = hashlib.sha256(json.dumps([family, seed, traversals, frames, config],
+    key = hashlib.sha256(json.dumps([family, seed, traversals, frames, config,
+                                     generator_source(family)],
                                     sort_keys=True).encode()).hexdigest()[:12]
     path = cache / f"{family}-s{seed}-{traversals}x{frames}-{key}"
     if (path / "dataset.json").is_file():
@@ -129,13 +144,13 @@ class CachedDescribe:
         return rows, thumbs
 
 
-def parse_overrides(pairs: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``KEY=VALUE`` pairs -> (MapConfig changes, HMMConfig changes); values are JSON (else
-    text). ``hmm.KEY`` or a bare HMMConfig field goes to the HMM."""
-    map_fields = {f.name for f in dataclasses.fields(MapConfig)}
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` pairs -> changes of the MapConfig record; values are JSON (else text).
+    ``part.field`` (``merge.max_contrast``, ``hmm.k``, ``store.index_type``) or the flat names
+    MapConfig reads (``merge_max_contrast``, ``index_type``); a bare HMMConfig field goes to
+    the HMM."""
     hmm_fields = {f.name for f in dataclasses.fields(HMMConfig)}
-    map_changes: dict[str, Any] = {}
-    hmm_changes: dict[str, Any] = {}
+    changes: dict[str, Any] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
         if not sep:
@@ -144,49 +159,54 @@ def parse_overrides(pairs: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
             value = json.loads(text)
         except json.JSONDecodeError:
             value = text
-        name = key.removeprefix("hmm.")
-        if key.startswith("hmm.") or (name in hmm_fields and name not in map_fields):
-            if name not in hmm_fields:
-                raise ConfigError(f"--set {key}: no such HMMConfig field")
-            hmm_changes[name] = value
-        elif key in map_fields and key != "hmm":
-            map_changes[key] = value
+        part, dot, name = key.partition(".")
+        if not dot and key in hmm_fields:
+            part, name = "hmm", key
+        if dot or part == "hmm":
+            changes.setdefault(part, {})[name] = value
         else:
-            raise ConfigError(f"--set {key}: no such MapConfig or HMMConfig field")
-    return map_changes, hmm_changes
+            changes[key] = value
+    configured(MapConfig(dim=8), changes)  # an unknown field or a bad value: ConfigError now
+    return changes
 
 
-def configured(base: MapConfig, map_changes: dict[str, Any], hmm_changes: dict[str, Any]
-               ) -> MapConfig:
+def configured(base: MapConfig, changes: dict[str, Any]) -> MapConfig:
     """``base`` with the overrides (validated as the map validates them)."""
-    config = dataclass_dict.replace(base, **map_changes) if map_changes else base
-    if hmm_changes:
-        config = dataclass_dict.replace(
-            config, hmm=dataclass_dict.replace(config.hmm, **hmm_changes).to_dict())
-    return config
+    record = base.to_dict()
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(record.get(key), dict):
+            record[key] = {**record[key], **value}
+        else:
+            record[key] = value
+    return MapConfig.from_dict(record)
 
 
 def figures(results: dict[str, Any]) -> dict[str, Any]:
     """The table's figures of one evaluation's results."""
     overall = results["overall"]
     merged = [q for q in results["queries"] if q["merged_decisions"] > 0]
-    out = {key: overall[key] for key in METRICS if key in overall}
+    out: dict[str, Any] = {key: overall[key] for key in METRICS if key in overall}
     out["worst_query_precision"] = min((q["merge_precision"] for q in merged), default=None)
     out["worst_query"] = (min(merged, key=lambda q: q["merge_precision"])["query"]
                           if merged else None)
     for key in ("twin_frames", "twin_merged", "twin_merged_wrong"):
         if key in overall:
             out[key] = overall[key]
+    if "twin_merged" in overall:  # the image-only figure: identical twins left out
+        wrong = round(overall["merged_decisions"] * (1 - overall["merge_precision"]))
+        kept = overall["merged_decisions"] - overall["twin_merged"]
+        out["merge_precision_no_twins"] = (
+            round(1 - (wrong - overall["twin_merged_wrong"]) / kept, 4) if kept else 1.0)
     out["seconds"] = results["seconds"]
     return out
 
 
-def run_one(path: Path, family: str, map_changes: dict[str, Any],
-            hmm_changes: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def run_one(path: Path, family: str, changes: dict[str, Any]
+            ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate one cached world; returns (figures, full results without private keys)."""
     dataset = Dataset.open(path)
     base = config_for(dataset) if family == "latent" else MapConfig.for_descriptor("hog")
-    config = configured(base, map_changes, hmm_changes)
+    config = configured(base, changes)
     with tempfile.TemporaryDirectory(prefix="bench-merge-") as tmp:
         results = run_evaluation(dataset, Path(tmp), config, EvalOptions(protocol="lifelong"),
                                  describe=CachedDescribe(path))
@@ -212,17 +232,19 @@ def pct(value: float | None) -> str:
 
 def print_table(family: str, rows: list[tuple[str, str, dict[str, Any]]]) -> None:
     print(f"\n{family}")
-    print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'mergeR':>6} {'novelM':>6} "
+    print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'P-twin':>6} {'mergeR':>6} {'novelM':>6} "
           f"{'worstQ':>6} {'smooth':>6} | {'kNN@1':>6} {'kNN@10':>6} | {'merged':>6} "
-          f"{'twins':>9} | {'s':>5}")
+          f"{'twins':>11} | {'s':>5}")
     for seed, arm, r in rows:
-        twins = (f"{r['twin_merged_wrong']}/{r['twin_merged']}/{r['twin_frames']}"
+        twins = ("/".join(f"{r[k]:.0f}" for k in ("twin_merged_wrong", "twin_merged",
+                                                   "twin_frames"))
                  if "twin_frames" in r else "-")
         print(f"{seed:>5} {arm:>8} | {pct(r.get('merge_precision')):>6} "
+              f"{pct(r.get('merge_precision_no_twins')):>6} "
               f"{pct(r.get('merge_recall')):>6} {pct(r.get('novel_merged')):>6} "
               f"{pct(r.get('worst_query_precision')):>6} {pct(r.get('smoothed_recall@1')):>6} | "
               f"{pct(r.get('knn_recall@1')):>6} {pct(r.get('knn_recall@10')):>6} | "
-              f"{r.get('merged_decisions', 0):>6.0f} {twins:>9} | {r['seconds']:5.0f}",
+              f"{r.get('merged_decisions', 0):>6.0f} {twins:>11} | {r['seconds']:5.0f}",
               flush=True)
 
 
@@ -242,17 +264,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write every figure (and full results) here")
     args = parser.parse_args(argv)
     try:
-        map_changes, hmm_changes = parse_overrides(args.overrides)
-        configured(MapConfig(dim=8), map_changes, hmm_changes)  # fail before any work
+        changes = parse_overrides(args.overrides)
+        configured(MapConfig(dim=8), changes)  # fail before any work
     except ConfigError as exc:
         parser.error(str(exc))
-    arms = [("tuned", map_changes, hmm_changes)] if args.overrides else []
+    arms: list[tuple[str, dict[str, Any]]] = [("tuned", changes)] if args.overrides else []
     if not args.overrides or not args.no_baseline:
-        arms.insert(0, ("default", {}, {}))
+        arms.insert(0, ("default", {}))
     started = time.perf_counter()
     out: dict[str, Any] = {"args": {k: str(v) if isinstance(v, Path) else v
                                     for k, v in vars(args).items()},
-                           "overrides": {"map": map_changes, "hmm": hmm_changes},
+                           "overrides": changes,
                            "families": {}}
     for family in args.family:
         traversals, frames = DEFAULT_SIZE[family]
@@ -265,24 +287,25 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             path = world(args.cache, family, seed, traversals, frames)
             made = time.perf_counter() - t0
-            for arm, mc, hc in arms:
-                row, results = run_one(path, family, mc, hc)
+            for arm, arm_changes in arms:
+                row, results = run_one(path, family, arm_changes)
                 table.append((str(seed), arm, row))
                 runs.append({"seed": seed, "arm": arm, "world": str(path),
                              "world_seconds": round(made, 1), "figures": row,
                              "results": results})
                 made = 0.0
-        for arm, _, _ in arms:
+        for arm, _ in arms:
             table.append(("mean", arm, mean_row([r for _, a, r in table if a == arm])))
         print_table(f"{family} ({traversals} x {frames} frames per seed)", table)
         out["families"][family] = {
             "traversals": traversals, "frames": frames, "runs": runs,
             "mean": {arm: mean_row([r["figures"] for r in runs if r["arm"] == arm])
-                     for arm, _, _ in arms}}
+                     for arm, _ in arms}}
     seconds = time.perf_counter() - started
     out["seconds"] = round(seconds, 1)
-    print(f"\n{seconds:.0f} s in all (merge P/R, novel merged, worst query precision, smoothed "
-          "SPRINT@1, exact k-NN; twins: wrong/merged/frames on identical twins)")
+    print(f"\n{seconds:.0f} s in all (merge P, merge P without the identical twins' merges, merge "
+          "R, novel merged, worst query precision, smoothed SPRINT@1, exact k-NN; twins: "
+          "wrong/merged/frames on identical twins)")
     if args.json:
         partial = args.json.with_name(args.json.name + ".partial")
         partial.write_text(json.dumps(out, indent=2) + "\n")

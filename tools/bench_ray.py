@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.map import SprintMap
 from sprint_map.merge.drives import Drive
 
@@ -94,7 +94,7 @@ def bench_ingest(work: Path, base_vertices: int, drives: int, cpus: int, seed: i
     n_areas = max(drives, base_vertices // AREA)
     world = areas(rng, n_areas)
     base = work / "base.map"
-    with SprintMap.create(base, MapConfig(dim=DIM, index_type="flat")) as m:
+    with SprintMap.create(base, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
         for a in range(n_areas):
             m.add_sequence(traverse(world[a], rng, noise), name=f"base{a}")
     # each drive revisits its own area, but the last two revisit the first two drives' areas
@@ -239,7 +239,7 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
     try:
         for vertices in sizes:
             path = work / f"search{vertices}.map"
-            with SprintMap.create(path, MapConfig(dim=DIM, index_type="flat")) as m:
+            with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
                 for start in range(0, vertices, 100_000):
                     m.add_sequence(unit(rng.standard_normal((min(100_000, vertices - start),
                                                              DIM))))
@@ -298,7 +298,7 @@ def bench_segments(work: Path, sizes: list[int], repeat: int, seed: int) -> list
     out = []
     for size in sizes:
         path = work / f"seg{size}.map"
-        with SprintMap.create(path, MapConfig(dim=DIM, index_type="ivf-pq")) as m:
+        with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(index_type="ivf-pq"))) as m:
             for start in range(0, size, 100_000):
                 n = min(100_000, size - start)
                 m.add_sequence(unit(centres[rng.integers(0, len(centres), n)]

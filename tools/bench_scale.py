@@ -24,7 +24,7 @@ read-only and localises a new drive frame by frame (``Localizer.step``), measuri
 
 The city's drives see it under their own condition (a random linear change of
 ``--condition`` relative strength, 0.2, plus noise). The exact-index baseline of
-``docs/benchmarks.md`` ("Store at scale: exact index") drew 0.2 per matrix entry, a change
+``docs/benchmarks.md`` ("Store at scale") drew 0.2 per matrix entry, a change
 2.3x the appearance itself (``--condition 2.26`` at dim 128): its 10th neighbour was barely
 nearer than the 1000th, a world no index can search approximately.
 

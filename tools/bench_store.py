@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.map import SprintMap
 from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR
 
@@ -186,7 +186,7 @@ def run(work: Path, n: int, dim: int, small: int, log: Any) -> dict[str, Any]:
     shutil.rmtree(small_path)
 
     ingest_row(f"{n} x {dim}, 1000/seq, index persist off", 1000,
-               MapConfig(dim=dim, index_persist_every=1 << 62))
+               MapConfig(dim=dim, store=StoreOptions(index_persist_every=1 << 62)))
     ingest_row(f"{n} x {dim}, 10000/seq", 10000, MapConfig(dim=dim))
     return {"rows": rows, "open_ratio": max(ratios)}
 

@@ -7,7 +7,7 @@ Usage::
                                  [--max-wait S] [--workdir DIR]
 
 The random-kill loop of ``tests/test_crash.py::test_random_kills_during_compaction``
-(``compact_kill_loop`` in ``tests/crash_worker.py``) at soak size: maps of six sequences with
+(``compact_kill_loop`` in ``tests/helpers/crash_worker.py``) at soak size: maps of six sequences with
 two removed; a compaction forked from a warmed-up zygote is killed a random delay after it is
 ready. After every kill the map must pass ``check`` and mean exactly what it meant before
 (every live sequence bit for bit, the removed ones absent, the components of the edges),

@@ -6,7 +6,7 @@ Usage::
     python tools/crash_soak.py --kills 1000 [--json OUT] [--seed 1] [--kills-per-map 25]
                                [--max-wait 0.04] [--workdir DIR]
 
-The random-kill loop of ``tests/test_crash.py`` (``kill_loop`` in ``tests/crash_worker.py``),
+The random-kill loop of ``tests/test_crash.py`` (``kill_loop`` in ``tests/helpers/crash_worker.py``),
 at soak size. Writers are forked from a warmed-up zygote process; each opens a map and adds a
 deterministic stream of sequences (one-shot and streamed adds, and groups of three committed
 in one transaction as ``ingest A B C --no-merge`` does, with edges that merge components) and is killed after a random delay (some during open and recovery). After every
@@ -32,13 +32,15 @@ import tempfile
 from pathlib import Path
 from types import ModuleType
 
-TESTS_DIR = Path(__file__).resolve().parents[1] / "tests"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_worker() -> ModuleType:
-    """The crash harness (it lives with the tests it serves)."""
-    sys.path.insert(0, str(TESTS_DIR))
-    return importlib.import_module("crash_worker")
+    """The crash harness, ``tests.helpers.crash_worker`` (it lives with the tests it serves;
+    a script's path starts at ``tools/``, so the checkout's root is put first)."""
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    return importlib.import_module("tests.helpers.crash_worker")
 
 
 def main(argv: list[str] | None = None) -> int:

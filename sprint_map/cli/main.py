@@ -20,8 +20,10 @@ from sprint_map.cli.progress import progress_display
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
+from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.positions import gnss_fixes, read_positions, stored_form
+from sprint_map.frontend.positions import gnss_fixes
+from sprint_map.frontend.sources import drive_names, drive_positions
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -77,23 +79,43 @@ def main() -> None:
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.option("--dim", type=int, help="Descriptor dimension (for precomputed .npy descriptors).")
-@click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm"]),
-              default=None, help="Descriptor kind; hog/patchnorm set the dimension themselves.")
+@click.option("--descriptor", type=click.Choice(["precomputed", "hog", "patchnorm", "onnx"]),
+              default=None, help="Descriptor kind; hog/patchnorm/onnx set the dimension "
+              "themselves.")
+@click.option("--model", type=click.Path(dir_okay=False), help="onnx: the ONNX model file "
+              "(one descriptor per image; pip install \"sprint-map[onnx]\"). Its SHA-256 is "
+              "stored: a different file there later is refused.")
+@click.option("--model-card", type=click.Path(dir_okay=False), help="onnx: JSON card "
+              "{input_size, channels, mean, std, normalize} (default: MODEL's .card.json "
+              "beside it, else its fixed input size, RGB, ImageNet mean/std, l2).")
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
               help="JSON file of further MapConfig fields, e.g. {\"index_type\": \"flat\", "
               "\"hmm\": {\"k\": 20}} (docs/hmm.md, \"HMMConfig\").")
-def init(map_path: str, dim: int | None, descriptor: str | None, config_json: str | None) -> None:
+def init(map_path: str, dim: int | None, descriptor: str | None, model: str | None,
+         model_card: str | None, config_json: str | None) -> None:
     """Create an empty map in MAP (which must be absent or empty).
 
     \b
     Examples:
       sprint-map init city.map --descriptor hog      # images and video, the paper's HoG
       sprint-map init city.map --dim 256             # precomputed .npy descriptors
+      sprint-map init city.map --descriptor onnx --model eigenplaces.onnx
     """
     options = _read_json_config(config_json)
     kind = descriptor or options.pop("descriptor", None) or (
-        "precomputed" if dim is not None else "hog")
-    if kind == "precomputed":
+        "onnx" if model is not None else "precomputed" if dim is not None else "hog")
+    if (model is not None or model_card is not None) != (kind == "onnx"):
+        raise InputError("--descriptor onnx needs --model FILE" if kind == "onnx"
+                         else "--model and --model-card are for --descriptor onnx")
+    if kind == "onnx":
+        from sprint_map.frontend.onnx_model import onnx_params
+
+        params = onnx_params(str(model), model_card)
+        if dim is not None and dim != params["dim"]:
+            raise InputError(f"{model}: the model gives {params['dim']} dimensions, not {dim}")
+        config = MapConfig.from_dict({**options, "descriptor": kind, "descriptor_params": params,
+                                      "dim": params["dim"]})
+    elif kind == "precomputed":
         if dim is None:
             raise InputError("--dim is required for precomputed descriptors")
         config = MapConfig.from_dict({**options, "dim": dim, "descriptor": kind})
@@ -163,6 +185,16 @@ def _trace_option(f: Any) -> Any:
                              "states to OUT (.npz) for `sprint-map view --trace OUT`.")(f)
 
 
+def _bag_options(f: Any) -> Any:
+    f = click.option("--every-m", type=float, metavar="M", help="ROS bags: keep a frame each "
+                     "M metres travelled (by GNSS), after --stride.")(f)
+    f = click.option("--gnss-topic", metavar="TOPIC", help="ROS bags: the NavSatFix topic of "
+                     "the positions (default: the only one, if any).")(f)
+    f = click.option("--image-topic", metavar="TOPIC", help="ROS bags: the Image or "
+                     "CompressedImage topic (default: the only one).")(f)
+    return f
+
+
 def _model_options(f: Any) -> Any:
     f = click.option("--hmm", "hmm_pairs", multiple=True, metavar="KEY=VALUE",
                      help="Override any HMM parameter for this call (repeatable).")(f)
@@ -181,9 +213,10 @@ def _model_options(f: Any) -> Any:
 @click.option("--name", help="Sequence name, unique in the map (default: SOURCE's name; one "
               "SOURCE only).")
 @click.option("--positions", type=click.Path(dir_okay=False),
-              help="CSV frame,x,y[,heading_deg][,sigma_m] with a header row (one SOURCE "
-              "only): stored with the drive, and its GNSS fixes where the map has positions "
-              "(a frame without a row: no fix).")
+              help="CSV frame,x,y[,heading_deg][,sigma_m] or frame,lat,lon[,...] with a header "
+              "row (one SOURCE only; default: the drive folder's own positions.csv, or a "
+              "bag's GNSS): stored with the drive, and its GNSS fixes where the map has "
+              "positions (a frame without a row: no fix).")
 @click.option("--no-merge", is_flag=True, help="Append the sequence as it is, without localising it.")
 @click.option("--thumbnails", is_flag=True, help="Keep a small JPEG of each frame in the map "
               "(images and video; about 2 KiB a frame), for viewers and to verify merges on "
@@ -193,18 +226,22 @@ def _model_options(f: Any) -> Any:
 @click.option("--ray", "ray_spec", metavar="local|auto|ADDRESS", help=RAY_HELP + " (drives "
               "described and localised in parallel as Ray tasks, committed in order here).")
 @_trace_option
+@_bag_options
 @_model_options
 def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions: str | None,
            no_merge: bool, thumbnails: bool, as_json: bool, ray_spec: str | None,
-           trace: str | None, stride: int, quiet: bool, k: int | None, window: str | None,
+           trace: str | None, image_topic: str | None, gnss_topic: str | None,
+           every_m: float | None, stride: int, quiet: bool, k: int | None, window: str | None,
            hmm_pairs: tuple[str, ...]) -> None:
     """Localise each drive SOURCE against MAP, then merge it with its decisions as edges.
 
-    SOURCE is a folder of images, a video file, or a .npy of N x D descriptors. The first
-    drive of an empty map is added as it is. Several SOURCEs are ingested in the order given,
-    each its own sequence (named after its source) localised against the map holding the
-    earlier ones, as separate commands would, and committed in groups. A failure stops there:
-    the drives before it stay committed.
+    SOURCE is a folder of images, a video file, a .npy of N x D descriptors, or a ROS bag
+    (.bag, .mcap, a ROS 2 bag folder; pip install "sprint-map[ros]"). The first drive of an
+    empty map is added as it is. Several SOURCEs are ingested in the order given, each its own
+    sequence (named after its source, or after its folder where two sources share a name)
+    localised against the map holding the earlier ones, as separate commands would, and
+    committed in groups. A failure stops there: the drives before it stay committed. Each
+    drive's positions: --positions, else a bag's GNSS, else its folder's positions.csv.
 
     \b
     Examples:
@@ -215,7 +252,10 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
       sprint-map ingest city.map drives/friday/ --thumbnails
       sprint-map ingest city.map mon.npy tue.npy wed.npy   # three drives, in this order
       sprint-map ingest city.map drives/*/ --ray auto      # on the Ray cluster joined here
+      sprint-map ingest city.map drive.bag --image-topic /cam/image --every-m 2
+      sprint-map ingest city.map drives/*/descriptors.npy  # each with its positions.csv
     """
+    bag = BagOptions(image_topic, gnss_topic, every_m)
     single = {"--name": name, "--positions": positions, "--trace": trace}
     for option, value in single.items():
         if value is not None and len(sources) > 1:
@@ -223,7 +263,8 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                              "named after its source)")
     if ray_spec is not None:
         given = {"--positions": positions is not None, "--trace": trace is not None,
-                 "--thumbnails": thumbnails}
+                 "--thumbnails": thumbnails, "--image-topic/--gnss-topic/--every-m":
+                 bag != BagOptions()}
         for option in (option for option, on in given.items() if on):
             raise InputError(f"{option} is not available with --ray")
     overrides = _hmm_overrides(k, window, hmm_pairs)
@@ -248,17 +289,20 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                             hmm=hmm, on_commit=lambda r: report([r.result]))
             except SprintMapError as exc:
                 _stop_after(exc, sources, done, as_json)
-        drives = []
+        opened = []
         for source in sources if ray_spec is None else ():  # each opened (and checked) first
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
-            src = m.open_source(source, stride=stride, thumbnails=thumbnails,
+            src = m.open_source(source, stride=stride, thumbnails=thumbnails, bag=bag,
                                 progress=stack.enter_context(progress_display(label, quiet)))
-            table = read_positions(positions, src.count, stride) if positions else None
-            # Streamed: each batch is described, localised and written (uncommitted) in turn.
-            # An empty --name is refused by the name rules, not replaced by the source's name.
-            drives.append(Drive(src.iter_batches(), src.name if name is None else name,
-                                None if table is None else stored_form(table), str(source),
-                                src.thumbnails, None if table is None else gnss_fixes(table)))
+            opened.append((src, drive_positions(src, source, positions, stride)))
+        names = (drive_names([Path(s) for s in sources], [src.name for src, _ in opened])
+                 if opened and name is None else [name] * len(opened))
+        # Streamed: each batch is described, localised and written (uncommitted) in turn.
+        # An empty --name is refused by the name rules, not replaced by the source's name.
+        placed = [(src, m.metric_positions(table)) for src, table in opened]
+        drives = [Drive(src.iter_batches(), label, rows, str(source), src.thumbnails,
+                        None if rows is None else gnss_fixes(rows))
+                  for (src, rows), label, source in zip(placed, names, sources, strict=False)]
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
@@ -313,35 +357,54 @@ def _ingest_line(out: dict[str, Any]) -> str:
 @click.option("--positions", type=click.Path(dir_okay=False),
               help="CSV frame,x,y[,heading_deg][,sigma_m]: the drive's GNSS fixes, weighed "
               "against the map's positions (each decision's gnss_dist_m).")
+@click.option("--lag", type=int, default=0, show_default=True, metavar="L",
+              help="Answer each frame once L more frames were seen (fixed-lag smoothing, "
+                   "0..10000; 0: causal); one answer per frame, in frame order.")
 @_trace_option
+@_bag_options
 @_model_options
 def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth: bool,
-             thumbnails: bool, positions: str | None, trace: str | None, stride: int,
-             quiet: bool, k: int | None, window: str | None, hmm_pairs: tuple[str, ...]
-             ) -> None:
+             thumbnails: bool, lag: int, positions: str | None, trace: str | None,
+             image_topic: str | None, gnss_topic: str | None, every_m: float | None,
+             stride: int, quiet: bool, k: int | None, window: str | None,
+             hmm_pairs: tuple[str, ...]) -> None:
     """Localise the drive SOURCE against MAP without changing the map.
 
     \b
     Examples:
       sprint-map localize city.map drives/friday/ --json
       sprint-map localize city.map friday.npy --smooth --json
+      sprint-map localize city.map friday.npy --lag 10 --json      # each answer 10 frames late
       sprint-map localize city.map drives/friday/ --smooth --thumbnails --json
       sprint-map localize city.map friday.npy --k 20 --out friday.json
       sprint-map localize city.map friday.npy --trace friday.trace.npz   # sprint-map view
       sprint-map localize city.map friday.npy --smooth --positions friday.csv --json  # GNSS
+      sprint-map localize city.map friday.mcap --image-topic /cam/compressed --json
     """
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
+    if lag:
+        from sprint_map.localize.lagged import validate_lag
+
+        validate_lag(lag)
+    if lag and (smooth or trace):
+        raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
+                         "--smooth (the whole drive) or --trace")
+    if lag and positions:
+        raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
     overrides = _hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, \
             progress_display("localising", quiet) as progress:
-        src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
-        fixes = (gnss_fixes(read_positions(positions, src.count, stride)) if positions
-                 else None)
+        src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails,
+                            bag=BagOptions(image_topic, gnss_topic, every_m))
+        rows = (m.metric_positions(drive_positions(src, source, positions, stride))
+                if positions else None)
         recorder = TraceRecorder(m) if trace else None
         decisions, timing = m.localize(  # streamed, searches batched
-            src.iter_batches(), smooth=smooth, observe=recorder.attach if recorder else None,
-            thumbnails=src.thumbnails if thumbnails else None, fixes=fixes, **overrides)
+            src.iter_batches(), smooth=smooth, lag=lag,
+            observe=recorder.attach if recorder else None,
+            thumbnails=src.thumbnails if thumbnails else None,
+            fixes=None if rows is None else gnss_fixes(rows), **overrides)
         if recorder is not None and trace:
             recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
                                                         "source": str(source)})
@@ -631,6 +694,10 @@ def _log(quiet: bool) -> Any:
 
 @main.command(name="eval")
 @click.argument("dataset", type=click.Path(exists=True, file_okay=False))
+@click.option("--layout", type=click.Choice(["traversals", "vpr"]), default="traversals",
+              show_default=True, help="traversals: one folder per traversal; vpr: database/ "
+              "and queries/ folders of @UTM-named images (recall@1/5/10/20 of k-NN and SPRINT "
+              "in results.json; --radius default 25 m).")
 @click.option("--protocol", type=click.Choice(["lifelong", "pairs"]), default="lifelong",
               show_default=True, help="lifelong: each traversal localised against all earlier "
               "ones, then merged; pairs: one database, one query traversal.")
@@ -642,6 +709,10 @@ def _log(quiet: bool) -> Any:
 @click.option("--descriptor", type=click.Choice(["auto", "hog", "patchnorm", "precomputed"]),
               default="auto", show_default=True,
               help="auto: the traversals' descriptors.npy if they have them, else HoG of images.")
+@click.option("--model", type=click.Path(dir_okay=False), help="vpr layout: describe the "
+              "images with this ONNX model (as init --descriptor onnx --model).")
+@click.option("--model-card", type=click.Path(dir_okay=False), help="vpr layout: the "
+              "model's card (default: beside it, or the model's own input size).")
 @click.option("--alignment", type=click.Choice(["frame", "position"]),
               help="Ground truth, if the data set has no dataset.json (Nordland: frame).")
 @click.option("--tolerance", type=int, help="Frame alignment: +/- frames counted correct.")
@@ -651,8 +722,9 @@ def _log(quiet: bool) -> Any:
               "values), e.g. index_type=ivf-pq.")
 @_gnss_option
 @_model_options
-def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None,
-          query: str | None, both_directions: bool, descriptor: str, alignment: str | None,
+def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, database: str | None,
+          query: str | None, both_directions: bool, descriptor: str, model: str | None,
+          model_card: str | None, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
           gnss_sigma: float, stride: int, quiet: bool, k: int | None, window: str | None,
           hmm_pairs: tuple[str, ...]) -> None:
@@ -667,7 +739,16 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
           --query winter --alignment frame --tolerance 1 --map-config index_type=ivf-pq \\
           --map-config index_nlist=64 --map-config index_segment_rows=256
       sprint-map eval data/city --gnss-sigma 10   # also GNSS-aided, side by side
+      sprint-map eval datasets/pitts30k --layout vpr --radius 25 --out eval-pitts
+      sprint-map eval datasets/pitts30k --layout vpr --model eigenplaces.onnx
     """
+    if layout == "vpr":
+        _eval_vpr(dataset, out_dir, descriptor, (model, model_card), radius, map_pairs, k,
+                  window, hmm_pairs, quiet)
+        return
+    if model is not None or model_card is not None:
+        raise InputError("--model is for --layout vpr (a traversal data set's map: init "
+                         "--descriptor onnx, then ingest)")
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
     from sprint_map.frontend.dataset import Dataset
@@ -680,7 +761,7 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
     data = Dataset.open(dataset, gt or None)
     config = config_for(data, descriptor)
     if map_pairs:
-        config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
+        config = config.replace(**_key_values(map_pairs, "--map-config"))
     overrides = _hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     options = EvalOptions(protocol=protocol, database=database, query=query,
@@ -690,6 +771,37 @@ def eval_(dataset: str, protocol: str, out_dir: str | None, database: str | None
     paths = write_report(results, out)
     click.echo(markdown_table(results))
     click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+
+
+def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,
+              model: tuple[str | None, str | None], radius: float | None,
+              map_pairs: tuple[str, ...], k: int | None, window: str | None,
+              hmm_pairs: tuple[str, ...], quiet: bool) -> None:
+    """``eval --layout vpr``: recall@1/5/10/20 of k-NN and SPRINT into results.json."""
+    from sprint_map.evaluation.vpr import markdown_recall, run_vpr_evaluation
+    from sprint_map.frontend.vpr import VprDataset
+
+    if descriptor == "precomputed":
+        raise InputError("--layout vpr describes the images: --descriptor auto, hog or patchnorm")
+    data = VprDataset.open(dataset)
+    if model[0] is not None:
+        from sprint_map.frontend.onnx_model import onnx_params
+
+        params = onnx_params(model[0], model[1])
+        config = MapConfig(dim=params["dim"], descriptor="onnx", descriptor_params=params)
+    elif model[1] is not None:
+        raise InputError("--model-card needs --model FILE")
+    else:
+        config = MapConfig.for_descriptor("hog" if descriptor == "auto" else descriptor)
+    if map_pairs:
+        config = dataclass_dict.replace(config, **_key_values(map_pairs, "--map-config"))
+    overrides = _hmm_overrides(k, window, hmm_pairs)
+    hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
+    out = Path(out_dir or f"eval-{data.path.resolve().name}")
+    results = run_vpr_evaluation(data, out, config, hmm, 25.0 if radius is None else radius,
+                                 log=_log(quiet))
+    click.echo(markdown_recall(results))
+    click.echo(f"results: {out / 'results.json'}")
 
 
 @main.command()

@@ -18,7 +18,7 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 - ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
   (:meth:`SprintMap.select_merges <sprint_map.map.SprintMap.select_merges>`), and
   ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
-  decision when ``config.merge_both_ways``).
+  decision when ``config.merge.both_ways``).
 
 A decision is correct when its place is a true match of its frame by the data set's ground
 truth; a merged decision on a frame without a true match is wrong.
@@ -125,6 +125,9 @@ class QueryResult:
     merged_correct: np.ndarray | None = None
     #: Edges one merged decision makes: 2 with ``merge_both_ways``, else 1.
     edges_per_decision: int = 2
+    #: (Q,) bool: frames on an identical twin (a place pixel- or latent-identical to another,
+    #: declared by the data set, :meth:`Dataset.twin_frames`); None when it declares none.
+    twin: np.ndarray | None = None
 
     def score_merge(self, decisions: list[FrameDecision], merged: np.ndarray, gt: GroundTruth,
                     names: dict[int, str], edges_per_decision: int) -> None:
@@ -192,7 +195,20 @@ class QueryResult:
             "edges_added": merge.edges_added if self.edges_added is None else self.edges_added,
             "edges_wrong": merge.edges_wrong,
             "novel_merged": round(merge.novel_merged, 4),
+            **self._twin_summary(),
         }
+
+    def _twin_summary(self) -> dict[str, int]:
+        """``twin_frames``, and of them ``twin_merged`` and ``twin_merged_wrong``; nothing
+        when the data set declares no twins."""
+        if self.twin is None:
+            return {}
+        merged = self.merged if self.merged is not None else np.zeros(len(self.twin), bool)
+        right = (self.merged_correct if self.merged_correct is not None
+                 else np.zeros(len(self.twin), bool))
+        on_twin = self.twin & merged
+        return {"twin_frames": int(self.twin.sum()), "twin_merged": int(on_twin.sum()),
+                "twin_merged_wrong": int((on_twin & ~(right & self.has_match)).sum())}
 
 
 def config_for(dataset: Dataset, descriptor: str = "auto") -> MapConfig:
@@ -294,7 +310,7 @@ def _correct(query: str, places: list[tuple[int, int] | None], gt: GroundTruth,
 
 def _edges_per_decision(config: MapConfig) -> int:
     """Edges one merged decision makes (:func:`sprint_map.merge.commit.merge_edges`)."""
-    return 2 if config.merge_both_ways else 1
+    return 2 if config.merge.both_ways else 1
 
 
 #: How a traversal becomes rows (and thumbnails): :func:`describe_with_thumbnails` by default.
@@ -350,8 +366,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         "ground_truth": gt.spec.to_dict(),
         "config": config.to_dict(),
         "hmm": (hmm or config.hmm).to_dict(),
-        "merge_rule": {**config.merge_rule.to_dict(), "merge_both_ways": config.merge_both_ways,
-                       "merge_verify_inliers": config.merge_verify_inliers},
+        "merge_rule": config.merge.reported(),
         "queries": rows_out,
         "overall": overall,
         "recall_by_traversal": [
@@ -409,6 +424,7 @@ def _run_protocol(dataset: Dataset, work_dir: Path, config: MapConfig, options: 
                 results.append(evaluate_query(m, q_name, rows, gt, options.ks, hmm,
                                               smooth=True, thumbnails=thumbs,
                                               fixes=placed(dataset[q_name])[1])[0])
+                results[-1].twin = dataset.twin_frames(q_name, options.stride)
     else:
         map_dir = _fresh(work_dir / f"map-lifelong{suffix}")
         with SprintMap.create(map_dir, config) as m:
@@ -429,6 +445,7 @@ def _run_protocol(dataset: Dataset, work_dir: Path, config: MapConfig, options: 
                 result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
                                    _edges_per_decision(m.config))
                 result.edges_added = ingested.added.edges_added
+                result.twin = dataset.twin_frames(traversal.name, options.stride)
                 results.append(result)
     return results
 
@@ -454,6 +471,7 @@ def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
         merged=_joined(results, "merged"),
         merged_correct=_joined(results, "merged_correct"),
         edges_per_decision=results[0].edges_per_decision,
+        twin=(None if all(r.twin is None for r in results) else _joined(results, "twin")),
     )
     return joined.summary(ks)
 

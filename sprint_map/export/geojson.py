@@ -10,10 +10,13 @@ One ``FeatureCollection`` (RFC 7946) for QGIS and web maps:
   ``dst_image``, ``prob``, ``added_by``, ``frame``. A match merged both ways is two directed
   edges; it is drawn once, from the smaller vertex, with ``both_ways: true``.
 
-Coordinates are the positions exactly as given to ``ingest --positions`` (usually metres in a
-local frame): RFC 7946 assumes WGS84 longitude/latitude, so in QGIS assign the layer the CRS the
-positions were recorded in. A member ``sprint_map`` of the collection says so and counts the
-edges left out (an endpoint without a position).
+Coordinates: a map given latitude/longitude (``lat,lon`` positions, a bag's NavSatFix) keeps
+them in one UTM zone (:class:`sprint_map.util.geo.GeoFrame`) and is written back in WGS84
+longitude/latitude, as RFC 7946 wants. A map of planar positions is written with its ``x, y``
+exactly as given to ``ingest --positions`` (usually metres in a local frame): in QGIS assign the
+layer the CRS the positions were recorded in. A member ``sprint_map`` of the collection says
+which, and counts the edges left out (an endpoint without a position). Frames without a fix
+are left out of their drive's line.
 
 Written with the standard library's ``json``: the collection's frame, then each feature as
 ``json.dumps`` of a dict, one per line, streamed from the LMDB cursors of one snapshot (one
@@ -27,19 +30,39 @@ import json
 from collections.abc import Iterator
 from typing import IO, Any
 
+import numpy as np
+
 from sprint_map.errors import InputError
 from sprint_map.storage.scan import MapScan
+from sprint_map.util.geo import GeoFrame
 
 COORDINATES_NOTE = ("x, y as given to ingest --positions (not WGS84 unless they were recorded "
                     "so); assign the layer the CRS of the positions")
+WGS84_NOTE = "WGS84 longitude, latitude (the map keeps them in UTM zone {zone}{hemi}, EPSG:{epsg})"
 
 
-def drive_features(scan: MapScan) -> Iterator[dict[str, Any]]:
-    """Each drive with positions as a LineString (a Point for one frame)."""
+def map_frame(scan: MapScan) -> GeoFrame | None:
+    """The map's geographic frame, or None for planar positions. O(1)."""
+    record = scan.store.geo_frame()
+    return None if record is None else GeoFrame.from_dict(record)
+
+
+def _coords(xy: np.ndarray, frame: GeoFrame | None) -> list[list[float]]:
+    """``[x, y]`` (or ``[lon, lat]`` with a geographic ``frame``) of the rows with a fix."""
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if frame is not None and len(xy):
+        xy = frame.unproject(xy[:, 0], xy[:, 1])
+    return [[x, y] for x, y in xy.tolist()]
+
+
+def drive_features(scan: MapScan, frame: GeoFrame | None = None) -> Iterator[dict[str, Any]]:
+    """Each drive with positions as a LineString (a Point for one fix)."""
     for seq, pos in scan.positions():
         if pos is None:
             continue
-        coords = [[x, y] for x, y in pos[:, :2].tolist()]
+        coords = _coords(pos[:, :2], frame)
+        if not coords:
+            continue
         geometry = ({"type": "Point", "coordinates": coords[0]} if len(coords) == 1
                     else {"type": "LineString", "coordinates": coords})
         yield {"type": "Feature", "geometry": geometry,
@@ -48,7 +71,8 @@ def drive_features(scan: MapScan) -> Iterator[dict[str, Any]]:
                               "component": scan.component.get(seq.seq_id, seq.seq_id)}}
 
 
-def edge_features(scan: MapScan, skipped: list[int]) -> Iterator[dict[str, Any]]:
+def edge_features(scan: MapScan, skipped: list[int], frame: GeoFrame | None = None
+                  ) -> Iterator[dict[str, Any]]:
     """Each edge between placed frames as a segment (a both-ways match once); the (directed)
     edges left out for want of a position are counted in ``skipped[0]``."""
     for src, dst, e in scan.edges():
@@ -59,16 +83,17 @@ def edge_features(scan: MapScan, skipped: list[int]) -> Iterator[dict[str, Any]]
         both = scan.has_edge(dst, src)
         if both and dst < src:
             continue  # drawn with its reverse
+        ends = np.array([a[:2], b[:2]])
         yield {"type": "Feature",
-               "geometry": {"type": "LineString", "coordinates": [[a[0], a[1]], [b[0], b[1]]]},
+               "geometry": {"type": "LineString", "coordinates": _coords(ends, frame)},
                "properties": {"kind": "edge", "src_seq": e.src_seq, "src_image": e.src_image,
                               "dst_seq": e.dst_seq, "dst_image": e.dst_image, "prob": e.prob,
                               "added_by": e.added_by, "frame": e.frame, "both_ways": both}}
 
 
 def has_positions(scan: MapScan) -> bool:
-    """Whether any live drive has positions. O(sequences) look-ups at worst."""
-    return any(scan.position(seq.first_vertex) is not None for seq in scan.sequences)
+    """Whether any live drive has positions. O(sequences) cursor seeks at worst."""
+    return any(scan.has_position(seq.first_vertex, seq.last_vertex) for seq in scan.sequences)
 
 
 def write_geojson(scan: MapScan, out: IO[str], name: str) -> tuple[int, int, int]:
@@ -92,18 +117,22 @@ def write_geojson(scan: MapScan, out: IO[str], name: str) -> tuple[int, int, int
     counts = {"drive": 0, "edge": 0}
     skipped = [0]
     first = True
-    for feature in itertools.chain(drive_features(scan), edge_features(scan, skipped)):
+    frame = map_frame(scan)
+    for feature in itertools.chain(drive_features(scan, frame),
+                                   edge_features(scan, skipped, frame)):
         if not first:
             out.write(",\n")
         first = False
         out.write(json.dumps(feature))
         counts[feature["properties"]["kind"]] += 1
     out.write('\n], "sprint_map": ')
-    out.write(json.dumps({"coordinates": COORDINATES_NOTE,
+    note = COORDINATES_NOTE if frame is None else WGS84_NOTE.format(
+        zone=frame.zone, hemi="S" if frame.south else "N", epsg=frame.epsg)
+    out.write(json.dumps({"coordinates": note, "crs": None if frame is None else "EPSG:4326",
                           "edges_without_positions": skipped[0]}))
     out.write("}\n")
     return counts["drive"], counts["edge"], skipped[0]
 
 
-__all__ = ["COORDINATES_NOTE", "drive_features", "edge_features", "has_positions",
-           "write_geojson"]
+__all__ = ["COORDINATES_NOTE", "WGS84_NOTE", "drive_features", "edge_features", "has_positions",
+           "map_frame", "write_geojson"]

@@ -44,9 +44,10 @@ CHUNK = 4096
 #: The vertex graph's attributes and their types, in key-declaration order.
 GRAPH_KEYS: dict[str, type] = {"level": str, "sequences": int, "vertices": int, "edges": int}
 NODE_KEYS: dict[str, type] = {"seq_id": int, "image_id": int, "component": int, "x": float,
-                              "y": float, "heading": float, "timestamp": float}
+                              "y": float, "heading": float, "timestamp": float,
+                              "sigma_m": float}
 EDGE_KEYS: dict[str, type] = {"prob": float, "added_by": int, "frame": int, "time": float}
-_POSITION_KEYS = ("x", "y", "heading", "timestamp")
+_POSITION_KEYS = ("x", "y", "heading", "timestamp", "sigma_m")
 
 
 #: Characters XML 1.0 cannot hold (C0 controls but tab and newlines, lone surrogates, U+FFFE/F).

@@ -22,7 +22,7 @@ from typing import IO, Any
 from sprint_map.storage.scan import MapScan
 
 SEQUENCE_COLUMNS = ("seq_id", "name", "frames", "component", "source", "created")
-VERTEX_COLUMNS = ("seq_id", "image_id", "x", "y", "heading", "timestamp")
+VERTEX_COLUMNS = ("seq_id", "image_id", "x", "y", "heading", "timestamp", "sigma_m")
 EDGE_COLUMNS = ("src_seq", "src_image", "dst_seq", "dst_image", "prob", "added_by", "frame",
                 "time")
 
@@ -41,10 +41,10 @@ def vertex_rows(scan: MapScan) -> Iterator[tuple[Any, ...]]:
     for seq, pos in scan.positions():
         if pos is None:
             for image in range(seq.length):
-                yield seq.seq_id, image, "", "", "", ""
+                yield seq.seq_id, image, "", "", "", "", ""
             continue
-        for image, (x, y, heading, stamp) in enumerate(pos.tolist()):
-            yield seq.seq_id, image, _cell(x), _cell(y), _cell(heading), _cell(stamp)
+        for image, row in enumerate(pos.tolist()):
+            yield (seq.seq_id, image, *(_cell(value) for value in row))
 
 
 def edge_rows(scan: MapScan) -> Iterator[tuple[Any, ...]]:

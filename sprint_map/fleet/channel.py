@@ -2,7 +2,7 @@
 
 A Ray actor call costs ~0.5-0.8 ms of CPU on this 2-core machine (task submission, gRPC, the
 serialisation of numpy arguments and results), so a fan-out to three shards paid 1.4-2.2 ms
-before any shard searched (``docs/benchmarks.md``, "Ray"). Ray keeps the control plane (placing
+before any shard searched (``docs/benchmarks.md``, "Ray: retrieval shards and the ingest farm"). Ray keeps the control plane (placing
 the actors, loading and catching up their ranges, killing them); the searches go over a plain
 socket per shard: the caller writes the query rows as raw float32 bytes, the shard answers with
 its ids and distances as raw int64 and float32 bytes. A round trip to three shards then costs

@@ -16,7 +16,7 @@ the store hides them (``SprintMap.removed_ranges().search_live`` over the fanned
 How a search reaches the shards: by default over a direct TCP connection to each one
 (:mod:`sprint_map.fleet.channel`: raw float32 queries out, raw ids and distances back), not a
 Ray actor call per shard, whose task submission, gRPC and numpy serialisation cost more than a
-small search (``docs/benchmarks.md``, "Ray"); Ray places, loads, catches up and ends the
+small search (``docs/benchmarks.md``, "Ray: retrieval shards and the ingest farm"); Ray places, loads, catches up and ends the
 actors. A shard lost (killed, its node gone) is a :class:`~sprint_map.errors.ReplicaLostError`.
 
 Where the rows come from (``docs/fleet.md``, "Where the map files live"): with a shared
@@ -31,7 +31,6 @@ import secrets
 import threading
 from typing import Any
 
-import faiss
 import numpy as np
 
 from sprint_map.errors import ReplicaLostError
@@ -46,6 +45,7 @@ from sprint_map.fleet.channel import (
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.exact_search import ExactFlat
+from sprint_map.util.lazy_faiss import faiss  # imported on first use
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["ALIGN", "TRANSPORTS", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk",
@@ -223,45 +223,23 @@ class ShardWorker:
 class ShardedIndex:
     """Exact k-NN over a map, fanned out to :class:`ShardWorker` actors (one per range).
 
-    Parameters
-    ----------
-    smap : SprintMap
-        The map (its path, size and removed ranges are read here).
-    shards : int
-        Number of vertex ranges (fewer for a tiny map: see :func:`plan_ranges`).
-    ship : bool
-        Read the rows here and send them to the actors (no shared filesystem); default: each
-        actor reads its range from the map's files.
-    threads : int
-        OpenMP threads of each shard's search of 8 queries or more (default 1: one shard per
-        core; a node of c cores runs c shards best).
-    actor_options : dict, optional
-        Ray options of the actors (default ``num_cpus=0``, no restart, placed round robin over
-        the cluster's nodes: one actor per node while there are nodes).
-    transport : {"auto", "socket", "ray"}
-        How searches reach the shards. ``socket``: a direct TCP connection to each shard
-        (:mod:`sprint_map.fleet.channel`; the shard listens on its node's IP, on an ephemeral
-        port the caller must be able to reach); ``ray``: one Ray actor call per shard and
-        search; ``auto`` (default): ``socket``, or ``ray`` when a shard's port cannot be
-        reached (a firewall between the caller and the nodes). :attr:`transport` says which
-        one is used. Loading, catching up and closing always go through Ray.
-    timeout : float
-        Seconds a shard may take to answer on the socket before it counts as lost.
+    ``smap``: the map (its path, size and removed ranges are read here); ``shards``: vertex
+    ranges (fewer for a tiny map: :func:`plan_ranges`); ``ship``: read the rows here and send
+    them to the actors (no shared filesystem; default: each actor reads its range from the
+    map's files); ``threads``: OpenMP threads of a shard's search of 8 queries or more (default
+    1: one shard per core); ``actor_options``: Ray options of the actors (default ``num_cpus=0``,
+    no restart, round robin over the cluster's nodes); ``transport``: ``"socket"`` (a direct TCP
+    connection to each shard, :mod:`sprint_map.fleet.channel`, on an ephemeral port the caller
+    must reach), ``"ray"`` (one actor call per shard and search) or ``"auto"`` (socket, or Ray
+    when a shard's port cannot be reached; :attr:`transport` says which); loading, catching up
+    and closing always go through Ray. ``timeout``: seconds a shard may take on the socket
+    before it counts as lost.
 
-    Notes
-    -----
-    One search: the queries to every shard at once, each shard's k best back, an
-    O(q * S k log S k) merge. The round trip to 3 shards (``docs/benchmarks.md``, "Ray"):
-    0.13-0.37 ms p50 on the socket, 1.4-2.2 ms on Ray calls (task submission, gRPC, pickling
-    numpy arrays); the rest of a search is its slowest shard's scan. Only the process that made
-    the index searches through it (the connections are its own); searches from several of its
-    threads take turns on the socket (one exchange at a time per connection).
-
-    Raises
-    ------
-    ReplicaLostError
-        From :meth:`search` once a shard died (its actor killed, its node lost, no answer
-        within ``timeout``): the index cannot answer exactly without it; make a new one.
+    One search sends the queries to every shard at once and merges each shard's k best,
+    O(q * S k log S k); its round trip to 3 shards is in ``docs/benchmarks.md`` ("Ray: retrieval shards and the ingest farm"). Only
+    the process that made the index searches through it; its threads take turns on each socket.
+    :meth:`search` raises :class:`ReplicaLostError` once a shard died (actor killed, node lost,
+    no answer within ``timeout``): the index cannot answer exactly without it; make a new one.
     """
 
     def __init__(self, smap: SprintMap, shards: int = 3, *, ship: bool = False,

@@ -16,7 +16,9 @@ Layout::
 
 Traversals are the non-hidden sub-folders, in natural order. Other top-level files (a README)
 are ignored. ``dataset.json`` may also hold ``"description"`` and ``"generator"`` entries,
-which are kept in :attr:`Dataset.info` but not interpreted.
+which are kept in :attr:`Dataset.info` but not interpreted, and ``"twins"`` (traversal ->
+``[start, stop)`` frame ranges on identical-twin places, :meth:`Dataset.twin_frames`), which
+evaluations report separately.
 """
 
 from __future__ import annotations
@@ -33,11 +35,13 @@ from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.imagefiles import is_image_name, is_video_name, list_images, natural_key
-from sprint_map.frontend.positions import read_positions
+from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.frontend.sources import FrameSource, ProgressCallback, open_source
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.geo import GeoFrame
 
-__all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal"]
+__all__ = ["DATASET_FILE", "DESCRIPTORS_FILE", "Dataset", "POSITIONS_FILE", "Traversal",
+           "frame_ranges"]
 
 DATASET_FILE = "dataset.json"
 POSITIONS_FILE = "positions.csv"
@@ -124,18 +128,32 @@ class Traversal:
         source.name = self.name
         return source
 
-    def positions(self, stride: int = 1) -> Float64Array | None:
-        """Positions of the frames kept with ``stride``, or ``None`` without ``positions.csv``.
+    def positions(self, stride: int = 1, frame: GeoFrame | None = None
+                  ) -> Float64Array | None:
+        """Positions ``frame, x, y[, heading_deg]`` of the frames kept with ``stride`` (NaN
+        for a frame without a fix), or ``None`` without ``positions.csv``; latitude/longitude
+        are projected into ``frame`` (default: the UTM zone of the first fix).
 
-        For a video, whose frame count is unknown before decoding, the CSV's own row count is
-        trusted; for images and descriptors it must match the frame count.
+        For a video, whose frame count is unknown before decoding, the CSV's last frame is
+        trusted; for images and descriptors no row may lie beyond the frame count.
         """
+        table = self.position_table(stride)
+        if table is None:
+            return None
+        if table.geographic:
+            fix = table.first_fix()
+            frame = frame or (GeoFrame.for_fix(*fix) if fix else GeoFrame(31))
+        return table.metric(frame).table()
+
+    def position_table(self, stride: int = 1) -> Positions | None:
+        """The :class:`~sprint_map.frontend.positions.Positions` of ``positions.csv`` for the
+        frames kept with ``stride`` (as read: latitude/longitude stay so), or None."""
         if self.positions_path is None:
             return None
         count = self.count
         if count is None:
-            rows = read_positions(self.positions_path, None)
-            return rows[::stride]
+            table = read_positions(self.positions_path, None)
+            return table.subset(np.arange(0, len(table), stride))
         return read_positions(self.positions_path, -(-count // stride), stride)
 
     def __repr__(self) -> str:
@@ -214,6 +232,19 @@ class Dataset:
             raise InputError(f"{path}: data set has no traversal folders")
         return cls(path, [Traversal(folder) for folder in folders], gt_spec, info)
 
+    def geo_frame(self) -> GeoFrame | None:
+        """The UTM zone of the first fix of the first traversal whose ``positions.csv`` holds
+        latitude/longitude (all traversals are projected into it), or None. O(CSV rows)."""
+        if not hasattr(self, "_geo_frame"):
+            self._geo_frame: GeoFrame | None = None
+            for traversal in self.traversals:
+                table = traversal.position_table()
+                fix = table.first_fix() if table is not None and table.geographic else None
+                if fix is not None:
+                    self._geo_frame = GeoFrame.for_fix(*fix)
+                    break
+        return self._geo_frame
+
     @property
     def names(self) -> list[str]:
         """Traversal names, in order."""
@@ -255,6 +286,32 @@ class Dataset:
             return GroundTruth(self.gt_spec, lengths=lengths, stride=stride)
         return GroundTruth(self.gt_spec, positions=_LazyPositions(self, stride), stride=stride)
 
+    def twin_frames(self, name: str, stride: int = 1) -> np.ndarray | None:
+        """Which frames of traversal ``name`` (kept with ``stride``) lie on an identical twin,
+        by ``dataset.json``'s ``twins`` (traversal -> ``[start, stop)`` frame ranges); None
+        when it declares no twins. O(frames).
+
+        Raises
+        ------
+        InputError
+            If ``twins`` is malformed or the traversal's frame count is unknown (a video).
+        """
+        declared = self.info.get("twins")
+        if declared is None:
+            return None
+        count = self[name].count
+        if not isinstance(declared, dict) or count is None:
+            raise InputError(f"{self.path / DATASET_FILE}: 'twins' must map traversals to "
+                             "frame ranges of image or .npy traversals")
+        mask = np.zeros(count, dtype=bool)
+        try:
+            for start, stop in declared.get(name, []):
+                mask[int(start):int(stop)] = True
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{self.path / DATASET_FILE}: 'twins' of {name!r}: expected "
+                             f"[start, stop) pairs ({exc})") from exc
+        return mask[::stride]
+
     def __repr__(self) -> str:
         return f"Dataset({str(self.path)!r}, traversals={self.names}, ground_truth={self.gt_spec})"
 
@@ -270,7 +327,7 @@ class _LazyPositions(Mapping[str, Float64Array]):
     def __getitem__(self, name: str) -> Float64Array:
         if name not in self._cache:
             traversal = self._dataset[name]
-            rows = traversal.positions(self._stride)
+            rows = traversal.positions(self._stride, self._dataset.geo_frame())
             if rows is None:
                 raise InputError(
                     f"{traversal.folder}: no {POSITIONS_FILE}, needed by position alignment"
@@ -302,3 +359,11 @@ def _read_dataset_json(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from exc
     return data, info
+
+
+def frame_ranges(mask: np.ndarray) -> list[list[int]]:
+    """``[start, stop)`` ranges of the True runs of a boolean mask (the form of ``dataset.json``'s
+    ``twins``). O(len(mask))."""
+    padded = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2], strict=True)]

@@ -50,7 +50,11 @@ DEFAULT_PARAMS: dict[str, dict[str, int]] = {
     "patchnorm": {"width": 32, "height": 16, "patch": 4},
 }
 
-DESCRIPTOR_KINDS = tuple(DEFAULT_PARAMS)
+#: A user's ONNX model (:mod:`sprint_map.frontend.onnx_model`): its parameters are the model's
+#: path, digest, card and dimension, made by ``onnx_params`` when a map is created.
+ONNX_KIND = "onnx"
+
+DESCRIPTOR_KINDS = (*DEFAULT_PARAMS, ONNX_KIND)
 
 # Norms below this are treated as zero: the image had no gradients / no contrast at all.
 _ZERO_NORM = 1e-12
@@ -91,6 +95,13 @@ class DescriptorSpec:
     params: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.kind == ONNX_KIND:
+            from sprint_map.frontend.onnx_model import check_params
+
+            if not isinstance(self.params, Mapping):
+                raise ConfigError("descriptor params must be a mapping")
+            object.__setattr__(self, "params", check_params(self.params))
+            return
         if self.kind not in DEFAULT_PARAMS:
             raise ConfigError(
                 f"unknown descriptor kind {self.kind!r}; expected one of {', '.join(DESCRIPTOR_KINDS)}"
@@ -116,11 +127,18 @@ class DescriptorSpec:
         _validate(self.kind, full)
 
     def __hash__(self) -> int:
-        return hash((self.kind, tuple(sorted(self.params.items()))))
+        return hash((self.kind, json.dumps(self.params, sort_keys=True)))
+
+    @property
+    def grayscale(self) -> bool:
+        """Whether the descriptor reads gray images (so sources may decode them gray)."""
+        return self.kind != ONNX_KIND or self.params["channels"] == "gray"
 
     @property
     def dim(self) -> int:
         """Number of dimensions of one descriptor."""
+        if self.kind == ONNX_KIND:
+            return int(self.params["dim"])
         p: dict[str, int] = self.params
         if self.kind == "hog":
             windows_per_side = (p["size"] - p["block"]) // p["stride"] + 1
@@ -142,6 +160,9 @@ class DescriptorSpec:
         ndarray of float32, shape (dim,)
             Unit L2 norm, or all zeros for an image without any structure.
         """
+        if self.kind == ONNX_KIND:
+            row: Descriptors = self.describe_batch([image])[0]
+            return row
         gray = to_gray(image)
         if self.kind == "hog":
             return _hog(gray, self.params)
@@ -154,6 +175,10 @@ class DescriptorSpec:
         -------
         ndarray of float32, shape (N, dim)
         """
+        if self.kind == ONNX_KIND:
+            from sprint_map.frontend.onnx_model import describe_images
+
+            return describe_images(self.params, list(images))
         rows = [self.describe(image) for image in images]
         if not rows:
             return np.empty((0, self.dim), dtype=np.float32)
@@ -182,6 +207,9 @@ class DescriptorSpec:
             On a malformed string or a value :class:`DescriptorSpec` refuses.
         """
         kind, _, rest = text.strip().partition(":")
+        if kind.strip() == ONNX_KIND:
+            raise ConfigError("an onnx descriptor is made from its model: init --descriptor "
+                              "onnx --model FILE")
         params: dict[str, Any] = {}
         for item in filter(None, (part.strip() for part in rest.split(","))):
             name, sep, value = item.partition("=")
@@ -196,6 +224,8 @@ class DescriptorSpec:
         return cls(kind.strip(), params)
 
     def __str__(self) -> str:
+        if self.kind == ONNX_KIND:
+            return f"onnx:{self.params['model']} (dim {self.params['dim']})"
         return f"{self.kind}:" + ",".join(f"{k}={v}" for k, v in self.params.items())
 
     def __repr__(self) -> str:

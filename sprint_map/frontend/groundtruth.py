@@ -119,7 +119,7 @@ class GroundTruth:
         self.stride = stride
         self._positions = positions or {}
         self._lengths = lengths or {}
-        self._trees: dict[str, cKDTree] = {}
+        self._trees: dict[str, tuple[cKDTree, np.ndarray]] = {}
 
     def correct(
         self, query: str, query_frames: ArrayLike, db: str, db_frames: ArrayLike
@@ -168,9 +168,11 @@ class GroundTruth:
                 high = min(high, length)
             return np.arange(max(0, q - reach), max(0, high), dtype=np.int64)
         row = self._table(query)[q]
-        candidates = np.asarray(
-            sorted(self._tree(db).query_ball_point(row[1:3], self.spec.radius_m)), dtype=np.int64
-        )
+        if not np.isfinite(row[1:3]).all():  # a frame without a fix matches nothing
+            return np.empty(0, dtype=np.int64)
+        tree, placed = self._tree(db)
+        candidates = np.sort(placed[np.asarray(
+            tree.query_ball_point(row[1:3], self.spec.radius_m), dtype=np.int64)])
         if self.spec.heading_deg is None or len(candidates) == 0:
             return candidates
         headings = self._table(db)[candidates, 3]
@@ -204,11 +206,14 @@ class GroundTruth:
             )
         return table
 
-    def _tree(self, name: str) -> cKDTree:
-        tree = self._trees.get(name)
-        if tree is None:
-            tree = self._trees[name] = cKDTree(self._table(name)[:, 1:3])
-        return tree
+    def _tree(self, name: str) -> tuple[cKDTree, np.ndarray]:
+        """The KD-tree of ``name``'s frames with a fix, and those frames' indices."""
+        found = self._trees.get(name)
+        if found is None:
+            xy = self._table(name)[:, 1:3]
+            placed = np.flatnonzero(np.isfinite(xy).all(axis=1))
+            found = self._trees[name] = (cKDTree(xy[placed]), placed)
+        return found
 
 
 def _angle_between(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:

@@ -90,36 +90,18 @@ def list_images(directory: Path) -> list[Path]:
 
 def read_image(path: Path, grayscale: bool = True, max_pixels: int = MAX_IMAGE_PIXELS
                ) -> Image:
-    """Read and decode one image file.
+    """Read and decode one image file: ``(H, W)`` uint8 if ``grayscale``, else ``(H, W, 3)`` BGR.
 
-    Parameters
-    ----------
-    path : Path
-        The file.
-    grayscale : bool
-        Decode straight to 8-bit gray (``cv2.IMREAD_GRAYSCALE``: for JPEG, libjpeg skips the
-        colour conversion, which is measurably faster than decoding BGR and converting).
-    max_pixels : int
-        Largest image decoded; its size is read from the header first (see
-        :func:`decode_image`).
+    ``grayscale`` decodes straight to 8-bit gray (``cv2.IMREAD_GRAYSCALE``: for JPEG, libjpeg
+    skips the colour conversion, measurably faster than decoding BGR and converting);
+    ``max_pixels`` is the largest image decoded, its size read from the header first
+    (:func:`decode_image`).
 
-    Returns
-    -------
-    ndarray of uint8
-        ``(H, W)`` if ``grayscale`` else ``(H, W, 3)`` BGR.
-
-    Raises
-    ------
-    InputError
-        If the file cannot be read, or cannot be decoded completely (a truncated JPEG or PNG is
-        an error, not a silently grey-padded image), or is larger than ``max_pixels``; the
-        message names the file.
-
-    Notes
-    -----
-    The bytes are read with Python and decoded with ``cv2.imdecode`` rather than ``cv2.imread``,
-    because ``imread`` reports every failure as ``None`` and prints truncated-JPEG warnings to
-    stderr without failing. ``imdecode`` releases the GIL, so threads decode in parallel.
+    Raises :class:`InputError`, naming the file, if it cannot be read or decoded completely (a
+    truncated JPEG or PNG is an error, not a silently grey-padded image) or is larger than
+    ``max_pixels``. The bytes are read with Python and decoded with ``cv2.imdecode``, not
+    ``cv2.imread``, which reports every failure as ``None`` and prints truncated-JPEG warnings
+    without failing; ``imdecode`` releases the GIL, so threads decode in parallel.
     """
     return decode_image(read_image_bytes(path), str(path), grayscale, max_pixels)
 

@@ -46,32 +46,18 @@ def ordered_map(
 ) -> Iterator[R]:
     """Yield ``fn(item)`` for each item, in input order, computed by ``workers`` workers.
 
-    Parameters
-    ----------
-    fn : callable
-        Applied to each item. With ``executor="process"`` it and the items must be picklable
-        (a module-level function or a ``functools.partial`` of one).
-    items : iterable
-        Consumed lazily, in the calling thread, only as fast as results are consumed.
-    workers : int
-        ``1`` runs everything inline in the calling thread (no pool, no overhead).
-    executor : {"thread", "process"}
-        Pool kind. Processes are started with ``spawn``: forking a process whose OpenCV or
-        OpenMP thread pools are running can deadlock the child.
-    max_in_flight : int, optional
-        Tasks submitted but not yet consumed; default ``2 * workers`` (one running, one queued
-        per worker, so no worker idles while the consumer handles a result).
-    initializer : callable, optional
-        Run once in each worker process (``executor="process"`` only; must be picklable).
+    - ``fn``: applied to each item; with ``executor="process"`` it and the items must be
+      picklable (a module-level function or a ``functools.partial`` of one).
+    - ``items``: consumed lazily, in the calling thread, only as fast as results are consumed.
+    - ``workers``: ``1`` runs everything inline in the calling thread (no pool, no overhead).
+    - ``executor``: ``"thread"`` or ``"process"`` (started with ``spawn``: forking a process
+      whose OpenCV or OpenMP thread pools run can deadlock the child).
+    - ``max_in_flight``: tasks submitted, not yet consumed; default ``2 * workers`` (one
+      running, one queued per worker, so no worker idles while the consumer handles a result).
+    - ``initializer``: run once in each worker process (processes only; picklable).
 
-    Yields
-    ------
-    The results, in the order of ``items``.
-
-    Raises
-    ------
-    Whatever ``fn`` raised, for the first failing item in input order; the remaining tasks are
-    cancelled and the pool is shut down (also when the consumer stops iterating early).
+    Raises whatever ``fn`` raised, for the first failing item in input order; the remaining
+    tasks are cancelled and the pool shut down (also when the consumer stops early).
     """
     if workers < 1:
         raise ValueError("workers must be >= 1")

@@ -1,62 +1,126 @@
-"""Reading per-frame positions (ground truth) from a CSV file.
+"""Reading per-frame positions (ground truth, GNSS fixes) from a CSV file.
 
-Format: a header line naming the columns ``frame,x,y[,heading_deg][,sigma_m]`` (in any order,
-names case-insensitive), then one row per frame of the source *before* any stride, frames
-numbered from 0. ``x``/``y`` are metres in any fixed planar frame; ``heading_deg`` is the
-direction of travel in degrees (any convention, as long as all traversals of a data set share
-it); ``sigma_m`` the accuracy of a GNSS fix (one standard deviation, metres, > 0). A frame
-without a row is a frame without a fix (NaN). Blank lines and lines starting with ``#`` are
-skipped.
+Format: a header line naming the columns, in any order and case, one of
+
+- ``frame,x,y[,heading_deg][,sigma_m]``: ``x``/``y`` metres in any fixed planar frame;
+- ``frame,lat,lon[,heading_deg][,sigma_m]``: WGS84 latitude/longitude in degrees, which a map
+  projects into the one UTM zone it stores (:class:`sprint_map.util.geo.GeoFrame`);
+
+then one row per frame of the source *before* any stride, frames numbered from 0.
+``heading_deg`` is the direction of travel in degrees (any convention, as long as all traversals
+of a data set share it); ``sigma_m`` the fix's accuracy (one standard deviation, metres, > 0).
+A frame without a row is a frame without a fix (its position is NaN). Blank lines and lines
+starting with ``#`` are skipped.
 """
 
 from __future__ import annotations
 
-import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.geo import GeoFrame
 
-__all__ = ["OPTIONAL_COLUMNS", "REQUIRED_COLUMNS", "gnss_fixes", "read_positions", "stored_form"]
+__all__ = ["OPTIONAL_COLUMNS", "Positions", "gnss_fixes", "read_positions"]
 
-REQUIRED_COLUMNS = ("frame", "x", "y")
 OPTIONAL_COLUMNS = ("heading_deg", "sigma_m")
-_EXPECTED = "frame,x,y[,heading_deg][,sigma_m]"
+_PLANAR, _GEOGRAPHIC = ("x", "y"), ("lat", "lon")
+_EXPECTED = "frame,x,y[,heading_deg][,sigma_m] or frame,lat,lon[,heading_deg][,sigma_m]"
 
 
-def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Float64Array:
-    """Read the positions of the ``n_frames`` frames a source yielded.
+@dataclass(frozen=True)
+class Positions:
+    """Per-frame positions of a drive's kept frames; NaN rows are frames without a fix.
 
-    Parameters
+    Attributes
     ----------
-    path : str or Path
-        The CSV file.
-    n_frames : int or None
-        Frames the source yielded (after ``stride``); ``None`` accepts any number of rows
-        (frames ``0..M-1``), for a video whose length is unknown (``stride`` must then be 1).
-    stride : int
-        The source's stride: the CSV numbers the original frames, of which frames
-        ``0, stride, 2*stride, ...`` were kept. A row for frame ``n_frames * stride`` or
-        later describes a frame the drive does not have.
-
-    Returns
-    -------
-    ndarray of float64, shape (n_frames, 3), (n_frames, 4) or (n_frames, 5)
-        Columns ``frame, x, y[, heading_deg[, sigma_m]]`` for the kept frames, in frame order
-        (``heading_deg`` NaN when only ``sigma_m`` is given); ``frame`` is the original frame
-        number (``i * stride``); NaN ``x, y`` (and the rest) for a frame without a row.
-
-    Raises
-    ------
-    InputError
-        Missing or unreadable file, a bad header, a non-numeric or non-finite value, a
-        ``sigma_m`` <= 0, a non-integer, negative or repeated frame number, a frame beyond the
-        drive (a file longer than its drive), or no row. The message names the file and,
-        where it applies, the line. O(rows).
+    frames : ndarray of int64, (n,)
+        Original frame numbers (``i * stride``).
+    xy : ndarray of float64, (n, 2)
+        ``x, y`` metres, or ``lat, lon`` degrees when :attr:`geographic`.
+    heading_deg, sigma_m, time : ndarray of float64, (n,), or None
+        Heading, fix accuracy (metres) and time (seconds), None when the source has none.
+    geographic : bool
+        Whether :attr:`xy` holds latitude/longitude.
     """
+
+    frames: np.ndarray
+    xy: Float64Array
+    heading_deg: Float64Array | None = None
+    sigma_m: Float64Array | None = None
+    time: Float64Array | None = None
+    geographic: bool = False
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(n,) bool: the frames with a fix."""
+        return np.asarray(np.isfinite(self.xy).all(axis=1))
+
+    def first_fix(self) -> tuple[float, float] | None:
+        """``(lat, lon)`` (or ``(x, y)``) of the first frame with a fix, None without one."""
+        idx = np.flatnonzero(self.fixed)
+        return None if not len(idx) else (float(self.xy[idx[0], 0]), float(self.xy[idx[0], 1]))
+
+    def metric(self, frame: GeoFrame | None) -> Positions:
+        """These positions in metres: latitude/longitude projected into ``frame`` (required
+        then); planar ones unchanged. O(n)."""
+        if not self.geographic:
+            return self
+        if frame is None:
+            raise ValueError("geographic positions need a GeoFrame")
+        return Positions(self.frames, frame.project(self.xy[:, 0], self.xy[:, 1]),
+                         self.heading_deg, self.sigma_m, self.time, geographic=False)
+
+    def rows(self) -> Float64Array:
+        """The stored form: ``(n, 5)`` ``x, y, heading_deg, time, sigma_m`` (NaN where
+        unknown; x, y NaN for a frame without a fix). Metric positions only. O(n)."""
+        if self.geographic:
+            raise ValueError("project geographic positions first (Positions.metric)")
+        out = np.full((len(self), 5), np.nan)
+        out[:, :2] = self.xy
+        for col, values in ((2, self.heading_deg), (3, self.time), (4, self.sigma_m)):
+            if values is not None:
+                out[:, col] = values
+        return out
+
+    def table(self) -> Float64Array:
+        """``(n, 3 or 4)`` ``frame, x, y[, heading_deg]`` (ground truth's form). O(n)."""
+        cols = [self.frames.astype(np.float64), self.xy[:, 0], self.xy[:, 1]]
+        if self.heading_deg is not None:
+            cols.append(self.heading_deg)
+        return np.stack(cols, axis=1)
+
+    def subset(self, keep: np.ndarray) -> Positions:
+        """The rows ``keep`` (indices or a mask), frames renumbered as given. O(n)."""
+        def pick(values: Float64Array | None) -> Float64Array | None:
+            return None if values is None else values[keep]
+
+        return Positions(self.frames[keep], self.xy[keep], pick(self.heading_deg),
+                         pick(self.sigma_m), pick(self.time), self.geographic)
+
+
+def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Positions:
+    """Read the positions of the ``n_frames`` frames a source yielded from the CSV ``path``.
+
+    ``n_frames``: frames the source yielded (after ``stride``), or ``None`` (a video of unknown
+    length, ``stride`` 1) for frames ``0..max frame``. The CSV numbers the original frames, of
+    which ``0, stride, 2*stride, ...`` were kept; a row for frame ``n_frames * stride`` or later
+    is an error. Returns one row per kept frame, NaN where the file has no row.
+
+    Raises :class:`InputError`, one line naming the file (and the line): a missing or
+    unreadable file, a bad header, a non-numeric or non-finite value, ``sigma_m <= 0``, a
+    latitude outside [-90, 90] or a longitude outside [-180, 180], a non-integer, negative or
+    repeated frame number, a frame beyond the drive, or no row at all. O(rows).
+    """
+    import csv  # (here: the CLI loads this module for every command)
+
     path = Path(path)
     if (n_frames is not None and n_frames < 1) or stride < 1:
         raise ValueError("n_frames and stride must be >= 1")
@@ -77,9 +141,10 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
         raise InputError(f"{path}: empty positions file (expected header {_EXPECTED})")
 
     columns = _parse_header(path, *lines[0])
+    geographic = "lat" in columns
+    first, second = _GEOGRAPHIC if geographic else _PLANAR
     width = len(columns)
-    width_out = 5 if "sigma_m" in columns else 4 if "heading_deg" in columns else 3
-    rows: dict[int, tuple[int, list[float]]] = {}  # frame -> (line number, [x, y, ...])
+    rows: dict[int, tuple[int, dict[str, float]]] = {}  # frame -> (line number, values)
     for number, line in lines[1:]:
         fields = next(csv.reader([line]))
         if len(fields) != width:
@@ -95,6 +160,7 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
             if not math.isfinite(value):
                 raise InputError(f"{path}:{number}: {name} is not finite: {text.strip()!r}")
             values[name] = value
+        _check_values(path, number, values)
         frame_value = values["frame"]
         if frame_value != int(frame_value) or frame_value < 0:
             raise InputError(f"{path}:{number}: frame must be a non-negative integer")
@@ -103,49 +169,60 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> F
             raise InputError(
                 f"{path}:{number}: frame {frame} repeated (first on line {rows[frame][0]})"
             )
-        if values.get("sigma_m", 1.0) <= 0:
-            raise InputError(f"{path}:{number}: sigma_m must be > 0 metres, got "
-                             f"{values['sigma_m']:g}")
         if n_frames is not None and frame >= n_frames * stride:
             raise InputError(
                 f"{path}:{number}: frame {frame} is beyond the drive ({n_frames} frames"
                 + (f" kept with stride {stride}" if stride > 1 else "") + "): a positions "
                 "file longer than its drive"
             )
-        data = [values["x"], values["y"], values.get("heading_deg", math.nan),
-                values.get("sigma_m", math.nan)][:width_out - 1]
-        rows[frame] = (number, data)
+        rows[frame] = (number, values)
 
     if not rows:
         raise InputError(f"{path}: no position rows after the header")
     if n_frames is None:
         n_frames = max(rows) + 1
-    out = np.full((n_frames, width_out), np.nan)
-    out[:, 0] = np.arange(n_frames) * stride
-    for i in range(n_frames):
-        row = rows.get(i * stride)
-        if row is not None:
-            out[i, 1:] = row[1]
-    return out
+    frames = np.arange(n_frames, dtype=np.int64) * stride
+    xy = np.full((n_frames, 2), np.nan)
+    optional = {name: np.full(n_frames, np.nan) for name in OPTIONAL_COLUMNS if name in columns}
+    for i, frame in enumerate(frames.tolist()):
+        row = rows.get(frame)
+        if row is None:
+            continue
+        values = row[1]
+        xy[i] = values[first], values[second]
+        for name, array in optional.items():
+            array[i] = values[name]
+    return Positions(frames, xy, optional.get("heading_deg"), optional.get("sigma_m"),
+                     geographic=geographic)
 
 
-def stored_form(table: Float64Array) -> Float64Array:
-    """Positions as a map stores them (``x, y, heading_deg``, NaN rows: no fix) from
-    :func:`read_positions`' table. O(n)."""
-    return table[:, 1:4]
+def gnss_fixes(rows: Float64Array) -> Float64Array:
+    """A drive's GNSS fixes ``(n, 3)`` ``x, y, sigma_m`` (NaN rows: no fix; NaN ``sigma_m``:
+    the map's default accuracy) from its positions as a map stores them
+    (:meth:`Positions.rows`, metric). O(n)."""
+    return np.asarray(rows, dtype=np.float64)[:, [0, 1, 4]]
 
 
-def gnss_fixes(table: Float64Array) -> Float64Array:
-    """A drive's GNSS fixes (``x, y[, sigma_m]``, NaN rows: no fix) from :func:`read_positions`'
-    table. O(n)."""
-    return table[:, [1, 2, 4]] if table.shape[1] > 4 else table[:, 1:3]
+def _check_values(path: Path, number: int, values: dict[str, float]) -> None:
+    sigma = values.get("sigma_m")
+    if sigma is not None and sigma <= 0:
+        raise InputError(f"{path}:{number}: sigma_m must be > 0 metres, got {sigma:g}")
+    lat, lon = values.get("lat"), values.get("lon")
+    if lat is not None and not -90 <= lat <= 90:
+        raise InputError(f"{path}:{number}: lat {lat:g} is outside [-90, 90]")
+    if lon is not None and not -180 <= lon <= 180:
+        raise InputError(f"{path}:{number}: lon {lon:g} is outside [-180, 180]")
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
+    import csv
+
     names = [name.strip().lower() for name in next(csv.reader([line]))]
-    known = set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS)
+    pair = _GEOGRAPHIC if "lat" in names or "lon" in names else _PLANAR
+    required = ("frame", *pair)
+    known = set(required) | set(OPTIONAL_COLUMNS)
     unknown = [name for name in names if name not in known]
-    missing = [name for name in REQUIRED_COLUMNS if name not in names]
+    missing = [name for name in required if name not in names]
     if unknown or missing or len(set(names)) != len(names):
         problem = (
             f"unknown column(s) {', '.join(repr(n) for n in unknown)}"
@@ -154,7 +231,5 @@ def _parse_header(path: Path, number: int, line: str) -> list[str]:
             if missing
             else "repeated column"
         )
-        raise InputError(
-            f"{path}:{number}: bad header ({problem}); expected {_EXPECTED}"
-        )
+        raise InputError(f"{path}:{number}: bad header ({problem}); expected {_EXPECTED}")
     return names

@@ -33,6 +33,14 @@ from sprint_map.errors import (
     InputError,
     InvalidDescriptorError,
 )
+from sprint_map.frontend.bags import (
+    BagOptions,
+    bag_index,
+    describe_partial,
+    is_bag,
+    iter_image_messages,
+    open_reader,
+)
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.imagefiles import (
     decode_image,
@@ -42,19 +50,22 @@ from sprint_map.frontend.imagefiles import (
     read_image_bytes,
 )
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
+from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
 
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
+from sprint_map.frontend.vpr import is_vpr_name, vpr_order, vpr_positions
 
-__all__ = ["FrameSource", "ImageDirSource", "NpySource", "ProgressCallback", "SOURCE_KINDS",
-           "VideoSource", "open_source"]
+__all__ = ["SOURCE_KINDS", "BagSource", "FrameSource", "ImageDirSource", "NpySource",
+           "ProgressCallback", "VideoSource", "drive_names", "drive_positions", "open_source",
+           "own_positions"]
 
 #: ``progress(frames_done, total_or_None)``, called after each batch.
 ProgressCallback = Callable[[int, int | None], None]
 
-SOURCE_KINDS = ("images", "video", "npy")
+SOURCE_KINDS = ("images", "video", "npy", "bag")
 
 # Frames per task handed to a worker: large enough to amortise task overhead (~50 us per
 # future), small enough to balance two workers on a short directory.
@@ -74,33 +85,18 @@ class _Options:
 class FrameSource(ABC):
     """A sequence of frames, delivered as descriptor batches. Build one with :func:`open_source`.
 
-    Attributes
-    ----------
-    kind : str
-        ``"images"``, ``"video"`` or ``"npy"``.
-    path : Path
-        The directory or file.
-    name : str
-        Default sequence name: the directory name, or the file name without its extension.
-    spec : DescriptorSpec or None
-        How frames are described (``None`` for a ``.npy``, which holds descriptors already).
-    dim : int
-        Descriptor dimension.
-    count : int or None
-        Number of frames :meth:`iter_batches` will yield (after ``stride``), or ``None`` when
-        unknown before reading (a video: container frame counts are estimates).
-    stride : int
-        Every ``stride``-th frame is kept, starting with the first.
-    batch_size : int
-        Rows per yielded batch (the last one may be shorter).
-    workers : int
-        Parallel decode/describe workers.
-    progress : callable or None
-        Default progress callback of :meth:`iter_batches`.
-    thumbnails : list of bytes or None
-        With ``thumbnails=True`` (images and video only), one small JPEG per frame
-        (:mod:`sprint_map.frontend.thumbnails`), appended in frame order while
-        :meth:`iter_batches` runs: complete once the iteration has ended. ``None`` otherwise.
+    - ``kind``: ``"images"``, ``"video"`` or ``"npy"``; ``path``: the directory or file.
+    - ``name``: default sequence name (the directory name, or the file name without extension).
+    - ``spec``: how frames are described (:class:`DescriptorSpec`; ``None`` for a ``.npy``,
+      which holds descriptors already); ``dim``: descriptor dimension.
+    - ``count``: frames :meth:`iter_batches` will yield (after ``stride``), or ``None`` when
+      unknown before reading (a video: container frame counts are estimates).
+    - ``stride``: every ``stride``-th frame is kept, from the first; ``batch_size``: rows per
+      batch (the last may be shorter); ``workers``: parallel decode/describe workers.
+    - ``progress``: default progress callback of :meth:`iter_batches`.
+    - ``thumbnails``: with ``thumbnails=True`` (images and video only), one small JPEG per
+      frame (:mod:`sprint_map.frontend.thumbnails`), appended in frame order while
+      :meth:`iter_batches` runs (complete once it has ended); ``None`` otherwise.
     """
 
     kind: str
@@ -118,6 +114,8 @@ class FrameSource(ABC):
         self.executor = options.executor
         self.progress = options.progress
         self.thumbnails: list[bytes] | None = [] if options.thumbnails else None
+        #: Positions the source itself carries (a bag's GNSS), else None.
+        self.positions: Positions | None = None
 
     @property
     @abstractmethod
@@ -178,23 +176,19 @@ def _single_threaded_opencv() -> None:
 
 def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
     """Decode and describe a chunk of image files (runs in a worker)."""
-    out = np.empty((len(paths), spec.dim), dtype=np.float32)
-    for i, path in enumerate(paths):
-        out[i] = spec.describe(read_image(path, grayscale=True))
-    return out
+    return spec.describe_batch([read_image(path, grayscale=spec.grayscale) for path in paths])
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
                                ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
-    out = np.empty((len(paths), spec.dim), dtype=np.float32)
-    thumbs = []
-    for i, path in enumerate(paths):
+    images, thumbs = [], []
+    for path in paths:
         data = read_image_bytes(path)
-        gray = decode_image(data, str(path), grayscale=True)
-        out[i] = spec.describe(gray)
-        thumbs.append(thumbnail_of_file(data, str(path), gray.shape[1]))
-    return out, thumbs
+        image = decode_image(data, str(path), grayscale=spec.grayscale)
+        images.append(image)
+        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1]))
+    return spec.describe_batch(images), thumbs
 
 
 def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
@@ -247,7 +241,17 @@ class ImageDirSource(FrameSource):
 
     def __init__(self, path: Path, spec: DescriptorSpec, options: _Options) -> None:
         super().__init__(path, spec, spec.dim, options)
-        self.files: list[Path] = list_images(path)[:: self.stride]
+        files = list_images(path)
+        #: How the files are ordered: natural file-name order, or the timestamps of
+        #: VPR-layout names (:mod:`sprint_map.frontend.vpr`), which also give positions.
+        self.order = "file name"
+        if all(is_vpr_name(f.name) for f in files):
+            files, self.order = vpr_order(files)
+            kept = np.arange(0, len(files), self.stride)
+            self.positions = vpr_positions(files).subset(kept)
+            self.positions = Positions(kept, self.positions.xy, time=self.positions.time,
+                                       geographic=True)
+        self.files: list[Path] = files[:: self.stride]
 
     @property
     def count(self) -> int:
@@ -354,6 +358,51 @@ class VideoSource(FrameSource):
             capture.release()
 
 
+class BagSource(FrameSource):
+    """The images of one topic of a ROS 1 bag, a ROS 2 bag or an MCAP file, with the
+    positions of its GNSS topic (:mod:`sprint_map.frontend.bags`: an index pass when opened,
+    then the frames streamed, described by worker threads).
+
+    Attributes
+    ----------
+    positions : Positions or None
+        Latitude/longitude of each kept frame (NaN: no fix), None without a GNSS topic.
+    image_topic, gnss_topic : str, str or None
+    """
+
+    kind = "bag"
+
+    def __init__(self, path: Path, spec: DescriptorSpec, options: _Options,
+                 bag: BagOptions) -> None:
+        super().__init__(path, spec, spec.dim, options)
+        reader = open_reader(path)
+        try:
+            self.index = bag_index(path, reader, bag, self.stride)
+        finally:
+            reader.close()
+        self.positions = self.index.positions
+        self.image_topic, self.gnss_topic = self.index.image_topic, self.index.gnss_topic
+
+    @property
+    def count(self) -> int:
+        return len(self.index.ordinals)
+
+    def _batches(self) -> Iterator[Descriptors]:
+        assert self.spec is not None
+        reader = open_reader(self.path)
+        try:
+            chunk = _chunk_size(self.count, self.batch_size, self.workers)
+            work = describe_partial(self.spec, reader, self.path, self.thumbnails is not None)
+            results = ordered_map(work, iter_image_messages(self.path, reader, self.index, chunk),
+                                  self.workers, "thread")
+            if self.thumbnails is not None:
+                self.thumbnails.clear()
+            sink = self.thumbnails if self.thumbnails is not None else []
+            yield from _rebatch(_keep_thumbnails(results, sink), self.batch_size)
+        finally:
+            reader.close()
+
+
 class NpySource(FrameSource):
     """Precomputed descriptors: a 2-D float ``.npy`` array, one row per frame.
 
@@ -422,45 +471,31 @@ def open_source(
     executor: str = "thread",
     progress: ProgressCallback | None = None,
     thumbnails: bool = False,
+    bag: BagOptions | None = None,
 ) -> FrameSource:
-    """Open a directory of images, a video file or a ``.npy`` of descriptors.
+    """Open a directory of images, a video file, a ``.npy`` of descriptors or a bag.
 
-    Parameters
-    ----------
-    path : str or Path
-        A directory (its image files, natural order; other files are ignored), a video
-        (``.mp4 .avi .mov .mkv .m4v .mpg .mpeg .webm``) or a ``.npy`` of shape (frames, dims).
-    spec : DescriptorSpec, optional
-        Descriptor for images and video; default ``DescriptorSpec("hog")``, the paper's. For a
-        ``.npy`` it is only checked against the file's dimension.
-    stride : int
-        Keep every ``stride``-th frame (frames 0, stride, 2*stride, ...).
-    batch_size : int
-        Rows per batch from :meth:`FrameSource.iter_batches`.
-    workers : int, optional
-        Decode/describe workers; default: the cores available to this process.
-    executor : {"thread", "process"}
-        Worker kind for image directories (a video always uses threads). Threads are the
-        default: OpenCV releases the GIL, and they start instantly.
-    progress : callable, optional
-        ``progress(frames_done, total_or_None)`` after each batch.
-    thumbnails : bool
-        Also make a small JPEG of each frame (:attr:`FrameSource.thumbnails`); images and
-        video only. Each image file is then decoded a second time, in colour.
+    - ``path``: a directory (its image files in natural order; other files ignored), a video
+      (``.mp4 .avi .mov .mkv .m4v .mpg .mpeg .webm``), a ``.npy`` of shape (frames, dims) or
+      a ROS bag (``.bag``, ``.mcap``, ``.db3`` or a ROS 2 bag folder; the ``[ros]`` extra).
+    - ``spec``: the descriptor of images and video (default ``DescriptorSpec("hog")``, the
+      paper's); for a ``.npy`` only checked against the file's dimension.
+    - ``stride``: keep frames 0, stride, 2*stride, ...; ``batch_size``: rows per batch of
+      :meth:`FrameSource.iter_batches`.
+    - ``workers``: decode/describe workers (default: the cores available to this process);
+      ``executor``: ``"thread"`` (default: OpenCV releases the GIL, threads start instantly) or
+      ``"process"``, for image directories (a video always uses threads).
+    - ``progress``: ``progress(frames_done, total_or_None)`` after each batch.
+    - ``thumbnails``: also make a small JPEG of each frame (:attr:`FrameSource.thumbnails`;
+      images and video only; each image file is then decoded a second time, in colour).
+    - ``bag``: a bag's image and GNSS topics and ``every_m`` (:mod:`sprint_map.frontend.bags`);
+      refused for any other source.
 
-    Returns
-    -------
-    FrameSource
-
-    Raises
-    ------
-    InputError
-        Missing path, a directory without images, an unsupported file type, a video that cannot
-        be opened or has no frame, an unreadable ``.npy``, thumbnails asked of a ``.npy``.
-    DescriptorShapeError
-        A ``.npy`` that is not 2-D float, or does not match ``spec.dim``.
-    InvalidDescriptorError
-        A ``.npy`` containing NaN or Inf.
+    Raises :class:`InputError` (missing path, a directory without images, an unsupported file
+    type, a video that cannot be opened or has no frame, an unreadable ``.npy``, thumbnails
+    asked of a ``.npy``), :class:`DescriptorShapeError` (a ``.npy`` not 2-D float or not of
+    ``spec.dim``), :class:`InvalidDescriptorError` (a ``.npy`` with NaN or Inf). O(1): frames
+    are read by :meth:`FrameSource.iter_batches`.
     """
     path = Path(path)
     for name, value in (("stride", stride), ("batch_size", batch_size)):
@@ -475,6 +510,11 @@ def open_source(
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
     options = _Options(stride, batch_size, workers, executor, progress, thumbnails)
+    if is_bag(path):
+        return BagSource(path, spec or DescriptorSpec("hog"), options, bag or BagOptions())
+    if bag is not None and bag != BagOptions():
+        raise InputError(f"{path}: --image-topic, --gnss-topic and --every-m are for ROS bags "
+                         "(.bag, .mcap, a ROS 2 bag folder)")
     if path.is_dir():
         return ImageDirSource(path, spec or DescriptorSpec("hog"), options)
     if path.suffix.lower() == ".npy":
@@ -482,5 +522,73 @@ def open_source(
     if is_video_name(path.name):
         return VideoSource(path, spec or DescriptorSpec("hog"), options)
     raise InputError(
-        f"{path}: unsupported source (expected an image directory, a video file or a .npy)"
+        f"{path}: unsupported source (expected an image directory, a video file, a .npy or a "
+        "ROS bag)"
     )
+
+
+#: A drive folder's own positions, used without ``--positions`` (see :func:`own_positions`).
+POSITIONS_FILE = "positions.csv"
+
+
+def own_positions(path: str | Path) -> Path | None:
+    """The ``positions.csv`` a drive carries: inside a drive folder (images, a ROS 2 bag), or
+    beside a file that is the only drive source of its folder (``run-4/descriptors.npy``,
+    ``mon/drive.bag``); None otherwise. O(files in the folder)."""
+    path = Path(path)
+    if path.is_dir():
+        inside = path / POSITIONS_FILE
+        return inside if inside.is_file() else None
+    beside = path.parent / POSITIONS_FILE
+    if not beside.is_file():
+        return None
+    sources = [p for p in path.parent.iterdir() if not p.name.startswith(".") and p.is_file()
+               and (p.suffix.lower() == ".npy" or is_video_name(p.name) or is_bag(p))]
+    return beside if sources == [path] or [s.resolve() for s in sources] == [path.resolve()] \
+        else None
+
+
+def drive_names(paths: list[Path], names: list[str]) -> list[str]:
+    """Sequence names of several drives: each source's own name, or, where two collide
+    (``mon/descriptors.npy``, ``tue/descriptors.npy``), the name of the drive's folder.
+
+    Raises
+    ------
+    InputError
+        Two drives would still share a name. O(drives).
+    """
+    def count(values: list[str]) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for value in values:
+            out[value] = out.get(value, 0) + 1
+        return out
+
+    first = count(names)
+    out = [name if first[name] == 1 else (path.resolve().parent.name if path.is_file()
+                                          or not path.is_dir() else name)
+           for path, name in zip(paths, names, strict=True)]
+    final = count(out)
+    for path, name in zip(paths, out, strict=True):
+        if final[name] > 1:
+            others = [str(p) for p, n in zip(paths, out, strict=True) if n == name]
+            raise InputError(f"{path}: drives {', '.join(others)} would all be named {name!r} "
+                             "(by their file and by their folder): ingest them one by one "
+                             "with --name")
+    return out
+
+
+def drive_positions(source: FrameSource, path: str | Path, positions: str | Path | None,
+                    stride: int) -> Positions | None:
+    """A drive's positions: the file ``positions`` if given, else what the source carries (a
+    bag's GNSS: ``source.positions``), else the drive's own ``positions.csv``
+    (:func:`~sprint_map.frontend.sources.own_positions`), else None. ``source`` is the
+    opened :class:`~sprint_map.frontend.sources.FrameSource` of ``path``. O(rows)."""
+    if positions is None and source.positions is not None:
+        return source.positions
+    found = Path(positions) if positions is not None else own_positions(path)
+    if found is None:
+        return None
+    if source.count is None:  # a video: its frame count is known only once decoded
+        table = read_positions(found, None)
+        return table.subset(np.arange(0, len(table), stride))
+    return read_positions(found, source.count, stride)

@@ -25,30 +25,18 @@ _CANCEL = 1e-3
 class ActiveComponent:
     """One active component: its transition, its belief (slot layout) and its live windows.
 
-    Attributes
-    ----------
-    component_id : int
-    trans : ComponentTransition
-    x : ndarray of float64, shape (trans.n_slots,)
-        Raw belief of every slot (the filter's posterior is ``x`` times its global normaliser);
-        0 outside the windows (and in gutters).
-    mass : float
-        Raw belief held by the component, as of the last update.
-    n_windows : int
-        Number of live windows (0: the component holds no belief yet).
-    lo, hi : ndarray of int64
-        The windows ``[lo, hi)`` (sorted, disjoint, at least ``trans.gap`` apart) when
-        ``n_windows != 1``.
-    a, b, end, shift : int
-        The window ``[a, b)``, the end slot of its sequence and the slot of global vertex 0 of
-        that sequence's layout (slot = vertex id + shift) when ``n_windows == 1`` (the common
-        case of a vehicle on one mapped road: its step is a few slice operations, inlined in
-        :meth:`propagate`, and a hit in its sequence is placed without a search).
-    n_propagated : int
-        Slots propagated by the last update (the input windows, edge targets included).
-    pending : list of int
-        Slots written this frame outside the windows (hits); they join the windows when the
-        update finishes (:meth:`settle`).
+    - ``component_id``; ``trans``: its :class:`ComponentTransition`.
+    - ``x`` (float64, ``trans.n_slots``): raw belief of every slot (the posterior is ``x`` times
+      the filter's global normaliser); 0 outside the windows and in gutters. ``mass``: raw
+      belief held, as of the last update.
+    - ``n_windows``: live windows (0: no belief yet). ``lo``, ``hi`` (int64): the windows
+      ``[lo, hi)`` (sorted, disjoint, at least ``trans.gap`` apart) when ``n_windows != 1``.
+    - ``a``, ``b``, ``end``, ``shift``: when ``n_windows == 1``, the window ``[a, b)``, its
+      sequence's end slot and the offset from vertex id to slot: the common case of a vehicle
+      on one mapped road, stepped by a few slice operations inlined in :meth:`propagate`.
+    - ``n_propagated``: slots propagated by the last update (input windows and edge targets).
+    - ``pending``: slots written this frame outside the windows (hits); they join the windows
+      when the update finishes (:meth:`settle`).
     """
 
     __slots__ = ("a", "b", "component_id", "end", "hi", "live", "lo", "mass", "n_propagated",

@@ -13,146 +13,92 @@ __all__ = ["HMMConfig"]
 
 @dataclass(frozen=True)
 class HMMConfig:
-    """Frozen parameters of the place-recognition HMM.
+    """Frozen parameters of the place-recognition HMM, one field per open modelling choice.
 
-    Every open modelling choice of the filter is a field here; ``docs/hmm.md`` ("The
-    model") gives the exact equations. Defaults were chosen by small grid searches on synthetic
-    multi-traversal data and on Nordland summer -> winter HoG (``docs/hmm.md``,
-    "HMMConfig"; figures in ``docs/benchmarks.md``, "HMM defaults: accuracy").
-
-    Parameters
-    ----------
-    k : int
-        Neighbours the caller retrieves per query frame (the filter accepts any number of hits;
-        this is the facade's retrieval setting, kept here so a map remembers it).
-    smooth_k : int
-        Neighbours retrieved per frame when the drive is also smoothed (``ingest``,
-        ``localize --smooth``, the service's sessions), if larger than ``k`` (0: ``k``). The
-        causal filter still reads the ``k`` nearest. The smoothed decisions are made from the
-        ``k`` nearest first (the merge rule and the unmapped place are tuned on that model),
-        then again from all ``smooth_k``: over a whole drive, hits far down the list add
-        evidence that consecutive frames confirm, so the deeper pass places more frames right
-        under a change of conditions (Nordland winter -> summer smoothed recall@1 80.6 % at
-        ``k`` 10, 86.2 % with 64), but it also keeps finding hits near one hypothesis on a
-        street the map has never seen. So a frame the merge rule accepts keeps the ``k``-hit
-        decision's acceptance, and every other frame answers with the deep decision, never
-        merged (:meth:`sprint_map.localize.localizer.Localizer.smoothed`).
-    window : tuple of float
-        Forward transition window ``w``: ``w[0]`` is the weight of staying on the same image,
-        ``w[i]`` of moving ``i`` images ahead in the same sequence. Normalised on use; never
-        backwards. Mass that would move past the last image of a sequence goes to the sink. The
-        default's mean advance is 1.13 images per frame (a query at the map's speed advances 1).
-    edge_weight : float
-        ``beta``: relative weight of following an inter-sequence edge versus staying in the own
-        sequence. The row of a vertex ``u`` with out-edges ``u -> v_e`` (match probability
-        ``c_e``) sends ``1 / R`` into its own window and ``beta * c_e / R`` into the window of
-        ``v_e``, with ``R = 1 + beta * sum(c_e)``. 0 disables edges.
-    prune_threshold : float
-        Components whose share of the belief (sink included) falls below this after an update
-        leave the active set; their belief is dropped and the rest renormalised (paper: 1e-4).
-        0 disables pruning. With ``support_threshold`` also 0 the filter is exact w.r.t.
-        :class:`FullGraphFilter`.
-    max_active_components : int
-        A beam over the active set: after pruning, only this many components (the most
-        massive) stay active; the rest are pruned like those below ``prune_threshold``. It
-        bounds a frame's cost where many unmerged drives of the same streets each receive a
-        hit now and then (every drive its own component). 0: no beam.
-    support_threshold : float
-        Inside an active component only the *live support* is propagated: windows (runs of
-        slots of one sequence) that hold belief. After each update, slots whose belief is below
-        this share of the total (sink included) are trimmed from the ends of their window, and
-        windows are split where at least ``W - 1`` consecutive slots are below it; the trimmed
-        belief is dropped and the rest renormalised (like pruning, per slot). This is what makes
-        the per-frame cost follow the belief rather than the component, which in a lifelong map
-        grows into one giant component. 0 never trims: windows only grow (by ``W - 1`` per
-        frame) and the filter stays exact.
-    restart_prob : float
-        ``epsilon``: prior mass re-injected each frame, uniformly over the frame's retrieval hits.
-        This is what lets a hit start a new hypothesis (after a turn, a gap, a new place).
-    new_place_prob : float
-        ``nu``: prior mass moved each frame into the sink ("off the map": the vehicle left the
-        mapped streets). Together with the sink's likelihood this is the novelty hypothesis.
-    dist_scale : float or None
-        ``T``: scale of the likelihood kernel, in squared-L2 distance units: a hit at distance
-        ``d`` has log-likelihood ``(d_far - d) / T + miss_margin`` relative to an unretrieved
-        vertex (``d_far``: the frame's largest hit distance). ``None`` (default) adapts ``T`` to
-        the descriptor: ``dist_scale_factor`` times an exponential moving average of the frames'
-        spread ``d_far - d_1``.
-    dist_scale_ema : float
-        Weight of the newest frame in that moving average (only used when ``dist_scale`` is
-        None).
-    dist_scale_factor : float
-        The adaptive ``T`` is this times the moving average (only used when ``dist_scale`` is
-        None).
-    miss_margin : float
-        Log-likelihood advantage of the farthest hit over an unretrieved vertex (which is only
-        known to be at least as far as the farthest hit).
-    novelty_margin : float
-        Log-likelihood of the sink ("not any mapped place") relative to an unretrieved vertex.
-        Between 0 and ``miss_margin`` the sink beats stale hypotheses that the retrieval no
-        longer supports but loses to hypotheses that keep being retrieved.
-    novelty_dist : float or None
-        Optional absolute test: if the best hit of a frame is farther than this squared distance,
-        the sink is scored like a hit at ``novelty_dist``, i.e. it explains the frame better than
-        every hit. ``None`` (default) disables it (distances are descriptor-dependent).
-    novelty_quantile : float
-        Calibration of the unmapped-place hypothesis for smoothed (merge) decisions, per
-        drive: after a first smoothing pass, the best-hit distances of the frames that are
-        consistent matches (the map's merge rule without its lookalike tests: runs of 5
-        frames, no contrast gate) are this drive's match distances to the map (under its own
-        light and weather); their ``novelty_quantile`` quantile becomes ``novelty_dist`` for a
-        second pass, so a frame whose best hit is farther than the drive's matches
-        is explained at least as well by an unmapped place. 0 disables it (and so does a
-        ``novelty_dist`` set by hand). The causal filter does not use it.
-    novelty_window : int
-        The calibration is local: frame ``t`` uses the matched frames within this many
-        frames of it (light and weather change along a drive: tunnels, dusk), or the whole
-        drive where fewer than 10 lie that close. 0: the whole drive.
-    place_radius : int
-        ``r``: a place is the vertex's temporal neighbourhood ``[i - r, i + r]`` in its sequence
-        plus the same neighbourhood of every vertex reached from that neighbourhood over at most
-        ``place_hops`` edges (either direction). The decision's ``prob`` is the belief mass of
-        the place.
-    place_hops : int
-        ``h``: how many edges a place reaches across (drives chained by merge edges: one hop
-        per drive in the chain). 0 limits a place to one sequence.
-    contrast_reach : int
-        Smoothed decisions report a *contrast* (:func:`sprint_map.hmm.decision.place_contrast`):
-        the frame's best hit inside the decided place over its best hit elsewhere, where
-        "elsewhere" excludes the place's surroundings, this many images around it (the same
-        road a few images on is not a rival place). The merge rule reads it
-        (``MapConfig.merge_max_contrast``).
-    decision_candidates : int
-        How many of the most probable vertices are scored by place mass; the decision is the
-        candidate whose place holds the most mass.
-    min_confidence : float
-        A decision whose place mass is below this is reported as "no match".
-    cache_budget_bytes : int
-        Byte budget of the LRU component cache (:class:`sprint_map.hmm.cache.ComponentCache`).
+    ``docs/hmm.md`` ("The model") gives the equations each field enters; every field is
+    described by the comment above it. Validated on construction (``ValueError``); O(1).
+    Why the defaults are what they are: ``docs/decisions.md`` ("The HMM").
     """
 
+    #: Neighbours the caller retrieves per query frame (the facade's retrieval setting, kept
+    #: here so a map remembers it; the filter accepts any number of hits).
     k: int = 10
+    #: Neighbours retrieved per frame when the drive is also smoothed (``ingest``, ``localize
+    #: --smooth``, the service's sessions), if larger than ``k`` (0: ``k``): the *deep pass*.
+    #: Frames the merge rule accepts keep the ``k``-hit decision; every other frame answers
+    #: with the deep decision, never merged. The causal filter reads the ``k`` nearest only.
     smooth_k: int = 64
+    #: Forward transition window ``w``: ``w[0]`` weighs staying on the same image, ``w[i]``
+    #: moving ``i`` images ahead in the same sequence. Normalised on use; never backwards; mass
+    #: past a sequence's last image goes to the sink. Default mean advance: 1.13 images/frame.
     window: tuple[float, ...] = (0.25, 0.5, 0.15, 0.07, 0.03)
+    #: ``beta``: weight of following an inter-sequence edge against staying in the sequence.
+    #: A vertex ``u`` with out-edges ``u -> v_e`` (match probability ``c_e``) sends ``1 / R``
+    #: into its own window and ``beta * c_e / R`` into ``v_e``'s, ``R = 1 + beta * sum(c_e)``.
+    #: 0 disables edges.
     edge_weight: float = 1.0
+    #: Components whose share of the belief (sink included) falls below this leave the active
+    #: set, their belief dropped and the rest renormalised (paper: 1e-4). 0: no pruning; with
+    #: ``support_threshold`` also 0 the filter equals :class:`FullGraphFilter` exactly.
     prune_threshold: float = 1e-4
+    #: A beam over the active set: only this many components (the most massive) stay active
+    #: after pruning; it bounds a frame's cost when many unmerged drives of the same streets
+    #: each get a hit now and then. 0: no beam.
     max_active_components: int = 8
+    #: The *live support*: slots below this share of the belief are trimmed from the ends of
+    #: their window, and windows split where ``W - 1`` consecutive slots are below it (the
+    #: trimmed belief dropped, the rest renormalised), so a frame's cost follows the belief,
+    #: not the component. 0: never trim (windows grow by ``W - 1`` a frame; exact).
     support_threshold: float = 1e-6
+    #: ``epsilon``: prior mass re-injected each frame uniformly over the frame's retrieval
+    #: hits; what lets a hit start a new hypothesis (after a turn, a gap, a new place).
     restart_prob: float = 0.01
+    #: ``nu``: prior mass moved each frame into the sink ("off the map"). With the sink's
+    #: likelihood this is the novelty hypothesis.
     new_place_prob: float = 0.01
+    #: ``T``: scale of the likelihood kernel in squared-L2 units: a hit at distance ``d`` has
+    #: log-likelihood ``(d_far - d) / T + miss_margin`` over an unretrieved vertex (``d_far``:
+    #: the frame's farthest hit). ``None``: ``dist_scale_factor`` times a moving average of
+    #: the frames' spread ``d_far - d_1``.
     dist_scale: float | None = None
+    #: Weight of the newest frame in that moving average (``dist_scale`` None only).
     dist_scale_ema: float = 0.05
+    #: The adaptive ``T`` is this times the moving average (``dist_scale`` None only).
     dist_scale_factor: float = 0.5
+    #: Log-likelihood advantage of the farthest hit over an unretrieved vertex.
     miss_margin: float = 1.0
+    #: Log-likelihood of the sink over an unretrieved vertex. Between 0 and ``miss_margin`` the
+    #: sink beats stale hypotheses the retrieval no longer supports, not retrieved ones.
     novelty_margin: float = 0.25
+    #: If a frame's best hit is farther than this squared distance, the sink scores like a hit
+    #: at ``novelty_dist`` (it explains the frame better than every hit). ``None``: off.
     novelty_dist: float | None = None
+    #: The calibrated *unmapped place* of smoothed decisions: after a first smoothing pass, the
+    #: best-hit distances of the drive's consistent matches (runs of 5 frames, no contrast
+    #: gate) are its match distances; their ``novelty_quantile`` quantile becomes
+    #: ``novelty_dist`` for a second pass. 0 (or a ``novelty_dist`` set by hand): off.
     novelty_quantile: float = 0.85
+    #: The calibration is local: frame ``t`` uses the matched frames within this many frames
+    #: (or the whole drive where fewer than 10 lie that close). 0: the whole drive.
     novelty_window: int = 100
+    #: ``r``: a place is the vertex's neighbourhood ``[i - r, i + r]`` in its sequence plus the
+    #: same of every vertex reached over at most ``place_hops`` edges (either direction); a
+    #: decision's ``prob`` is the place's belief mass.
     place_radius: int = 2
+    #: ``h``: how many edges a place reaches across (one hop per drive in a chain of merges).
+    #: 0 limits a place to one sequence.
     place_hops: int = 4
+    #: The *contrast* of smoothed decisions (:func:`sprint_map.hmm.decision.place_contrast`)
+    #: compares the best hit inside the place with the best elsewhere, excluding this many
+    #: images around the place (the same road a few images on is no rival). The merge rule
+    #: reads it (``merge_max_contrast``).
     contrast_reach: int = 20
+    #: How many of the most probable vertices are scored by place mass; the decision is the
+    #: candidate whose place holds the most.
     decision_candidates: int = 4
+    #: A decision whose place mass is below this is reported as "no match".
     min_confidence: float = 0.2
+    #: Byte budget of the LRU component cache (:class:`sprint_map.hmm.cache.ComponentCache`).
     cache_budget_bytes: int = 256 << 20
 
     def __post_init__(self) -> None:

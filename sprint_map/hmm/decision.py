@@ -252,35 +252,13 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
                    rivals: Collection[int] | None = None) -> float:
     """How much the place of the vertex at ``slot`` stands out among a frame's hits.
 
-    The distance of the frame's best hit *inside* the place (:func:`place_runs` with
-    ``radius``) over the distance of its best hit *elsewhere*: outside the place's surroundings
-    (the place with ``reach`` instead of ``radius``, so the same stretch of road a few images
-    on does not count), in this component or any other. Below 1 the decided place is the
-    closest thing the map holds to the frame (Lowe's ratio test, at the level of places); at 1
-    or more something elsewhere looks as much like it: a lookalike street, whose hits a
-    sequence model can still line up frame after frame.
-
-    Parameters
-    ----------
-    view : BeliefView
-        The component holding the decided vertex.
-    slot : int
-        Its slot.
-    hit_ids, hit_dists : list
-        The frame's distinct valid hits (global vertex ids) and their squared-L2 distances.
-    radius, hops : int
-        ``place_radius`` and ``place_hops``.
-    reach : int
-        ``contrast_reach``: images around the place that are neither inside nor elsewhere.
-    rivals : collection of int, optional
-        If given, only these hits count as elsewhere (the smoother passes the hits that the
-        neighbouring frames confirm: a rival *route*, not a stray near neighbour).
-
-    Returns
-    -------
-    float
-        0 when nothing was retrieved elsewhere, ``inf`` when no hit fell inside the place
-        (the belief reached it by propagation alone), else the ratio.
+    The distance of the frame's best hit inside the place (:func:`place_runs` with ``radius``
+    and ``hops``) over that of its best hit elsewhere: outside the place widened to ``reach``
+    images, in any component. Below 1 the place is the closest thing the map holds (Lowe's ratio
+    test, for places); at 1 or more a lookalike is as close. ``hit_ids``/``hit_dists`` are the
+    frame's distinct valid hits; ``rivals``, if given, are the only hits that count as elsewhere
+    (the smoother passes those the neighbouring frames confirm as a route). Returns 0 when
+    nothing was retrieved elsewhere, ``inf`` when no hit fell inside the place, else the ratio.
 
     Notes
     -----

@@ -54,46 +54,22 @@ def _as_array(name: str, value: object, dtype: np.dtype) -> np.ndarray:
 class ComponentGraph:
     """Compact arrays for one connected component of the map.
 
-    Parameters
-    ----------
-    component_id : int
-        The component's id (whatever the source uses; the filter only compares them).
-    seq_ids : ndarray of int64, shape (S,)
-        Sequence ids in this component, sorted ascending.
-    seq_first : ndarray of int64, shape (S,)
-        Global vertex id of image 0 of each sequence.
-    seq_len : ndarray of int64, shape (S,)
-        Number of images of each sequence (>= 1).
-    edge_src, edge_dst : ndarray of int64, shape (E,)
-        Global vertex ids of the directed inter-sequence edges; both ends lie in this component.
-    edge_weight : ndarray of float64, shape (E,)
-        Match probability recorded when the edge was made (finite, >= 0).
+    Built from ``component_id`` (any id; the filter only compares them), ``seq_ids`` (int64, S:
+    the component's sequences, ascending), ``seq_first`` (global vertex id of each sequence's
+    image 0), ``seq_len`` (images per sequence, >= 1), ``edge_src``, ``edge_dst`` (int64, E:
+    global vertex ids of the directed inter-sequence edges, both ends in the component) and
+    ``edge_weight`` (float64, E: match probability when the edge was made, finite, >= 0).
 
-    Attributes
-    ----------
-    n_vertices : int
-        Number of vertices (images).
-    local_first : ndarray of int64, shape (S,)
-        Compact local index of image 0 of each sequence: sequences are laid out one after the
-        other in ``seq_ids`` order, so ``local = local_first[s] + image_id``.
-    edge_src_local, edge_dst_local : ndarray of int64, shape (E,)
-        Edge ends as compact local indices.
-    edge_src_seq, edge_dst_seq : ndarray of int64, shape (E,)
-        Index (into ``seq_ids``) of the sequence of each edge end.
-    adj_indptr, adj_indices : ndarray of int64
-        Undirected adjacency (CSR over compact local indices, both edge directions), used to
-        find the vertices of a place.
+    Derived (read-only): ``n_vertices``; ``local_first`` (the compact local index of each
+    sequence's image 0: sequences laid out in ``seq_ids`` order, ``local = local_first[s] +
+    image_id``); ``edge_src_local``, ``edge_dst_local`` (edge ends as local indices);
+    ``edge_src_seq``, ``edge_dst_seq`` (index into ``seq_ids`` of each end's sequence);
+    ``adj_indptr``, ``adj_indices`` (undirected CSR adjacency over local indices, both edge
+    directions: the vertices of a place).
 
-    Raises
-    ------
-    ValueError
-        On inconsistent arrays: shapes, unsorted or repeated sequence ids, empty or overlapping
-        vertex ranges, an edge end outside the component, a negative or non-finite weight.
-
-    Notes
-    -----
-    Construction is O(S log S + E log E) time and O(n_vertices + E) memory (the adjacency
-    index pointer has one entry per vertex). The arrays are read-only.
+    Raises ``ValueError`` on inconsistent arrays: shapes, unsorted or repeated sequence ids,
+    empty or overlapping vertex ranges, an edge end outside the component, a negative or
+    non-finite weight. Construction is O(S log S + E log E) time, O(n_vertices + E) memory.
     """
 
     component_id: int

@@ -44,10 +44,11 @@ from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
-from sprint_map.hmm.transition import ComponentTransition
+from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
-__all__ = ["FrameBelief", "ForwardBackward", "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT",
-           "RIVAL_SLACK", "smooth"]
+__all__ = ["DecisionScratch", "FrameBelief", "ForwardBackward", "Parts", "RIVAL_CONFIRMATIONS",
+           "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_step", "decide_posterior", "gamma_of",
+           "nearest_hits", "pull_operators", "smooth"]
 
 #: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
 #: this many of the 4 frames around it have a hit where the same drive would be then ...
@@ -88,6 +89,33 @@ class FrameBelief:
     hit_lik: list[float]
     sink_lik: float
     ruled_out: frozenset[int] = frozenset()
+    #: Per part: the positions (ascending) of its slots that hold a hit, and their likelihood
+    #: ratios; made on first use by :func:`backward_step` (None until then).
+    hit_layout: list[tuple[np.ndarray, np.ndarray]] | None = None
+    #: The backward step's operators from the next frame onto this one, when kept
+    #: (:func:`backward_step` with ``keep``).
+    pulls: list[tuple[int, PullOperator]] | None = None
+
+    def hits_in_parts(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Where this frame's hits sit in its parts: per part, the positions (ascending) in
+        its ``slots`` whose vertex is a hit, and their likelihood ratios (cached; O(live log k)
+        once)."""
+        if self.hit_layout is None:
+            layout = []
+            if self.hit_ids:
+                order = np.argsort(np.asarray(self.hit_ids, dtype=np.int64), kind="stable")
+                ids = np.asarray(self.hit_ids, dtype=np.int64)[order]
+                liks = np.asarray(self.hit_lik, dtype=np.float64)[order]
+            for trans, slots, _ in self.parts:
+                if not self.hit_ids or not slots.size:
+                    layout.append((_EMPTY_SLOTS, _EMPTY_VALS))
+                    continue
+                vids = trans.vertex_of_slots(slots)
+                at = np.minimum(ids.searchsorted(vids), len(ids) - 1)
+                pos = (ids[at] == vids).nonzero()[0]
+                layout.append((pos, liks[at[pos]]))
+            self.hit_layout = layout
+        return self.hit_layout
 
 
 class ForwardBackward:
@@ -140,9 +168,9 @@ class ForwardBackward:
         """Filter one frame (as :meth:`SprintFilter.update`, with another cue's ``weights``
         and ``sink_weight`` if given) and keep its belief."""
         ids = np.asarray(hit_ids)
-        dists = np.asarray(hit_dists)
-        self.filter.update(ids, dists, weights, sink_weight)  # validates the hits first
-        vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, dists, weights, sink_weight)
+        vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, np.asarray(hit_dists),
+                                                            weights, sink_weight)
+        self.filter.update_observed(vids, lik, sink_lik)  # a bad hit raises before any change
         parts, sink = self.filter.live_belief()
         ruled_out: frozenset[int] = frozenset()
         if weights is not None:
@@ -166,68 +194,25 @@ class ForwardBackward:
 
         A match carries its ``contrast`` (:func:`~sprint_map.hmm.decision.place_contrast`
         over the frame's ``k`` nearest hits, as the causal filter reads them, whatever
-        ``smooth_k`` the drive was searched with).
+        ``smooth_k`` the drive was searched with). Each frame's answer is reported on the
+        drive the next frame's was, where the place holds it (``prefer_seq`` of
+        :func:`decide_posterior`).
         """
-        cfg = self.config
-        buffers: dict[int, np.ndarray] = {}
+        scratch = DecisionScratch()
         out: list[Decision] = []
         prefer: int | None = None
         # each frame's k nearest hits, read by its own contrast and its neighbours' (O(n k))
-        nearest = [self._nearest_hits(t) for t in range(len(self.frames))]
+        nearest = [nearest_hits(frame, self.config.k) for frame in self.frames]
         for t, (parts, sink) in zip(range(len(self.frames) - 1, -1, -1), self._backward(),
                                     strict=True):
-            views = []
-            for trans, slots, gamma in parts:
-                key = trans.graph.component_id
-                buf = buffers.get(key)
-                if buf is None:
-                    if len(buffers) > 64:
-                        buffers.clear()
-                    buf = buffers[key] = np.zeros(trans.n_slots)
-                buf[slots] = gamma
-                views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
-            candidates = top_candidates(views, cfg.decision_candidates)
-            n_vertices = sum(len(slots) for _, slots, _ in parts)
-            decision = decide(views, candidates, sink, cfg.place_radius, cfg.place_hops,
-                              cfg.min_confidence, len(parts), n_vertices, prefer)
+            decision = decide_posterior(self.config, parts, sink, scratch, prefer, nearest, t)
             # Report a place by the drive the next frame was reported on, where it can be:
             # consecutive answers then follow one drive (see merge_rule's runs).
             if decision.candidate_id is not None and decision.seq_id is not None:
                 prefer = decision.seq_id
-            if decision.vertex_id is not None:
-                decision = replace(decision, contrast=self._contrast(views, decision.vertex_id,
-                                                                     t, nearest))
             out.append(decision)
-            for (_, slots, _), view in zip(parts, views, strict=True):
-                view.x[slots] = 0.0
         out.reverse()
         return out
-
-    def _contrast(self, views: list[BeliefView], vertex_id: int, t: int,
-                  nearest: list[tuple[list[int], list[float]]]) -> float:
-        cfg = self.config
-        ids, dists = nearest[t]
-        for view in views:
-            s = int(view.graph.seq_index(np.array([vertex_id]))[0])
-            if s >= 0:
-                slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
-                return place_contrast(view, slot, ids, dists, cfg.place_radius,
-                                      cfg.place_hops, cfg.contrast_reach,
-                                      _confirmed(ids, t, nearest))
-        return math.nan  # not reached: the decided vertex lies in one of the views
-
-    def _nearest_hits(self, t: int) -> tuple[list[int], list[float]]:
-        """Frame ``t``'s ``k`` nearest distinct hits (as the causal filter reads them, whatever
-        ``smooth_k`` the drive was searched with), less those another cue ruled out."""
-        frame = self.frames[t]
-        ids, dists = frame.hit_ids, frame.hit_dists
-        if len(ids) > self.config.k:
-            order = sorted(range(len(ids)), key=dists.__getitem__)[:self.config.k]
-            ids, dists = [ids[i] for i in order], [dists[i] for i in order]
-        if frame.ruled_out:
-            keep = [i for i, v in enumerate(ids) if v not in frame.ruled_out]
-            ids, dists = [ids[i] for i in keep], [dists[i] for i in keep]
-        return ids, dists
 
     def _backward(self) -> Iterable[tuple[list[tuple[ComponentTransition, np.ndarray,
                                                      np.ndarray]], float]]:
@@ -235,62 +220,182 @@ class ForwardBackward:
         frames = self.frames
         if not frames:
             return
-        cfg = self.config
-        eps, nu = cfg.restart_prob, cfg.new_place_prob
-        scale = 1.0 - eps - nu
         last = frames[-1]
         betas = [np.ones(len(slots)) for _, slots, _ in last.parts]
         beta_sink = 1.0
-        yield self._gamma(last, betas, beta_sink)
+        yield gamma_of(last, betas, beta_sink)
         for t in range(len(frames) - 2, -1, -1):
-            now, nxt = frames[t], frames[t + 1]
-            # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1}.
-            m_by_trans: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-            hit_m = 0.0
-            lik_of = dict(zip(nxt.hit_ids, nxt.hit_lik, strict=True))
-            for (trans, slots, _), beta in zip(nxt.parts, betas, strict=True):
-                m = beta.copy()
-                if lik_of:
-                    vids = trans.vertex_of_slots(slots) if slots.size else slots
-                    for i, v in enumerate(vids.tolist()):
-                        lik = lik_of.get(v)
-                        if lik is not None:
-                            m[i] *= lik
-                            hit_m += m.item(i)
-                m_by_trans[trans.graph.component_id] = (slots, m)
-            m_sink = beta_sink * nxt.sink_lik
-            n_hits = len(nxt.hit_ids)
-            const = (eps * hit_m / n_hits + nu * m_sink) if n_hits else (eps + nu) * m_sink
-            new_betas = []
-            for trans, slots, _ in now.parts:
-                m_slots, m_vals = m_by_trans.get(trans.graph.component_id,
-                                                 (_EMPTY_SLOTS, _EMPTY_VALS))
-                new_betas.append(trans.pull(slots, m_slots, m_vals, m_sink) + const)
-            beta_sink = scale * m_sink + const
-            # Rescale (gamma is normalised anyway): keep beta near 1.
-            top = max([beta_sink] + [float(b.max()) for b in new_betas if b.size])
-            if top > 0.0:
-                new_betas = [b / top for b in new_betas]
-                beta_sink /= top
-            betas = new_betas
-            yield self._gamma(now, betas, beta_sink)
-
-    @staticmethod
-    def _gamma(frame: FrameBelief, betas: list[np.ndarray], beta_sink: float
-               ) -> tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]], float]:
-        parts = [(trans, slots, alpha * beta)
-                 for (trans, slots, alpha), beta in zip(frame.parts, betas, strict=True)]
-        sink = frame.sink * beta_sink
-        total = sink + sum(float(g.sum()) for _, _, g in parts)
-        if not total > 0.0 or not np.isfinite(total):
-            # (Only if the model gives the whole drive zero probability: keep the filter's.)
-            return list(frame.parts), frame.sink
-        inv = 1.0 / total
-        return [(t, s, g * inv) for t, s, g in parts], sink * inv
+            betas, beta_sink = backward_step(self.config, frames[t], frames[t + 1], betas,
+                                             beta_sink)
+            yield gamma_of(frames[t], betas, beta_sink)
 
 
 _EMPTY_SLOTS = np.zeros(0, dtype=np.int64)
 _EMPTY_VALS = np.zeros(0)
+
+
+Parts = list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
+
+
+def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief,
+                  betas: list[np.ndarray], beta_sink: float, *, keep: bool = False
+                  ) -> tuple[list[np.ndarray], float]:
+    """One step of the backward recursion: ``beta_t`` on the parts of frame ``now`` from
+    ``beta_{t+1}`` (``betas``, one per part of ``nxt``, and ``beta_sink``), rescaled so that
+    its largest value is 1 (the posterior is normalised anyway).
+
+    The step is linear in ``beta_{t+1}``: its operator (:func:`pull_operators`) is built from
+    the two frames' supports and ``nxt``'s likelihoods; ``keep`` keeps it on ``now`` for the
+    next step between the same frames (the fixed-lag smoother makes each step ``L`` times).
+
+    Notes
+    -----
+    Building the operator is O(live W log live) per part (:meth:`ComponentTransition.
+    pull_operator`), what a forward step costs; applying it O(live W), a few numpy calls.
+    Nothing is sized by the map.
+    """
+    eps, nu = config.restart_prob, config.new_place_prob
+    ops = now.pulls if now.pulls is not None else pull_operators(now, nxt)
+    if keep:
+        now.pulls = ops
+    # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into ops).
+    hit_m = 0.0
+    for beta, (pos, lik) in zip(betas, nxt.hits_in_parts(), strict=True):
+        if pos.size:
+            hit_m += float(np.dot(lik, beta[pos]))
+    m_sink = beta_sink * nxt.sink_lik
+    n_hits = len(nxt.hit_ids)
+    const = (eps * hit_m / n_hits + nu * m_sink) if n_hits else (eps + nu) * m_sink
+    new_betas = []
+    top = beta_sink = (1.0 - eps - nu) * m_sink + const
+    for j, op in ops:
+        beta = op.apply(betas[j] if j >= 0 else _EMPTY_VALS, m_sink)
+        beta += const
+        if beta.size:
+            top = max(top, float(beta.max()))
+        new_betas.append(beta)
+    # Rescale (gamma is normalised anyway): keep beta near 1.
+    if top > 0.0:
+        inv = 1.0 / top
+        for beta in new_betas:
+            beta *= inv
+        beta_sink *= inv
+    return new_betas, beta_sink
+
+
+def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOperator]]:
+    """Per part of ``now``: the index of ``nxt``'s part of the same component (-1: none) and
+    the operator from it (:meth:`ComponentTransition.pull_operator`), ``nxt``'s likelihood
+    ratios folded into its weights. O(live W log live)."""
+    index = {trans.graph.component_id: j for j, (trans, _, _) in enumerate(nxt.parts)}
+    layout = nxt.hits_in_parts()
+    out = []
+    for trans, slots, _ in now.parts:
+        j = index.get(trans.graph.component_id, -1)
+        if j < 0:
+            out.append((j, trans.pull_operator(slots, _EMPTY_SLOTS)))
+            continue
+        m_slots = nxt.parts[j][1]
+        op = trans.pull_operator(slots, m_slots)
+        pos, lik = layout[j]
+        if pos.size and op.cols.size:
+            e = np.ones(len(m_slots))
+            e[pos] = lik
+            op.weights = op.weights * e[op.cols]
+        out.append((j, op))
+    return out
+
+
+def gamma_of(frame: FrameBelief, betas: list[np.ndarray], beta_sink: float
+             ) -> tuple[Parts, float]:
+    """The smoothed posterior ``normalise(alpha_t * beta_t)`` of ``frame`` (its parts with
+    gamma in place of alpha, and the sink's); the filtered one if the model gives the frames
+    zero probability. O(live)."""
+    parts = [(trans, slots, alpha * beta)
+             for (trans, slots, alpha), beta in zip(frame.parts, betas, strict=True)]
+    sink = frame.sink * beta_sink
+    total = sink + sum(float(g.sum()) for _, _, g in parts)
+    if not total > 0.0 or not np.isfinite(total):
+        # (Only if the model gives the whole drive zero probability: keep the filter's.)
+        return list(frame.parts), frame.sink
+    inv = 1.0 / total
+    return [(t, s, g * inv) for t, s, g in parts], sink * inv
+
+
+class DecisionScratch:
+    """Dense slot vectors, one per component, that a smoothed posterior is written into for
+    the decision code (zero between decisions), like the filter's own belief vectors."""
+
+    def __init__(self) -> None:
+        self.buffers: dict[int, np.ndarray] = {}
+
+    def vector(self, trans: ComponentTransition) -> np.ndarray:
+        key = trans.graph.component_id
+        buf = self.buffers.get(key)
+        if buf is None or len(buf) != trans.n_slots:
+            if len(self.buffers) > 64:
+                self.buffers.clear()
+            buf = self.buffers[key] = np.zeros(trans.n_slots)
+        return buf
+
+
+def nearest_hits(frame: FrameBelief, k: int) -> tuple[list[int], list[float]]:
+    """A frame's ``k`` nearest distinct hits (as the causal filter reads them, whatever
+    ``smooth_k`` the drive was searched with), less those another cue ruled out
+    (``ruled_out``: no rivals). O(k log k)."""
+    ids, dists = frame.hit_ids, frame.hit_dists
+    if len(ids) > k:
+        order = sorted(range(len(ids)), key=dists.__getitem__)[:k]
+        ids, dists = [ids[i] for i in order], [dists[i] for i in order]
+    if frame.ruled_out:
+        keep = [i for i, v in enumerate(ids) if v not in frame.ruled_out]
+        ids, dists = [ids[i] for i in keep], [dists[i] for i in keep]
+    return ids, dists
+
+
+def decide_posterior(config: HMMConfig, parts: Parts, sink: float, scratch: DecisionScratch,
+                     prefer: int | None, nearest: list[tuple[list[int], list[float]]],
+                     t: int) -> Decision:
+    """The decision of frame ``t`` from its smoothed posterior ``(parts, sink)``.
+
+    ``prefer`` is a sequence id to report the place by (:func:`decide`'s ``prefer_seq``);
+    ``nearest`` holds the ``k`` nearest hits of the frames around ``t`` (``nearest[t]`` is
+    frame ``t``'s; those of ``t - 2 .. t + 2`` that it holds confirm rivals), for the
+    contrast of a match.
+
+    Notes
+    -----
+    O(live) to write the posterior into ``scratch`` and find the candidates, plus the place
+    masses of the candidates and the contrast (:func:`place_contrast`).
+    """
+    views = []
+    for trans, slots, gamma in parts:
+        buf = scratch.vector(trans)
+        buf[slots] = gamma
+        views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
+    candidates = top_candidates(views, config.decision_candidates)
+    n_vertices = sum(len(slots) for _, slots, _ in parts)
+    decision = decide(views, candidates, sink, config.place_radius, config.place_hops,
+                      config.min_confidence, len(parts), n_vertices, prefer)
+    if decision.vertex_id is not None:
+        decision = replace(decision, contrast=_contrast(config, views, decision.vertex_id, t,
+                                                        nearest))
+    for (_, slots, _), view in zip(parts, views, strict=True):
+        view.x[slots] = 0.0
+    return decision
+
+
+def _contrast(config: HMMConfig, views: list[BeliefView], vertex_id: int, t: int,
+              nearest: list[tuple[list[int], list[float]]]) -> float:
+    ids, dists = nearest[t]
+    for view in views:
+        s = int(view.graph.seq_index(np.array([vertex_id]))[0])
+        if s >= 0:
+            slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
+            return place_contrast(view, slot, ids, dists, config.place_radius,
+                                  config.place_hops, config.contrast_reach,
+                                  _confirmed(ids, t, nearest))
+    return math.nan  # not reached: the decided vertex lies in one of the views
 
 
 def _confirmed(ids: list[int], t: int, nearest: list[tuple[list[int], list[float]]]
@@ -302,14 +407,12 @@ def _confirmed(ids: list[int], t: int, nearest: list[tuple[list[int], list[float
     counted: a rival too many, never one too few). A rival route, not a stray near neighbour.
     O(k^2)."""
     n = len(nearest)
-    near = [(d, nearest[t + d][0]) for d in (-2, -1, 1, 2) if 0 <= t + d < n]
-    out = set()
-    for h in ids:
-        votes = sum(1 for d, other in near
-                    if any(abs(w - (h + d)) <= RIVAL_SLACK for w in other))
-        if votes >= RIVAL_CONFIRMATIONS:
-            out.add(h)
-    return out
+    # frame t + d confirms h when one of its hits w has |w - (h + d)| <= slack: h is one of
+    # w - d - slack .. w - d + slack
+    reach = range(-RIVAL_SLACK, RIVAL_SLACK + 1)
+    near = [{w - d + s for w in nearest[t + d][0] for s in reach}
+            for d in (-2, -1, 1, 2) if 0 <= t + d < n]
+    return {h for h in ids if sum(h in covered for covered in near) >= RIVAL_CONFIRMATIONS}
 
 
 def smooth(config: HMMConfig, source: GraphSource,

@@ -57,40 +57,20 @@ TRANSITION_MEMO = 32
 class SprintFilter:
     """The SPRINT subgraph HMM over a :class:`~sprint_map.hmm.graph.GraphSource`.
 
-    Parameters
-    ----------
-    config : HMMConfig
-        Model parameters.
-    source : GraphSource
-        Where components come from (the map facade's LMDB source, or
-        :class:`~sprint_map.hmm.graph.MemoryGraphSource`).
-    cache : ComponentCache, optional
-        Shared LRU cache of components; by default a private one of
-        ``config.cache_budget_bytes``.
+    ``config`` holds the model parameters; ``source`` is where components come from (the map's
+    LMDB source or :class:`~sprint_map.hmm.graph.MemoryGraphSource`); ``cache`` is a shared LRU
+    :class:`ComponentCache` (default: a private one of ``config.cache_budget_bytes``).
+    ``pruned_mass``, ``trimmed_mass``: belief dropped so far by component pruning and support
+    trimming (each step's share, summed; ``last_pruned_mass``, ``last_trimmed_mass`` the last
+    step's); ``frames``: frames filtered since the last reset.
 
-    Attributes
-    ----------
-    pruned_mass, trimmed_mass : float
-        Belief dropped so far by component pruning and by support trimming (each step's share
-        of its total, summed); ``last_pruned_mass`` and ``last_trimmed_mass`` are the last
-        step's.
-    frames : int
-        Frames filtered since the last reset.
+    A step costs O(W live + E_live + k log S_active) (``live``: slots of the live windows,
+    ``E_live``: edges leaving them): never O(map) nor O(component), but for a newly active
+    component's load. Memory: a slot vector per active component plus the cache budget. Not
+    thread-safe (one filter per query stream). The belief is normalised lazily: slot vectors and
+    the sink hold a raw belief, the posterior is ``raw * z`` with ``z = 1 / raw total`` (every
+    read applies it); raw values are rescaled only when ``z`` leaves ``[1e-60, 1e60]``.
 
-    Notes
-    -----
-    A step costs O(W live + E_live + k log S_active), ``live`` = slots of the live windows,
-    ``E_live`` = edges leaving them: never O(map), and not O(component) either (only a newly
-    active component's load and set-up are). Memory is a slot vector per active component plus
-    the cache budget. Not thread-safe (one filter per query stream).
-
-    The belief is normalised lazily: the components' slot vectors and the sink hold a *raw*
-    belief, and the posterior is ``raw * z`` with one global factor ``z = 1 / raw total``, so a
-    step does not rescale every live slot (every read — decision, posterior — applies ``z``).
-    The raw values are rescaled in place only when ``z`` leaves ``[1e-60, 1e60]``.
-
-    Examples
-    --------
     >>> import numpy as np
     >>> from sprint_map.hmm import HMMConfig, MemoryGraphSource, SprintFilter
     >>> f = SprintFilter(HMMConfig(), MemoryGraphSource([50, 50]))
@@ -326,6 +306,15 @@ class SprintFilter:
                 self._rescale()
         self.frames += 1
 
+    def update_observed(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
+        """:meth:`update` for a frame already evaluated by an
+        :class:`~sprint_map.hmm.observation.ObservationModel` of this config that has seen the
+        same frames (its distinct valid hits, their likelihood ratios and the sink's): the
+        smoothers evaluate each frame once, for the filter and for themselves. The same
+        floats as :meth:`update` (its one-hit path is the same arithmetic); raises as it does
+        for a hit the source does not know, before the belief is touched."""
+        self._update_any(vids, liks, sink_lik)
+
     def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
         """:meth:`update` for any frame: the general path (the one-hit path is inline there)."""
         n_hits = len(vids)
@@ -401,6 +390,11 @@ class SprintFilter:
                 active.remove(cid)
             raise
         return out
+
+    def transition(self, component_id: int) -> ComponentTransition:
+        """The transition of a component, as the filter propagates it (through the cache; its
+        set-up memoised per graph): what the fixed-lag smoother re-maps waiting frames onto."""
+        return self._transition(component_id)
 
     def _transition(self, component_id: int) -> ComponentTransition:
         """The transition of a component (through the cache; set-up memoised per graph)."""

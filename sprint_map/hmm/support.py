@@ -131,36 +131,16 @@ def trim(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, limit: float, gap: int,
     """Rebuild windows from the slots holding at least ``limit``; zero the rest of them.
 
     A window keeps the slots from its first to its last slot with belief ``>= limit``; it is
-    split where ``gap`` or more consecutive slots hold less (or lie outside every window), and
-    windows closer than ``gap`` are merged.
+    split where ``gap`` (:func:`merge_gap`) or more consecutive slots hold less (or lie outside
+    every window), and windows closer than ``gap`` are merged. ``x`` (float64) is the
+    component's slot vector (cut slots set to 0 in place); ``lo``, ``hi`` (int64) sorted
+    disjoint windows; ``limit <= 0`` trims nothing (the windows are only rebuilt, merging
+    ``extra`` in); ``extra`` (int64, optional): slots outside the windows that hold belief (the
+    frame's hits), which join the windows.
 
-    Parameters
-    ----------
-    x : ndarray of float64
-        The component's slot vector (cut slots are set to 0 in place).
-    lo, hi : ndarray of int64
-        Sorted disjoint windows.
-    limit : float
-        Belief below which a slot is negligible; ``<= 0`` trims nothing (windows are only
-        rebuilt, which merges ``extra`` in).
-    gap : int
-        :func:`merge_gap`.
-    extra : ndarray of int64, optional
-        Slots outside the windows that hold belief (the frame's hits); they join the windows.
-
-    Returns
-    -------
-    lo, hi : ndarray of int64
-        The new windows.
-    live : ndarray of int64
-        The slots of the old windows and ``extra`` that lie in the new windows (ascending;
-        every slot of the new windows that can hold belief).
-    trimmed : float
-        Belief set to 0.
-
-    Notes
-    -----
-    O(live log live) (a sort only with ``extra``), about 20 numpy calls.
+    Returns ``(lo, hi, live, trimmed)``: the new windows, the slots of the old windows and
+    ``extra`` that lie in them (ascending: every slot that can hold belief), and the belief set
+    to 0. O(live log live) (a sort only with ``extra``), about 20 numpy calls.
     """
     idx = ranges(lo, hi - lo)
     if extra is not None:

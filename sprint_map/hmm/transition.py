@@ -37,7 +37,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
 from sprint_map.hmm.support import merge, merge_gap, ranges
 
-__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "correlate",
+__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator", "correlate",
            "full_transition_matrix", "window_kernel"]
 
 _I64 = np.int64
@@ -94,50 +94,27 @@ def _kernels_of(window: tuple[float, ...], restart_prob: float, new_place_prob: 
 
 
 class ComponentTransition:
-    """The transition operator of one component, over a gutter slot layout.
+    """The transition operator of one component (``graph``, with ``config``'s window, edge
+    weight, restart and new-place probabilities), over a gutter slot layout.
 
-    Parameters
-    ----------
-    graph : ComponentGraph
-        The component.
-    config : HMMConfig
-        Window, edge weight, restart and new-place probabilities.
+    Attributes (read-only):
 
-    Attributes
-    ----------
-    graph : ComponentGraph
-    gutter : int
-        ``g = max(W - 1, 1)``, the zero slots after every sequence: room for what a window at
-        the sequence end pushes past it, and at least :attr:`gap`, so that windows of two
-        sequences never touch (with ``W = 1`` and no gutter they would merge into one window
-        spanning both, and the end clip would send the second one's mass to the sink).
-    spread : int
-        ``W - 1``: how far one step moves mass (and grows a window).
-    n_state : int
-        Vertices plus ``g`` gutter slots after every sequence but the last (the layout of
-        :meth:`propagate`).
-    n_slots : int
-        ``n_state + g``: the length of a belief vector for :meth:`propagate_windows`, whose last
-        sequence has its gutter too (a window at its end spills there).
-    slot_first, seq_end : ndarray of int64, shape (S,)
-        Slot of image 0 of each sequence (``seq_ids`` order), and one past its last image.
-    gap : int
-        Smallest distance between two windows (:func:`sprint_map.hmm.support.merge_gap`).
-    has_edges : bool
-        Whether any edge carries mass (``beta > 0`` and a positive weight).
-    krev : ndarray of float64, shape (W,)
-        The scaled window reversed (``np.correlate`` with it is the convolution).
-    ranges : list of (int, int, int)
-        ``(first vertex id, length, first slot)`` of every sequence (the active set's index).
-    edge_src, edge_dst, edge_coef : ndarray
-        The live edges as slots, sorted by source slot, and the share ``beta c_e / R_u`` of the
-        source's mass each carries.
+    - ``gutter``: ``g = max(W - 1, 1)`` zero slots after every sequence: room for what a window
+      at a sequence end pushes past it, and at least ``gap``, so windows of two sequences never
+      touch (with ``W = 1`` and no gutter they would merge, and the end clip would send the
+      second one's mass to the sink). ``spread``: ``W - 1``, how far one step moves mass.
+    - ``n_state``: vertices plus ``g`` after every sequence but the last (:meth:`propagate`);
+      ``n_slots``: ``n_state + g``, a belief vector for :meth:`propagate_windows`.
+    - ``slot_first``, ``seq_end`` (int64, S): slot of image 0 of each sequence (``seq_ids``
+      order), one past its last; ``ranges``: ``(first vertex id, length, first slot)`` of each.
+    - ``gap``: smallest distance between two windows (:func:`.support.merge_gap`).
+    - ``has_edges``: whether any edge carries mass; ``edge_src``, ``edge_dst``, ``edge_coef``:
+      the live edges as slots, sorted by source, each with its share ``beta c_e / R_u`` of the
+      source's mass; ``krev``: the scaled window reversed (``np.correlate`` with it convolves).
 
-    Notes
-    -----
-    Construction is O(S + E log E), plus O(n_vertices) for the reciprocal row sums (a dense
-    vector over the slots) when the component has edges.
-    :meth:`propagate_windows` is O(W live + edges leaving the windows), never O(n_vertices).
+    Construction is O(S + E log E), plus O(n_vertices) for the reciprocal row sums when the
+    component has edges. :meth:`propagate_windows` is O(W live + edges leaving the windows),
+    never O(n_vertices).
     """
 
     __slots__ = ("_edge_src_list", "_first_list", "_rinv", "edge_coef", "edge_dst", "edge_src",
@@ -234,33 +211,19 @@ class ComponentTransition:
                           ) -> tuple[np.ndarray, np.ndarray, float, float, int]:
         """Propagate the belief held in windows ``[lo, hi)`` of ``x``, in place.
 
-        Parameters
-        ----------
-        x : ndarray of float64, shape (n_slots,)
-            Belief in slot layout; every slot outside the windows holds 0.
-        lo, hi : ndarray of int64
-            Sorted windows, each inside one sequence, at least :attr:`gap` slots apart.
+        ``x`` (float64, ``n_slots``) is the belief in slot layout, 0 outside the windows; ``lo``,
+        ``hi`` (int64) are sorted windows, each inside one sequence, at least :attr:`gap` apart.
 
-        Returns
-        -------
-        lo, hi : ndarray of int64
-            The windows after the step: grown by ``W - 1`` (clipped at sequence ends) and
-            joined by one window per edge target outside them (merged where closer than
-            :attr:`gap`). ``x`` is zero outside them again.
-        overflow : float
-            Mass that ran past sequence ends (scaled like the belief; goes to the sink).
-        mass : float
-            Belief left in the windows.
-        n_propagated : int
-            Slots propagated: the input windows, edge targets included.
+        Returns ``(lo, hi, overflow, mass, n_propagated)``: the windows after the step (grown by
+        ``W - 1``, clipped at sequence ends, joined by one window per edge target outside them,
+        merged where closer than :attr:`gap`; ``x`` is 0 outside them again), the mass that ran past
+        sequence ends (scaled like the belief; it goes to the sink), the belief left in the windows,
+        and the slots propagated (the input windows, edge targets included).
 
-        Notes
-        -----
-        O(W live + edges leaving the windows), about 25 numpy calls whatever the number of
-        windows: the windows are gathered into one compact vector, each followed by its own
-        ``W - 1`` zero slots (they are at least that far apart in ``x``, or followed by a
-        gutter), convolved once and scattered back. Edges leaving the windows are found by two
-        binary searches in the source-sorted edge list.
+        O(W live + edges leaving the windows), about 25 numpy calls whatever the number of windows:
+        the windows are gathered into one compact vector, each followed by its own ``W - 1`` zero
+        slots, convolved once and scattered back; edges leaving them are found by two binary
+        searches in the source-sorted edge list.
         """
         g = self.spread
         n_edges = 0
@@ -355,6 +318,72 @@ class ComponentTransition:
                 owner = np.repeat(np.arange(slots.size, dtype=_I64), counts)
                 moved = ahead(self.edge_dst[eidx]) * self.edge_coef[eidx]
                 out += np.bincount(owner, weights=moved, minlength=slots.size)
+        return out
+
+
+    def pull_operator(self, slots: np.ndarray, m_slots: np.ndarray) -> PullOperator:
+        """:meth:`pull` from ``slots`` onto ``m_slots`` as a linear operator, built once and
+        applied to many ``m`` (the fixed-lag smoother pulls every pair of frames ``L`` times).
+
+        ``pull(slots, m_slots, m_vals, m_sink)`` equals ``op.apply(m_vals, m_sink)`` (to
+        rounding: the sums are taken in another order).
+
+        Notes
+        -----
+        Built in O((|slots| + E_out) W log |m_slots|), as one :meth:`pull`; it holds at most
+        ``(|slots| + E_out) W`` weights.
+        """
+        slots = np.asarray(slots, dtype=_I64)
+        m_slots = np.asarray(m_slots, dtype=_I64)
+        n = slots.size
+        kernel = self.kernel
+        origin, row, factor = slots, np.arange(n, dtype=_I64), None
+        if self.has_edges and n:
+            factor = self._rinv[slots]
+            e_lo = self.edge_src.searchsorted(slots)
+            counts = self.edge_src.searchsorted(slots, "right") - e_lo
+            n_edges = int(counts.sum())
+            if n_edges:
+                eidx = ranges(e_lo, counts, n_edges)
+                origin = np.concatenate((slots, self.edge_dst[eidx]))
+                row = np.concatenate((row, np.repeat(row, counts)))
+                factor = np.concatenate((factor, self.edge_coef[eidx]))
+        end = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1]
+        tgt = origin[:, None] + np.arange(len(kernel), dtype=_I64)
+        weights = kernel * factor[:, None] if factor is not None else np.broadcast_to(
+            kernel, tgt.shape)
+        past = tgt >= end[:, None]
+        sink = np.bincount(row, weights=np.where(past, weights, 0.0).sum(axis=1), minlength=n)
+        if m_slots.size:
+            pos = np.minimum(m_slots.searchsorted(tgt), m_slots.size - 1)
+            found = (m_slots[pos] == tgt) & ~past
+            rows = np.broadcast_to(row[:, None], tgt.shape)[found]
+            return PullOperator(n, rows, pos[found], weights[found], sink)
+        return PullOperator(n, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, sink)
+
+
+class PullOperator:
+    """A :meth:`ComponentTransition.pull` fixed in its source and target slots: ``apply(m,
+    m_sink)`` is ``sum_j A(u, j) m(j)`` for every source slot ``u`` (``rows``/``cols``/
+    ``weights``: the entries of ``A`` into the target slots, ``sink``: each source's mass
+    that leaves its sequence). O(entries) per application, three numpy calls."""
+
+    __slots__ = ("cols", "n", "rows", "sink", "weights")
+
+    def __init__(self, n: int, rows: np.ndarray, cols: np.ndarray, weights: np.ndarray,
+                 sink: np.ndarray) -> None:
+        self.n = n
+        self.rows = rows
+        self.cols = cols
+        self.weights = weights
+        self.sink = sink
+
+    def apply(self, m_vals: np.ndarray, m_sink: float) -> np.ndarray:
+        """The pulled values of the ``n`` source slots."""
+        out: np.ndarray = self.sink * m_sink
+        if self.rows.size:
+            out += np.bincount(self.rows, weights=self.weights * m_vals[self.cols],
+                               minlength=self.n)
         return out
 
 

@@ -63,47 +63,34 @@ HEADING_MIN_SPAN_M = 10.0
 
 @dataclass(frozen=True)
 class GnssConfig:
-    """How GNSS fixes weigh localisation and merging (:mod:`sprint_map.localize.gnss`).
+    """How GNSS fixes weigh localisation and merging (:mod:`sprint_map.localize.gnss`); each
+    field is documented by its ``#:`` comment (``docs/hmm.md``, "GNSS")."""
 
-    Parameters
-    ----------
-    sigma_m : float
-        Accuracy (one standard deviation, metres) of a drive's fix that gives none.
-    map_sigma_m : float
-        Accuracy of a position the map stores without one.
-    gate_m : float
-        The smallest gate (metres): fix and place farther apart are not the same place.
-    n_sigma : float
-        The gate in combined standard deviations, where that is larger than ``gate_m``.
-    max_added : int
-        Map vertices near the fix that join a frame's hits (0: none).
-    far_log_cap : float
-        The most a fix may lower a hit's log-likelihood (and raise the unmapped place's).
-    added_log_weight : float
-        Log-weight of a vertex added near the fix, over the farthest hit's likelihood (-1
-        cancels the default ``miss_margin``: the added vertex gets the restart mass a hit gets,
-        not a hit's evidence).
-    consistency_window : int
-        Frames either side of a fix its drive's track is read over (0: every fix is kept).
-    heading_gate_deg : float
-        Largest difference (degrees) between a frame's direction of travel and its place's
-        (both from their tracks) for the place to be where the vehicle is (180: any).
-    offset_m : float
-        Along a drive's decisions on one sequence, the offset from each fix to its place's
-        mapped position drifts slowly (both drifts do); a decision whose offset lies farther
-        than this from the median offset of those within ``consistency_window`` frames is not
-        confirmed (a place stuck while the drive moves on; 0: off).
-    """
-
+    #: Accuracy (one standard deviation, metres) of a drive's fix that gives none.
     sigma_m: float = 10.0
+    #: Accuracy of a position the map stores without one.
     map_sigma_m: float = 10.0
+    #: The smallest gate (metres): fix and place farther apart are not the same place.
     gate_m: float = 25.0
+    #: The gate in combined standard deviations, where that is larger than ``gate_m``.
     n_sigma: float = 3.0
+    #: Map vertices near the fix that join a frame's hits (0: none).
     max_added: int = 4
+    #: The most a fix may lower a hit's log-likelihood (and raise the unmapped place's).
     far_log_cap: float = 8.0
+    #: Log-weight of a vertex added near the fix, over the farthest hit's likelihood (-1
+    #: cancels the default ``miss_margin``: the added vertex gets the restart mass a hit gets,
+    #: not a hit's evidence).
     added_log_weight: float = -1.0
+    #: Frames either side of a fix its drive's track is read over (0: every fix is kept).
     consistency_window: int = 8
+    #: Largest difference (degrees) between a frame's direction of travel and its place's
+    #: (both from their tracks) for the place to be where the vehicle is (180: any).
     heading_gate_deg: float = 45.0
+    #: Along a drive's decisions on one sequence, the offset from each fix to its place's
+    #: mapped position drifts slowly (both drifts do); a decision whose offset lies farther
+    #: than this from the median offset of those within ``consistency_window`` frames is not
+    #: confirmed (a place stuck while the drive moves on; 0: off).
     offset_m: float = 20.0
 
     def __post_init__(self) -> None:

@@ -142,24 +142,13 @@ class DriveWriter:
     ) -> DriveCommit:
         """Commit the drive with the decisions the merge rule selects as edges, atomically.
 
-        Parameters
-        ----------
-        decisions : sequence of FrameDecision
-            The drive's localisation decisions (usually smoothed); empty for a drive committed
-            without localisation.
-        positions : array_like, optional
-            Per-frame ``x, y[, heading_deg[, timestamp]]``.
-        rows : array_like (N, dim), optional
-            The drive's rows, if not appended yet: they, the positions and the edges are all
-            validated before the first row is written (as ``add_sequence`` does).
-        thumbnails : sequence of bytes, optional
-            One JPEG per frame, committed with the drive.
-        exclusive : callable, optional
-            A context manager factory held around the LMDB transaction and ``on_commit`` only
-            (the service's exclusive map gate); the rows are written and fsynced before it.
-        on_commit : callable, optional
-            Called with :attr:`DriveCommit.changed` right after the transaction, still inside
-            ``exclusive``.
+        ``decisions``: the drive's localisation decisions (usually smoothed; empty for a drive
+        committed without localisation). ``positions``: per-frame ``x, y[, heading_deg[, time[,
+        sigma_m]]]``. ``rows``: the drive's rows if not appended yet (validated, with the positions
+        and edges, before the first row is written). ``thumbnails``: one JPEG per frame.
+        ``exclusive``: a context manager factory held around the LMDB transaction and ``on_commit``
+        only (the service's map gate). ``on_commit``: called with :attr:`DriveCommit.changed` right
+        after the transaction, inside ``exclusive``.
 
         Notes
         -----

@@ -101,31 +101,19 @@ def ingest_drives(
 ) -> list[IngestResult]:
     """Ingest ``drives`` in order (see the module docstring); return one result per drive.
 
-    Parameters
-    ----------
-    group_drives : int
-        Drives per group commit (>= 1; 1 makes every drive durable on its own).
-    on_committed : callable, optional
-        Called with the results of each group once the group is durable (e.g. to report
-        progress: a later failure does not undo them).
-    observe : callable, optional
-        Given each drive's localizer before its first frame (see :meth:`SprintMap.ingest`).
+    ``group_drives``: drives per group commit (>= 1; 1 makes every drive durable on its own).
+    ``on_committed``: called with each group's results once the group is durable.
+    ``observe``: given each drive's localizer before its first frame.
 
-    Raises
-    ------
-    InputError
-        Two drives of the call have the same name (checked before anything is written), or
-        ``group_drives`` < 1.
-    Any error of :meth:`SprintMap.ingest`
-        For the drive that failed: the drives before it stay committed (and durable), that
-        drive and the later ones are absent.
+    Raises :class:`InputError` when two drives share a name (checked before anything is written)
+    or ``group_drives`` < 1, and any error of :meth:`SprintMap.ingest` for the drive that failed:
+    the drives before it stay committed, it and the later ones are absent.
 
     Notes
     -----
-    Localised, each drive costs what :meth:`SprintMap.ingest` costs (one fsync of its rows and
-    LMDB's commit each), the index persisted once per group when due. Appended, a group costs
-    O(N * dim) per drive to validate, hash and write its rows, then one fsync per shard file
-    written and one LMDB commit for the whole group.
+    Localised, each drive costs what :meth:`SprintMap.ingest` costs; the index is persisted once
+    per group when due. Appended, a group costs O(N * dim) per drive, one fsync per shard file
+    written and one LMDB commit.
     """
     if group_drives < 1:
         raise InputError(f"group_drives must be >= 1, got {group_drives}")

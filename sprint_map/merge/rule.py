@@ -56,9 +56,10 @@ drive has been seen, the future of the drive supports or contradicts each frame.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -95,25 +96,65 @@ class MergeDecision(Protocol):
 
 @dataclass(frozen=True)
 class MergeRule:
-    """The merge rule's parameters (fields of :class:`sprint_map.config.MapConfig`)."""
+    """Which decisions of a drive become edges: the rule's parameters (``MapConfig.merge``);
+    the module docstring says what each test does. ValueError for a value out of range."""
 
+    #: Minimum place probability of a merged decision.
     threshold: float = 0.5
-    max_novel: float = 1.0
-    window: int = 0
+    #: A decision more likely than this to be an unmapped place is not merged.
+    max_novel: float = 0.2
+    #: Largest frame gap between consecutive frames of a run (and the agreement window).
+    window: int = 3
+    #: Neighbours within ``window`` that must agree along the same sequence (0: off).
     min_agree: int = 0
+    #: Images of the matched sequence a run may advance per frame.
     max_rate: float = 3.0
-    min_run: int = 0
+    #: Frames of the shortest merged run (0 or 1: off).
+    min_run: int = 20
+    #: A merged frame is at most this quantile of the drive's accepted best-hit distances (0: off).
     dist_quantile: float = 0.0
-    min_advance: float = 0.0
-    max_contrast: float = 0.0
+    #: Images per frame a run advances, at least, around each frame.
+    min_advance: float = 0.3
+    #: Largest median contrast of a merged run (0: off).
+    max_contrast: float = 0.95
+    #: Median inliers for geometric verification on thumbnails to confirm a stretch (0: off).
+    verify_inliers: int = 35
+    #: Store each merge edge in both directions (query -> map and map -> query).
+    both_ways: bool = True
 
-    def to_dict(self) -> dict[str, float]:
-        return {"merge_threshold": self.threshold, "merge_max_novel": self.max_novel,
-                "merge_window": self.window, "merge_min_agree": self.min_agree,
-                "merge_max_rate": self.max_rate, "merge_min_run": self.min_run,
-                "merge_dist_quantile": self.dist_quantile,
-                "merge_min_advance": self.min_advance,
-                "merge_max_contrast": self.max_contrast}
+    def __post_init__(self) -> None:
+        if not 0 <= self.threshold <= 1:
+            raise ValueError("threshold must be in [0, 1]")
+        if not 0 <= self.max_novel <= 1:
+            raise ValueError("max_novel must be in [0, 1]")
+        if not isinstance(self.window, int) or self.window < 0:
+            raise ValueError("window must be an integer >= 0")
+        if not isinstance(self.min_agree, int) or not 0 <= self.min_agree <= 2 * self.window:
+            raise ValueError("min_agree must be an integer in [0, 2 * window]")
+        if not self.max_rate > 0:
+            raise ValueError("max_rate must be > 0")
+        if not isinstance(self.min_run, int) or self.min_run < 0:
+            raise ValueError("min_run must be an integer >= 0")
+        if not 0 <= self.dist_quantile <= 1:
+            raise ValueError("dist_quantile must be in [0, 1]")
+        if not 0 <= self.min_advance <= self.max_rate:
+            raise ValueError("min_advance must be in [0, max_rate]")
+        if not 0 <= self.max_contrast < math.inf:
+            raise ValueError("max_contrast must be a finite number >= 0")
+        if not isinstance(self.verify_inliers, int) or self.verify_inliers < 0:
+            raise ValueError("verify_inliers must be an integer >= 0")
+
+    @classmethod
+    def permissive(cls, **changes: Any) -> MergeRule:
+        """Every test off but the probability threshold (a baseline for experiments and
+        tests), with ``changes``: ``MergeRule.permissive(min_run=5)`` tests runs alone."""
+        base = {"max_novel": 1.0, "window": 0, "min_run": 0, "min_advance": 0.0,
+                "max_contrast": 0.0, "verify_inliers": 0}
+        return cls(**{**base, **changes})
+
+    def reported(self) -> dict[str, float | bool]:
+        """The rule as ``results.json``'s ``merge_rule`` reports it (``merge_``-prefixed)."""
+        return {f"merge_{f.name}": getattr(self, f.name) for f in fields(self)}
 
 
 def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.ndarray:
@@ -130,14 +171,14 @@ def select_merges(decisions: Sequence[MergeDecision], rule: MergeRule) -> np.nda
     --------
     >>> from sprint_map.localize.localizer import FrameDecision
     >>> ds = [FrameDecision(i, 0, 10 + i, 0.9) for i in range(5)]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_agree=1)).tolist()
     [True, True, True, True, True]
     >>> ds[2] = FrameDecision(2, 1, 40, 0.9)  # a jump to another drive: no neighbour agrees
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_agree=1)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_agree=1)).tolist()
     [True, True, False, True, True]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=3)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_run=3)).tolist()
     [True, True, False, True, True]
-    >>> select_merges(ds, MergeRule(threshold=0.5, window=2, min_run=5)).tolist()
+    >>> select_merges(ds, MergeRule.permissive(window=2, min_run=5)).tolist()
     [False, False, False, False, False]
     """
     n = len(decisions)
@@ -200,16 +241,12 @@ def _without_teleports(merged: np.ndarray, seq: np.ndarray, img: np.ndarray, gap
 def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -> np.ndarray:
     """The contested frames of teleports: a boolean mask over the frames.
 
-    Two runs on one sequence whose images overlap on ``shared`` images, the second coming to
-    them ``gap`` frames after the first left them, say the drive came back to the places of
-    the first run (runs that alternate on them, ``gap <= 0``, are not two passes). To come
-    back, a drive must leave the place it has just passed and return to it facing the same
-    way, which takes far longer than driving the stretch once; a second run
-    that re-enters more than ``max_rate * (gap + max_gap)`` shared images (as many as the
-    runs could advance through in the gap, plus one gap's slack for a run that stalls and
-    restarts a few images back) came back sooner than any drive can. The drive saw the same
-    stretch twice in a row: a street and its copy, driven one after the other, or a lookalike
-    of a stretch just driven. The frames of either run on the images both claim are contested.
+    Two runs on one sequence that share images, the second coming to them ``gap`` frames after
+    the first left them (``gap > 0``), claim the drive came back. A second run that re-enters
+    more than ``max_rate * (gap + max_gap)`` shared images came back sooner than a drive can
+    (it must leave and return facing the same way): a street and its copy driven one after the
+    other, or a lookalike of a stretch just driven. The frames of either run on the images both
+    claim are contested.
 
     Notes
     -----

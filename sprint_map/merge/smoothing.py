@@ -51,10 +51,7 @@ class MergeSettings(Protocol):
     def dim(self) -> int: ...
 
     @property
-    def merge_rule(self) -> MergeRule: ...
-
-    @property
-    def merge_verify_inliers(self) -> int: ...
+    def merge(self) -> MergeRule: ...
 
 
 class MergeableMap(Protocol):
@@ -100,7 +97,7 @@ def smoothed_decisions(localizer: Localizer, smap: MergeableMap,
         hits = ([(ids[:cfg.k], dists[:cfg.k]) for ids, dists in localizer.hits] if deep
                 else localizer.hits)
         out = _with_nearest(localizer.smooth_pass(hits), localizer.hits)
-        novelty = calibrated_novelty(out, localizer, smap.config.merge_rule)
+        novelty = calibrated_novelty(out, localizer, smap.config.merge)
         if novelty is not None:
             calibrated = localizer.smooth_pass(hits, novelty)
             out = [dataclasses.replace(d, novel_prob=c.novel_prob)
@@ -108,7 +105,7 @@ def smoothed_decisions(localizer: Localizer, smap: MergeableMap,
         if thumbnails is not None:
             out = _verify(out, thumbnails, smap)
         if deep:
-            out = _deep_decisions(localizer, smap.config.merge_rule, out, deep_hits)
+            out = _deep_decisions(localizer, smap.config.merge, out, deep_hits)
         if localizer.gnss is not None:  # a place stuck while the fixes move on
             stuck = localizer.gnss.off_track(
                 np.array([d.frame for d in out]),
@@ -206,7 +203,7 @@ def _verify(decisions: list[FrameDecision], thumbnails: Sequence[bytes], smap: M
     from sprint_map.merge.verification import RunVerifier
 
     config = smap.config
-    if not config.merge_verify_inliers or len(thumbnails) != len(decisions):
+    if not config.merge.verify_inliers or len(thumbnails) != len(decisions):
         return decisions
 
     def map_thumbnail(seq_id: int, image_id: int) -> bytes | None:
@@ -215,9 +212,9 @@ def _verify(decisions: list[FrameDecision], thumbnails: Sequence[bytes], smap: M
         except UnknownSequenceError:
             return None
 
-    rule = config.merge_rule
+    rule = config.merge
     gap = max(rule.window, 1)
-    verifier = RunVerifier(thumbnails, map_thumbnail, config.merge_verify_inliers, rule.min_run)
+    verifier = RunVerifier(thumbnails, map_thumbnail, config.merge.verify_inliers, rule.min_run)
     relaxed = dataclasses.replace(rule, max_contrast=0.0, max_novel=1.0)
     candidates = select_merges(decisions, relaxed)
     accepted = select_merges(decisions, rule)

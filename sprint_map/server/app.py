@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from sprint_map.localize.lagged import MAX_LAG
 from sprint_map.server.auth import token_matches
 from sprint_map.server.errors import ApiError
 from sprint_map.server.fastpath import FRAME_PATH, FrameFastPath
@@ -28,7 +29,7 @@ from sprint_map.server.metrics import Metrics
 from sprint_map.server.service import LocalisationService
 
 __all__ = ["AppExtension", "BEARER", "CommitAnswer", "Discarded", "Error", "FrameAnswer",
-           "FrameTiming", "PUBLIC_PATHS", "RequestGuard", "RequestMetrics", "SafeJSONResponse",
+           "FrameTiming", "LaggedAnswer", "PUBLIC_PATHS", "RequestGuard", "RequestMetrics", "SafeJSONResponse",
            "SessionCreate", "SessionCreated", "Status", "create_app", "frame_body"]
 
 # --- schemas (documentation of the contract) ---------------------------------------------------
@@ -40,6 +41,10 @@ class Error(BaseModel):
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str | None = Field(None, description="Sequence name for the commit (unique in the map).")
+    lag: int = Field(0, ge=0, le=MAX_LAG, strict=True,
+                     description="Answer each frame once this many more were posted (fixed-lag "
+                                 "smoothing; 0: causal, at once). A frame's answer then names "
+                                 "the frame it answers; the commit answers the last ones.")
 
 
 class SessionCreated(BaseModel):
@@ -53,11 +58,21 @@ class FrameTiming(BaseModel):
 
 
 class FrameAnswer(BaseModel):
-    frame: int = Field(description="Index of the frame in its session (0, 1, ...).")
+    frame: int | None = Field(description="Index in its session (0, 1, ...) of the frame "
+                              "answered: the one posted, or with a lag L the one posted L "
+                              "frames before (null, and every field but timing, while fewer "
+                              "than L + 1 frames were posted).")
     seq_id: int | None = Field(description="Matched sequence; null for no match.")
     image_id: int | None = Field(description="Matched image of that sequence; null for no match.")
-    prob: float = Field(description="Posterior mass of the decided (or best) place.")
+    prob: float | None = Field(description="Posterior mass of the decided (or best) place.")
     timing: FrameTiming
+
+
+class LaggedAnswer(BaseModel):
+    frame: int
+    seq_id: int | None
+    image_id: int | None
+    prob: float
 
 
 class CommitAnswer(BaseModel):
@@ -66,6 +81,9 @@ class CommitAnswer(BaseModel):
     frames: int
     edges_added: int
     component: int
+    decisions: list[LaggedAnswer] | None = Field(
+        None, description="A session with a lag: the answers of its last frames (those not "
+                          "answered yet), in frame order; absent otherwise.")
 
 
 class Discarded(BaseModel):
@@ -311,7 +329,8 @@ def create_app(service: LocalisationService, token: str | None = None,
     @app.post("/v1/sessions", status_code=201, response_model=SessionCreated,
               responses=_ERRORS, dependencies=guard, summary="Start a drive")
     async def create_session(body: SessionCreate | None = None) -> dict[str, str]:
-        session = await service.create_session(body.name if body else None)
+        session = await service.create_session(body.name if body else None,
+                                               body.lag if body else 0)
         return {"session_id": session.id}
 
     @app.post("/v1/sessions/{session_id}/frames", response_model=FrameAnswer,
@@ -322,7 +341,7 @@ def create_app(service: LocalisationService, token: str | None = None,
         return await service.frame(session_id, request.headers.get("content-type"), body)
 
     @app.post("/v1/sessions/{session_id}/commit", response_model=CommitAnswer,
-              responses=_ERRORS, dependencies=guard,
+              response_model_exclude_unset=True, responses=_ERRORS, dependencies=guard,
               summary="Merge the drive into the map (answered once durable)")
     async def commit(session_id: str) -> dict[str, Any]:
         return await service.commit(session_id)

@@ -26,7 +26,7 @@ and the batcher (stepping the next session) then traded the GIL at every answer,
 wake-up and a context switch, and a wait of up to the interpreter's switch interval (5 ms) for
 the thread that lost it: on Nordland, 16 vehicles, the server's CPU per frame went from
 0.89-0.94 ms to 0.64-0.69 ms and the p50 from ~15 to ~11 ms when the answers went in bulk
-(``docs/benchmarks.md``, "Fleet").
+(``docs/benchmarks.md``, "Service").
 
 Cost per batch: one search of B rows, then B HMM steps (Python, serial: the GIL would
 serialise them anyway).
@@ -52,7 +52,9 @@ from sprint_map.server.sessions import Session
 __all__ = ["BatchStats", "FrameBatcher", "Outbox", "Pending"]
 
 #: A frame's answer: the decision, and its (retrieval ms share, HMM ms).
-Answer = tuple[FrameDecision, tuple[float, float]]
+Answer = tuple[FrameDecision | None, tuple[float, float]]
+_NO_IDS = np.empty(0, np.int64)
+_NO_DISTS = np.empty(0, np.float32)
 
 
 @dataclass
@@ -226,11 +228,10 @@ class FrameBatcher:
         try:
             with self.gate.shared():
                 start = time.perf_counter()
-                dists, ids = self.map.search(np.stack([p.row for p in batch]), self.k)
+                hits = self._search(batch)
                 share = (time.perf_counter() - start) * 1e3 / len(batch)
-                for i, pending in enumerate(batch):
-                    outcomes.append((pending.future,
-                                     self._step(pending, ids[i], dists[i], share)))
+                for pending, (ids, dists) in zip(batch, hits, strict=True):
+                    outcomes.append((pending.future, self._step(pending, ids, dists, share)))
         except BaseException as exc:  # the search failed: the frames not stepped get it
             err = from_library(exc) if isinstance(exc, SprintMapError) else exc
             outcomes += [(pending.future, err) for pending in batch[len(outcomes):]]
@@ -238,6 +239,18 @@ class FrameBatcher:
                 raise
         finally:
             self.outbox.post_all(outcomes)
+
+    def _search(self, batch: list[Pending]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each frame's ``(ids, distances)``, as deep as its session reads (``search_k``:
+        ``k``, or more for a lagged session): one search per depth in the batch."""
+        depths = [p.session.search_k or self.k for p in batch]
+        out: list[tuple[np.ndarray, np.ndarray]] = [(_NO_IDS, _NO_DISTS)] * len(batch)
+        for depth in sorted(set(depths)):
+            where = [i for i, d in enumerate(depths) if d == depth]
+            dists, ids = self.map.search(np.stack([batch[i].row for i in where]), depth)
+            for j, i in enumerate(where):
+                out[i] = (ids[j], dists[j])
+        return out
 
     @staticmethod
     def _step(pending: Pending, ids: np.ndarray, dists: np.ndarray, share: float

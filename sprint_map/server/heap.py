@@ -7,7 +7,7 @@ holds the GIL, so every frame in flight waits for it. The server's heap after st
 the app, the open map), almost all of them alive until the process ends; walking them took
 15 ms on a quiet core and 30 ms beside the batcher thread, and one such pause in a run of 16
 vehicles delayed the whole batch in flight: 16 frames of 1,600, i.e. the run's p99 (see
-``docs/benchmarks.md``, "Fleet").
+``docs/benchmarks.md``, "Service").
 
 :func:`settle` collects once and then freezes what is left (``gc.freeze``): those objects move
 to a permanent generation that later collections skip, so a full collection walks only what

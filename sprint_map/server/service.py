@@ -22,6 +22,7 @@ import anyio
 import numpy as np
 
 from sprint_map.errors import SprintMapError
+from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
 from sprint_map.localize.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
@@ -51,6 +52,11 @@ from sprint_map.server.sessions import (
 from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
 
 __all__ = ["LocalisationService"]
+
+#: The fields of a frame's answer besides its timing (``FrameAnswer`` in the schema).
+_ANSWER_FIELDS = ("frame", "seq_id", "image_id", "prob")
+#: A lagged session's answer while no frame is old enough to be answered.
+_NONE_YET: dict[str, Any] = dict.fromkeys(_ANSWER_FIELDS)
 
 log = logging.getLogger("sprint_map.server")
 
@@ -194,15 +200,24 @@ class LocalisationService:
             return self.map.stats()
 
     # --- sessions ---------------------------------------------------------------------------
-    async def create_session(self, name: str | None) -> Session:
+    async def create_session(self, name: str | None, lag: int = 0) -> Session:
+        """A new session; with ``lag`` (frames) each frame is answered ``lag`` frames late,
+        from the fixed-lag smoothed posterior, and the commit answers the last ``lag``."""
         self._refuse_if_closing()
         name = session_name(name)
-        session = await anyio.to_thread.run_sync(self._new_session, name)
+        try:
+            lag = validate_lag(lag)
+        except SprintMapError as exc:
+            raise ApiError(422, "bad_payload", str(exc)) from None
+        if lag and self.localizers is not None:
+            raise ApiError(422, "lag_not_supported", "sessions with a lag are not served by "
+                           "Ray replicas (serve --ray): start the session without one")
+        session = await anyio.to_thread.run_sync(self._new_session, name, lag)
         self.registry.add(session)
         self.metrics.sessions.inc(how="created")
         return session
 
-    def _new_session(self, name: str | None) -> Session:
+    def _new_session(self, name: str | None, lag: int = 0) -> Session:
         with self.gate.shared():
             if name is not None:
                 try:
@@ -212,13 +227,17 @@ class LocalisationService:
                 else:
                     raise ApiError(409, "duplicate_name",
                                    f"the map already has a sequence named {name!r}")
+            k = self.map.config.hmm.k
+            if lag:  # searches max(k, smooth_k) deep and records those hits for the commit
+                lagged = LaggedLocalizer(self.map, lag, cache=self.cache, record=True)
+                return Session(name, lagged.localizer, self.dim, lagged, lagged.depth)
             try:
                 localizer = (self.localizers() if self.localizers is not None
                              else Localizer(self.map, cache=self.cache, record=True,
-                                            record_k=self.map.config.hmm.k))
+                                            record_k=k))
             except SprintMapError as exc:  # e.g. no replica could take the session
                 raise from_library(exc) from None
-            return Session(name, localizer, self.dim)
+            return Session(name, localizer, self.dim, search_k=k)
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)
@@ -284,11 +303,13 @@ class LocalisationService:
             session.touch()
         elapsed = time.perf_counter() - start
         m = self.metrics
-        m.frames.inc(result="match" if decision.is_match else "no_match")
+        m.frames.inc(result="waiting" if decision is None
+                     else "match" if decision.is_match else "no_match")
         m.frame_seconds.observe(elapsed, payload=payload)
         m.retrieval_seconds.observe(timing[0] / 1e3)
         m.hmm_seconds.observe(timing[1] / 1e3)
-        out: dict[str, Any] = decision.to_dict()
+        # a lagged session's first frames answer none yet: every field null
+        out: dict[str, Any] = decision.to_dict() if decision is not None else dict(_NONE_YET)
         out["timing"] = {"retrieval_ms": round(timing[0], 4), "hmm_ms": round(timing[1], 4),
                          "server_ms": round(elapsed * 1e3, 4)}
         return out
@@ -352,6 +373,8 @@ class LocalisationService:
                 raise ApiError(409, "committing", "the session is already being committed")
             if not session.frames:
                 raise ApiError(409, "empty_session", "the session has no frames to commit")
+            flushed = (await anyio.to_thread.run_sync(self._flush, session)
+                       if session.lagged is not None else None)
             future = self.writer.submit(self._job(session))
             session.state = COMMITTING
             # Settled in the writer thread, before the awaiting request resumes (and even if
@@ -366,8 +389,20 @@ class LocalisationService:
         m.commit_exclusive_seconds.observe(outcome.exclusive_s)
         m.edges.inc(outcome.added.edges_added)
         seq = outcome.added.sequence
-        return {"seq_id": seq.seq_id, "name": seq.name, "frames": seq.length,
-                "edges_added": outcome.added.edges_added, "component": outcome.added.component}
+        out = {"seq_id": seq.seq_id, "name": seq.name, "frames": seq.length,
+               "edges_added": outcome.added.edges_added, "component": outcome.added.component}
+        if flushed is not None:  # the lagged session's last answers, in frame order
+            out["decisions"] = [{key: d.to_dict()[key] for key in _ANSWER_FIELDS}
+                                for d in flushed]
+        return out
+
+    def _flush(self, session: Session) -> list[Any]:
+        """A lagged session's last answers (worker thread, shared gate)."""
+        with self.gate.shared():
+            try:
+                return session.flush()
+            except SprintMapError as exc:
+                raise from_library(exc) from None
 
     def _settle(self, session: Session, future: Future[CommitOutcome]) -> None:
         if future.exception() is None:

@@ -21,6 +21,7 @@ from collections.abc import Callable, Container, Iterable
 
 import numpy as np
 
+from sprint_map.localize.lagged import LaggedLocalizer
 from sprint_map.localize.localizer import FrameDecision, Localizer
 from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import ApiError, busy, unknown_session
@@ -41,10 +42,20 @@ class Session:
     by this session's next frame under the shared gate: the gate orders the two.
     """
 
-    def __init__(self, name: str | None, localizer: Localizer, dim: int) -> None:
+    def __init__(self, name: str | None, localizer: Localizer, dim: int,
+                 lagged: LaggedLocalizer | None = None, search_k: int = 0) -> None:
         self.id = uuid.uuid4().hex
         self.name = name
-        self.localizer = localizer
+        #: The localizer recording the drive (the commit smooths it): ``lagged.localizer`` for
+        #: a lagged session.
+        self.localizer = lagged.localizer if lagged is not None else localizer
+        #: A session created with a lag answers frame ``t - lag`` when frame ``t`` is posted.
+        self.lagged = lagged
+        self.lag = lagged.lag if lagged is not None else 0
+        #: Neighbours a batched search gives this session's frames.
+        self.search_k = search_k
+        #: Answers made by the commit's flush of a lagged session, until a commit succeeds.
+        self.flushed: list[FrameDecision] = []
         self.dim = dim
         self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
@@ -60,7 +71,8 @@ class Session:
 
     @property
     def frames(self) -> int:
-        return len(self.decisions)
+        """Frames posted (and kept) so far."""
+        return len(self.rows)
 
     @property
     def nbytes(self) -> int:
@@ -80,7 +92,7 @@ class Session:
         """Tell the filter about commits since the last frame (called under the shared gate)."""
         if self.changed is not None:
             changed, self.changed = self.changed, None
-            self.localizer.invalidate(changed)
+            (self.lagged or self.localizer).invalidate(changed)
 
     def check_position(self, position: tuple[float, ...] | None) -> None:
         """Refuse a frame that breaks "positions for every frame or for none"."""
@@ -90,21 +102,34 @@ class Session:
                            "position: give one for every frame or for none")
 
     def step(self, row: Descriptors, position: tuple[float, ...] | None = None,
-             hits: tuple[np.ndarray, np.ndarray, float] | None = None) -> FrameDecision:
+             hits: tuple[np.ndarray, np.ndarray, float] | None = None
+             ) -> FrameDecision | None:
         """Localise one frame and keep it for the commit (called under the shared gate).
 
         ``hits`` are the frame's ``(ids, distances, retrieval_ms)`` when the caller searched
-        it (in a batch with other sessions' frames); otherwise it is searched here.
+        it (in a batch with other sessions' frames, :attr:`search_k` deep); otherwise it is
+        searched here. A lagged session returns the answer of frame ``frames - 1 - lag``
+        (None while fewer frames were posted).
         """
         self.check_position(position)
         self.apply_changes()
-        decision = (self.localizer.step(row) if hits is None
-                    else self.localizer.step_hits(*hits))
+        stepper: Localizer | LaggedLocalizer = self.lagged or self.localizer
+        decision = stepper.step(row) if hits is None else stepper.step_hits(*hits)
         self.rows.append(row.reshape(-1))
         if position is not None:
             self.positions.append(position)
-        self.decisions.append(decision)
+        if decision is not None:
+            self.decisions.append(decision)
         return decision
+
+    def flush(self) -> list[FrameDecision]:
+        """A lagged session's answers of its last frames (the commit's; called under the
+        shared gate): those flushed now, after any flushed by an earlier commit that failed."""
+        if self.lagged is not None:
+            done = self.lagged.flush()
+            self.decisions.extend(done)
+            self.flushed.extend(done)
+        return list(self.flushed)
 
     def position_array(self) -> np.ndarray | None:
         """``(frames, 3)`` x, y, heading (NaN if not given), or None without positions."""
@@ -121,7 +146,7 @@ class Session:
 
     def to_dict(self) -> dict[str, object]:
         return {"session_id": self.id, "name": self.name, "frames": self.frames,
-                "state": self.state, "created": self.created,
+                "lag": self.lag, "state": self.state, "created": self.created,
                 "idle_s": round(time.monotonic() - self.last_active, 3)}
 
 

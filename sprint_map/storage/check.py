@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import faiss
 import lmdb
 import networkx as nx
 import numpy as np
@@ -51,6 +50,7 @@ from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
+from sprint_map.util.lazy_faiss import faiss  # imported on first use
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
            "check_map", "check_sequences", "check_shards", "check_thumbnails", "edge_added_by",
@@ -496,7 +496,7 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     -----
     O(file size) to read the newest file, O(upto * dim) to compare it with the shards, in
     blocks of ``CHECK_BLOCK`` rows (measured: about 1 s per million 128-d vectors, see
-    ``docs/benchmarks.md``, "check at 1M vertices"). ``seed`` is unused by the exact index (every vector is
+    ``docs/benchmarks.md``, "check, forgetting, robustness"). ``seed`` is unused by the exact index (every vector is
     compared) and kept for the segmented index's sample of codes.
     """
     dim = store.config.dim

@@ -30,8 +30,8 @@ from sprint_map.storage.keys import (
     EDGE_KEY,
     EDGE_VAL,
     NO_QUERY,
-    VERTEX_VAL,
     Raw,
+    decode_vertex,
     read_u64,
     u64,
 )
@@ -117,12 +117,12 @@ class MapScan:
                     cursor.key()) > seq.last_vertex:
                 yield seq, None
                 continue
-            out = np.full((seq.length, 4), np.nan)
+            out = np.full((seq.length, 5), np.nan)
             for key, value in cursor:
                 vid = read_u64(key)
                 if vid > seq.last_vertex:
                     break
-                out[vid - seq.first_vertex] = VERTEX_VAL.unpack(value)
+                out[vid - seq.first_vertex] = decode_vertex(value)
             yield seq, out
 
     def locate(self, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,11 +181,17 @@ class MapScan:
                                      None if query == NO_QUERY else query,
                                      None if frame == NO_QUERY else frame, when)
 
-    def position(self, vertex: int) -> tuple[float, float, float, float] | None:
-        """``x, y, heading_deg, timestamp`` of one vertex, or None. O(log n)."""
+    def position(self, vertex: int) -> tuple[float, float, float, float, float] | None:
+        """``x, y, heading_deg, timestamp, sigma_m`` of one vertex, or None. O(log n)."""
         with LmdbEnv.translated():
             raw = self.txn.get(u64(vertex), db=self.store.env.db("vertex_data"))
-        return None if raw is None else VERTEX_VAL.unpack(raw)
+        return None if raw is None else decode_vertex(raw)
+
+    def has_position(self, first: int, last: int) -> bool:
+        """Whether any vertex ``first..last`` has a position. O(log n)."""
+        with LmdbEnv.translated():
+            cursor = self.txn.cursor(db=self.store.env.db("vertex_data"))
+            return bool(cursor.set_range(u64(first))) and read_u64(cursor.key()) <= last
 
     def has_edge(self, src: int, dst: int) -> bool:
         """Whether the edge ``src -> dst`` (vertex ids) exists. O(log E)."""

@@ -20,7 +20,6 @@ writer) is refused at once, as before.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 from abc import ABC, abstractmethod
@@ -252,6 +251,8 @@ class SequenceWriter(UncommittedRows):
                     )
                 self.retry_of = (record, digest)
         self.store = store
+        import hashlib  # (here: commands that only read a map never load OpenSSL)
+
         self._hash = hashlib.blake2b(digest_size=DIGEST_BYTES)
         self.source = source
         self.frames = 0

@@ -534,6 +534,37 @@ class MapStore:
                 out[vids - seq.first_vertex] = [decode_vertex(v) for v in values]
         return out
 
+    def geo_frame(self) -> dict[str, Any] | None:
+        """The geographic frame record the map keeps its latitude/longitude positions in
+        (a JSON object; its meaning is the caller's), or None. O(1)."""
+        with self.env.read() as txn:
+            raw = txn.get(b"geo_frame", db=self.env.db("meta"))
+        if raw is None:
+            return None
+        record = decode_json(raw, "geo_frame")
+        if not isinstance(record, dict):
+            raise MapCorruptError("corrupt geo_frame record: not a JSON object")
+        return record
+
+    def set_geo_frame(self, record: dict[str, Any]) -> dict[str, Any]:
+        """Store ``record`` as the map's geographic frame unless it has one; return the one
+        it keeps (set once, never replaced). One small LMDB transaction. O(1)."""
+        self.require_writer()
+        meta = self.env.db("meta")
+
+        def body(txn: lmdb.Transaction) -> dict[str, Any]:
+            raw = txn.get(b"geo_frame", db=meta)
+            if raw is not None:
+                kept = decode_json(raw, "geo_frame")
+                if not isinstance(kept, dict):
+                    raise MapCorruptError("corrupt geo_frame record: not a JSON object")
+                return kept
+            txn.put(b"geo_frame", json.dumps(record).encode(), db=meta)
+            return record
+
+        result: dict[str, Any] = self.env.write(body)
+        return result
+
     def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
         """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None if the
         drive was added without thumbnails. O(log n).

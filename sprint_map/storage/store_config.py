@@ -7,21 +7,21 @@ descriptor dimension, the shard size, the retrieval index's parameters and the L
 (descriptor kind, merge rule, HMM) is the facade's to decode. So storage knows nothing of HMMs
 or images: it stores the record as given and checks only its own fields.
 
-The field names, types, defaults and checks here are those of the same fields of ``MapConfig``,
-which validates them through this class.
+``MapConfig.store`` is a :class:`StoreOptions`; a record written before the config was nested
+holds the same fields at its top level, which :meth:`StoreConfig.from_record` reads too.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any, Protocol, TypeVar
 
 from sprint_map.errors import ConfigError, MapCorruptError, SprintMapError
 from sprint_map.util import dataclass_dict
 
 __all__ = ["INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
-           "StoreConfig", "decode_stored_config"]
+           "StoreConfig", "StoreOptions", "decode_stored_config"]
 
 _Config = TypeVar("_Config")
 
@@ -45,31 +45,46 @@ class ConfigRecord(Protocol):
 
 
 @dataclass(frozen=True)
-class StoreConfig:
-    """The storage layer's fields of a map's configuration (see ``MapConfig`` for each).
+class StoreOptions:
+    """How a map stores and indexes its rows: ``MapConfig.store``. Raises ``ValueError`` for a
+    value out of range.
 
-    Raises ``ValueError`` for a value out of range, with the message ``MapConfig`` gives.
+    Each field is described by the comment above it.
     """
 
-    dim: int
+    #: Rows per descriptor shard file; a shard is sealed (never written again) once full.
     shard_rows: int = 65536
+    #: Retrieval index (:mod:`sprint_map.storage.index.map_index`): ``"flat"`` (exact L2),
+    #: ``"ivf-pq"`` / ``"ivf-sq8"`` (segmented FAISS IVF with PQ / 8-bit SQ codes, optionally
+    #: after PCA, candidates re-ranked exactly from the shards) or ``"auto"`` (flat while the map
+    #: is small, ``ivf-pq`` from ``index_auto_vertices``).
     index_type: str = "auto"
+    #: IVF lists (coarse centroids), and lists scanned per query (at most ``index_nlist``).
     index_nlist: int = 1024
     index_nprobe: int = 16
+    #: PQ sub-quantizers (must divide the indexed dimension); 0 picks the largest divisor with at
+    #: least 8 dimensions per sub-quantizer.
     index_pq_m: int = 0
+    #: Descriptors longer than this are reduced by a PCA trained with the quantizer (0: never).
     index_pca_dim: int = 128
+    #: Candidates re-ranked with exact distances from the shards per query (at least k).
     index_rerank: int = 100
+    #: Vertices per sealed index segment; ``index_merge_factor`` sealed segments of one size are
+    #: merged.
     index_segment_rows: int = 16384
     index_merge_factor: int = 8
+    #: ``auto`` switches to the approximate index at this many 128-dimensional vertices' worth.
     index_auto_vertices: int = 200_000
+    #: Vertices sampled (seeded) to train PCA and the quantizer.
     index_train_sample: int = 65536
+    #: A writer persists the index once this many vertices were added since the last file and the
+    #: map grew by ``index_persist_growth`` times that file's size (0: every time).
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
+    #: LMDB map size at creation in bytes (sparse file; it doubles on demand).
     initial_map_size: int = 1 << 30
 
     def __post_init__(self) -> None:
-        if not isinstance(self.dim, int) or self.dim < 1:
-            raise ValueError("dim must be a positive integer")
         if self.shard_rows < 1:
             raise ValueError("shard_rows must be >= 1")
         if self.index_type not in INDEX_TYPES:
@@ -81,9 +96,6 @@ class StoreConfig:
             raise ValueError("index_nprobe must be <= index_nlist")
         if self.index_pca_dim < 0 or self.index_pq_m < 0:
             raise ValueError("index_pca_dim and index_pq_m must be >= 0")
-        if self.index_pq_m and self.index_dim % self.index_pq_m:
-            raise ValueError(f"index_pq_m ({self.index_pq_m}) must divide the indexed "
-                             f"dimension ({self.index_dim})")
         if self.index_merge_factor < 2:
             raise ValueError("index_merge_factor must be >= 2")
         if self.index_auto_vertices < 1:
@@ -96,6 +108,27 @@ class StoreConfig:
             raise ValueError("index_persist_growth must be >= 0")
         if self.initial_map_size < 1 << 20:
             raise ValueError("initial_map_size must be at least 1 MiB")
+
+
+@dataclass(frozen=True)
+class StoreConfig(StoreOptions):
+    """The storage layer's view of a map's configuration: its :class:`StoreOptions` and the
+    descriptor dimension. Raises ``ValueError`` for a value out of range."""
+
+    dim: int = field(kw_only=True)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.dim, int) or self.dim < 1:
+            raise ValueError("dim must be a positive integer")
+        super().__post_init__()
+        if self.index_pq_m and self.index_dim % self.index_pq_m:
+            raise ValueError(f"index_pq_m ({self.index_pq_m}) must divide the indexed "
+                             f"dimension ({self.index_dim})")
+
+    @property
+    def options(self) -> StoreOptions:
+        """The options alone (what ``MapConfig.store`` holds)."""
+        return StoreOptions(**{f.name: getattr(self, f.name) for f in fields(StoreOptions)})
 
     @property
     def index_dim(self) -> int:
@@ -113,8 +146,9 @@ class StoreConfig:
 
     @classmethod
     def from_record(cls, record: Mapping[str, Any]) -> StoreConfig:
-        """The storage fields of a stored configuration record (other keys are not storage's
-        and are left alone; a missing one takes its default). O(fields).
+        """The storage part of a stored configuration record: ``dim`` and the ``store``
+        object, or, in a record written before the config was nested, the same keys at the
+        top level (other keys are not storage's; a missing one takes its default). O(fields).
 
         Raises
         ------
@@ -122,8 +156,12 @@ class StoreConfig:
             A storage field of the wrong type or out of range, named as ``MapConfig`` names it.
         """
         names = {f.name for f in fields(cls)}
-        return dataclass_dict.from_dict(cls, {k: v for k, v in record.items() if k in names},
-                                        where="MapConfig")
+        nested = record.get("store")
+        flat = {k: v for k, v in record.items() if k in names}
+        if not isinstance(nested, Mapping):
+            return dataclass_dict.from_dict(cls, flat, where="MapConfig")
+        # a flat key overrides the nested one, as MapConfig.from_dict reads it
+        return dataclass_dict.from_dict(cls, {**nested, **flat}, where="MapConfig.store")
 
 
 def decode_stored_config(decode: Callable[[dict[str, Any]], _Config], data: Any) -> _Config:

@@ -1,22 +1,34 @@
-"""Synthetic multi-traversal city data sets for testing and evaluating place recognition.
+"""Synthetic multi-traversal data sets for testing and evaluating place recognition.
 
-A procedurally textured grid city (perceptual aliasing by shared facade styles) is driven along
+Two families that share no code path. The **city** (:mod:`.city`): a procedurally textured grid
+city (perceptual aliasing by shared facade styles and lookalike streets) is driven along
 overlapping routes under different conditions (light, weather, traffic), with variable speed and
 stops, and rendered by ray casting. See :func:`generate_city` (on-disk data set),
 :func:`render_city` (in memory), :func:`iter_city` (streamed, one traversal at a time) and
-:data:`PRESETS` (the demo's worlds, ``city`` and ``city-novel``).
+:data:`PRESETS` (the demo's worlds, ``city`` and ``city-novel``). The **latent** worlds
+(:mod:`.latent`, numpy only): descriptor-level drives over latent places, imported without
+OpenCV.
+
+The city's names are imported on first use (they need OpenCV), so ``sprint_map.synth.latent``
+works where OpenCV is not installed.
 """
 
-from sprint_map.synth.city import (
-    PRESETS,
-    CityConfig,
-    SyntheticCity,
-    SyntheticTraversal,
-    generate_city,
-    iter_city,
-    render_city,
-)
-from sprint_map.synth.conditions import CONDITIONS, Condition
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sprint_map.synth.city import (
+        PRESETS,
+        CityConfig,
+        SyntheticCity,
+        SyntheticTraversal,
+        generate_city,
+        iter_city,
+        render_city,
+    )
+    from sprint_map.synth.conditions import CONDITIONS, Condition
 
 __all__ = [
     "CONDITIONS",
@@ -29,3 +41,13 @@ __all__ = [
     "iter_city",
     "render_city",
 ]
+
+_HOME = {name: "sprint_map.synth.city" for name in __all__}
+_HOME.update(CONDITIONS="sprint_map.synth.conditions", Condition="sprint_map.synth.conditions")
+
+
+def __getattr__(name: str) -> Any:
+    """The city's public names, imported on first use. O(1) after the first import."""
+    if name not in _HOME:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(_HOME[name]), name)

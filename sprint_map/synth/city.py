@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from sprint_map.errors import ConfigError, InputError
+from sprint_map.frontend.dataset import frame_ranges
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.frontend.parallel import default_workers
 from sprint_map.synth.atlas import Atlas, build_atlas
@@ -68,67 +69,55 @@ MIN_MATCHED = 0.2
 class CityConfig:
     """Parameters of the synthetic city and of how it is driven.
 
-    Parameters
-    ----------
-    grid : (int, int)
-        Intersections along x and y.
-    block_m : float
-        Distance between intersections (metres).
-    street_m : float
-        Street width between facades.
-    n_styles : int
-        Facade styles shared by all street sides: fewer styles, more perceptual aliasing.
-    detail : float
-        Individual details (posters, signs, trees, ...) per 10 m of facade: more details, more
-        distinctive places.
-    width, height : int
-        Image size in pixels.
-    fov_deg : float
-        Horizontal field of view.
-    speed_m : float
-        Mean distance driven per frame (each traversal scales it by U(0.7, 1.3)).
-    stop_prob : float
-        Chance of stopping for 3-12 frames before each intersection.
-    revisit : float
-        Preference for streets already driven (weight against 1 for new ones).
-    conditions : tuple of str
-        Condition of traversal ``i`` is ``conditions[i % len(conditions)]`` (see
-        :data:`~sprint_map.synth.conditions.CONDITIONS`), jittered per traversal.
-    radius_m, heading_deg : float
-        Ground truth written to ``dataset.json``: same place within ``radius_m`` metres and
-        ``heading_deg`` degrees of heading.
-    alias_streets : float
-        Share of the streets (at most 0.5) that are copies of another street: same buildings
-        and textures, so only context tells them apart (see :func:`.layout.build_layout`).
-    novel_fraction : float
-        Target share of each traversal's frames (after the first) with no true match among
-        earlier traversals, by the ground truth above. 0: routes are plain walks preferring
-        driven streets (``revisit``). Otherwise each traversal's route is the first of
-        :data:`ROUTE_CANDIDATES` seeded candidates that meets the targets (at least this share
-        novel, ``reverse_fraction`` the other way, :data:`MIN_MATCHED` known), or the one that
-        misses them least.
-    reverse_fraction : float
-        Target share of frames on streets earlier traversals drove only in the other direction
-        (part of the novel share: the other way, a street looks different and has no match).
+    Each field is described by the comment above it.
     """
 
+    #: Intersections along x and y.
     grid: tuple[int, int] = (4, 4)
+    #: Distance between intersections (metres).
     block_m: float = 60.0
+    #: Street width between facades.
     street_m: float = 14.0
+    #: Facade styles shared by all street sides: fewer styles, more perceptual aliasing.
     n_styles: int = 4
+    #: Individual details (posters, signs, trees, ...) per 10 m of facade: more details, more
+    #: distinctive places.
     detail: float = 1.0
+    #: Image size in pixels.
     width: int = 160
     height: int = 120
+    #: Horizontal field of view.
     fov_deg: float = 90.0
+    #: Mean distance driven per frame (each drive scales it by U(0.7, 1.3)).
     speed_m: float = 2.0
+    #: Chance of stopping for 3-12 frames before each intersection.
     stop_prob: float = 0.25
+    #: Preference for streets already driven (weight against 1 for new ones).
     revisit: float = 3.0
+    #: Condition of drive ``i`` is ``conditions[i % len(conditions)]`` (see
+    #: :data:`~sprint_map.synth.conditions.CONDITIONS`), jittered per drive.
     conditions: tuple[str, ...] = ("day", "overcast", "dusk", "rain", "fog", "snow")
+    #: Per-frame camera shake: yaw sd in degrees, pitch sd in pixels.
     shake: float = 1.5
+    #: Ground truth written to ``dataset.json``: same place within
+    #: ``radius_m`` metres and ``heading_deg`` degrees of heading.
     radius_m: float = 8.0
     heading_deg: float = 45.0
+    #: Share of the streets (at most 0.5) that are copies of another street: the same facade
+    #: styles and rhythm of buildings, but other buildings, signs and gaps (lookalikes, see
+    #: :func:`.layout.build_layout`).
     alias_streets: float = 0.0
+    #: How many of those copies are pixel-identical instead (no image tells them apart); their
+    #: frames are listed in ``dataset.json`` (``twins``) so evaluations report them apart.
+    identical_twins: int = 1
+    #: Target share of each drive's frames (after the first) with no true match among earlier
+    #: drives, by the ground truth above. 0: routes are plain walks preferring driven streets
+    #: (``revisit``). Otherwise each drive's route is the first of :data:`ROUTE_CANDIDATES`
+    #: seeded candidates that meets the targets (at least this share novel, ``reverse_fraction``
+    #: the other way, :data:`MIN_MATCHED` known), or the one that misses them least.
     novel_fraction: float = 0.0
+    #: Target share of frames on streets earlier drives drove only in the other direction (part
+    #: of the novel share: the other way, a street looks different and has no match).
     reverse_fraction: float = 0.0
 
     def __post_init__(self) -> None:
@@ -142,6 +131,8 @@ class CityConfig:
             raise ValueError("revisit must be > 0")
         if not 0 <= self.alias_streets <= 0.5:
             raise ValueError("alias_streets must be in [0, 0.5]")
+        if self.identical_twins < 0:
+            raise ValueError("identical_twins must be >= 0")
         if not 0 <= self.reverse_fraction <= self.novel_fraction <= 1 - MIN_MATCHED:
             raise ValueError(
                 f"need 0 <= reverse_fraction <= novel_fraction <= {1 - MIN_MATCHED}")
@@ -198,7 +189,7 @@ class SyntheticTraversal:
         Preset name (the jittered parameters are in ``plan.condition``).
     images : ndarray of uint8, (N, H, W, 3) BGR
     positions : ndarray of float64, (N, 4)
-        ``frame, x, y, heading_deg`` as :func:`~sprint_map.frontend.positions.read_positions`
+        ``frame, x, y, heading_deg`` as :meth:`~sprint_map.frontend.positions.Positions.table`
         returns them.
     plan : TraversalPlan
     """
@@ -239,7 +230,7 @@ class _World:
         rng = np.random.default_rng([seed, 0])
         self.layout: CityLayout = build_layout(
             rng, config.grid[0], config.grid[1], config.block_m, config.street_m, config.n_styles,
-            config.alias_streets,
+            config.alias_streets, config.identical_twins,
         )
         self.atlas: Atlas = build_atlas(self.layout, rng, detail=config.detail)
         self.camera = Camera(config.width, config.height, config.fov_deg)
@@ -433,38 +424,22 @@ def generate_city(
     image_format: str = "png",
     workers: int | None = None,
 ) -> Path:
-    """Write a synthetic city data set to ``out_dir``.
+    """Write a synthetic city data set to ``out_dir`` and return ``out_dir``.
 
     Layout::
 
-        out_dir/dataset.json               {"alignment": "position", "radius_m": ..., ...}
+        out_dir/dataset.json               {"alignment": "position", "radius_m": ..., ...,
+                                            "twins": {traversal: [[start, stop), ...]]}}
         out_dir/t00-day/000000.png ...     the images
         out_dir/t00-day/positions.csv      frame,x,y,heading_deg
         out_dir/t01-overcast/ ...
 
     The set is written to a hidden sibling directory and renamed into place at the end, so an
-    interrupted run never leaves a half-written data set under ``out_dir``.
-
-    Parameters
-    ----------
-    out_dir : str or Path
-        Must not exist, or be an empty directory.
-    n_traversals, frames_per_traversal, seed, config, workers
-        As for :func:`render_city`.
-    image_format : {"png", "jpg"}
-        PNG is lossless and deterministic; JPEG (quality 90) is ~3x smaller.
-
-    Returns
-    -------
-    Path
-        ``out_dir``.
-
-    Raises
-    ------
-    InputError
-        If ``out_dir`` exists and is not an empty directory.
-    ConfigError
-        On an unknown ``image_format``.
+    interrupted run never leaves a half-written data set. ``out_dir`` must not exist or be an
+    empty directory (else :class:`InputError`); ``n_traversals`` (drives),
+    ``frames_per_traversal``, ``seed``, ``config`` and ``workers`` are as for
+    :func:`render_city`; ``image_format``: ``"png"`` (lossless, deterministic) or ``"jpg"``
+    (quality 90, ~3x smaller; anything else: :class:`ConfigError`).
     """
     out = Path(out_dir)
     if image_format not in IMAGE_FORMATS:
@@ -495,18 +470,22 @@ def generate_city(
     try:
         with ThreadPoolExecutor(max_workers=workers or default_workers()) as pool:
             list(pool.map(one, world.plans))
+        twins = ({"twins": {plan.name: frame_ranges(world.layout.on_twin(plan.trajectory.xy))
+                            for plan in world.plans}} if world.layout.twins else {})
         description = {
             **config.ground_truth_spec().to_dict(),
             "description": (
                 f"Synthetic city (sprint_map.synth), {n_traversals} traversals x "
                 f"{frames_per_traversal} frames, seed {seed}"
             ),
+            **twins,
             "generator": {
                 "module": "sprint_map.synth.city",
                 "seed": seed,
                 "frames_per_traversal": frames_per_traversal,
                 "config": config.to_dict(),
                 "traversals": [plan.to_dict() for plan in world.plans],
+                "twin_streets": [[list(a), list(b)] for a, b in world.layout.twins],
             },
         }
         (staging / "dataset.json").write_text(json.dumps(description, indent=2) + "\n")

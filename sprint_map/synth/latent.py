@@ -53,6 +53,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sprint_map.errors import InputError
+from sprint_map.frontend.dataset import frame_ranges
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Float64Array
@@ -65,6 +66,7 @@ ROUTE_CANDIDATES = 40
 #: Share of frames a novelty-seeking traversal should still have on known ground.
 MIN_MATCHED = 0.2
 _HIDDEN = 128  # width of the nonlinear map's hidden layer
+_OFFSET = 0.15  # a condition's shift of every descriptor, per unit of strength
 
 
 @dataclass(frozen=True)
@@ -73,7 +75,8 @@ class LatentCondition:
 
     ``strength`` scales the linear mixing, channel gains and offset; ``noise`` and
     ``temporal_noise`` scale the white and time-correlated per-frame noise (times the world's
-    ``noise``); ``style_gain`` and ``place_gain`` multiply the two latent parts (night dims the
+    ``noise``; their squares sum to ~1 for every condition, so no condition's descriptors are
+    noisier overall, only noisier over time); ``style_gain`` and ``place_gain`` multiply the two latent parts (night dims the
     details that tell places apart).
     """
 
@@ -86,12 +89,12 @@ class LatentCondition:
 
 #: The conditions, mild to strong.
 CONDITIONS: dict[str, LatentCondition] = {
-    "day": LatentCondition(0.10, 1.0, 0.6),
-    "overcast": LatentCondition(0.20, 1.0, 0.7),
-    "dusk": LatentCondition(0.35, 1.1, 0.8, place_gain=0.9),
-    "rain": LatentCondition(0.45, 1.2, 1.3, place_gain=0.9),
-    "night": LatentCondition(0.70, 1.2, 0.9, style_gain=1.1, place_gain=0.75),
-    "snow": LatentCondition(0.60, 1.2, 1.0, style_gain=0.7, place_gain=0.9),
+    "day": LatentCondition(0.10, 0.8, 0.6),
+    "overcast": LatentCondition(0.20, 0.75, 0.66),
+    "dusk": LatentCondition(0.35, 0.7, 0.71, place_gain=0.9),
+    "rain": LatentCondition(0.45, 0.5, 0.87, place_gain=0.9),
+    "night": LatentCondition(0.70, 0.8, 0.6, style_gain=1.1, place_gain=0.75),
+    "snow": LatentCondition(0.60, 0.7, 0.71, style_gain=0.7, place_gain=0.9),
 }
 
 
@@ -115,7 +118,7 @@ class LatentConfig:
     lookalike_streets: float = 0.3
     lookalike_rho: tuple[float, float] = (0.6, 0.85)
     twin_streets: int = 1
-    noise: float = 0.95
+    noise: float = 1.8
     temporal_m: float = 20.0
     pose_m: float = 1.5
     speed_m: float = 3.0
@@ -204,8 +207,12 @@ class LatentWorld:
     config: LatentConfig
     seed: int
     traversals: list[LatentTraversal] = field(default_factory=list)
+    #: Street -> (the street it looks like, share ``rho`` of its place latent taken).
     lookalikes: dict[int, tuple[int, float]] = field(default_factory=dict)
+    #: Street -> the street it is an identical twin of.
     twins: dict[int, int] = field(default_factory=dict)
+    #: Per directed street (``2 * street + direction``): its latents, one row per metre.
+    latents: list[np.ndarray] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
@@ -344,20 +351,25 @@ class _Appearance:
             config.latent_dim)
         self.b = rng.standard_normal(_HIDDEN) * 0.3
         self.w = rng.standard_normal((_HIDDEN, config.dim)) / np.sqrt(_HIDDEN)
+        sample = np.tanh(rng.standard_normal((2048, config.latent_dim)) @ self.a + self.b) @ self.w
+        self.center = sample.mean(axis=0)
+        #: Typical size of the place-dependent part: the unit of mean, offsets and noise.
+        self.unit = float(np.sqrt(np.mean((sample - self.center) ** 2)))
         self.mean = np.abs(rng.standard_normal(config.dim)) * 0.5  # descriptors are not centred
         self.distortions: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for k, name in enumerate(CONDITIONS):
             crng = np.random.default_rng([seed, 11, k])
             mix = crng.standard_normal((config.dim, config.dim)) / np.sqrt(config.dim)
             gain = crng.standard_normal(config.dim)
-            offset = crng.standard_normal(config.dim) * 0.15
+            offset = crng.standard_normal(config.dim)
             self.distortions[name] = (mix, gain, offset)
 
     def clean(self, latent: np.ndarray, condition: LatentCondition) -> np.ndarray:
-        """Undistorted descriptors of latent rows (before the condition's linear part)."""
+        """The place-dependent part of the descriptors of latent rows (centred; before the
+        condition's linear part)."""
         s = self.config.style_dim
         z = np.hstack([latent[:, :s] * condition.style_gain, latent[:, s:] * condition.place_gain])
-        return np.asarray(np.tanh(z @ self.a + self.b) @ self.w + self.mean)
+        return np.asarray(np.tanh(z @ self.a + self.b) @ self.w - self.center)
 
     def describe(self, latent: np.ndarray, name: str, condition: LatentCondition,
                  rng: np.random.Generator, frames_per_m: np.ndarray) -> np.ndarray:
@@ -368,9 +380,10 @@ class _Appearance:
         jitter = 1 + 0.15 * rng.standard_normal(3)
         x = self.clean(latent, condition)
         x = x + (s * jitter[0]) * (x @ mix.T)
-        x = x * np.exp(0.3 * s * jitter[1] * gain) + s * jitter[2] * offset
+        x = x * np.exp(0.3 * s * jitter[1] * gain)
+        x = x + self.unit * (self.mean + _OFFSET * s * jitter[2] * offset)
         n = len(x)
-        scale = self.config.noise * float(np.sqrt(np.mean(x * x)))
+        scale = self.config.noise * self.unit
         white = rng.standard_normal(x.shape) * condition.noise
         # Time-correlated noise: an AR(1) over frames whose correlation follows distance driven
         # (a passing truck, rain on the windscreen), unit variance.
@@ -454,29 +467,28 @@ def _drive(net: _Network, config: LatentConfig, route: list[int], frames: int, s
     seg_of = np.clip(seg_of, 0, len(route) - 1)
     directed = np.array(route)[seg_of]
     arc = arc_total - starts[seg_of]
-    xy = np.empty((frames, 2))
-    heading = np.empty(frames)
-    for i, d in enumerate(directed):
-        a, b = net.ends(int(d))
-        u = (net.nodes[b] - net.nodes[a]) / net.length[d // 2]
-        right = np.array([u[1], -u[0]])
-        xy[i] = net.nodes[a] + arc[i] * u + lane * right
-        heading[i] = np.degrees(np.arctan2(u[1], u[0])) % 360.0
+    ends = np.array([net.ends(int(d)) for d in directed])
+    u = (net.nodes[ends[:, 1]] - net.nodes[ends[:, 0]]) / net.length[directed // 2][:, None]
+    right = np.column_stack([u[:, 1], -u[:, 0]])
+    xy = net.nodes[ends[:, 0]] + arc[:, None] * u + lane * right
+    heading = np.degrees(np.arctan2(u[:, 1], u[:, 0])) % 360.0
     step_out = np.diff(arc_total, prepend=arc_total[0] - speed)
     return _Route(xy, heading, directed, arc, np.maximum(step_out, 1e-3))
 
 
-def _overlap(route: _Route, earlier_xy: np.ndarray, earlier_heading: np.ndarray,
+def _overlap(route: _Route, tree: cKDTree, earlier_heading: np.ndarray,
              radius: float, heading: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame: a true match among the earlier frames; seen only the other way."""
-    tree = cKDTree(earlier_xy)
-    matched = np.zeros(len(route.xy), dtype=bool)
-    opposite = np.zeros(len(route.xy), dtype=bool)
-    for i, near in enumerate(tree.query_ball_point(route.xy, radius)):
-        if near:
-            diff = np.abs((earlier_heading[near] - route.heading_deg[i] + 180) % 360 - 180)
-            matched[i] = bool((diff <= heading).any())
-            opposite[i] = not matched[i] and bool((diff >= 180 - heading).any())
+    """Per frame: a true match among the earlier frames (``tree`` of their positions); seen
+    only the other way. O(frames x log(earlier frames))."""
+    near = tree.query_ball_point(route.xy, radius)
+    counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+    if counts.sum() == 0:
+        return np.zeros(len(near), dtype=bool), np.zeros(len(near), dtype=bool)
+    frame = np.repeat(np.arange(len(near)), counts)
+    other = np.concatenate([n for n in near if n]).astype(np.int64)
+    diff = np.abs((earlier_heading[other] - route.heading_deg[frame] + 180) % 360 - 180)
+    matched = np.bincount(frame[diff <= heading], minlength=len(near)) > 0
+    opposite = (np.bincount(frame[diff >= 180 - heading], minlength=len(near)) > 0) & ~matched
     return matched, opposite
 
 
@@ -492,7 +504,8 @@ def make_latent(n_traversals: int = 10, frames_per_traversal: int = 300, seed: i
         raise ValueError("n_traversals and frames_per_traversal must be >= 1")
     net = _Network(config, np.random.default_rng([seed, 0]))
     look = _Appearance(config, seed)
-    world = LatentWorld(config, seed, lookalikes=net.lookalikes, twins=net.twins)
+    world = LatentWorld(config, seed, lookalikes=net.lookalikes, twins=net.twins,
+                        latents=net.latents)
     twin_streets = set(net.twins) | set(net.twins.values())
     driven: set[int] = set()
     earlier_xy: list[np.ndarray] = []
@@ -537,16 +550,17 @@ def _novel_route(net: _Network, config: LatentConfig, i: int, seed: int, length:
                  earlier_xy: np.ndarray, earlier_heading: np.ndarray) -> _Route:
     """The first candidate route meeting the novelty targets, else the one missing them least."""
     best: tuple[float, _Route] | None = None
+    tree = cKDTree(earlier_xy)
     for c in range(ROUTE_CANDIDATES):
         rng = np.random.default_rng([seed, 3, i, c])
         plan = _plan(net, config, length, driven, rng, float(rng.uniform(1.0, 12.0)),
                      float(rng.uniform(0.5, 8.0)))
         route = _drive(net, config, plan, frames, speed, lane, rng)
-        matched, opposite = _overlap(route, earlier_xy, earlier_heading, config.radius_m,
+        matched, opposite = _overlap(route, tree, earlier_heading, config.radius_m,
                                      config.heading_deg)
         shortfall = (4 * max(0.0, config.novel_fraction - (1 - matched.mean()))
                      + 2 * max(0.0, config.reverse_fraction - opposite.mean())
-                     + max(0.0, MIN_MATCHED - matched.mean()))
+                     + 3 * max(0.0, MIN_MATCHED - matched.mean()))
         if best is None or shortfall < best[0]:
             best = (shortfall, route)
         if shortfall == 0:
@@ -616,10 +630,3 @@ def generate_latent(out_dir: str | Path, n_traversals: int = 10, frames_per_trav
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return out
-
-
-def frame_ranges(mask: np.ndarray) -> list[list[int]]:
-    """``[start, stop)`` ranges of the True runs of a boolean mask."""
-    padded = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
-    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2], strict=True)]

@@ -8,9 +8,11 @@ a skyline close the world off, so every camera ray hits something.
 
 Each block *side* gets one facade style from a small shared pool, so whole street sides resemble
 other street sides elsewhere (perceptual aliasing); buildings within a side vary in height and
-details. With ``alias_streets`` > 0 some whole streets are copies of other streets: the same
-buildings, heights and textures on both sides, in the same order for the same direction of
-travel (strong aliasing: only the cross streets, the ground and the conditions tell them apart).
+details. With ``alias_streets`` > 0 some whole streets are copies of other streets, as real
+aliasing is: the same facade styles, palette and rhythm of buildings on both sides, in the same
+order for the same direction of travel, but other buildings (heights, details, signs) and other
+gaps between them; ``identical_twins`` of the copies are pixel-identical (only the cross
+streets, the ground and the conditions tell them apart), listed in ``CityLayout.twins``.
 Coordinates are metres, x east, y north; headings are degrees counter-clockwise from +x.
 """
 
@@ -40,7 +42,8 @@ class Building:
     height_m: float
     style: int  # index into CityLayout.styles, or -1 for the skyline walls
     side: int  # index of the block side (street side) it belongs to, -1 for the skyline
-    twin: int = -1  # index of the building whose texture this one reuses (aliased street)
+    twin: int = -1  # index of the building whose texture this one reuses (identical twin)
+    copy_of: int = -1  # index of the building this one copies (twin or lookalike street)
 
     @property
     def length_m(self) -> float:
@@ -58,6 +61,22 @@ class CityLayout:
     styles: tuple[FacadeStyle, ...]
     buildings: tuple[Building, ...]
     extent: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax of the closed world
+    #: Streets (as their two intersections) that are pixel-identical twins of another street,
+    #: copies and originals alike.
+    twins: tuple[tuple[Node, Node], ...] = ()
+
+    def on_twin(self, xy: np.ndarray) -> np.ndarray:
+        """Which positions ``(N, 2)`` lie on a twin street, between its two crossings. O(N)."""
+        out = np.zeros(len(xy), dtype=bool)
+        half = self.street_m / 2
+        for a, b in self.twins:
+            pa, pb = self.node_xy(a), self.node_xy(b)
+            u = (pb - pa) / self.block_m
+            rel = np.asarray(xy, dtype=np.float64) - pa
+            along = rel @ u
+            across = np.abs(rel @ np.array([-u[1], u[0]]))
+            out |= (along > half) & (along < self.block_m - half) & (across < half)
+        return out
 
     def node_xy(self, node: Node) -> np.ndarray:
         """Position of an intersection."""
@@ -86,6 +105,7 @@ def build_layout(
     street_m: float = 14.0,
     n_styles: int = 6,
     alias_streets: float = 0.0,
+    identical_twins: int = 1,
 ) -> CityLayout:
     """Lay out a city.
 
@@ -103,6 +123,9 @@ def build_layout(
     alias_streets : float
         Share of the streets (rounded down) made copies of another street, which keeps its own
         look; 0 draws no extra random numbers, so the city is the same as without the option.
+    identical_twins : int
+        How many of the copies are pixel-identical (the others are lookalikes: same styles
+        and rhythm, other buildings, signs and gaps); listed in :attr:`CityLayout.twins`.
     """
     if nx < 2 or ny < 2:
         raise ValueError("the grid needs at least 2 x 2 intersections")
@@ -131,8 +154,9 @@ def build_layout(
                 style = int(rng.integers(n_styles))
                 buildings.extend(_split_side(a, b, style, side, int(typical_floors[style]), rng))
                 side += 1
+    twins: tuple[tuple[Node, Node], ...] = ()
     if alias_streets > 0:
-        buildings = _alias_streets(buildings, nx, ny, alias_streets, rng)
+        buildings, twins = _alias_streets(buildings, nx, ny, alias_streets, identical_twins, rng)
     margin = 1.6 * block_m
     extent = (-margin, -margin, (nx - 1) * block_m + margin, (ny - 1) * block_m + margin)
     xmin, ymin, xmax, ymax = extent
@@ -141,7 +165,7 @@ def build_layout(
     ring = [(xmin, ymin), (xmax, ymin), (xmax, ymax), (xmin, ymax)]
     for k in range(4):
         buildings.append(Building(ring[(k + 1) % 4], ring[k], 45.0, -1, -1))
-    return CityLayout(nx, ny, block_m, street_m, styles, tuple(buildings), extent)
+    return CityLayout(nx, ny, block_m, street_m, styles, tuple(buildings), extent, twins)
 
 
 def _street_sides(nx: int, ny: int) -> list[tuple[int, int]]:
@@ -167,11 +191,33 @@ def _street_sides(nx: int, ny: int) -> list[tuple[int, int]]:
     return streets
 
 
+def _street_nodes(nx: int, ny: int) -> list[tuple[Node, Node]]:
+    """The intersections each street of :func:`_street_sides` joins, in the same order."""
+    out = []
+    for j in range(ny):
+        for i in range(nx):
+            if i + 1 < nx:
+                out.append(((i, j), (i + 1, j)))
+            if j + 1 < ny:
+                out.append(((i, j), (i, j + 1)))
+    return out
+
+
 def _alias_streets(
-    buildings: list[Building], nx: int, ny: int, share: float, rng: np.random.Generator
-) -> list[Building]:
-    """Make ``share`` of the streets copies of other (original) streets."""
+    buildings: list[Building], nx: int, ny: int, share: float, identical: int,
+    rng: np.random.Generator,
+) -> tuple[list[Building], tuple[tuple[Node, Node], ...]]:
+    """Make ``share`` of the streets copies of other (original) streets.
+
+    The first ``identical`` copies are pixel-identical twins (every building samples its
+    original's texture); the others are lookalikes, as real aliasing is: each building keeps
+    its original's style (palette, windows, shop fronts) and place in the rhythm of the
+    street, but its ends move by up to 1.5 m (other gaps), its height by up to 1.7 m, and it is
+    drawn anew (other details, signs, posters). Returns the buildings and the twin streets
+    (copies and their originals, as pairs of intersections).
+    """
     streets = _street_sides(nx, ny)
+    nodes = _street_nodes(nx, ny)
     order = [int(k) for k in rng.permutation(len(streets))]
     n_copies = int(share * len(streets))
     copies, originals = order[:n_copies], order[n_copies:]
@@ -179,10 +225,16 @@ def _alias_streets(
     for building in buildings:
         by_side.setdefault(building.side, []).append(building)
     source_of: dict[int, int] = {}  # copied side -> original side
-    for street in copies:
+    identical_sides: set[int] = set()
+    twins: list[tuple[Node, Node]] = []
+    for k, street in enumerate(copies):
         original = originals[int(rng.integers(len(originals)))]
         for target, source in zip(streets[street], streets[original], strict=True):
             source_of[target] = source
+            if k < identical:
+                identical_sides.add(target)
+        if k < identical:
+            twins.extend([nodes[street], nodes[original]])
     out: list[Building] = []
     first: dict[int, int] = {}  # side -> index in ``out`` of its first building
     for side in sorted(by_side, key=lambda s: (s in source_of, s)):  # originals first
@@ -192,15 +244,24 @@ def _alias_streets(
             continue
         walls = by_side[side]
         start, end = np.array(walls[0].p0), np.array(walls[-1].p1)
-        direction = (end - start) / np.hypot(*(end - start))
-        origin = np.array(by_side[source_of[side]][0].p0)
-        for k, b in enumerate(by_side[source_of[side]]):
-            a0 = float(np.hypot(*(np.array(b.p0) - origin)))
-            a1 = float(np.hypot(*(np.array(b.p1) - origin)))
-            p0, p1 = start + a0 * direction, start + a1 * direction
+        length = float(np.hypot(*(end - start)))
+        direction = (end - start) / length
+        model = by_side[source_of[side]]
+        origin = np.array(model[0].p0)
+        cuts = [float(np.hypot(*(np.array(b.p1) - origin))) for b in model[:-1]]
+        heights = [b.height_m for b in model]
+        twin = side in identical_sides
+        if not twin:  # same rhythm, other gaps and heights
+            cuts = [c + float(rng.uniform(-1.5, 1.5)) for c in cuts]
+            heights = [max(3.5, h + float(rng.uniform(-1.7, 1.7))) for h in heights]
+        ends = [0.0, *cuts, length]
+        for k, b in enumerate(model):
+            p0, p1 = start + ends[k] * direction, start + ends[k + 1] * direction
             out.append(Building((float(p0[0]), float(p0[1])), (float(p1[0]), float(p1[1])),
-                                b.height_m, b.style, side, first[source_of[side]] + k))
-    return out
+                                heights[k], b.style, side,
+                                first[source_of[side]] + k if twin else -1,
+                                first[source_of[side]] + k))
+    return out, tuple(twins)
 
 
 def _split_side(

@@ -93,9 +93,7 @@ def test_protocols_score_knn_and_sprint(tmp_path, dataset, protocol):
         # every frame has a match here: nothing merged is novel
         assert q["merged_decisions"] > 0 and q["novel_merged"] == 0
     _check_rows(results)
-    assert results["merge_rule"] == {**config.merge_rule.to_dict(),
-                                     "merge_both_ways": config.merge_both_ways,
-                                     "merge_verify_inliers": config.merge_verify_inliers}
+    assert results["merge_rule"] == config.merge.reported()
     by_traversal = results["recall_by_traversal"]
     assert [r["query"] for r in by_traversal] == [q["query"] for q in queries]
     assert [r["sprint_recall@1"] for r in by_traversal] == [q["sprint_recall@1"] for q in queries]
@@ -116,7 +114,7 @@ def test_protocols_score_knn_and_sprint(tmp_path, dataset, protocol):
     assert "| query |" in table and "| merge P | merge R | edges (wrong) |" in table
     o = results["overall"]
     assert f"| {o['edges_added']} ({o['edges_wrong']}) |" in table
-    assert f"threshold {config.merge_threshold}" in table
+    assert f"threshold {config.merge.threshold}" in table
 
 
 def test_lifelong_merge_metrics_match_the_edges_committed(tmp_path, detour_dataset):
@@ -189,3 +187,32 @@ def test_eval_command_prints_the_table(tmp_path, dataset):
     assert result.exit_code == 0, result.output
     assert "SPRINT@1" in result.output and (tmp_path / "ev" / "pr_curve.png").is_file()
     assert "merge P" in result.output and "Merge rule:" in result.output
+
+
+def test_twin_frames_are_reported_apart_when_the_data_set_declares_them(tmp_path, detour_dataset):
+    """``dataset.json`` ``twins``: each row gains ``twin_frames`` / ``twin_merged`` /
+    ``twin_merged_wrong``, counted on the declared frames; without it, no such keys."""
+    plain = run_evaluation(Dataset.open(detour_dataset), tmp_path / "plain", MapConfig(dim=DIM),
+                           EvalOptions(protocol="lifelong"))
+    assert all("twin_frames" not in row for row in [*plain["queries"], plain["overall"]])
+    info = json.loads((detour_dataset / "dataset.json").read_text())
+    # All of c-detour declared twin; b-autumn's first 30 frames.
+    info["twins"] = {"b-autumn": [[0, 30]], "c-detour": [[0, FRAMES + DETOUR]]}
+    (detour_dataset / "dataset.json").write_text(json.dumps(info))
+    results = run_evaluation(Dataset.open(detour_dataset), tmp_path / "twins",
+                             MapConfig(dim=DIM), EvalOptions(protocol="lifelong"))
+    autumn, detour = results["queries"]
+    assert (autumn["twin_frames"], detour["twin_frames"]) == (30, FRAMES + DETOUR)
+    assert 0 <= autumn["twin_merged"] <= 30
+    assert detour["merged_decisions"] > 0
+    assert detour["twin_merged"] == detour["merged_decisions"]
+    wrong = round(detour["merged_decisions"] * (1 - detour["merge_precision"]))
+    assert detour["twin_merged_wrong"] == wrong
+    overall = results["overall"]
+    for key in ("twin_frames", "twin_merged", "twin_merged_wrong"):
+        assert overall[key] == autumn[key] + detour[key]
+    # The other keys do not change.
+    for a, b in zip(plain["queries"], results["queries"], strict=True):
+        assert {k: v for k, v in a.items() if k not in ("retrieval_ms", "hmm_ms")} == {
+            k: v for k, v in b.items()
+            if k not in ("retrieval_ms", "hmm_ms") and not k.startswith("twin_")}

@@ -9,7 +9,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import InputError
 from sprint_map.export import graphml
 from sprint_map.export.report import VERTEX_LEVEL_LIMIT, choose_level
@@ -113,7 +113,7 @@ VERTICES, DRIVE = 100_000, 2_000
 def test_100k_vertex_graphml_reads_back_equal(tmp_path):
     rng = np.random.default_rng(17)
     path = tmp_path / "big.map"
-    with SprintMap.create(path, MapConfig(dim=4, index_type="flat")) as m:
+    with SprintMap.create(path, MapConfig(dim=4, store=StoreOptions(index_type="flat"))) as m:
         for seq in range(VERTICES // DRIVE):
             positions = rng.uniform(-1e4, 1e4, (DRIVE, 3)) if seq % 3 else None
             edges = [EdgeSpec((None, i), (seq - 1, i), float(rng.random()), i if i % 2 else None)

@@ -5,7 +5,7 @@ processes on this machine; the tests' driver joins it. It is started by the firs
 for it (~8 s on the test machine under load), shared by the tests of ``tests/fleet``, and shut
 down as soon as the run leaves this directory (the rest of the suite does not carry a dozen
 idle Ray processes). Tests that kill actors or workers kill only this cluster's
-(:func:`fleet_helpers.processes_titled` with its raylets).
+(:func:`tests.helpers.fleet.processes_titled` with its raylets).
 """
 
 from __future__ import annotations

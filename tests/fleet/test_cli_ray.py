@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleet_helpers import base_map, copy_map, drive, save_drives, snapshot, world
+
+from tests.helpers.fleet import NOISE, areas_of, base_map, copy_map, save_drives, snapshot
+from tests.helpers.worlds import drive
 
 pytestmark = pytest.mark.ray
 
@@ -22,10 +24,10 @@ def run(*args: str) -> subprocess.CompletedProcess[str]:
 
 @pytest.fixture
 def fleet(tmp_path: Path, rng: np.random.Generator) -> tuple[Path, list[str]]:
-    areas = world(rng, 4)
+    areas = areas_of(rng, 4)
     base = base_map(tmp_path / "base.map", areas[:2], rng)
     return base, save_drives(tmp_path / "drives",
-                             [drive(areas[a], rng) for a in (0, 2, 1, 0, 3)])
+                             [drive(areas[a], rng, NOISE) for a in (0, 2, 1, 0, 3)])
 
 
 def test_ingest_with_ray_local_equals_ingest_without(tmp_path: Path,

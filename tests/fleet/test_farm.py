@@ -7,10 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleet_helpers import base_map, copy_map, drive, save_drives, serial_ingest, snapshot, world
 
+from sprint_map.config import StoreOptions
 from sprint_map.fleet.farm import farm_ingest
 from sprint_map.map import SprintMap
+from tests.helpers.fleet import (
+    NOISE,
+    areas_of,
+    base_map,
+    copy_map,
+    save_drives,
+    serial_ingest,
+    snapshot,
+)
+from tests.helpers.worlds import drive
 
 pytestmark = pytest.mark.ray
 
@@ -19,10 +29,10 @@ pytestmark = pytest.mark.ray
 def fleet(tmp_path: Path, rng: np.random.Generator) -> tuple[Path, list[str]]:
     """A base map of areas 0-2 and six drives: revisits of 0, 1 and 2, area 0 again (after a
     farm drive merged into it: stale), and two new areas (3, 4)."""
-    areas = world(rng, 5)
+    areas = areas_of(rng, 5)
     base = base_map(tmp_path / "base.map", areas[:3], rng)
     order = [0, 1, 0, 3, 2, 4]
-    sources = save_drives(tmp_path / "drives", [drive(areas[a], rng) for a in order])
+    sources = save_drives(tmp_path / "drives", [drive(areas[a], rng, NOISE) for a in order])
     return base, sources
 
 
@@ -51,14 +61,13 @@ def test_farm_equals_serial_ingest(cluster: object, tmp_path: Path,
 
 def test_farm_on_an_empty_map_equals_serial(cluster: object, tmp_path: Path,
                                             rng: np.random.Generator) -> None:
-    areas = world(rng, 2)
-    sources = save_drives(tmp_path / "drives", [drive(areas[a], rng) for a in (0, 1, 0)])
+    areas = areas_of(rng, 2)
+    sources = save_drives(tmp_path / "drives", [drive(areas[a], rng, NOISE) for a in (0, 1, 0)])
     empty = tmp_path / "empty.map"
-    from fleet_helpers import DIM
-
     from sprint_map.config import MapConfig
+    from tests.helpers.fleet import DIM
 
-    SprintMap.create(empty, MapConfig(dim=DIM, index_type="flat")).close()
+    SprintMap.create(empty, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))).close()
     serial = copy_map(empty, tmp_path / "serial.map")
     serial_ingest(serial, sources)
     farmed = copy_map(empty, tmp_path / "farm.map")

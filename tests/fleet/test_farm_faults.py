@@ -14,20 +14,21 @@ from typing import Any
 
 import numpy as np
 import pytest
-from fleet_helpers import (
+
+from sprint_map.fleet.farm import farm_ingest
+from sprint_map.map import SprintMap
+from tests.helpers.fleet import (
+    NOISE,
+    areas_of,
     base_map,
     copy_map,
-    drive,
     processes_titled,
     raylets,
     save_drives,
     serial_ingest,
     snapshot,
-    world,
 )
-
-from sprint_map.fleet.farm import farm_ingest
-from sprint_map.map import SprintMap
+from tests.helpers.worlds import drive
 
 pytestmark = pytest.mark.ray
 
@@ -57,10 +58,10 @@ class Killer(threading.Thread):
 
 @pytest.fixture
 def fleet(tmp_path: Path, rng: np.random.Generator) -> tuple[Path, list[str]]:
-    areas = world(rng, 5)
+    areas = areas_of(rng, 5)
     base = base_map(tmp_path / "base.map", areas[:3], rng)
     sources = save_drives(tmp_path / "drives",
-                          [drive(areas[a], rng) for a in (0, 1, 3, 2, 0, 4)])
+                          [drive(areas[a], rng, NOISE) for a in (0, 1, 3, 2, 0, 4)])
     return base, sources
 
 

@@ -14,19 +14,20 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from fleet_helpers import Server, base_map, drive, processes_titled, raylets, world
 
 from sprint_map.map import SprintMap
+from tests.helpers.fleet import NOISE, Server, areas_of, base_map, processes_titled, raylets
+from tests.helpers.worlds import drive
 
 pytestmark = pytest.mark.ray
 
 
 def test_replicas_answer_as_in_process_and_a_lost_one_ends_its_sessions_only(
         cluster: object, tmp_path: Path, rng: np.random.Generator) -> None:
-    areas = world(rng, 3)
+    areas = areas_of(rng, 3)
     path = base_map(tmp_path / "m.map", areas, rng)
-    rows = drive(areas[0], rng)
-    other = drive(areas[1], rng)
+    rows = drive(areas[0], rng, NOISE)
+    other = drive(areas[1], rng, NOISE)
     address = cluster.address  # type: ignore[attr-defined]
     server = Server(path, tmp_path / "serve.log", "--ray", address, "--replicas", "2")
     try:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet import shards as shards_module
 from sprint_map.fleet.channel import ChannelError
@@ -26,7 +26,7 @@ DIM = 24
 
 
 def build(path: Path, rng: np.random.Generator, lengths: list[int]) -> SprintMap:
-    smap = SprintMap.create(path, MapConfig(dim=DIM, index_type="flat", shard_rows=3000))
+    smap = SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(index_type="flat", shard_rows=3000)))
     for n, length in enumerate(lengths):
         smap.add_sequence(rng.standard_normal((length, DIM)).astype(np.float32), name=f"d{n}")
     return smap

@@ -238,3 +238,26 @@ def test_nordland_summer_to_winter_hog_knn():
     correct = dataset.ground_truth().correct("winter", np.arange(3576)[:, None], "summer", order)
     assert correct[:, 0].mean() == pytest.approx(0.414, abs=0.002)
     assert correct.any(axis=1).mean() == pytest.approx(0.644, abs=0.002)
+
+
+def test_twin_frames_from_dataset_json(dataset_dir):
+    assert Dataset.open(dataset_dir).twin_frames("run10") is None  # none declared
+    info = json.loads((dataset_dir / "dataset.json").read_text())
+    info["twins"] = {"run10": [[1, 3]]}
+    (dataset_dir / "dataset.json").write_text(json.dumps(info))
+    data = Dataset.open(dataset_dir)
+    assert data.twin_frames("run10").tolist() == [False, True, True, False]
+    assert data.twin_frames("run10", stride=2).tolist() == [False, True]
+    assert data.twin_frames("run2").tolist() == [False, False, False]  # not listed: none
+    info["twins"] = {"run10": [[1]]}
+    (dataset_dir / "dataset.json").write_text(json.dumps(info))
+    with pytest.raises(InputError, match="twins"):
+        Dataset.open(dataset_dir).twin_frames("run10")
+
+
+def test_frame_ranges_round_trip():
+    from sprint_map.frontend.dataset import frame_ranges
+
+    mask = np.array([1, 1, 0, 0, 1, 0, 1, 1, 1], dtype=bool)
+    assert frame_ranges(mask) == [[0, 2], [4, 5], [6, 9]]
+    assert frame_ranges(np.zeros(3, dtype=bool)) == []

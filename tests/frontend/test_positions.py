@@ -1,4 +1,4 @@
-"""Reading positions.csv: frame,x,y[,heading_deg][,sigma_m]."""
+"""Reading positions.csv: frame,x,y or frame,lat,lon, [,heading_deg][,sigma_m]."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from sprint_map.errors import InputError
 from sprint_map.frontend import read_positions
-from sprint_map.frontend.positions import gnss_fixes, stored_form
+from sprint_map.frontend.positions import gnss_fixes
 
 
 def write(tmp_path, text: str):
@@ -19,22 +19,46 @@ def write(tmp_path, text: str):
 def test_three_columns(tmp_path):
     path = write(tmp_path, "frame,x,y\n0,1.5,2\n1,3,4.25\n2,-1,0\n")
     out = read_positions(path, 3)
-    assert out.dtype == np.float64
-    np.testing.assert_array_equal(out, [[0, 1.5, 2], [1, 3, 4.25], [2, -1, 0]])
+    assert out.xy.dtype == np.float64 and not out.geographic
+    assert out.heading_deg is None and out.sigma_m is None
+    np.testing.assert_array_equal(out.table(), [[0, 1.5, 2], [1, 3, 4.25], [2, -1, 0]])
 
 
 def test_heading_any_column_order_rows_comments_and_blank_lines(tmp_path):
     text = "# drive 1\nY, Heading_Deg ,frame,x\n\n5,90,1,6\n3,0,0,4\n# end\n"
     out = read_positions(write(tmp_path, text), 2)
-    np.testing.assert_array_equal(out, [[0, 4, 3, 0], [1, 6, 5, 90]])
+    np.testing.assert_array_equal(out.table(), [[0, 4, 3, 0], [1, 6, 5, 90]])
+
+
+@pytest.mark.parametrize("header", ["frame,x,y,sigma_m", "frame,lat,lon,sigma_m",
+                                    "sigma_m,lon,frame,lat"])
+def test_sigma_column_planar_and_geographic(tmp_path, header):
+    names = [n.strip() for n in header.split(",")]
+    values = {0: {"frame": 0, "x": 1, "y": 2, "lat": 59.5, "lon": 10.25, "sigma_m": 0.5},
+              2: {"frame": 2, "x": 3, "y": 4, "lat": 59.6, "lon": 10.5, "sigma_m": 3}}
+    body = "".join(",".join(str(v[n]) for n in names) + "\n" for v in values.values())
+    out = read_positions(write(tmp_path, header + "\n" + body), 3)
+    assert out.geographic == ("lat" in names)
+    np.testing.assert_array_equal(out.sigma_m, [0.5, np.nan, 3])
+    first = ("lat", "lon") if out.geographic else ("x", "y")
+    np.testing.assert_array_equal(out.xy[0], [values[0][first[0]], values[0][first[1]]])
+    assert np.isnan(out.xy[1]).all()  # no row: a frame without a fix
+    np.testing.assert_array_equal(out.fixed, [True, False, True])
+
+
+def test_missing_rows_are_frames_without_a_fix(tmp_path):
+    out = read_positions(write(tmp_path, "frame,x,y\n0,1,2\n3,3,4\n"), 5)
+    np.testing.assert_array_equal(out.fixed, [True, False, False, True, False])
+    rows = out.rows()
+    assert rows.shape == (5, 5) and np.isnan(rows[1]).all()
 
 
 @pytest.mark.parametrize(("rows", "n_frames"), [(10, 4), (11, 4), (12, 4), (7, 3)])
 def test_stride_selects_original_frames(tmp_path, rows, n_frames):
     text = "frame,x,y\n" + "".join(f"{i},{i * 10},0\n" for i in range(rows))
     out = read_positions(write(tmp_path, text), n_frames, stride=3)
-    np.testing.assert_array_equal(out[:, 0], np.arange(n_frames) * 3)
-    np.testing.assert_array_equal(out[:, 1], np.arange(n_frames) * 30)
+    np.testing.assert_array_equal(out.frames, np.arange(n_frames) * 3)
+    np.testing.assert_array_equal(out.xy[:, 0], np.arange(n_frames) * 30)
 
 
 def test_stride_file_longer_than_the_drive(tmp_path):
@@ -44,29 +68,19 @@ def test_stride_file_longer_than_the_drive(tmp_path):
         read_positions(write(tmp_path, text), 4, stride=3)
 
 
-@pytest.mark.parametrize("header", ["frame,x,y,sigma_m", "sigma_m,y,frame,x"])
-def test_sigma_column(tmp_path, header):
-    names = [n.strip() for n in header.split(",")]
-    values = [{"frame": 0, "x": 1, "y": 2, "sigma_m": 0.5}, {"frame": 2, "x": 3, "y": 4,
-                                                             "sigma_m": 3}]
-    body = "".join(",".join(str(v[n]) for n in names) + "\n" for v in values)
-    out = read_positions(write(tmp_path, header + "\n" + body), 3)
-    assert out.shape == (3, 5) and np.isnan(out[:, 3]).all()  # no heading: NaN
-    np.testing.assert_array_equal(out[:, 4], [0.5, np.nan, 3])
-    np.testing.assert_array_equal(gnss_fixes(out), [[1, 2, 0.5], [np.nan] * 3, [3, 4, 3]])
-    np.testing.assert_array_equal(stored_form(out)[[0, 2], :2], [[1, 2], [3, 4]])
-
-
-def test_missing_rows_are_frames_without_a_fix(tmp_path):
-    out = read_positions(write(tmp_path, "frame,x,y\n0,1,2\n3,3,4\n"), 5)
-    np.testing.assert_array_equal(np.isfinite(out[:, 1]), [True, False, False, True, False])
-    np.testing.assert_array_equal(out[:, 0], np.arange(5))
-    assert gnss_fixes(out).shape == (5, 2)
+def test_gnss_fixes_are_x_y_sigma_of_the_stored_rows(tmp_path):
+    out = read_positions(write(tmp_path, "frame,x,y,sigma_m\n0,1,2,0.5\n2,3,4,3\n"), 3)
+    np.testing.assert_array_equal(gnss_fixes(out.rows()),
+                                  [[1, 2, 0.5], [np.nan] * 3, [3, 4, 3]])
+    plain = read_positions(write(tmp_path, "frame,x,y\n0,1,2\n3,3,4\n"), 5)
+    fixes = gnss_fixes(plain.rows())
+    assert fixes.shape == (5, 3) and np.isnan(fixes[:, 2]).all()  # the map's default sigma
+    np.testing.assert_array_equal(np.isfinite(fixes[:, 0]), [True, False, False, True, False])
 
 
 def test_unknown_length_accepts_any_file(tmp_path):
     out = read_positions(write(tmp_path, "frame,x,y\n1,1,1\n0,0,0\n"), None)
-    np.testing.assert_array_equal(out[:, 0], [0, 1])
+    np.testing.assert_array_equal(out.frames, [0, 1])
 
 
 @pytest.mark.parametrize(
@@ -75,6 +89,8 @@ def test_unknown_length_accepts_any_file(tmp_path):
         ("", 1, "empty positions file"),
         ("frame,x,y\n", 1, "no position rows"),
         ("frame,x\n0,1\n", 1, r":1: bad header \(missing column\(s\) y\)"),
+        ("frame,lat\n0,1\n", 1, r":1: bad header \(missing column\(s\) lon\)"),
+        ("frame,x,y,lat\n0,1,2,3\n", 1, r":1: bad header \(unknown column\(s\) 'x', 'y'\)"),
         ("frame,x,y,z\n0,1,2,3\n", 1, r":1: bad header \(unknown column\(s\) 'z'\)"),
         ("frame,x,x,y\n0,1,2,3\n", 1, ":1: bad header"),
         ("frame,x,y\n0,1\n", 1, ":2: expected 3 fields, got 2"),
@@ -83,6 +99,8 @@ def test_unknown_length_accepts_any_file(tmp_path):
         ("frame,x,y,sigma_m\n0,1,1,nan\n", 1, ":2: sigma_m is not finite"),
         ("frame,x,y,sigma_m\n0,1,1,0\n", 1, ":2: sigma_m must be > 0 metres, got 0"),
         ("frame,x,y,sigma_m\n0,1,1,-2\n", 1, ":2: sigma_m must be > 0 metres, got -2"),
+        ("frame,lat,lon\n0,91,0\n", 1, r":2: lat 91 is outside \[-90, 90\]"),
+        ("frame,lat,lon\n0,45,-180.5\n", 1, r":2: lon -180.5 is outside \[-180, 180\]"),
         ("frame,x,y\n0,1,2\n0.5,1,2\n", 2, ":3: frame must be a non-negative integer"),
         ("frame,x,y\n-1,1,2\n", 1, ":2: frame must be a non-negative integer"),
         ("# c\nframe,x,y\n0,1,2\n0,3,4\n", 2, ":4: frame 0 repeated \\(first on line 3\\)"),

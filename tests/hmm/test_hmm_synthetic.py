@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hmm_synth import Scenario, make_scenario
 
 from sprint_map.hmm import FullGraphFilter, HMMConfig, SprintFilter
+from tests.helpers.hmm_synth import Scenario, make_scenario
 
 
 def run(scenario: Scenario, filt: SprintFilter | FullGraphFilter, k: int = 10

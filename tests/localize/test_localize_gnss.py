@@ -384,3 +384,23 @@ def test_localize_and_ingest_commands_read_fixes_from_positions(one_street, tmp_
     with SprintMap.open(path, readonly=True) as m:
         stored = m.positions(result["seq_id"])
     assert stored is not None and np.isnan(stored[np.isnan(fixes[:, 0]), 0]).all()
+
+
+def test_a_lag_refuses_fixes_with_one_clear_error(one_street, tmp_path):
+    from click.testing import CliRunner
+
+    from sprint_map.cli.main import main
+
+    path, query, truth = one_street
+    fixes = fixes_for(truth, 41)
+    with SprintMap.open(path, readonly=True) as m:
+        with pytest.raises(InputError, match="GNSS fixes are not supported with a lag"):
+            m.localize(query, lag=3, fixes=fixes)
+        lagged, _ = m.localize(query, lag=3)  # without fixes the lag still answers
+    assert len(lagged) == len(query)
+    np.save(tmp_path / "drive.npy", query)
+    csv = tmp_path / "drive.csv"
+    csv.write_text("frame,x,y\n0,0,0\n")
+    out = CliRunner().invoke(main, ["localize", str(path), str(tmp_path / "drive.npy"),
+                                    "--lag", "3", "--positions", str(csv)])
+    assert out.exit_code != 0 and "--lag does not weigh GNSS fixes" in out.output

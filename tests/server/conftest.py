@@ -1,4 +1,4 @@
-"""Fixtures of the service tests (helpers in ``serve_helpers.py``)."""
+"""Fixtures of the service tests (helpers in ``tests/helpers/serve.py``)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,11 @@ from typing import Any
 
 import numpy as np
 import pytest
-from serve_helpers import DIM, PLACES, ServerProcess, drive
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
+from tests.helpers.serve import DIM, PLACES, ServerProcess
+from tests.helpers.worlds import drive
 
 
 @pytest.fixture

@@ -14,9 +14,10 @@ import signal
 import threading
 
 import numpy as np
-from serve_helpers import DIM, decisions, drive, post_frame, stream
 
 from sprint_map.map import SprintMap
+from tests.helpers.serve import DIM, decisions, post_frame, stream
+from tests.helpers.worlds import drive
 
 
 def _offline(map_path, rows):

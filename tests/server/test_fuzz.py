@@ -17,10 +17,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error, status_code_conformance
-from serve_helpers import ServerProcess, drive
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
+from tests.helpers.serve import ServerProcess
+from tests.helpers.worlds import drive
 
 DIM = 8
 

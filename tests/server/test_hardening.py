@@ -12,10 +12,10 @@ from typing import Any
 
 import httpx
 import numpy as np
-from serve_helpers import DIM, run_service
 
 from sprint_map.map import SprintMap
 from sprint_map.server.service import LocalisationService
+from tests.helpers.serve import DIM, run_service
 
 JSON = {"content-type": "application/json"}
 

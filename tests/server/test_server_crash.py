@@ -20,10 +20,11 @@ from typing import Any
 
 import httpx
 import numpy as np
-from serve_helpers import DIM, drive
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
+from tests.helpers.serve import DIM
+from tests.helpers.worlds import drive
 
 FRAMES = 15
 
@@ -91,7 +92,7 @@ def _verify(path, fleets: list[Fleet], first: np.ndarray) -> int:
                 other = dst if mine == src else src
                 assert first_v <= mine < first_v + length and other < first_v, name
                 assert frame == mine - first_v and 0 < weight <= 1, name
-                if config.merge_both_ways:
+                if config.merge.both_ways:
                     assert got[(dst, src)][0] == weight, name
             assert len(answers[name]) == length, name
         report = m.check()

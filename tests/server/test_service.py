@@ -15,7 +15,6 @@ import httpx
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from serve_helpers import DIM, drive, run_service
 
 from sprint_map.cli.main import main
 from sprint_map.config import MapConfig
@@ -28,6 +27,8 @@ from sprint_map.server.config import ServerConfig
 from sprint_map.server.gate import MapGate
 from sprint_map.server.metrics import Metrics
 from sprint_map.server.service import LocalisationService
+from tests.helpers.serve import DIM, run_service
+from tests.helpers.worlds import drive
 
 
 async def frames(client: httpx.AsyncClient, sid: str, rows: np.ndarray) -> list[dict[str, Any]]:

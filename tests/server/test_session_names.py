@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
-from serve_helpers import drive, run_service
 
 from sprint_map.map import SprintMap
 from sprint_map.server.service import LocalisationService
+from tests.helpers.serve import run_service
+from tests.helpers.worlds import drive
 
 
 async def _drive(client: httpx.AsyncClient, name: str | None, rows: np.ndarray) -> httpx.Response:

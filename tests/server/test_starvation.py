@@ -14,15 +14,13 @@ import socket
 import sys
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from serve_helpers import drive
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
-import bench_serve_stall as stall  # noqa: E402
+from tests.helpers.worlds import drive
+from tools import bench_serve_stall as stall
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="reads the server's RSS from /proc")

@@ -9,17 +9,18 @@ import subprocess
 import sys
 from pathlib import Path
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli.main import main
+from sprint_map.config import StoreOptions
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.generation import CURRENT_NAME
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import SHARDS_DIR, MapStore
+from tests.helpers import crash_worker
 
 logical_state = crash_worker.logical_state
 
@@ -244,7 +245,7 @@ def test_remove_and_compact_with_the_approximate_index(tmp_path, rng):
     from sprint_map.config import MapConfig
 
     place = rng.standard_normal((1000, 32)).astype(np.float32)
-    config = MapConfig(dim=32, index_type="ivf-sq8", index_nlist=16, index_segment_rows=500)
+    config = MapConfig(dim=32, store=StoreOptions(index_type="ivf-sq8", index_nlist=16, index_segment_rows=500))
     with MapStore.create(tmp_path / "m", config) as store:
         for _ in range(6):
             store.add_sequence(place + 0.3 * rng.standard_normal((1000, 32)).astype(np.float32))

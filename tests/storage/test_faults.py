@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import InvalidDescriptorError, StorageIOError
 from sprint_map.map import SprintMap
 from sprint_map.storage import sequence_writer
@@ -90,7 +90,7 @@ def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A map of 3 sequences (13 vertices; shards of 8 rows, the second one open), an index file
     persisted after every commit, and a leftover uncommitted tail a writer's open must cut."""
     path = tmp_path_factory.mktemp("faults") / "template"
-    config = MapConfig(dim=DIM, shard_rows=8, index_persist_every=1, index_persist_growth=0)
+    config = MapConfig(dim=DIM, store=StoreOptions(shard_rows=8, index_persist_every=1, index_persist_growth=0))
     with MapStore.create(path, config) as store:
         store.add_sequence(_drive(1, 6), name="a", positions=np.zeros((6, 2)))
         store.add_sequence(_drive(2, 4), name="b", edges=[EdgeSpec((None, 0), (0, 5), 0.9, 0)])
@@ -283,7 +283,7 @@ def test_the_seam_covers_every_file_call_of_the_write_paths():
 LIMITED_WORKER = textwrap.dedent("""
     import json, resource, sys
     import numpy as np
-    from sprint_map.config import MapConfig
+    from sprint_map.config import MapConfig, StoreOptions
     from sprint_map.errors import SprintMapError
     from sprint_map.storage.store import MapStore
 
@@ -299,7 +299,8 @@ LIMITED_WORKER = textwrap.dedent("""
         # The map size given at creation lasts for this session only: fill the map nearly to
         # its end here, so that the commit below overflows it and the map must grow.
         size = 8 << 20
-        store = MapStore.create(path, MapConfig(dim=4, shard_rows=1 << 20, initial_map_size=size))
+        store = MapStore.create(path, MapConfig(dim=4, store=StoreOptions(shard_rows=1 << 20,
+                                                      initial_map_size=size)))
         used = lambda: (store.env.env.info()["last_pgno"] + 1) * 4096
         while used() < size - (320 << 10):
             k = max(200, (size - used() - (320 << 10)) // 64)
@@ -352,7 +353,7 @@ def test_a_full_disk_rlimit_fsize(template, tmp_path):
     data file at commit, and on the index file. Each aborts with one line and commits nothing."""
     # 1. A shard: 20000 rows of 16 bytes need 320 kB in one file, past LMDB's file size.
     shard_map = tmp_path / "fsize-shard"
-    with MapStore.create(shard_map, MapConfig(dim=DIM, shard_rows=1 << 20)) as store:
+    with MapStore.create(shard_map, MapConfig(dim=DIM, store=StoreOptions(shard_rows=1 << 20))) as store:
         store.add_sequence(_drive(1, 5), name="a")
     shard_before = map_state(shard_map)
     size = (shard_map / LMDB_DIR / "data.mdb").stat().st_size
@@ -391,7 +392,7 @@ def test_a_full_disk_while_writing_the_index(template, tmp_path):
 def test_lmdb_map_full_in_a_batch_grows_and_retries_once_committed(tmp_path, monkeypatch):
     """The commit of 30000 positions overflows a 1 MiB map in the middle of its transaction:
     the map doubles and the transaction re-runs from scratch; it commits exactly once."""
-    config = MapConfig(dim=DIM, shard_rows=50000, initial_map_size=1 << 20)
+    config = MapConfig(dim=DIM, store=StoreOptions(shard_rows=50000, initial_map_size=1 << 20))
     runs = []
     with MapStore.create(tmp_path / "m", config) as store:
         store.add_sequence(_drive(1, 5), name="first")

@@ -2,7 +2,7 @@
 one LMDB transaction; each sequence whole or absent.
 
 Kills at the group's crash points run in ``tests/test_drives.py`` (a real ``ingest --no-merge``)
-and in the random-kill loop of ``tests/crash_worker.py`` (its writers commit groups too); power
+and in the random-kill loop of ``tests/helpers/crash_worker.py`` (its writers commit groups too); power
 loss and I/O errors at every file call of a group in ``tests/storage/test_faults.py``.
 """
 
@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import numpy as np
 import pytest
 
@@ -25,6 +24,7 @@ from sprint_map.storage.check import check_map
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import SHARDS_DIR, MapStore
 from sprint_map.testing.faults import CallRecorder, installed
+from tests.helpers import crash_worker
 
 SEED, DIM = 3, 16
 CONFIG = {"dim": DIM, "shard_rows": 64}

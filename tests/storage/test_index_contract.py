@@ -1,13 +1,12 @@
-"""Every retrieval index kind passes the one contract (``index_contract.IndexContract``)."""
+"""Every retrieval index kind passes the one contract (``tests/helpers/index_contract.py``)."""
 
 from __future__ import annotations
-
-from index_contract import IndexContract
 
 from sprint_map.storage.index.flat import FlatIndex
 from sprint_map.storage.index.model import MIN_TRAIN
 from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.store_config import StoreConfig
+from tests.helpers.index_contract import IndexContract
 
 DIM = 32
 

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from index_contract import Committed, clustered
 
 from sprint_map.storage.index.flat import FlatIndex, index_files
 from sprint_map.storage.index.manifest import MANIFEST
 from sprint_map.storage.index.map_index import KINDS, IndexStore
 from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.store_config import StoreConfig
+from tests.helpers.index_contract import Committed, clustered
 
 DIM = 32
 #: auto switches to ivf-pq at 1000 * 128 / 32 = 4000 vertices of dim 32.

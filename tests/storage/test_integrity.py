@@ -32,7 +32,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli.main import main
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import DuplicateNameError, MapCorruptError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.index import map_index as index_store
@@ -93,7 +93,7 @@ def npy(tmp_path: Path, rng: np.random.Generator) -> list[Path]:
 
 def build(path: Path, files: list[Path], config: MapConfig | None = None) -> Path:
     """A map of the first three drives (each under its file's name), closed."""
-    with MapStore.create(path, config or MapConfig(dim=DIM, shard_rows=64)) as store:
+    with MapStore.create(path, config or MapConfig(dim=DIM, store=StoreOptions(shard_rows=64))) as store:
         for file in files[:3]:
             store.add_sequence(np.load(file), name=file.stem)
         store.search(np.load(files[0])[:1], k=1)  # the flat index is persisted at close
@@ -151,8 +151,7 @@ def test_a_zero_filled_shard_row_is_caught_by_its_digest(tmp_path, npy):
 
 # --- 3: segments changed in place, work after the commit, retries --------------------------------
 
-SEGMENTED = MapConfig(dim=DIM, index_type="ivf-sq8", index_segment_rows=128, index_nlist=4,
-                      index_nprobe=2, index_merge_factor=4)
+SEGMENTED = MapConfig(dim=DIM, store=StoreOptions(index_type="ivf-sq8", index_segment_rows=128, index_nlist=4, index_nprobe=2, index_merge_factor=4))
 
 
 @pytest.fixture

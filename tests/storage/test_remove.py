@@ -6,13 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import lmdb
 import networkx as nx
 import numpy as np
 import pytest
 
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import SCHEMA_VERSION, MapConfig, StoreOptions
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.localize.map_graph import MapGraphSource
 from sprint_map.map import SprintMap
@@ -22,6 +21,7 @@ from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.repair import repair_map
 from sprint_map.storage.store import LMDB_DIR, MapStore
+from tests.helpers import crash_worker
 
 logical_state = crash_worker.logical_state
 
@@ -93,7 +93,7 @@ def test_removal_splits_components_as_the_remaining_edges_do(make_map, rng, case
 def test_a_bridge_removed_splits_its_component_and_ids_follow_the_roots(make_map, rng):
     """0 - 1 - 2 and 3 - 1: removing the bridge 1 leaves three components; the part holding
     the old root keeps its id."""
-    built = make_map.empty(MapConfig(dim=8, shard_rows=8))
+    built = make_map.empty(MapConfig(dim=8, store=StoreOptions(shard_rows=8)))
     with MapStore.create(built.path, built.config) as store:
         for i in range(4):
             edges = {1: [EdgeSpec((None, 0), (0, 0))], 2: [EdgeSpec((1, 1), (None, 2))],
@@ -119,7 +119,7 @@ def test_search_never_returns_removed_vertices_and_still_finds_k(tmp_path, rng, 
     """Each live row has a removed near-copy closer than any live row: the search must skip
     them all and return the exact k nearest live vertices (brute force over the live rows)."""
     dim = 16
-    with MapStore.create(tmp_path / "m", MapConfig(dim=dim, shard_rows=16)) as store:
+    with MapStore.create(tmp_path / "m", MapConfig(dim=dim, store=StoreOptions(shard_rows=16))) as store:
         live_rows, copies = _near_copies(rng, dim)
         store.add_sequence(copies, name="stale-a")
         store.add_sequence(live_rows, name="live")

@@ -52,7 +52,7 @@ def centres(rng):
 
 def build(path: Path, rng, centres, lengths, **config) -> np.ndarray:
     rows = []
-    with MapStore.create(path, MapConfig(**{**SEGMENTED, **config})) as store:
+    with MapStore.create(path, MapConfig.from_dict({**SEGMENTED, **config})) as store:
         for n in lengths:
             rows.append(clustered(rng, n, centres))
             store.add_sequence(rows[-1])
@@ -68,11 +68,11 @@ def search_all(path: Path, queries: np.ndarray, k: int):
 
 
 def test_config_defaults_validation_and_old_maps():
-    assert MapConfig(dim=128).index_type == "auto"
+    assert MapConfig(dim=128).store.index_type == "auto"
     assert MapConfig(dim=1764).index_dim == 128 and MapConfig(dim=64).index_dim == 64
     assert MapConfig(dim=128).pq_m == 16 and MapConfig(dim=12).pq_m == 1
     old = MapConfig.from_dict({"dim": 8, "index_type": "flat", "shard_rows": 64})
-    assert old.index_type == "flat" and old.index_nlist == 1024
+    assert old.store.index_type == "flat" and old.store.index_nlist == 1024
     for bad in ({"index_type": "hnsw"}, {"index_nprobe": 2000}, {"index_nlist": 0},
                 {"index_pq_m": 7}, {"index_merge_factor": 1}, {"index_train_sample": 10}):
         with pytest.raises(ConfigError):

@@ -15,7 +15,7 @@ import lmdb
 import numpy as np
 import pytest
 
-from sprint_map.config import SCHEMA_VERSION, MapConfig
+from sprint_map.config import SCHEMA_VERSION, MapConfig, StoreOptions
 from sprint_map.errors import (
     DescriptorShapeError,
     DuplicateNameError,
@@ -34,8 +34,9 @@ from sprint_map.storage.lmdb_env import DB_NAMES, MAX_DBS
 from sprint_map.storage.lock import LOCK_NAME
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import INDEX_DIR, LMDB_DIR, SHARDS_DIR, MapStore
+from tests.helpers import crash_worker
 
-WORKER = Path(__file__).resolve().parents[1] / "crash_worker.py"
+WORKER = Path(crash_worker.__file__)
 DIM = 4
 
 
@@ -52,7 +53,7 @@ def snapshot(store: MapStore) -> dict[str, object]:
 @pytest.fixture
 def store(tmp_path, rng):
     """A writable map with two sequences (3 and 5 frames, 3 rows per shard: last shard open)."""
-    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM, shard_rows=3)) as s:
+    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM, store=StoreOptions(shard_rows=3))) as s:
         s.add_sequence(rng.standard_normal((3, DIM)), name="a")
         s.add_sequence(rng.standard_normal((5, DIM)), name="b")
         yield s

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.storage.check import check_map
 from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.records import EdgeSpec
@@ -46,7 +46,7 @@ def test_shard_files_hold_exactly_the_committed_rows(make_map):
 
 
 def test_descriptors_of_other_dtypes_are_stored_as_float32(tmp_path, rng):
-    with MapStore.create(tmp_path / "m", MapConfig(dim=3, shard_rows=4)) as store:
+    with MapStore.create(tmp_path / "m", MapConfig(dim=3, store=StoreOptions(shard_rows=4))) as store:
         f64 = rng.standard_normal((5, 3))
         ints = rng.integers(-100, 100, (3, 3), dtype=np.int64)
         lists = [[0.5, 1.5, -2.0]]
@@ -59,7 +59,7 @@ def test_descriptors_of_other_dtypes_are_stored_as_float32(tmp_path, rng):
 
 
 def test_default_names_sources_and_lookups(tmp_path, rng):
-    with MapStore.create(tmp_path / "m", MapConfig(dim=2, shard_rows=3)) as store:
+    with MapStore.create(tmp_path / "m", MapConfig(dim=2, store=StoreOptions(shard_rows=3))) as store:
         a = store.add_sequence(rng.standard_normal((4, 2)))
         b = store.add_sequence(rng.standard_normal((5, 2)), name="monday", source="cam0")
         c = store.add_sequence(rng.standard_normal((1, 2)))
@@ -71,7 +71,7 @@ def test_default_names_sources_and_lookups(tmp_path, rng):
 
 
 def test_edges_keep_provenance_and_repeats_keep_the_newest(tmp_path, rng):
-    cfg = MapConfig(dim=2, shard_rows=4)
+    cfg = MapConfig(dim=2, store=StoreOptions(shard_rows=4))
     with MapStore.create(tmp_path / "m", cfg) as store:
         store.add_sequence(rng.standard_normal((3, 2)))
         first = store.add_sequence(
@@ -134,7 +134,7 @@ def test_index_is_persisted_on_close_and_reloaded_as_is(make_map):
 
 
 def test_index_persisted_every_n_vertices_while_adding(tmp_path, rng):
-    cfg = MapConfig(dim=4, shard_rows=8, index_persist_every=10)
+    cfg = MapConfig(dim=4, store=StoreOptions(shard_rows=8, index_persist_every=10))
     with MapStore.create(tmp_path / "m", cfg) as store:
         stamps = []
         for length in (4, 4, 4, 9, 1, 12):
@@ -189,7 +189,7 @@ def test_reader_search_sees_rows_added_after_it_loaded(make_map):
 
 def test_lmdb_map_grows_when_full(make_map, rng, expect_map):
     """Positions fill a 1 MiB LMDB: the write is retried on a doubled map, nothing is lost."""
-    cfg = MapConfig(dim=1, shard_rows=4096, initial_map_size=1 << 20)
+    cfg = MapConfig(dim=1, store=StoreOptions(shard_rows=4096, initial_map_size=1 << 20))
     built = make_map.empty(cfg)
     with MapStore.create(built.path, cfg) as store:
         for _ in range(6):

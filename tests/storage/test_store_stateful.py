@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import (
     DescriptorShapeError,
     DuplicateNameError,
@@ -34,7 +34,7 @@ from sprint_map.storage.store import MapStore
 from sprint_map.util.exact_search import pair_distances
 
 DIM = 3
-CONFIG = MapConfig(dim=DIM, shard_rows=5, index_persist_every=4, index_persist_growth=0.5)
+CONFIG = MapConfig(dim=DIM, store=StoreOptions(shard_rows=5, index_persist_every=4, index_persist_growth=0.5))
 NAMES = st.sampled_from(["a", "b", "c", "d", "e", "f", "g", "h"])
 values = st.floats(-1e3, 1e3, allow_nan=False, width=32)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import InputError, UnknownSequenceError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import THUMB_KEY
@@ -25,7 +25,7 @@ def store_with_thumbs(tmp_path, rng):
     """Sequences 0 (no thumbnails), 1 and 2 (thumbnails), 3 (none); returns (path, thumbs)."""
     path = tmp_path / "t.map"
     thumbs: dict[int, list[bytes]] = {}
-    with MapStore.create(path, MapConfig(dim=8, shard_rows=32)) as store:
+    with MapStore.create(path, MapConfig(dim=8, store=StoreOptions(shard_rows=32))) as store:
         for seq, n in enumerate((12, 20, 7, 9)):
             rows = rng.standard_normal((n, 8)).astype(np.float32)
             if seq in (1, 2):

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.storage.check import check_map
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
@@ -30,7 +30,7 @@ def link(*targets: int) -> list[EdgeSpec]:
 
 @pytest.fixture
 def store(tmp_path):
-    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM, shard_rows=8)) as s:
+    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM, store=StoreOptions(shard_rows=8))) as s:
         yield s
 
 
@@ -143,7 +143,7 @@ def test_components_equal_connected_components_of_the_edges(adds):
     lengths: list[int] = []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "m"
-        with MapStore.create(path, MapConfig(dim=DIM, shard_rows=5)) as store:
+        with MapStore.create(path, MapConfig(dim=DIM, store=StoreOptions(shard_rows=5))) as store:
             for length, raw_edges in adds:
                 specs = _edge_specs(len(lengths), length, raw_edges, lengths)
                 result = store.add_sequence(frames(length), edges=specs)

@@ -8,13 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import crash_worker  # the crash harness, loaded by tests/conftest.py
 import lmdb
 import networkx as nx
 import numpy as np
 import pytest
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import ReadOnlyMapError, SprintMapError, UnknownSequenceError
 from sprint_map.map import SprintMap
 from sprint_map.storage.check import check_map
@@ -23,6 +22,7 @@ from sprint_map.storage.lmdb_env import MAX_DBS
 from sprint_map.storage.provenance import list_edges
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import LMDB_DIR, MapStore
+from tests.helpers import crash_worker
 
 logical_state = crash_worker.logical_state
 
@@ -38,7 +38,7 @@ def build_with_provenance(make_map: Any, rng: np.random.Generator, n: int) -> An
     """``n`` drives; each adds edges to earlier drives (both directions), and some add
     *foreign* edges (between two earlier drives) and repeats of an existing edge (which takes
     the newer provenance): every kind of provenance ``add_sequence`` can record."""
-    built = make_map.empty(MapConfig(dim=8, shard_rows=int(rng.integers(4, 32))))
+    built = make_map.empty(MapConfig(dim=8, store=StoreOptions(shard_rows=int(rng.integers(4, 32)))))
     with MapStore.create(built.path, built.config) as store:
         for i in range(n):
             length = int(rng.integers(1, 12))
@@ -138,7 +138,7 @@ def test_unmerge_revokes_exactly_the_drives_edges_and_splits_as_networkx_says(ma
 def test_unmerge_keeps_later_drives_edges_and_the_old_root_keeps_its_id(make_map, rng):
     """0 <- 1 <- 2 and 3 -> 1: unmerging 1 revokes only 1's edge to 0; 2 and 3 stay joined to
     1 (their own edges). The part holding the old root keeps its id."""
-    built = make_map.empty(MapConfig(dim=8, shard_rows=8))
+    built = make_map.empty(MapConfig(dim=8, store=StoreOptions(shard_rows=8)))
     with MapStore.create(built.path, built.config) as store:
         for i in range(4):
             edges = {1: [EdgeSpec((None, 0), (0, 0)), EdgeSpec((0, 0), (None, 0))],
@@ -292,7 +292,7 @@ def _half_unmerge(store: MapStore, step: str) -> None:
 def test_check_catches_a_half_done_unmerge(make_map, rng, step, area):
     """Edges revoked but not their reverse entries, or not the edge counter, or the components
     not rebuilt (drive 2 is the only link of 0 and 2): each is a violation."""
-    built = make_map.empty(MapConfig(dim=8, shard_rows=8))
+    built = make_map.empty(MapConfig(dim=8, store=StoreOptions(shard_rows=8)))
     with MapStore.create(built.path, built.config) as store:
         for i in range(3):
             edges = {1: [EdgeSpec((None, 0), (0, 0))], 2: [EdgeSpec((None, 1), (0, 1)),
@@ -348,7 +348,7 @@ def _set_provenance(store: MapStore, key: tuple[int, int], value: bytes | int) -
 def test_check_catches_provenance_unmerge_could_not_trust(make_map, rng, value, message):
     """``unmerge`` finds a drive's edges by one range scan up to the drive's last vertex: an
     edge must be added by a drive no older than its ends, below next_seq_id."""
-    built = make_map.empty(MapConfig(dim=8, shard_rows=8))
+    built = make_map.empty(MapConfig(dim=8, store=StoreOptions(shard_rows=8)))
     with MapStore.create(built.path, built.config) as store:
         for i in range(3):
             built.add(store, random_descriptors(rng, 4, 8),

@@ -86,3 +86,21 @@ def test_quick_run_writes_both_arms_and_halves(bench: Any, tmp_path: Path,
     printed = capsys.readouterr().out
     assert "merge - no-merge on the later half" in printed and "no-merge R@1" in printed
     assert "merged decisions (edges): precision" in printed
+
+
+def test_quick_run_on_the_latent_world(bench: Any, tmp_path: Path) -> None:
+    """``--world latent``: the other family's drives (descriptors, no thumbnails), both arms."""
+    out_json = tmp_path / "lifelong.json"
+    assert bench.main(["--quick", "--world", "latent", "--json", str(out_json)]) == 0
+    data = json.loads(out_json.read_text())
+    assert data["world"] == "latent" and data["map_config"]["dim"] == 256
+    assert data["city"]["grid"] == [4, 4]  # the latent-lifelong preset
+    [run] = data["seeds"]
+    merge, append = run["arms"]["merge"], run["arms"]["no-merge"]
+    assert [r["condition"] for r in merge] == ["overcast", "dusk", "rain", "night", "snow",
+                                               "day", "overcast"]
+    for a, b in zip(merge, append, strict=True):
+        assert a["map_vertices"] == b["map_vertices"] == 60 * a["traversal"]
+        assert a["knn_recall@1"] == b["knn_recall@1"]
+        assert a["ingest_differs_from_localize"] == 0 and b["edges_added"] == 0
+    assert sum(r["frames_with_match"] for r in merge) > 0

@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from sample_maps import build_road_map
 
 from sprint_map.localize.trace import TraceRecorder, read_trace
 from sprint_map.map import SprintMap
 from sprint_map.viewer.app import create_view_app, mount_viewer
 from sprint_map.viewer.summary import MapSummary
 
+pytestmark = pytest.mark.road_map(drives=3, frames=80, with_thumbnails=True)
+
 
 @pytest.fixture
-def built(tmp_path, rng):
-    road, _ = build_road_map(tmp_path / "m", rng, drives=3, frames=80, with_thumbnails=True)
-    query, _ = road.drive(rng, 60, start=3)
-    with SprintMap.open(tmp_path / "m", readonly=True) as m:
+def built(tmp_path, rng, road_map):
+    query, _ = road_map.road.drive(rng, 60, start=3)
+    with SprintMap.open(road_map.path, readonly=True) as m:
         loc = m.localizer()
         rec = TraceRecorder(m)
         rec.attach(loc)

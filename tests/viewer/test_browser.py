@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from sample_maps import DIM, build_road_map
 
 from sprint_map.config import MapConfig
 from sprint_map.localize.trace import TraceRecorder
@@ -24,6 +23,7 @@ from sprint_map.viewer.browser import (
     console_errors,
     wait_for,
 )
+from tests.helpers.road_map import DIM, build_road_map
 
 pytestmark = [
     pytest.mark.browser,

@@ -6,7 +6,6 @@ import base64
 
 import numpy as np
 import pytest
-from sample_maps import build_road_map
 
 from sprint_map.map import SprintMap
 from sprint_map.viewer.matrix import RADIUS_M, drive_detail, match_matrix, pair_decisions
@@ -14,9 +13,8 @@ from sprint_map.viewer.summary import MapSummary
 
 
 @pytest.fixture
-def summary(tmp_path, rng):
-    build_road_map(tmp_path / "m", rng, drives=3, frames=100)
-    with SprintMap.open(tmp_path / "m", readonly=True) as m:
+def summary(road_map):
+    with SprintMap.open(road_map.path, readonly=True) as m:
         yield MapSummary(m)
 
 

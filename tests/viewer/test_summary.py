@@ -5,23 +5,16 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
-from sample_maps import DIM, build_road_map
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.viewer.summary import GRID, MapSummary
-
-
-@pytest.fixture
-def road_map(tmp_path, rng):
-    build_road_map(tmp_path / "m", rng, drives=3, frames=100)
-    return tmp_path / "m"
+from tests.helpers.road_map import DIM, build_road_map
 
 
 def test_overview_draws_every_drive_on_its_positions_and_every_edge(road_map):
-    with SprintMap.open(road_map, readonly=True) as m:
+    with SprintMap.open(road_map.path, readonly=True) as m:
         ov = MapSummary(m).overview()
         stats, seqs = m.stats(), m.sequences()
         edges = m.edges()

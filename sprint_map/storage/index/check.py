@@ -23,7 +23,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import faiss
 import numpy as np
 
 from sprint_map.storage.index.flat import index_files
@@ -38,6 +37,7 @@ from sprint_map.storage.index.manifest import (
 from sprint_map.storage.index.model import Model, gather_rows, read_faiss
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.util.lazy_faiss import faiss  # imported on first use
 
 #: Vertices per segment whose codes are compared with their shard rows re-encoded.
 CODE_SAMPLE = 8

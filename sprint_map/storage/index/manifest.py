@@ -12,7 +12,6 @@ only thing a reader trusts. Files it does not name are leftovers of an interrupt
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from dataclasses import asdict, dataclass, field
@@ -51,11 +50,15 @@ CHECKSUM_CHUNK = 1 << 20
 
 def checksum_bytes(data: bytes | memoryview) -> str:
     """The manifest checksum of ``data``: BLAKE2b-128, hex. O(len(data))."""
+    import hashlib  # (here: commands that only read a map never load OpenSSL)
+
     return hashlib.blake2b(data, digest_size=CHECKSUM_BYTES).hexdigest()
 
 
 def checksum_file(path: Path) -> str:
     """The manifest checksum of the file ``path`` (read in 1 MiB blocks). O(file size)."""
+    import hashlib
+
     digest = hashlib.blake2b(digest_size=CHECKSUM_BYTES)
     with open(path, "rb") as fh:
         while block := fh.read(CHECKSUM_CHUNK):

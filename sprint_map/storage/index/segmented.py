@@ -26,7 +26,6 @@ sequentially once per process) and by ``check``; the writer's open only compares
 
 from __future__ import annotations
 
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -74,6 +73,8 @@ from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, SearchResult
 
 if TYPE_CHECKING:
+    from concurrent.futures import Future, ThreadPoolExecutor
+
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.util.lazy_faiss import faiss
@@ -450,7 +451,9 @@ class SegmentedIndex(RetrievalIndex):
                 start = self.tail_start
                 blocks = [shards.rows(a, a + rows, committed)
                           for a in range(start, start + self.tail_len - rows + 1, rows)]
-                if self._pool is None:
+                if self._pool is None:  # (imported here: a reader never seals)
+                    from concurrent.futures import ThreadPoolExecutor
+
                     self._pool = ThreadPoolExecutor(1, thread_name_prefix="sprint-map-seal")
                 self._job = self._pool.submit(self._seal, self.manifest.segments, blocks,
                                               start, True)

@@ -90,12 +90,6 @@ class ServerProcess:
         self._stderr.close()
 
 
-def drive(places: np.ndarray, rng: np.random.Generator, noise: float = 0.3) -> np.ndarray:
-    """A noisy traversal of ``places`` (unit-norm float32 rows)."""
-    x = places + noise * rng.standard_normal(places.shape)
-    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
-
-
 def post_frame(client: httpx.Client, session: str, row: np.ndarray) -> httpx.Response:
     return client.post(f"/v1/sessions/{session}/frames", json={"descriptor": row.tolist()})
 

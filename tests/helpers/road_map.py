@@ -15,15 +15,12 @@ import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
+from tests.helpers.worlds import road_places, traverse
 
-__all__ = ["DIM", "Road", "build_road_map", "thumbnails"]
+__all__ = ["DIM", "Road", "RoadMap", "build_road_map", "thumbnails"]
 
 DIM = 32
 PLACES = 200
-
-
-def unit(x: np.ndarray) -> np.ndarray:
-    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
 
 
 @dataclass
@@ -35,23 +32,25 @@ class Road:
 
     @classmethod
     def make(cls, rng: np.random.Generator, origin: tuple[float, float] = (0.0, 0.0)) -> Road:
-        cur = unit(rng.standard_normal(DIM))
-        places = []
-        for _ in range(PLACES):
-            cur = unit(0.9 * cur + np.sqrt(1 - 0.9**2) * unit(rng.standard_normal(DIM)))
-            places.append(cur)
+        places = road_places(rng, PLACES, DIM, corr=0.9)
         t = np.arange(PLACES) * 5.0  # a place every 5 m along a bend
         xy = np.c_[origin[0] + t, origin[1] + 200 * np.sin(t / 300)]
-        return cls(np.array(places), xy)
+        return cls(places, xy)
 
     def drive(self, rng: np.random.Generator, frames: int, start: int = 0,
               noise: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
         """``(descriptors, positions)`` of a traversal from place ``start``."""
-        pos = start + np.cumsum(rng.uniform(0.8, 1.2, frames)) - 1
-        idx = np.clip(pos.astype(int), 0, PLACES - 1)
-        shift = unit(rng.standard_normal(DIM)) * 0.3
-        desc = unit(self.appearance[idx] + shift + noise * unit(rng.standard_normal((frames, DIM))))
+        desc, idx = traverse(rng, self.appearance, start, frames, noise, speed=(0.8, 1.2))
         return desc, self.xy[idx] + rng.normal(0, 0.5, (frames, 2))
+
+
+@dataclass
+class RoadMap:
+    """A map built by :func:`build_road_map` (closed): its path, road and sequence ids."""
+
+    path: Path
+    road: Road
+    ids: list[int]
 
 
 def thumbnails(xy: np.ndarray) -> list[bytes]:

@@ -8,9 +8,9 @@ how many rows (``tests/storage/test_index_contract.py``)::
         index_cls = FlatIndex
         config = StoreConfig(dim=DIM, index_type="flat")
 
-Imported by name (``from index_contract import IndexContract``) like ``serve_helpers`` and
-``hmm_synth``: pytest puts this directory on ``sys.path``. Its name does not start with
-``Test``, so the generic class itself is not collected.
+Imported from the helpers package (``from tests.helpers.index_contract import
+IndexContract``). Its name does not start with ``Test``, so the generic class itself is not
+collected.
 
 The data: clustered float32 rows (real descriptors cluster; an approximate index is tuned for
 that) committed to a real :class:`~sprint_map.storage.shards.ShardSet` (the truth an index is

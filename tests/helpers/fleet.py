@@ -8,33 +8,27 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.map import SprintMap
+from tests.helpers.worlds import drive, random_places
 
 DIM = 32
 AREA = 60  # places per area
 
 
-def world(rng: np.random.Generator, areas: int) -> list[np.ndarray]:
-    """``areas`` areas of ``AREA`` unit-norm places each."""
-    out = []
-    for _ in range(areas):
-        p = rng.standard_normal((AREA, DIM))
-        out.append((p / np.linalg.norm(p, axis=1, keepdims=True)).astype(np.float32))
-    return out
+NOISE = 0.25  # of the fleet tests' drives (:func:`tests.helpers.worlds.drive`)
 
 
-def drive(places: np.ndarray, rng: np.random.Generator, noise: float = 0.25) -> np.ndarray:
-    """A noisy traversal of ``places``."""
-    x = places + noise * rng.standard_normal(places.shape)
-    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+def areas_of(rng: np.random.Generator, areas: int) -> list[np.ndarray]:
+    """``areas`` areas of ``AREA`` independent places each."""
+    return [random_places(rng, AREA, DIM) for _ in range(areas)]
 
 
 def base_map(path: Path, areas: list[np.ndarray], rng: np.random.Generator) -> Path:
     """A map with one drive over each area (no edges)."""
-    with SprintMap.create(path, MapConfig(dim=DIM, index_type="flat")) as m:
+    with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as m:
         for n, places in enumerate(areas):
-            m.add_sequence(drive(places, rng), name=f"base{n}")
+            m.add_sequence(drive(places, rng, NOISE), name=f"base{n}")
     return path
 
 

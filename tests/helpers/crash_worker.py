@@ -50,7 +50,7 @@ from typing import Any
 import networkx as nx
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import SprintMapError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import THUMB_KEY, read_u64
@@ -480,8 +480,9 @@ def assert_search_finds_everything(path: Path) -> None:
     np.testing.assert_array_equal(ids[:, 0], want)
 
 
-def create_map(path: Path, **config: Any) -> None:
-    MapStore.create(path, MapConfig(**config)).close()
+def create_map(path: Path, dim: int, **store: Any) -> None:
+    """Create an empty map of ``dim`` with these storage options (``StoreOptions`` fields)."""
+    MapStore.create(path, MapConfig(dim=dim, store=StoreOptions(**store))).close()
 
 
 #: What recovery or repair may find after a kill: files past the commit, and an index cache not
