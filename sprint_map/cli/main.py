@@ -27,6 +27,7 @@ from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
+from sprint_map.util.validation import parse_seq_ref
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
            "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
@@ -443,12 +444,6 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
     sys.exit(0 if report.ok else 1)
 
 
-def _seq_ref(seq: str, by_name: bool) -> int | str:
-    """A sequence argument: digits are an id, anything else (or anything with --by-name) a
-    name."""
-    return seq if by_name or not seq.isdigit() else int(seq)
-
-
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("seqs", metavar="SEQ...", nargs=-1, required=True)
@@ -458,7 +453,8 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
     """Forget the sequences SEQ... of MAP (ids, or names), in one atomic commit.
 
     Their edges go and components split where nothing else joins them; their space is
-    reclaimed by `sprint-map compact`. A SEQ of digits is a sequence id, anything else a name.
+    reclaimed by `sprint-map compact`. A SEQ of ASCII digits (0-9) is a sequence id, anything
+    else a name.
 
     \b
     Examples:
@@ -466,7 +462,7 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
       sprint-map remove city.map monday-2019    # by name
       sprint-map remove city.map 2024 --by-name # a sequence named "2024"
     """
-    refs = [_seq_ref(s, by_name) for s in seqs]
+    refs = [parse_seq_ref(s, by_name) for s in seqs]
     with SprintMap.open(map_path) as m:
         data = m.remove_sequences(refs).to_dict()
     names = ", ".join(f"{r['seq_id']} ({r['name']})" for r in data["removed"])
@@ -493,8 +489,8 @@ def edges(map_path: str, seq: str | None, added_by: str | None, by_name: bool,
       sprint-map edges city.map --added-by 3 --json # what `unmerge city.map 3` would revoke
     """
     with SprintMap.open(map_path, readonly=True) as m:
-        found = m.edges(None if seq is None else _seq_ref(seq, by_name),
-                        added_by=None if added_by is None else _seq_ref(added_by, by_name))
+        found = m.edges(None if seq is None else parse_seq_ref(seq, by_name),
+                        added_by=None if added_by is None else parse_seq_ref(added_by, by_name))
         names = {s.seq_id: s.name for s in m.sequences()} if not as_json else {}
     text = "\n".join(
         f"{f'{e.src_seq}:{e.src_image}':>11} -> {f'{e.dst_seq}:{e.dst_image}':<11} "
@@ -559,7 +555,7 @@ def unmerge(map_path: str, seq: str, by_name: bool, as_json: bool) -> None:
       sprint-map unmerge city.map tuesday --json
     """
     with SprintMap.open(map_path) as m:
-        data = m.unmerge(_seq_ref(seq, by_name)).to_dict()
+        data = m.unmerge(parse_seq_ref(seq, by_name)).to_dict()
     _emit(data, as_json, f"unmerged sequence {data['seq_id']}: {data['edges_removed']} edges "
                          f"revoked; components now {data['components']}")
 
