@@ -193,7 +193,7 @@ def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
         data = read_image_bytes(path)
         gray = decode_image(data, str(path), grayscale=True)
         out[i] = spec.describe(gray)
-        thumbs.append(thumbnail_of_file(data, str(path), gray.shape[1]))
+        thumbs.append(thumbnail_of_file(data, str(path), gray.shape[1], gray.shape[0]))
     return out, thumbs
 
 
