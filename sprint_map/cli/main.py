@@ -27,6 +27,7 @@ from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
+from sprint_map.util.output import Output
 from sprint_map.util.validation import parse_seq_ref
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
@@ -257,17 +258,25 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             # An empty --name is refused by the name rules, not replaced by the source's name.
             drives.append(Drive(src.iter_batches(), src.name if name is None else name, pos,
                                 str(source), src.thumbnails))
+        # The trace's file is made now: a path that cannot be written is refused before the
+        # drive is localised and committed (after the commit, a failure is only a warning).
+        trace_out = stack.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
                                       observe=recorder.attach if recorder else None)
         except SprintMapError as exc:
             _stop_after(exc, sources, done, as_json)
-        if recorder is not None and trace:
+        if recorder is not None and trace_out is not None:
             result = results[0]
-            recorder.save(trace, final=result.decisions, merged=result.merged,
-                          meta={"command": "ingest", "source": str(sources[0]), "smoothed": True,
-                                "seq_id": result.added.sequence.seq_id})
+            try:
+                recorder.save(trace_out, final=result.decisions, merged=result.merged,
+                              meta={"command": "ingest", "source": str(sources[0]),
+                                    "smoothed": True, "seq_id": result.added.sequence.seq_id})
+            except (SprintMapError, OSError) as exc:
+                m.warnings.append(f"the drive is committed, but its trace was not written: "
+                                  f"{exc}")
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
@@ -326,8 +335,13 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path, readonly=True) as m, \
+    with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
             progress_display("localising", quiet) as progress:
+        # Outputs are made first: an unwritable path (or one inside the map) is refused early.
+        trace_out = outputs.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
+        json_out = outputs.enter_context(Output(out, "JSON", forbidden=[m.path])) \
+            if out else None
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails)
         localizer = m.localizer(**overrides)
         localizer.record = smooth
@@ -337,14 +351,14 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         decisions = localizer.localize(src.iter_batches())  # streamed, searches batched
         if smooth:
             decisions = localizer.smoothed(thumbnails=src.thumbnails if thumbnails else None)
-        if recorder is not None and trace:
-            recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
-                                                        "source": str(source)})
-    t = localizer.timing.to_dict()
-    data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
-    if out:
-        with open(out, "w") as fh:
-            json.dump(data, fh, indent=1)
+        if recorder is not None and trace_out is not None:
+            recorder.save(trace_out, final=decisions, meta={
+                "command": "localize", "smoothed": smooth, "source": str(source)})
+        t = localizer.timing.to_dict()
+        data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
+        if json_out is not None:
+            json_out.stream.write(json.dumps(data, indent=1).encode())
+            json_out.commit()
     matched = sum(d.is_match for d in decisions)
     _emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")

@@ -12,7 +12,7 @@ hook); after every frame it keeps
 
 and :meth:`TraceRecorder.save` writes them, with the decisions the command reported (smoothed
 ones for ``--smooth`` and ``ingest``, with the merge rule's verdict), as one compressed
-``.npz`` written atomically (``*.partial``, fsync, ``os.replace``). Memory and file size are
+``.npz`` written atomically (:class:`~sprint_map.util.output.Output`: never inside the map). Memory and file size are
 O(frames * (k + top_n + active components)): bounded per frame, whatever the map's size.
 
 File format (``FORMAT``, ``VERSION`` in its ``meta`` JSON; arrays with ``F`` frames):
@@ -50,14 +50,13 @@ import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float32Array, Int64Array
-from sprint_map.util.atomic import publish
+from sprint_map.util.output import Output
 
 if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer
@@ -136,12 +135,16 @@ class TraceRecorder:
         self._n_active.append(int(loc.filter.n_active_vertices) if loc.filter.frames else 0)
         self._decisions.append(decision)
 
-    def save(self, path: str | os.PathLike[str], *, final: Sequence[FrameDecision] | None = None,
+    def save(self, path: str | os.PathLike[str] | Output, *,
+             final: Sequence[FrameDecision] | None = None,
              merged: np.ndarray | None = None, meta: dict[str, Any] | None = None) -> None:
         """Write the trace to ``path`` atomically.
 
         Parameters
         ----------
+        path : path or Output
+            Where to write; an :class:`~sprint_map.util.output.Output` opened before the drive
+            was localised (so an unwritable path is refused before any work) is committed.
         final : decisions, optional
             What the command reported per frame (default: the causal decisions recorded).
         merged : bool array, optional
@@ -192,11 +195,11 @@ class TraceRecorder:
                 "top_n": self.top_n, "frames": n, **(meta or {})}
         arrays["meta"] = np.array(json.dumps(info))
 
-        def write(partial: Path) -> None:
-            with open(partial, "wb") as fh:
-                np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
-
-        publish(Path(path), write)
+        out = path if isinstance(path, Output) else Output(path, "trace",
+                                                            forbidden=[self.map.path])
+        with out:
+            np.savez_compressed(out.stream, **arrays)  # type: ignore[arg-type]
+            out.commit()
 
 
 @dataclass(frozen=True)
