@@ -265,7 +265,8 @@ def read_trace(path: str | os.PathLike[str], max_bytes: int = MAX_TRACE_BYTES) -
     try:
         st = os.stat(path)
     except OSError as exc:
-        raise InputError(f"cannot read trace {where}: {exc.strerror or exc}") from exc
+        raise InputError(f"{where}: not a sprint-map trace (cannot read it: "
+                         f"{exc.strerror or exc})") from exc
     if not stat.S_ISREG(st.st_mode):
         raise InputError(f"{where}: not a sprint-map trace (not a regular file)")
     if st.st_size > max_bytes:

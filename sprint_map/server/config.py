@@ -78,6 +78,10 @@ class ServerConfig:
         Largest image frame, read from the image's header before it is decoded
         (:func:`sprint_map.frontend.imageheader.check_pixels`): a decompression bomb is
         refused (422), never decoded.
+    allowed_hosts : tuple of str
+        Without a token, ``Host`` names answered beside the bound address and the loopback
+        names (``localhost``, ``127.0.0.1``, ``[::1]``), e.g. a name of this machine in
+        ``/etc/hosts``; any other is refused 403 (DNS rebinding; see ``server/guard.py``).
     """
 
     host: str = "127.0.0.1"
@@ -104,6 +108,7 @@ class ServerConfig:
     batch_window_ms: float = 2.0
     batch_max_frames: int = 64
     search_threads: int = 1
+    allowed_hosts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
