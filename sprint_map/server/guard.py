@@ -227,7 +227,7 @@ class _Guarded(HttpToolsProtocol):
             kind = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
             browser = b"origin" in headers or b"sec-fetch-mode" in headers
             if kind not in WRITE_TYPES and not kind.startswith(b"image/") and (kind or browser):
-                return _answer(415, "content_type", "a write needs the content type "
+                return _answer(415, "unsupported_media_type", "a write needs the content type "
                                "application/json, application/octet-stream or image/*")
         return None
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import httpx
 
-from sprint_map.server.guard import host_name
-
 
 def test_host_names():
+    from sprint_map.server.guard import host_name
+
     assert host_name("127.0.0.1:8000") == "127.0.0.1"
     assert host_name("[::1]:80") == "[::1]" and host_name("LocalHost") == "localhost"
 
