@@ -277,24 +277,33 @@ def read_trace(path: str | os.PathLike[str], max_bytes: int = MAX_TRACE_BYTES) -
             raise InputError(f"{where}: not a sprint-map trace (an .npz file is expected)")
         _check_members(path, max_bytes)
         with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in (*_LAYOUT, "meta")}
-        raw = arrays.pop("meta")
-        if raw.dtype.kind != "U" or raw.shape != () or len(str(raw)) > MAX_META_BYTES:
-            raise InputError(f"{where}: not a sprint-map trace (bad meta)")
-        meta = json.loads(str(raw), parse_constant=_no_constant)
+            if "meta" not in data.files:
+                raise InputError(f"{where}: not a sprint-map trace (no meta)")
+            raw = data["meta"]
+            if raw.dtype.kind != "U" or raw.shape != () or len(str(raw)) > MAX_META_BYTES:
+                raise InputError(f"{where}: not a sprint-map trace (bad meta)")
+            meta = json.loads(str(raw), parse_constant=_no_constant)
+            _check_meta(where, meta)
+            missing = sorted(set(_LAYOUT) - set(data.files))
+            if missing:
+                raise InputError(f"{where}: trace lacks {', '.join(missing)}")
+            arrays = {key: data[key] for key in _LAYOUT}
     except InputError:
         raise
     except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile,
             zlib.error, NotImplementedError) as exc:
         raise InputError(f"{where}: not a sprint-map trace ({type(exc).__name__}: "
                          f"{str(exc)[:200]})") from exc
+    _check_arrays(where, meta, arrays)
+    return Trace(meta, arrays)
+
+
+def _check_meta(where: str, meta: Any) -> None:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise InputError(f"{where}: not a sprint-map trace")
     if not isinstance(meta.get("version"), int) or meta["version"] > VERSION:
         raise InputError(f"{where}: trace version {meta.get('version')} is newer than this "
                          f"sprint-map reads ({VERSION})")
-    _check_arrays(where, meta, arrays)
-    return Trace(meta, arrays)
 
 
 def _no_constant(name: str) -> Any:
