@@ -29,6 +29,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge.commit import DriveWriter, IngestResult
 from sprint_map.merge.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.merge.rule import select_merges
+from sprint_map.storage.generation import current_data
 from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.index.model import cap_threads
 from sprint_map.storage.provenance import edge_table, list_edges
@@ -154,6 +155,12 @@ class SprintMap:
     def closed(self) -> bool:
         """Whether :meth:`close` was called (nothing can be read any more)."""
         return self.store.env is None
+
+    def is_current(self) -> bool:
+        """Whether the generation this map opened is still the live one: False once a
+        ``compact`` selected a new copy (a reader then sees no later commit: reopen the map).
+        O(1): reads the small ``CURRENT`` file."""
+        return current_data(self.path) == self.store.data_path
 
     @property
     def warnings(self) -> list[str]:
@@ -684,15 +691,18 @@ class SprintMap:
         """Repair the map at ``path`` as far as its own data allows, then check it (``sprint-map
         check --repair``; takes the writer lock). See :func:`sprint_map.storage.repair.repair_map`.
         """
+        from sprint_map.frontend.thumbnails import decodes
         from sprint_map.storage.repair import repair_map
 
-        return repair_map(path, seed=seed, check_config=stored_config)
+        return repair_map(path, seed=seed, check_config=stored_config, thumbnail_decodes=decodes)
 
     def check(self) -> CheckReport:
-        """Verify every on-disk invariant (best on a map opened read-only)."""
+        """Verify every on-disk invariant (best on a map opened read-only); every thumbnail
+        is decoded (:func:`sprint_map.frontend.thumbnails.decodes`)."""
+        from sprint_map.frontend.thumbnails import decodes
         from sprint_map.storage.check import check_map
 
-        return check_map(self.store)
+        return check_map(self.store, thumbnail_decodes=decodes)
 
     def info(self) -> dict[str, Any]:
         """Summary for ``sprint-map info --json``. O(1) but for the directory walk."""

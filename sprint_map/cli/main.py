@@ -28,6 +28,8 @@ from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
+from sprint_map.util.output import Output
+from sprint_map.util.validation import parse_seq_ref
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
            "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
@@ -300,17 +302,25 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
         drives = [Drive(src.iter_batches(), label, m.metric_positions(table), str(source),
                         src.thumbnails)
                   for (src, table), label, source in zip(opened, names, sources, strict=False)]
+        # The trace's file is made now: a path that cannot be written is refused before the
+        # drive is localised and committed (after the commit, a failure is only a warning).
+        trace_out = stack.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
                                       observe=recorder.attach if recorder else None)
         except SprintMapError as exc:
             _stop_after(exc, sources, done, as_json)
-        if recorder is not None and trace:
+        if recorder is not None and trace_out is not None:
             result = results[0]
-            recorder.save(trace, final=result.decisions, merged=result.merged,
-                          meta={"command": "ingest", "source": str(sources[0]), "smoothed": True,
-                                "seq_id": result.added.sequence.seq_id})
+            try:
+                recorder.save(trace_out, final=result.decisions, merged=result.merged,
+                              meta={"command": "ingest", "source": str(sources[0]),
+                                    "smoothed": True, "seq_id": result.added.sequence.seq_id})
+            except (SprintMapError, OSError) as exc:
+                m.warnings.append(f"the drive is committed, but its trace was not written: "
+                                  f"{exc}")
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
@@ -383,8 +393,13 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
                          "--smooth (the whole drive) or --trace")
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path, readonly=True) as m, \
+    with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
             progress_display("localising", quiet) as progress:
+        # Outputs are made first: an unwritable path (or one inside the map) is refused early.
+        trace_out = outputs.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
+        json_out = outputs.enter_context(Output(out, "JSON", forbidden=[m.path])) \
+            if out else None
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails,
                             bag=BagOptions(image_topic, gnss_topic, every_m))
         recorder = TraceRecorder(m) if trace else None
@@ -392,14 +407,14 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
             src.iter_batches(), smooth=smooth, lag=lag,
             observe=recorder.attach if recorder else None,
             thumbnails=src.thumbnails if thumbnails else None, **overrides)
-        if recorder is not None and trace:
-            recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
-                                                        "source": str(source)})
-    t = timing.to_dict()
-    data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
-    if out:
-        with open(out, "w") as fh:
-            json.dump(data, fh, indent=1)
+        if recorder is not None and trace_out is not None:
+            recorder.save(trace_out, final=decisions, meta={
+                "command": "localize", "smoothed": smooth, "source": str(source)})
+        t = timing.to_dict()
+        data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
+        if json_out is not None:
+            json_out.stream.write(json.dumps(data, indent=1).encode())
+            json_out.commit()
     matched = sum(d.is_match for d in decisions)
     _emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")
@@ -499,12 +514,6 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
     sys.exit(0 if report.ok else 1)
 
 
-def _seq_ref(seq: str, by_name: bool) -> int | str:
-    """A sequence argument: digits are an id, anything else (or anything with --by-name) a
-    name."""
-    return seq if by_name or not seq.isdigit() else int(seq)
-
-
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("seqs", metavar="SEQ...", nargs=-1, required=True)
@@ -514,7 +523,8 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
     """Forget the sequences SEQ... of MAP (ids, or names), in one atomic commit.
 
     Their edges go and components split where nothing else joins them; their space is
-    reclaimed by `sprint-map compact`. A SEQ of digits is a sequence id, anything else a name.
+    reclaimed by `sprint-map compact`. A SEQ of ASCII digits (0-9) is a sequence id, anything
+    else a name.
 
     \b
     Examples:
@@ -522,7 +532,7 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
       sprint-map remove city.map monday-2019    # by name
       sprint-map remove city.map 2024 --by-name # a sequence named "2024"
     """
-    refs = [_seq_ref(s, by_name) for s in seqs]
+    refs = [parse_seq_ref(s, by_name) for s in seqs]
     with SprintMap.open(map_path) as m:
         data = m.remove_sequences(refs).to_dict()
     names = ", ".join(f"{r['seq_id']} ({r['name']})" for r in data["removed"])
@@ -549,8 +559,8 @@ def edges(map_path: str, seq: str | None, added_by: str | None, by_name: bool,
       sprint-map edges city.map --added-by 3 --json # what `unmerge city.map 3` would revoke
     """
     with SprintMap.open(map_path, readonly=True) as m:
-        found = m.edges(None if seq is None else _seq_ref(seq, by_name),
-                        added_by=None if added_by is None else _seq_ref(added_by, by_name))
+        found = m.edges(None if seq is None else parse_seq_ref(seq, by_name),
+                        added_by=None if added_by is None else parse_seq_ref(added_by, by_name))
         names = {s.seq_id: s.name for s in m.sequences()} if not as_json else {}
     text = "\n".join(
         f"{f'{e.src_seq}:{e.src_image}':>11} -> {f'{e.dst_seq}:{e.dst_image}':<11} "
@@ -615,7 +625,7 @@ def unmerge(map_path: str, seq: str, by_name: bool, as_json: bool) -> None:
       sprint-map unmerge city.map tuesday --json
     """
     with SprintMap.open(map_path) as m:
-        data = m.unmerge(_seq_ref(seq, by_name)).to_dict()
+        data = m.unmerge(parse_seq_ref(seq, by_name)).to_dict()
     _emit(data, as_json, f"unmerged sequence {data['seq_id']}: {data['edges_removed']} edges "
                          f"revoked; components now {data['components']}")
 

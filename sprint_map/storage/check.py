@@ -47,7 +47,7 @@ from sprint_map.storage.lock import writer_active
 from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
-from sprint_map.storage.thumbnails import scan_thumbnails
+from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
 from sprint_map.util.lazy_faiss import faiss  # imported on first use
@@ -191,8 +191,10 @@ def sequence_edges(records: MapRecords, report: CheckReport | None = None
     return out
 
 
-def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
-    """Verify every invariant of ``store``; see ``docs/architecture.md``, "Invariants"."""
+def check_map(store: MapStore, *, seed: int = 0,
+              thumbnail_decodes: ThumbnailTest | None = None) -> CheckReport:
+    """Verify every invariant of ``store``; see ``docs/architecture.md``, "Invariants".
+    ``thumbnail_decodes`` (the facade's: an image decoder) is run on every thumbnail."""
     report = CheckReport()
     with store.env.read() as txn:
         records = MapRecords.read(store, txn)
@@ -209,7 +211,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
     _check_edges(records, report)
     _check_provenance(records, report)
     _check_components(records, sequence_edges(records, report), report)
-    check_thumbnails(store, records, report)
+    check_thumbnails(store, records, report, thumbnail_decodes)
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
     live = store.readonly and writer_active(store.path)
@@ -435,12 +437,14 @@ def _check_components(records: MapRecords, edges: list[tuple[int, int, int, int]
     report.checked["components"] = len(groups)
 
 
-def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport) -> None:
+def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport,
+                     decodes: ThumbnailTest | None = None) -> None:
     """Every thumbnail names a frame of a live sequence and is JPEG bytes; a sequence has
     one per frame or none. O(thumbnails) reads (see
     :func:`sprint_map.storage.thumbnails.scan_thumbnails`)."""
     with store.env.read() as txn:
-        scan = scan_thumbnails(txn, store.env, {s.seq_id: s.length for s in records.seqs})
+        scan = scan_thumbnails(txn, store.env, {s.seq_id: s.length for s in records.seqs},
+                               decodes)
     for problem in scan.problems:
         report.violation("thumbnails", problem)
     report.checked["thumbnails"] = sum(scan.counts.values())
