@@ -71,14 +71,8 @@ def check_lag(lag: object) -> int:
 class FixedLagSmoother:
     """Decisions of a query sequence with a fixed lag of ``lag`` frames (module docstring).
 
-    Parameters
-    ----------
-    config : HMMConfig
-    source : GraphSource
-    cache : ComponentCache, optional
-        Shared component cache.
-    lag : int
-        Frames of delay, ``0 .. MAX_LAG``.
+    ``config`` and ``source`` as for :class:`SprintFilter`; ``cache`` a shared component
+    cache; ``lag`` the frames of delay, ``0 .. MAX_LAG``.
 
     Notes
     -----

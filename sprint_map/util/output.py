@@ -119,6 +119,8 @@ class Output:
                  tb: TracebackType | None) -> None:
         if not self.done:
             self.discard()
+        if isinstance(exc, OSError):  # a write into the output failed (a full disk, ...)
+            raise StorageIOError(f"cannot write {self.asked}: {exc.strerror or exc}") from exc
 
     def finish(self) -> None:
         """Flush and fsync the written data (a failure is final: ``StorageIOError``)."""

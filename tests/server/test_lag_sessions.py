@@ -8,11 +8,12 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from serve_helpers import drive, run_service
 
 from sprint_map.localize.lagged import MAX_LAG
 from sprint_map.map import SprintMap
 from sprint_map.server.service import LocalisationService
+from tests.helpers.serve import run_service
+from tests.helpers.worlds import drive
 
 LAG = 4
 

@@ -11,13 +11,13 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from sample_maps import build_road_map
 
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.map import SprintMap
 from sprint_map.viewer.app import create_view_app
 from sprint_map.viewer.browser import ViewProcess
 from sprint_map.viewer.summary import MapSummary
+from tests.helpers.road_map import build_road_map
 
 
 @pytest.fixture
