@@ -80,6 +80,14 @@ class MapConfig:
         at 2x, 4x, ...). 0 persists every ``index_persist_every`` vertices.
     initial_map_size : int
         LMDB map size at creation in bytes (sparse file; it doubles on demand).
+    learn_every : int
+        The writer learns a descriptor projection from the map's merged edges again after this
+        many new edges (0, the default: only ``index --learn``;
+        :mod:`sprint_map.storage.learning`).
+    learn_dim : int
+        Dimensions the learned projection keeps.
+    learn_min_pairs : int
+        Fewest merged pairs a projection is learned from (fewer: the plain descriptor).
     merge_threshold : float
         Minimum place probability for a localisation decision to become an edge on merge
         (:mod:`sprint_map.merge.rule`).
@@ -135,6 +143,9 @@ class MapConfig:
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
     initial_map_size: int = 1 << 30
+    learn_every: int = 0
+    learn_dim: int = 256
+    learn_min_pairs: int = 500
     merge_threshold: float = 0.5
     merge_max_novel: float = 0.2
     merge_window: int = 3

@@ -66,6 +66,9 @@ class StoreConfig:
     index_persist_every: int = 200_000
     index_persist_growth: float = 1.0
     initial_map_size: int = 1 << 30
+    learn_every: int = 0
+    learn_dim: int = 256
+    learn_min_pairs: int = 500
 
     def __post_init__(self) -> None:
         if not isinstance(self.dim, int) or self.dim < 1:
@@ -96,6 +99,11 @@ class StoreConfig:
             raise ValueError("index_persist_growth must be >= 0")
         if self.initial_map_size < 1 << 20:
             raise ValueError("initial_map_size must be at least 1 MiB")
+        for name in ("learn_every", "learn_min_pairs"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be an integer >= 0")
+        if not isinstance(self.learn_dim, int) or self.learn_dim < 1:
+            raise ValueError("learn_dim must be a positive integer")
 
     @property
     def index_dim(self) -> int:
