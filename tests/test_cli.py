@@ -236,3 +236,28 @@ def test_edges_and_unmerge(make_map):
         assert len(lines) == 1 and lines[0].startswith("Error: no sequence"), result.output
     result = CliRunner().invoke(main, ["edges", str(built.path), "--seq", "12", "--by-name"])
     assert result.output.startswith("Error: no sequence named '12'")
+
+
+def test_index_learn_and_no_learn_json_contract(tmp_path):
+    """``index --learn --json`` prints exactly the contract's keys; ``info --json`` gains
+    ``projection``; ``--no-learn`` drops it (issue 33)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "storage"))
+    import learn_world
+
+    path = learn_world.build(tmp_path / "m")
+    assert json.loads(run("info", path, "--json").output)["projection"] is None
+    result = run("index", path, "--learn", "--json")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert set(report) == {"pairs", "dim_in", "dim_out", "adopted", "heldout_recall_before",
+                           "heldout_recall_after"}
+    assert (report["pairs"], report["dim_in"], report["dim_out"], report["adopted"]) == (
+        learn_world.PLACES, learn_world.DIM, 16, True)
+    assert json.loads(run("info", path, "--json").output)["projection"] == {
+        "pairs": learn_world.PLACES, "dim_out": 16, "trained_at_edges": 2 * learn_world.PLACES}
+    assert run("check", path).exit_code == 0
+    assert run("index", path, "--no-learn").exit_code == 0
+    assert json.loads(run("info", path, "--json").output)["projection"] is None
