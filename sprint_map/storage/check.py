@@ -228,7 +228,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
                             "writer's open")
     for entry in partial_files(store):
         message = f"leftover temp file {entry.relative_to(store.path)}"
-        if live and entry.parent.name == INDEX_DIR:
+        if live and INDEX_DIR in (entry.parent.name, entry.parent.parent.name):
             report.notes.append(f"{message} (being written by the live writer)")
         elif entry.name == f"{CURRENT_NAME}{PARTIAL_SUFFIX}":  # never read: harmless
             report.notes.append(f"{message} (a compaction killed before its switch; removed "
@@ -632,7 +632,8 @@ def partial_files(store: MapStore) -> list[Path]:
     """Leftover ``*.partial`` files of interrupted publications (map, generation, shards and
     index dirs)."""
     dirs = dict.fromkeys((store.path, store.data_path, store.data_path / SHARDS_DIR,
-                          store.data_path / INDEX_DIR))
+                          store.data_path / INDEX_DIR,
+                          *projection_dirs(store.data_path / INDEX_DIR)))
     return [entry for directory in dirs
             if directory.is_dir() for entry in sorted(directory.iterdir())
             if entry.name.endswith(PARTIAL_SUFFIX)]

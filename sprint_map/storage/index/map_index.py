@@ -338,6 +338,9 @@ class IndexStore:
         if learned.generation:
             actions.extend(f"removed index {name}: superseded by the learned projection"
                            for name in self._remove_followed(Learned()))
+            actions.extend(f"removed leftover temp file {learned.directory_name}/{p.name}"
+                           for p in atomic.remove_partials(self.directory
+                                                           / learned.directory_name))
         if actions:
             atomic.fsync_dir(self.directory)
         self.learned, self.projection = Learned(), None
