@@ -277,3 +277,23 @@ def test_kill_at_each_learn_point(tmp_path, states, op, point):
         assert check_map(store).ok
         info = json.loads((path / "index" / LEARNED).read_text())
         assert bool(info["generation"]) == (op == "learn")
+
+
+@pytest.mark.parametrize("kind", ["ivf-sq8", "ivf-pq"])
+def test_the_segmented_index_searches_the_projection(tmp_path, kind):
+    """The approximate index is trained, encoded and re-ranked in the projected space; check
+    re-encodes sampled shard rows through the projection and finds the very codes."""
+    path = world.build(tmp_path / "m", index_type=kind, index_nlist=8, index_nprobe=8,
+                       index_segment_rows=128, index_merge_factor=3, index_train_sample=400)
+    with SprintMap.open(path) as m:
+        before = world.recall(m.store, QUERIES)
+        assert m.learn()["adopted"]
+        desc = m.info()["index"]
+        assert desc["type"].startswith(f"segmented {kind}") and desc["segments"] >= 1
+        assert world.recall(m.store, QUERIES) > before + 0.5
+    assert (tmp_path / "m" / "index" / "p000001" / "segments.json").exists()
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+        assert report.ok, report.violations
+        assert report.checked["index_codes_compared"] > 0
+        assert world.recall(store, QUERIES) > before + 0.5

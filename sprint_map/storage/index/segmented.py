@@ -371,15 +371,15 @@ class SegmentedIndex(RetrievalIndex):
         Notes
         -----
         IVF: one coarse quantization plus ``nprobe`` lists of codes over all segments; tail:
-        O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards.
+        O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards (with a
+        learned projection, also O(rerank * dim * learn_dim) to project them).
         """
         shards = self.require_loaded()
         # Every covered row was committed, even when the last load() was an older
         # snapshot's (storage/snapshot.py): re-ranking may read them all.
         committed = self.covered
         raw = np.ascontiguousarray(queries, dtype=np.float32)
-        queries = self.project(raw)  # re-ranked in the searched space
-        nq = len(queries)
+        nq = len(raw)
         use_threads(nq)
         n_cand = max(self.config.index_rerank, k)
         reduced = self.model.transform(raw)
@@ -398,7 +398,10 @@ class SegmentedIndex(RetrievalIndex):
         cand = np.concatenate(ids, axis=1)
         valid = cand[cand >= 0]
         unique = np.unique(valid)
-        rows = self.project(self._reader.rows(shards, unique, committed))
+        rows, queries = self._reader.rows(shards, unique, committed), raw
+        if self.projection is not None:  # only compared with each other: float32 is enough
+            rows = self.projection.apply(rows, exact=False)
+            queries = self.projection.apply(raw, exact=False)
         for q in range(nq):
             mine = cand[q][cand[q] >= 0]
             if not len(mine):
