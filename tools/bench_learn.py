@@ -142,7 +142,8 @@ def scale(args: argparse.Namespace) -> dict[str, Any]:
         with SprintMap.create(path, config) as m:
             store = m.store
             place = rng.standard_normal((half, dim)).astype(np.float32)
-            nuisance = np.linalg.qr(rng.standard_normal((dim, 8)))[0].astype(np.float32)
+            # the second condition: a loud nuisance in 16 directions, as a season is
+            nuisance = np.linalg.qr(rng.standard_normal((dim, 16)))[0].astype(np.float32)
             from sprint_map.storage.records import EdgeSpec
 
             for lo in range(0, half, 65536):  # drives of 65,536 frames
@@ -153,25 +154,44 @@ def scale(args: argparse.Namespace) -> dict[str, Any]:
             for lo in range(0, half, 65536):
                 k = min(65536, half - lo)
                 rows = (place[lo: lo + k] + 0.3 * rng.standard_normal((k, dim)).astype(
-                    np.float32) + 3 * rng.standard_normal((k, 8)).astype(np.float32)
+                    np.float32) + 15 * rng.standard_normal((k, 16)).astype(np.float32)
                     @ nuisance.T)
                 seq = first_seqs[f"a{lo}"]
                 store.add_sequence(rows, name=f"b{lo}", edges=[  # both ways, as merges are
                     e for i in range(k) for e in (EdgeSpec((None, i), (seq, i)),
                                                   EdgeSpec((seq, i), (None, i)))])
+            m.flush()
             build_s = time.perf_counter() - t0
             stats = m.stats()
+        shutil.copytree(path, work / "plain.map")  # the same map without learning
+        with SprintMap.open(path) as m:
             t0 = time.perf_counter()
             report = m.learn()
             learn_s = time.perf_counter() - t0
             index = m.info()["index"]
+            queries = (place[:300] + 0.3 * rng.standard_normal((300, dim))).astype(np.float32)
+            with SprintMap.open(work / "plain.map", readonly=True) as plain:
+                # single-query searches, as localisation makes them, alternating between the
+                # two maps so that the machine's load weighs on both alike
+                times: dict[str, list[float]] = {"without": [], "with": []}
+                for mp in (plain, m):
+                    mp.search(queries[:1], 10)
+                for q in queries:
+                    for arm, mp in (("without", plain), ("with", m)):
+                        t = time.perf_counter()
+                        mp.search(q[None], 10)
+                        times[arm].append(time.perf_counter() - t)
+            search_before, search_after = (round(1e3 * float(np.median(times[a])), 3)
+                                           for a in ("without", "with"))
         out = {"vertices": stats["vertices"], "edges": stats["edges"], "dim": dim,
                "build_s": round(build_s, 1), "learn_and_rebuild_s": round(learn_s, 1),
-               "learn": report, "index": index}
+               "learn": report, "index": index,
+               "search_p50_ms": {"without": search_before, "with": search_after}}
         print(f"{stats['vertices']} vertices, {stats['edges']} edges, dim {dim}: learning and "
               f"rebuilding the index took {learn_s:.1f} s (adopted {report['adopted']}, "
               f"held-back recall@1 {report['heldout_recall_before']:.3f} -> "
-              f"{report['heldout_recall_after']:.3f}); index {index['type']}", flush=True)
+              f"{report['heldout_recall_after']:.3f}); index {index['type']}; single-query "
+              f"search p50 {search_before} ms without, {search_after} ms with", flush=True)
         return out
     finally:
         shutil.rmtree(work, ignore_errors=True)
