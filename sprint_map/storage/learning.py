@@ -14,25 +14,48 @@ the pointer, adopted or not, so a refused attempt is not repeated at every commi
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+import lmdb
 import numpy as np
 
+from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.index.model import gather_rows, sample_ids
 from sprint_map.storage.index.projection import ROW_SAMPLE, Learned, LearnReport, learn_projection
 from sprint_map.storage.keys import EDGE_KEY
+from sprint_map.storage.lmdb_env import LmdbEnv
+from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.store_config import StoreConfig
 from sprint_map.util.arrays import Int64Array
 
-if TYPE_CHECKING:
-    from sprint_map.storage.store import MapStore
 
-__all__ = ["PAIR_SAMPLE", "due", "learn", "merged_pairs", "unlearn"]
+class LearningMap(Protocol):
+    """What learning uses of a map open for writing (``MapStore`` is one)."""
+
+    @property
+    def env(self) -> LmdbEnv: ...
+
+    @property
+    def config(self) -> StoreConfig: ...
+
+    @property
+    def shards(self) -> ShardSet: ...
+
+    @property
+    def index(self) -> IndexStore: ...
+
+    def require_writer(self) -> None: ...
+
+    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
+
+
+__all__ = ["PAIR_SAMPLE", "LearningMap", "due", "learn", "merged_pairs", "unlearn"]
 
 #: Pairs a projection is fitted on at most (a seeded sample of the edges beyond that).
 PAIR_SAMPLE = 200_000
 
 
-def merged_pairs(store: MapStore) -> tuple[Int64Array, Int64Array, int, int]:
+def merged_pairs(store: LearningMap) -> tuple[Int64Array, Int64Array, int, int]:
     """``(a, b, n_edges, committed)``: every edge's endpoints once (``a < b``), sorted by
     ``a``, as of one snapshot, with the edge counter and vertex count of that snapshot.
     O(E) keys read (values are not)."""
@@ -48,7 +71,7 @@ def merged_pairs(store: MapStore) -> tuple[Int64Array, Int64Array, int, int]:
     return pairs[:, 0].copy(), pairs[:, 1].copy(), n_edges, committed
 
 
-def learn(store: MapStore) -> LearnReport:
+def learn(store: LearningMap) -> LearnReport:
     """Learn a projection from the map's merged edges and adopt it if it helps (writer).
 
     Notes
@@ -78,7 +101,7 @@ def learn(store: MapStore) -> LearnReport:
     return report
 
 
-def unlearn(store: MapStore) -> bool:
+def unlearn(store: LearningMap) -> bool:
     """Drop the learned projection (the plain descriptor again); False if there was none."""
     store.require_writer()
     current = store.index.learned_state()
@@ -90,7 +113,7 @@ def unlearn(store: MapStore) -> bool:
     return bool(current.generation)
 
 
-def due(store: MapStore) -> bool:
+def due(store: LearningMap) -> bool:
     """Whether ``learn_every`` new edges were committed since the last attempt. O(1) reads."""
     every = store.config.learn_every
     if not every:
