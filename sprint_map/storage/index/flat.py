@@ -233,7 +233,7 @@ class FlatIndex(RetrievalIndex):
         """
         if self.index is None:
             raise IndexNotLoadedError("the flat index is not loaded: load() first")
-        queries = self.project(queries)
+        queries = self.project(queries)  # float64 rounded: a query alone or in a batch alike
         use_threads(len(queries))
         if self._exact is None or self._exact.index is not self.index:
             self._exact = ExactFlat(self.index)

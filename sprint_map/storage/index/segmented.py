@@ -382,7 +382,9 @@ class SegmentedIndex(RetrievalIndex):
         nq = len(raw)
         use_threads(nq)
         n_cand = max(self.config.index_rerank, k)
-        reduced = self.model.transform(raw)
+        # The query in the searched space (float32: only compared), then the model's PCA.
+        queries = raw if self.projection is None else self.projection.apply(raw, exact=False)
+        reduced = queries if self.model.pca is None else self.model.pca.apply(queries)
         ids = []
         if self._stacked is not None:
             self._stacked.nprobe = min(self.config.index_nprobe, self._stacked.nlist)
@@ -398,10 +400,9 @@ class SegmentedIndex(RetrievalIndex):
         cand = np.concatenate(ids, axis=1)
         valid = cand[cand >= 0]
         unique = np.unique(valid)
-        rows, queries = self._reader.rows(shards, unique, committed), raw
+        rows = self._reader.rows(shards, unique, committed)
         if self.projection is not None:  # only compared with each other: float32 is enough
             rows = self.projection.apply(rows, exact=False)
-            queries = self.projection.apply(raw, exact=False)
         for q in range(nq):
             mine = cand[q][cand[q] >= 0]
             if not len(mine):
