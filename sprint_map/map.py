@@ -386,6 +386,20 @@ class SprintMap:
         """
         return self.store.rebuild_index(train=train)
 
+    def learn(self) -> dict[str, Any]:
+        """Learn a descriptor projection from the map's merged edges and rebuild the index
+        with it if it retrieves held-back pairs better (``sprint-map index --learn``):
+        ``{pairs, dim_in, dim_out, adopted, heldout_recall_before, heldout_recall_after}``.
+        Crash safe like a rebuild; see :mod:`sprint_map.storage.learning`."""
+        report = self.store.learn().to_dict()
+        report.pop("reason")
+        return report
+
+    def unlearn(self) -> bool:
+        """Drop the learned projection and search the plain descriptor again
+        (``sprint-map index --no-learn``); False if the map had none."""
+        return self.store.unlearn()
+
     def view(self) -> MapView:
         """A new view of the map for one :class:`~sprint_map.localize.localizer.Localizer` (what it
         reads: k-NN search, vertex locations, components and their edges, from pinned LMDB
@@ -725,6 +739,7 @@ class SprintMap:
                 "persisted": index.persisted if index.index is not None
                 else index.persisted_on_disk(),
             },
+            "projection": self.store.index.learned_state().describe(),
             "disk_bytes": self.store.disk_bytes(),
             "removed_vertices": self.store.removed_vertices(),
             "generation": self.store.data_path.name if self.store.data_path != self.path else "",

@@ -658,19 +658,42 @@ def compact(map_path: str, as_json: bool) -> None:
               "shards (the approximate index keeps its kind, retrained on a fresh sample).")
 @click.option("--train", "action", flag_value="train", help="Retrain PCA and the quantizer on "
               "a fresh sample of the map, then re-encode every vertex.")
+@click.option("--learn", "action", flag_value="learn", help="Learn a descriptor projection "
+              "from the map's merged edges; adopted (index rebuilt with it) only if it "
+              "retrieves held-back edges better. Prints {pairs, dim_in, dim_out, adopted, "
+              "heldout_recall_before, heldout_recall_after}.")
+@click.option("--no-learn", "action", flag_value="unlearn", help="Drop the learned "
+              "projection: search the plain descriptor again (index rebuilt).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def index(map_path: str, action: str | None, as_json: bool) -> None:
     """Rebuild or retrain the retrieval index of MAP (its kind is the map's index_type).
 
     Readers keep searching the old index until the new one is published atomically; a kill
-    leaves one or the other. Without --rebuild/--train, show the index.
+    leaves one or the other. Without an option, show the index.
 
     \b
     Examples:
       sprint-map index city.map --train      # retrain PCA + IVF on today's map
       sprint-map index city.map --rebuild
+      sprint-map index city.map --learn --json   # learn the descriptor from the merges
+      sprint-map index city.map --no-learn
       sprint-map index city.map --json
     """
+    if action == "learn":
+        with SprintMap.open(map_path) as m:
+            report = m.learn()
+        _emit(report, as_json, f"learned from {report['pairs']} merged pairs "
+                               f"({report['dim_in']} -> {report['dim_out']} dims): "
+                               f"{'adopted' if report['adopted'] else 'not adopted'}; held-back "
+                               f"recall@1 {report['heldout_recall_before']:.3f} -> "
+                               f"{report['heldout_recall_after']:.3f}")
+        return
+    if action == "unlearn":
+        with SprintMap.open(map_path) as m:
+            dropped = m.unlearn()
+        _emit({"dropped": dropped}, as_json, "dropped the learned projection" if dropped
+              else "the map had no learned projection")
+        return
     with SprintMap.open(map_path, readonly=action is None) as m:
         done = m.rebuild_index(train=action == "train") if action else []
         data = {"done": done, "index": m.info()["index"]}
@@ -709,13 +732,17 @@ def _log(quiet: bool) -> Any:
 @click.option("--map-config", "map_pairs", multiple=True, metavar="KEY=VALUE",
               help="Override a MapConfig field of the evaluation maps (repeatable, JSON "
               "values), e.g. index_type=ivf-pq.")
+@click.option("--learn-every", type=click.IntRange(min=1), default=None, metavar="EDGES",
+              help="lifelong: also run it with the maps learning their descriptor from their "
+              "merges after every EDGES new edges (learn_every), reported beside the run "
+              "without learning (in OUT/learned).")
 @_model_options
 def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, database: str | None,
           query: str | None, both_directions: bool, descriptor: str, model: str | None,
           model_card: str | None, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
-          stride: int, quiet: bool, k: int | None, window: str | None,
-          hmm_pairs: tuple[str, ...]) -> None:
+          learn_every: int | None, stride: int, quiet: bool, k: int | None,
+          window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Evaluate k-NN and SPRINT on DATASET (one folder per traversal); write JSON, markdown, PNGs.
 
     \b
@@ -728,6 +755,7 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
           --map-config index_nlist=64 --map-config index_segment_rows=256
       sprint-map eval datasets/pitts30k --layout vpr --radius 25 --out eval-pitts
       sprint-map eval datasets/pitts30k --layout vpr --model eigenplaces.onnx
+      sprint-map eval data/city --learn-every 2000   # with and without learning
     """
     if layout == "vpr":
         _eval_vpr(dataset, out_dir, descriptor, (model, model_card), radius, map_pairs, k,
@@ -754,10 +782,15 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
     options = EvalOptions(protocol=protocol, database=database, query=query,
                           both_directions=both_directions, stride=stride)
     out = Path(out_dir or f"eval-{data.path.resolve().name}")
-    results = run_evaluation(data, out / "maps", config, options, hmm, log=_log(quiet))
-    paths = write_report(results, out)
-    click.echo(markdown_table(results))
-    click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+    runs = [(out, config, "")]
+    if learn_every:
+        runs.append((out / "learned", config.replace(learn_every=learn_every),
+                     f"\nwith learning (learn_every={learn_every}):"))
+    for where, cfg, title in runs:
+        results = run_evaluation(data, where / "maps", cfg, options, hmm, log=_log(quiet))
+        paths = write_report(results, where)
+        click.echo(f"{title}\n{markdown_table(results)}" if title else markdown_table(results))
+        click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
 
 
 def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,
