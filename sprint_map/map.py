@@ -29,6 +29,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.merge.commit import DriveWriter, IngestResult
 from sprint_map.merge.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.merge.rule import select_merges
+from sprint_map.storage.generation import current_data
 from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.index.model import cap_threads
 from sprint_map.storage.provenance import edge_table, list_edges
@@ -158,6 +159,12 @@ class SprintMap:
     def closed(self) -> bool:
         """Whether :meth:`close` was called (nothing can be read any more)."""
         return self.store.env is None
+
+    def is_current(self) -> bool:
+        """Whether the generation this map opened is still the live one: False once a
+        ``compact`` selected a new copy (a reader then sees no later commit: reopen the map).
+        O(1): reads the small ``CURRENT`` file."""
+        return current_data(self.path) == self.store.data_path
 
     @property
     def warnings(self) -> list[str]:
@@ -391,6 +398,20 @@ class SprintMap:
         :meth:`sprint_map.storage.index.map_index.IndexStore.train`.
         """
         return self.store.rebuild_index(train=train)
+
+    def learn(self) -> dict[str, Any]:
+        """Learn a descriptor projection from the map's merged edges and rebuild the index
+        with it if it retrieves held-back pairs better (``sprint-map index --learn``):
+        ``{pairs, dim_in, dim_out, adopted, heldout_recall_before, heldout_recall_after}``.
+        Crash safe like a rebuild; see :mod:`sprint_map.storage.learning`."""
+        report = self.store.learn().to_dict()
+        report.pop("reason")
+        return report
+
+    def unlearn(self) -> bool:
+        """Drop the learned projection and search the plain descriptor again
+        (``sprint-map index --no-learn``); False if the map had none."""
+        return self.store.unlearn()
 
     def view(self) -> MapView:
         """A new view of the map for one :class:`~sprint_map.localize.localizer.Localizer` (what it
@@ -758,15 +779,18 @@ class SprintMap:
         """Repair the map at ``path`` as far as its own data allows, then check it (``sprint-map
         check --repair``; takes the writer lock). See :func:`sprint_map.storage.repair.repair_map`.
         """
+        from sprint_map.frontend.thumbnails import decodes
         from sprint_map.storage.repair import repair_map
 
-        return repair_map(path, seed=seed, check_config=stored_config)
+        return repair_map(path, seed=seed, check_config=stored_config, thumbnail_decodes=decodes)
 
     def check(self) -> CheckReport:
-        """Verify every on-disk invariant (best on a map opened read-only)."""
+        """Verify every on-disk invariant (best on a map opened read-only); every thumbnail
+        is decoded (:func:`sprint_map.frontend.thumbnails.decodes`)."""
+        from sprint_map.frontend.thumbnails import decodes
         from sprint_map.storage.check import check_map
 
-        return check_map(self.store)
+        return check_map(self.store, thumbnail_decodes=decodes)
 
     def info(self) -> dict[str, Any]:
         """Summary for ``sprint-map info --json``. O(1) but for the directory walk."""
@@ -789,6 +813,7 @@ class SprintMap:
                 "persisted": index.persisted if index.index is not None
                 else index.persisted_on_disk(),
             },
+            "projection": self.store.index.learned_state().describe(),
             "disk_bytes": self.store.disk_bytes(),
             "removed_vertices": self.store.removed_vertices(),
             "generation": self.store.data_path.name if self.store.data_path != self.path else "",

@@ -237,3 +237,48 @@ def test_edges_and_unmerge(make_map):
         assert len(lines) == 1 and lines[0].startswith("Error: no sequence"), result.output
     result = CliRunner().invoke(main, ["edges", str(built.path), "--seq", "12", "--by-name"])
     assert result.output.startswith("Error: no sequence named '12'")
+
+
+@pytest.mark.parametrize("command", ["remove", "unmerge", "edges"])
+@pytest.mark.parametrize("name", ["\uff11", "\u0663", "\u00b2"])
+def test_seq_of_non_ascii_digits_is_a_name(tmp_path, drives, command, name):
+    """Only ASCII digits make a sequence id: a drive named with other digits (fullwidth,
+    Arabic-Indic, a superscript) is found by its name, never read as another drive's id."""
+    map_path = tmp_path / "m.map"
+    run("init", map_path, "--dim", DIM)
+    run("ingest", map_path, drives[0], "--name", name, "--no-merge")  # sequence 0
+    run("ingest", map_path, drives[1], "--name", "other")  # sequence 1, merged with 0
+    run("ingest", map_path, drives[2], "--name", "third")  # sequence 2
+    args = {"remove": [name], "unmerge": [name], "edges": ["--added-by", name]}[command]
+    out = run(command, map_path, *args, "--json")
+    assert out.exit_code == 0, out.output
+    data = json.loads(out.output)
+    if command == "remove":
+        assert [r["seq_id"] for r in data["removed"]] == [0]
+    elif command == "unmerge":
+        assert data["seq_id"] == 0
+    else:
+        assert data == []  # sequence 0 was added without merging: it added no edge
+    left = json.loads(run("sequences", map_path, "--json").output)
+    assert {r["seq_id"] for r in left} == ({1, 2} if command == "remove" else {0, 1, 2})
+
+
+def test_index_learn_and_no_learn_json_contract(tmp_path):
+    """``index --learn --json`` prints exactly the contract's keys; ``info --json`` gains
+    ``projection``; ``--no-learn`` drops it (issue 33)."""
+    from tests.helpers import learn_world
+
+    path = learn_world.build(tmp_path / "m")
+    assert json.loads(run("info", path, "--json").output)["projection"] is None
+    result = run("index", path, "--learn", "--json")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert set(report) == {"pairs", "dim_in", "dim_out", "adopted", "heldout_recall_before",
+                           "heldout_recall_after"}
+    assert (report["pairs"], report["dim_in"], report["dim_out"], report["adopted"]) == (
+        learn_world.PLACES, learn_world.DIM, 16, True)
+    assert json.loads(run("info", path, "--json").output)["projection"] == {
+        "pairs": learn_world.PLACES, "dim_out": 16, "trained_at_edges": 2 * learn_world.PLACES}
+    assert run("check", path).exit_code == 0
+    assert run("index", path, "--no-learn").exit_code == 0
+    assert json.loads(run("info", path, "--json").output)["projection"] is None

@@ -35,6 +35,7 @@ from sprint_map.testing.crash import (
     CRASH_POINTS,
     GROUP_POINTS,
     INDEX_POINTS,
+    LEARN_POINTS,
     RECOVER_POINTS,
     REMOVE_POINTS,
     REPAIR_POINTS,
@@ -248,6 +249,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     tested |= set(UNMERGE_POINTS)  # test_kill_at_each_unmerge_point
     tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
     tested |= set(GROUP_POINTS)  # tests/test_drives.py (a real multi-drive ingest killed)
+    tested |= set(LEARN_POINTS)  # tests/storage/test_learning.py (learn and unlearn killed)
     assert tested == set(CRASH_POINTS)
 
 

@@ -5,7 +5,7 @@ Two small maps cover every kind of file a map has: a flat-index map that was com
 segmented IVF index (``segments.json``, the model, a segment file); both have ``LOCK``,
 ``data.mdb`` and ``lock.mdb``. Each file is, in turn, flipped (16 bytes XOR-ed at its start,
 middle and end), scattered (one bit flipped at 12 seeded offsets), truncated to half, or
-deleted; then ``info``, ``check``, ``localize`` and
+deleted; then ``info``, ``check``, ``localize``, ``export`` (the three formats) and
 ``ingest`` run as real processes of the ``sprint-map`` command line (forked from a warmed-up
 server, ``tests/map_fuzz_worker.py``: the same ``main`` the console script runs; ``check`` again
 after an ``ingest`` that succeeded). Promises (issue 14):
@@ -13,6 +13,11 @@ after an ``ingest`` that succeeded). Promises (issue 14):
 - no traceback (stderr never holds ``Traceback``) and no signal (no SIGBUS/SIGSEGV);
 - no silent change to committed data: when the last ``check`` passes, the committed sequences'
   descriptors read back equal to the pristine map's; otherwise the damage was reported.
+
+Traces (issue 29) are fuzzed the same way: a trace of the pristine map, flipped, scattered,
+truncated, or rebuilt with one array missing, reshaped, retyped, non-finite, a huge declared
+member, a deeply nested ``meta``; each is read by ``read_trace`` and, if it is accepted, every
+trace route of the viewer must answer 200 with valid JSON.
 
 The counts are printed (``-s``) and kept in ``COUNTS`` for the report.
 """
@@ -156,9 +161,17 @@ def test_every_file_of_a_map_flipped_truncated_or_deleted(pristine, cli, tmp_pat
                 shutil.copytree(source, path, symlinks=True)
                 mutate(path / rel)
                 results: dict[str, tuple[int, str]] = {}
+                exported = tmp_path / "exported"
+                shutil.rmtree(exported, ignore_errors=True)
+                exported.mkdir()
                 for command in (["info"], ["check"], ["localize", drive, "--quiet"],
+                                ["export", "--graphml", exported / "g.graphml", "--csv",
+                                 exported / "csv", "--geojson", exported / "m.geojson"],
                                 ["ingest", drive, "--quiet", "--name", "fuzz"]):
                     results[command[0]] = cli(command[0], path, *command[1:])
+                stray = [p for p in exported.rglob("*") if p.name.endswith(".partial")]
+                if stray:
+                    failures.append(f"{case}: export left {stray}")
                 if results["ingest"][0] == 0:
                     results["check-after"] = cli("check", path)
                 counts["cases"] += 1
@@ -206,3 +219,123 @@ def _file_kind(rel: Path) -> str:
     if name.startswith("seg."):
         return "segment"
     return name
+
+
+def _trace_of(path: Path, drive: Path, out: Path) -> None:
+    from sprint_map.localize.trace import TraceRecorder
+    from sprint_map.map import SprintMap
+
+    with SprintMap.open(path, readonly=True) as m:
+        loc = m.localizer()
+        rec = TraceRecorder(m)
+        rec.attach(loc)
+        loc.localize(np.load(drive))
+        rec.save(out)
+
+
+def _rebuilt(arrays: dict[str, np.ndarray], rng: np.random.Generator
+             ) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
+    """Structural damage: each array missing, cut short, reshaped, retyped, non-finite."""
+    for key in sorted(arrays):
+        value = arrays[key]
+        yield f"{key}:missing", {k: v for k, v in arrays.items() if k != key}
+        yield f"{key}:short", arrays | {key: value[: max(0, len(value) - 1)] if value.ndim
+                                        else value}
+        yield f"{key}:reshaped", arrays | {key: value.reshape(-1)[:, None] if value.size else
+                                           np.zeros((2, 2))}
+        yield f"{key}:text", arrays | {key: np.array(["x"] * max(1, value.size))}
+        if value.dtype.kind == "f":
+            bad = value.copy()
+            if bad.size:
+                bad.reshape(-1)[int(rng.integers(0, bad.size))] = np.nan
+            yield f"{key}:nan", arrays | {key: bad}
+        if value.dtype.kind in "iu" and value.size:
+            bad = value.copy()
+            bad.reshape(-1)[int(rng.integers(0, bad.size))] = -7
+            yield f"{key}:negative", arrays | {key: bad}
+    meta = json.loads(str(arrays["meta"]))
+    for field, value in (("frames", -1), ("frames", 10**9), ("frames", "many"),
+                         ("version", 99), ("format", "other")):
+        yield f"meta.{field}={value}", arrays | {"meta": np.array(json.dumps(
+            meta | {field: value}))}
+    yield "meta:nested", arrays | {"meta": np.array("[" * 100_000 + "]" * 100_000)}
+    yield "meta:nan", arrays | {"meta": np.array(json.dumps(meta).replace(
+        '"k": ', '"k": NaN, "x": '))}
+    yield "meta:not-json", arrays | {"meta": np.array("{")}
+
+
+def _huge_member(out: Path, arrays: dict[str, np.ndarray]) -> None:
+    """A small file whose ``hit_dist`` declares 1 GiB (and holds zeros compressed)."""
+    import zipfile
+    np.savez_compressed(out, **{k: v for k, v in arrays.items() if k != "hit_dist"})
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(1, np.float32))
+    header["shape"] = (2**28,)
+    with zipfile.ZipFile(out, "a", compression=zipfile.ZIP_DEFLATED) as archive, \
+            archive.open("hit_dist.npy", "w", force_zip64=True) as fh:
+        np.lib.format.write_array_header_1_0(fh, header)
+        chunk = bytes(1 << 20)
+        for _ in range(1024):
+            fh.write(chunk)
+
+
+def test_damaged_traces_are_refused_or_served_whole(pristine, tmp_path):
+    """Every damaged trace is refused by ``read_trace`` (InputError, nothing else) or served:
+    then the viewer's trace routes all answer 200 with JSON (no 500, no traceback)."""
+    from fastapi.testclient import TestClient
+
+    from sprint_map.errors import InputError
+    from sprint_map.localize.trace import read_trace
+    from sprint_map.map import SprintMap
+    from sprint_map.viewer.app import create_view_app
+    from sprint_map.viewer.summary import MapSummary
+
+    source = pristine["flat-compacted"][0]
+    drive = source.parent / "drive.npy"
+    good = tmp_path / "good.npz"
+    _trace_of(source, drive, good)
+    with np.load(good) as data:
+        arrays = {k: data[k] for k in data.files}
+    rng = np.random.default_rng(29)
+    cases: list[tuple[str, Path]] = []
+    for name, mutate in MUTATIONS.items():
+        if name != "delete":
+            bad = tmp_path / f"{name}.npz"
+            shutil.copy(good, bad)
+            mutate(bad)
+            cases.append((name, bad))
+    for i, (name, damaged) in enumerate(_rebuilt(arrays, rng)):
+        bad = tmp_path / f"r{i}.npz"
+        np.savez_compressed(bad, **damaged)
+        cases.append((name, bad))
+    np.save(tmp_path / "plain.npy", arrays["hit_dist"])
+    cases.append(("npy", tmp_path / "plain.npy"))
+    _huge_member(tmp_path / "huge.npz", arrays)
+    cases.append(("huge member", tmp_path / "huge.npz"))
+    cases.append(("directory", tmp_path))
+    counts = {"cases": len(cases), "refused": 0, "served": 0}
+    failures = []
+    refused: set[str] = set()
+    with SprintMap.open(source, readonly=True) as m:
+        summary = MapSummary(m)
+        for name, path in cases:
+            try:
+                trace = read_trace(path)
+            except InputError:
+                counts["refused"] += 1
+                refused.add(name)
+                continue
+            except Exception as exc:  # noqa: BLE001  (the promise: InputError only)
+                failures.append(f"{name}: {type(exc).__name__}: {exc}")
+                continue
+            client = TestClient(create_view_app(summary, trace), raise_server_exceptions=False)
+            answers = [client.get("/viewer/api/trace")]
+            answers += [client.get(f"/viewer/api/trace/frames?start={s}&count=500")
+                        for s in range(0, trace.frames + 1, 500)]
+            bad = [a.status_code for a in answers if a.status_code != 200]
+            if bad:
+                failures.append(f"{name}: served, but the trace routes answered {bad}")
+            counts["served"] += 1
+    COUNTS.update({f"trace_{k}": v for k, v in counts.items()})
+    print(f"\ntrace fuzz: {counts}")
+    assert {"huge member", "npy", "truncate", "meta:nested", "directory"} <= refused
+    assert not failures, "\n".join(failures)

@@ -166,13 +166,17 @@ def score(decisions: list[FrameDecision], query: str, gt: GroundTruth, names: di
 
 
 def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
-            config: MapConfig | None = None) -> list[dict[str, Any]]:
+            config: MapConfig | None = None, learn_every: int = 0) -> list[dict[str, Any]]:
     """The lifelong protocol on one fresh map (default config: HoG); one row per traversal
-    after the first."""
+    after the first. ``learn_every`` > 0: the map learns its descriptor (``index --learn``)
+    after every ``learn_every`` drives."""
     rows_out: list[dict[str, Any]] = []
     config = config or MapConfig.for_descriptor("hog")
-    with SprintMap.create(work / ("merge.map" if merge else "no-merge.map"), config) as m:
+    name = ("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
+    with SprintMap.create(work / f"{name}.map", config) as m:
         for i, drive in enumerate(drives):
+            if learn_every and i and i % learn_every == 0:
+                m.learn()
             if i == 0:
                 m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge,
                          thumbnails=drive.thumbnails)
@@ -267,6 +271,10 @@ def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
                         ("online_accepted_recall@1", "online_accepted_")):
         out[f"{prefix}merge_minus_no_merge_later_points"] = round(
             100 * (out["merge"]["later"][key] - out["no-merge"]["later"][key]), 2)
+    if "merge+learn" in arms:
+        out["learn_minus_merge_later_points"] = {key: round(100 * (
+            out["merge+learn"]["later"][key] - out["merge"]["later"][key]), 2) for key in (
+            "sprint_recall@1", "online_sprint_recall@1", "knn_recall@1")}
     out["ingest_differs_from_localize"] = sum(r["ingest_differs_from_localize"]
                                               for r in arms["merge"])
     return out
@@ -318,6 +326,11 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
           f"(causal, streaming decisions: {s['online_merge_minus_no_merge_later_points']:+.1f}); "
           f"accepted decisions {s['accepted_merge_minus_no_merge_later_points']:+.1f} "
           f"(causal {s['online_accepted_merge_minus_no_merge_later_points']:+.1f})")
+    if "learn_minus_merge_later_points" in s:
+        learn = s["merge+learn"]
+        print(f"  merge+learn: later half {pct(learn['later']['sprint_recall@1'])} "
+              f"(merge precision {pct(learn['later']['merge_precision'])}); learn - merge on "
+              f"the later half (points): {s['learn_minus_merge_later_points']}")
     if s.get("ingest_differs_from_localize"):
         print(f"  WARNING: on {s['ingest_differs_from_localize']:.0f} frames ingest's decision "
               "differs from localize(smooth=True)'s: the runs score different procedures")
@@ -336,7 +349,8 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         return round(float(np.mean(values)), 4) if values else None
 
     out: dict[str, Any] = {}
-    for arm in ARMS:
+    learned = ("merge+learn",) if "merge+learn" in summaries[0] else ()
+    for arm in ARMS + learned:
         out[arm] = {
             half: {key: mean((arm, half, key)) for key in
                    ("sprint_recall@1", "online_sprint_recall@1", "accepted_recall@1",
@@ -351,6 +365,10 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
                 "online_accepted_merge_minus_no_merge_later_points",
                 "ingest_differs_from_localize"):
         out[key] = mean((key,))
+    if learned:
+        out["learn_minus_merge_later_points"] = {key: mean(("learn_minus_merge_later_points", key))
+                                                 for key in summaries[0][
+                                                     "learn_minus_merge_later_points"]}
     return out
 
 
@@ -393,6 +411,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=None, help="rendering threads")
     parser.add_argument("--no-thumbnails", action="store_true",
                         help="keep no thumbnails: the merge verifies nothing on the images")
+    parser.add_argument("--learn-every", type=int, default=0, metavar="N",
+                        help="add an arm 'merge+learn': the map learns its descriptor from its "
+                        "merges (index --learn) after every N drives")
     parser.add_argument("--json", type=Path, help="write per-traversal rows and summaries here")
     parser.add_argument("--png", type=Path, help="plot recall@1 per traversal here")
     args = parser.parse_args(argv)
@@ -417,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             for arm in ARMS:
                 arms[arm] = run_arm(drives, gt, arm == "merge", Path(tmp), map_config)
+            if args.learn_every:
+                arms["merge+learn"] = run_arm(drives, gt, True, Path(tmp), map_config,
+                                              args.learn_every)
         print_rows(seed, arms)
         summary = summarise(arms)
         print_summary(f"seed {seed}", summary)

@@ -13,7 +13,10 @@ attack, whether a new session can be created, how many header bytes the server t
 closing, the answers to the bodies, the server's RSS growth (``/proc/PID/status`` VmRSS), and
 how many stalled connections are still open once the header timeout passed::
 
-    python tools/bench_serve_stall.py [--connections 600] [--json OUT]
+    python tools/bench_serve_stall.py [--connections 600] [--target serve|view|both] [--json OUT]
+
+``--target view`` attacks ``sprint-map view`` with a token the same way (its client reads the
+overview; the page is its liveness probe); ``both`` runs serve then view, side by side.
 
 The helpers are also what ``tests/server/test_starvation.py`` uses.
 """
@@ -79,15 +82,16 @@ def read_all(sock: socket.socket, timeout: float = 10.0) -> bytes:
     return b"".join(chunks)
 
 
-def healthz_seconds(host: str, port: int) -> float:
-    """Time for ``GET /healthz`` on a fresh connection; raises unless answered 200."""
+def healthz_seconds(host: str, port: int, path: str = "/healthz") -> float:
+    """Time for ``GET /healthz`` (or ``path``) on a fresh connection; raises unless 200."""
     start = time.perf_counter()
     with socket.create_connection((host, port), timeout=10) as sock:
-        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+                     .encode())
         answer = read_all(sock)
     elapsed = time.perf_counter() - start
     if not answer.startswith(b"HTTP/1.1 200"):
-        raise AssertionError(f"/healthz answered {answer[:120]!r} after {elapsed:.3f} s")
+        raise AssertionError(f"{path} answered {answer[:120]!r} after {elapsed:.3f} s")
     return elapsed
 
 
@@ -166,24 +170,29 @@ def count_open(socks: list[socket.socket]) -> int:
     return still
 
 
-def _serve(map_path: Path, token: str, log: Path, config: dict[str, Any]
+def _serve(map_path: Path, token: str, log: Path, config: dict[str, Any], target: str = "serve"
            ) -> tuple[subprocess.Popen[str], str]:
+    """``sprint-map serve`` (with ``config``) or ``sprint-map view`` (its defaults: the same
+    ServerConfig limits, header timeout 10 s) on a free loopback port, with ``token``."""
     cfg = log.with_suffix(".json")
     cfg.write_text(json.dumps(config))
+    extra = ["--config", str(cfg)] if target == "serve" else []
     proc = subprocess.Popen(
-        [sys.executable, "-c", "from sprint_map.cli.main import main; main()", "serve", str(map_path),
-         "--host", "127.0.0.1", "--port", "0", "--config", str(cfg)],
+        [sys.executable, "-c", "from sprint_map.cli.main import main; main()", target,
+         str(map_path), "--host", "127.0.0.1", "--port", "0", *extra],
         stdout=subprocess.PIPE, stderr=log.open("w"), text=True,
         env={**os.environ, "SPRINT_MAP_TOKEN": token})
     assert proc.stdout is not None
     line = proc.stdout.readline()
-    if not line.startswith("serving "):
+    if not line.startswith(("serving ", "viewing ")):
         raise RuntimeError(f"server did not start: {line!r} {log.read_text()}")
-    return proc, line.split(" on ", 1)[1].strip()
+    return proc, line.split(" on ", 1)[1].split()[0]
 
 
-def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float
-        ) -> dict[str, Any]:
+def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float,
+        target: str = "serve") -> dict[str, Any]:
+    """The attack on ``target`` (``serve``, or ``view``: its client reads the overview, its
+    liveness probe is the page, its header timeout the default 10 s)."""
     import httpx
     import numpy as np
 
@@ -203,25 +212,29 @@ def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float
         path = Path(tmp) / "m.map"
         with SprintMap.create(path, MapConfig(dim=64)) as m:
             m.ingest(noisy(), name="first")
-        proc, url = _serve(path, token, Path(tmp) / "serve.log",
-                           {"header_timeout_s": header_timeout_s})
+        view = target == "view"
+        if view:
+            header_timeout_s = 10.0  # ServerConfig's default: view has no --config
+        proc, url = _serve(path, token, Path(tmp) / f"{target}.log",
+                           {"header_timeout_s": header_timeout_s}, target)
         try:
             host, port = address(url)
             with httpx.Client(base_url=url, headers=auth, timeout=30) as vehicle:
                 deadline = time.monotonic() + 60
-                while vehicle.get("/readyz").status_code != 200:
+                while vehicle.get("/" if view else "/readyz").status_code != 200:
                     if time.monotonic() > deadline:
                         raise RuntimeError("server not ready")
                     time.sleep(0.05)
                 rows = noisy()
-                sid = vehicle.post("/v1/sessions").json()["session_id"]
+                sid = "" if view else vehicle.post("/v1/sessions").json()["session_id"]
 
                 def frames(lo: int, hi: int) -> list[float]:
                     out = []
                     for i in range(lo, hi):
                         t = time.perf_counter()
-                        r = vehicle.post(f"/v1/sessions/{sid}/frames",
-                                         json={"descriptor": rows[i % len(rows)].tolist()})
+                        r = vehicle.get("/viewer/api/overview") if view else vehicle.post(
+                            f"/v1/sessions/{sid}/frames",
+                            json={"descriptor": rows[i % len(rows)].tolist()})
                         if r.status_code != 200:
                             raise AssertionError(f"frame {i}: {r.status_code} {r.text}")
                         out.append(time.perf_counter() - t)
@@ -230,11 +243,15 @@ def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float
                 before_frames = frames(0, 30)
                 base = rss_bytes(proc.pid)
                 t0 = time.monotonic()
-                stalled = open_stalled(host, port, connections)
+                stalled = open_stalled(host, port, connections, STALL_REQUEST.replace(
+                    b"POST /v1/sessions", b"GET /viewer/api/overview") if view else STALL_REQUEST)
                 opened_s = time.monotonic() - t0
-                health = [healthz_seconds(host, port) for _ in range(10)]
+                health = [healthz_seconds(host, port, "/" if view else "/healthz")
+                          for _ in range(10)]
                 during_frames = frames(30, 90)
-                created = httpx.post(f"{url}/v1/sessions", headers=auth, timeout=30).status_code
+                created = httpx.get(f"{url}/viewer/api/overview", headers=auth, timeout=30
+                                    ).status_code if view else httpx.post(
+                    f"{url}/v1/sessions", headers=auth, timeout=30).status_code
                 rss_stalled = rss_bytes(proc.pid) - base
                 sent, answer = huge_header(host, port, header_mib << 20)
                 answers = unauthenticated_bodies(host, port, bodies, 4 << 20)
@@ -243,7 +260,8 @@ def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float
                 left = count_open(stalled)
                 for sock in stalled:
                     sock.close()
-                vehicle.post(f"/v1/sessions/{sid}/commit")
+                if not view:
+                    vehicle.post(f"/v1/sessions/{sid}/commit")
         finally:
             proc.terminate()
             proc.wait(60)
@@ -253,7 +271,7 @@ def run(connections: int, header_mib: int, bodies: int, header_timeout_s: float
                 "max_ms": round(max(values) * 1e3, 2)}
 
     return {
-        "stalled_connections": connections, "open_seconds": round(opened_s, 3),
+        "target": target, "stalled_connections": connections, "open_seconds": round(opened_s, 3),
         "healthz": ms(health), "frames_before": ms(before_frames),
         "frames_during": ms(during_frames), "new_session_status": created,
         "header_bytes_sent_before_close": sent, "header_answer": answer[:40].decode("latin-1"),
@@ -271,14 +289,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--header-mib", type=int, default=150)
     parser.add_argument("--bodies", type=int, default=64)
     parser.add_argument("--header-timeout", type=float, default=5.0)
+    parser.add_argument("--target", choices=["serve", "view", "both"], default="serve",
+                        help="attack sprint-map serve, sprint-map view (with a token), or both "
+                             "in turn (the baseline: serve's figures beside view's)")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
-    result = run(args.connections, args.header_mib, args.bodies, args.header_timeout)
-    width = max(map(len, result))
-    for key, value in result.items():
-        print(f"{key:<{width}}  {value}")
+    targets = ["serve", "view"] if args.target == "both" else [args.target]
+    results = [run(args.connections, args.header_mib, args.bodies, args.header_timeout, t)
+               for t in targets]
+    width = max(map(len, results[0]))
+    for key in results[0]:
+        print(f"{key:<{width}}  " + "  ".join(f"{str(r[key]):<40}" for r in results).rstrip())
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        args.json.write_text(json.dumps(results if len(results) > 1 else results[0], indent=2)
+                             + "\n")
     return 0
 
 

@@ -29,6 +29,8 @@ from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
+from sprint_map.util.output import Output
+from sprint_map.util.validation import parse_seq_ref
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
            "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
@@ -303,17 +305,25 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
         drives = [Drive(src.iter_batches(), label, rows, str(source), src.thumbnails,
                         None if rows is None else gnss_fixes(rows))
                   for (src, rows), label, source in zip(placed, names, sources, strict=False)]
+        # The trace's file is made now: a path that cannot be written is refused before the
+        # drive is localised and committed (after the commit, a failure is only a warning).
+        trace_out = stack.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
         recorder = TraceRecorder(m) if trace else None
         try:
             results = m.ingest_drives(drives, merge=not no_merge, hmm=hmm, on_committed=report,
                                       observe=recorder.attach if recorder else None)
         except SprintMapError as exc:
             _stop_after(exc, sources, done, as_json)
-        if recorder is not None and trace:
+        if recorder is not None and trace_out is not None:
             result = results[0]
-            recorder.save(trace, final=result.decisions, merged=result.merged,
-                          meta={"command": "ingest", "source": str(sources[0]), "smoothed": True,
-                                "seq_id": result.added.sequence.seq_id})
+            try:
+                recorder.save(trace_out, final=result.decisions, merged=result.merged,
+                              meta={"command": "ingest", "source": str(sources[0]),
+                                    "smoothed": True, "seq_id": result.added.sequence.seq_id})
+            except (SprintMapError, OSError) as exc:
+                m.warnings.append(f"the drive is committed, but its trace was not written: "
+                                  f"{exc}")
     for warning in m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
@@ -393,8 +403,13 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     if lag and positions:
         raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
     overrides = _hmm_overrides(k, window, hmm_pairs)
-    with SprintMap.open(map_path, readonly=True) as m, \
+    with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
             progress_display("localising", quiet) as progress:
+        # Outputs are made first: an unwritable path (or one inside the map) is refused early.
+        trace_out = outputs.enter_context(Output(trace, "trace", forbidden=[m.path])) \
+            if trace else None
+        json_out = outputs.enter_context(Output(out, "JSON", forbidden=[m.path])) \
+            if out else None
         src = m.open_source(source, stride=stride, progress=progress, thumbnails=thumbnails,
                             bag=BagOptions(image_topic, gnss_topic, every_m))
         rows = (m.metric_positions(drive_positions(src, source, positions, stride))
@@ -405,14 +420,14 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
             observe=recorder.attach if recorder else None,
             thumbnails=src.thumbnails if thumbnails else None,
             fixes=None if rows is None else gnss_fixes(rows), **overrides)
-        if recorder is not None and trace:
-            recorder.save(trace, final=decisions, meta={"command": "localize", "smoothed": smooth,
-                                                        "source": str(source)})
-    t = timing.to_dict()
-    data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
-    if out:
-        with open(out, "w") as fh:
-            json.dump(data, fh, indent=1)
+        if recorder is not None and trace_out is not None:
+            recorder.save(trace_out, final=decisions, meta={
+                "command": "localize", "smoothed": smooth, "source": str(source)})
+        t = timing.to_dict()
+        data = {"decisions": [d.to_dict() for d in decisions], "timing": t}
+        if json_out is not None:
+            json_out.stream.write(json.dumps(data, indent=1).encode())
+            json_out.commit()
     matched = sum(d.is_match for d in decisions)
     _emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")
@@ -512,12 +527,6 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
     sys.exit(0 if report.ok else 1)
 
 
-def _seq_ref(seq: str, by_name: bool) -> int | str:
-    """A sequence argument: digits are an id, anything else (or anything with --by-name) a
-    name."""
-    return seq if by_name or not seq.isdigit() else int(seq)
-
-
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
 @click.argument("seqs", metavar="SEQ...", nargs=-1, required=True)
@@ -527,7 +536,8 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
     """Forget the sequences SEQ... of MAP (ids, or names), in one atomic commit.
 
     Their edges go and components split where nothing else joins them; their space is
-    reclaimed by `sprint-map compact`. A SEQ of digits is a sequence id, anything else a name.
+    reclaimed by `sprint-map compact`. A SEQ of ASCII digits (0-9) is a sequence id, anything
+    else a name.
 
     \b
     Examples:
@@ -535,7 +545,7 @@ def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -
       sprint-map remove city.map monday-2019    # by name
       sprint-map remove city.map 2024 --by-name # a sequence named "2024"
     """
-    refs = [_seq_ref(s, by_name) for s in seqs]
+    refs = [parse_seq_ref(s, by_name) for s in seqs]
     with SprintMap.open(map_path) as m:
         data = m.remove_sequences(refs).to_dict()
     names = ", ".join(f"{r['seq_id']} ({r['name']})" for r in data["removed"])
@@ -562,8 +572,8 @@ def edges(map_path: str, seq: str | None, added_by: str | None, by_name: bool,
       sprint-map edges city.map --added-by 3 --json # what `unmerge city.map 3` would revoke
     """
     with SprintMap.open(map_path, readonly=True) as m:
-        found = m.edges(None if seq is None else _seq_ref(seq, by_name),
-                        added_by=None if added_by is None else _seq_ref(added_by, by_name))
+        found = m.edges(None if seq is None else parse_seq_ref(seq, by_name),
+                        added_by=None if added_by is None else parse_seq_ref(added_by, by_name))
         names = {s.seq_id: s.name for s in m.sequences()} if not as_json else {}
     text = "\n".join(
         f"{f'{e.src_seq}:{e.src_image}':>11} -> {f'{e.dst_seq}:{e.dst_image}':<11} "
@@ -628,7 +638,7 @@ def unmerge(map_path: str, seq: str, by_name: bool, as_json: bool) -> None:
       sprint-map unmerge city.map tuesday --json
     """
     with SprintMap.open(map_path) as m:
-        data = m.unmerge(_seq_ref(seq, by_name)).to_dict()
+        data = m.unmerge(parse_seq_ref(seq, by_name)).to_dict()
     _emit(data, as_json, f"unmerged sequence {data['seq_id']}: {data['edges_removed']} edges "
                          f"revoked; components now {data['components']}")
 
@@ -661,19 +671,42 @@ def compact(map_path: str, as_json: bool) -> None:
               "shards (the approximate index keeps its kind, retrained on a fresh sample).")
 @click.option("--train", "action", flag_value="train", help="Retrain PCA and the quantizer on "
               "a fresh sample of the map, then re-encode every vertex.")
+@click.option("--learn", "action", flag_value="learn", help="Learn a descriptor projection "
+              "from the map's merged edges; adopted (index rebuilt with it) only if it "
+              "retrieves held-back edges better. Prints {pairs, dim_in, dim_out, adopted, "
+              "heldout_recall_before, heldout_recall_after}.")
+@click.option("--no-learn", "action", flag_value="unlearn", help="Drop the learned "
+              "projection: search the plain descriptor again (index rebuilt).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def index(map_path: str, action: str | None, as_json: bool) -> None:
     """Rebuild or retrain the retrieval index of MAP (its kind is the map's index_type).
 
     Readers keep searching the old index until the new one is published atomically; a kill
-    leaves one or the other. Without --rebuild/--train, show the index.
+    leaves one or the other. Without an option, show the index.
 
     \b
     Examples:
       sprint-map index city.map --train      # retrain PCA + IVF on today's map
       sprint-map index city.map --rebuild
+      sprint-map index city.map --learn --json   # learn the descriptor from the merges
+      sprint-map index city.map --no-learn
       sprint-map index city.map --json
     """
+    if action == "learn":
+        with SprintMap.open(map_path) as m:
+            report = m.learn()
+        _emit(report, as_json, f"learned from {report['pairs']} merged pairs "
+                               f"({report['dim_in']} -> {report['dim_out']} dims): "
+                               f"{'adopted' if report['adopted'] else 'not adopted'}; held-back "
+                               f"recall@1 {report['heldout_recall_before']:.3f} -> "
+                               f"{report['heldout_recall_after']:.3f}")
+        return
+    if action == "unlearn":
+        with SprintMap.open(map_path) as m:
+            dropped = m.unlearn()
+        _emit({"dropped": dropped}, as_json, "dropped the learned projection" if dropped
+              else "the map had no learned projection")
+        return
     with SprintMap.open(map_path, readonly=action is None) as m:
         done = m.rebuild_index(train=action == "train") if action else []
         data = {"done": done, "index": m.info()["index"]}
@@ -721,13 +754,17 @@ def _log(quiet: bool) -> Any:
               help="Override a MapConfig field of the evaluation maps (repeatable, JSON "
               "values), e.g. index_type=ivf-pq.")
 @_gnss_option
+@click.option("--learn-every", type=click.IntRange(min=1), default=None, metavar="EDGES",
+              help="lifelong: also run it with the maps learning their descriptor from their "
+              "merges after every EDGES new edges (learn_every), reported beside the run "
+              "without learning (in OUT/learned).")
 @_model_options
 def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, database: str | None,
           query: str | None, both_directions: bool, descriptor: str, model: str | None,
           model_card: str | None, alignment: str | None,
           tolerance: int | None, radius: float | None, map_pairs: tuple[str, ...],
-          gnss_sigma: float, stride: int, quiet: bool, k: int | None, window: str | None,
-          hmm_pairs: tuple[str, ...]) -> None:
+          gnss_sigma: float, learn_every: int | None, stride: int, quiet: bool, k: int | None,
+          window: str | None, hmm_pairs: tuple[str, ...]) -> None:
     """Evaluate k-NN and SPRINT on DATASET (one folder per traversal); write JSON, markdown, PNGs.
 
     \b
@@ -741,6 +778,7 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
       sprint-map eval data/city --gnss-sigma 10   # also GNSS-aided, side by side
       sprint-map eval datasets/pitts30k --layout vpr --radius 25 --out eval-pitts
       sprint-map eval datasets/pitts30k --layout vpr --model eigenplaces.onnx
+      sprint-map eval data/city --learn-every 2000   # with and without learning
     """
     if layout == "vpr":
         _eval_vpr(dataset, out_dir, descriptor, (model, model_card), radius, map_pairs, k,
@@ -767,10 +805,15 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
     options = EvalOptions(protocol=protocol, database=database, query=query,
                           both_directions=both_directions, stride=stride, gnss_sigma=gnss_sigma)
     out = Path(out_dir or f"eval-{data.path.resolve().name}")
-    results = run_evaluation(data, out / "maps", config, options, hmm, log=_log(quiet))
-    paths = write_report(results, out)
-    click.echo(markdown_table(results))
-    click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
+    runs = [(out, config, "")]
+    if learn_every:
+        runs.append((out / "learned", config.replace(learn_every=learn_every),
+                     f"\nwith learning (learn_every={learn_every}):"))
+    for where, cfg, title in runs:
+        results = run_evaluation(data, where / "maps", cfg, options, hmm, log=_log(quiet))
+        paths = write_report(results, where)
+        click.echo(f"{title}\n{markdown_table(results)}" if title else markdown_table(results))
+        click.echo("\n".join(f"{kind}: {path}" for kind, path in paths.items()))
 
 
 def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,

@@ -4,7 +4,9 @@ Each export reads one consistent snapshot of the map
 (:class:`~sprint_map.storage.scan.MapScan`, a read transaction: a writer may go on meanwhile),
 streams it from the LMDB cursors without holding the graph (but for the sequence-level GraphML,
 whose graph is small), and publishes every file atomically (``*.partial``, fsync,
-``os.replace``): a reader of the output sees the old file or the whole new one. The formats are
+``os.replace``; :mod:`sprint_map.util.output`): a reader of the output sees the old file or
+the whole new one; a special file (a FIFO, ``/dev/stdout``) is written in place; a path inside
+the map is refused. The formats are
 written by networkx and the standard library (``csv``, ``json``, ``xml.sax.saxutils``); see
 :mod:`~sprint_map.export.graphml`, :mod:`~sprint_map.export.tables`,
 :mod:`~sprint_map.export.geojson`, and :mod:`~sprint_map.export.report` for the level rule.
@@ -16,6 +18,7 @@ Used through the facade (``SprintMap.export_graphml``, ``export_csv``, ``export_
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -29,38 +32,21 @@ from sprint_map.export.report import LEVELS, VERTEX_LEVEL_LIMIT, ExportReport, c
 from sprint_map.export.tables import TABLES, write_table
 from sprint_map.storage.scan import MapScan
 from sprint_map.storage.store import MapStore
-from sprint_map.util.atomic import PARTIAL_SUFFIX, publish
+from sprint_map.util.output import Output, commit_all, inside
 
 
-def _publish(path: Path, fill: Callable[[Path], None]) -> None:
-    """:func:`~sprint_map.util.atomic.publish` ``path``; whatever fails the write (an I/O
-    error, a corrupt record met half-way), the temporary file goes with it."""
-    try:
-        publish(path, fill)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            path.with_name(path.name + PARTIAL_SUFFIX).unlink(missing_ok=True)
-        raise
+def _text(out: Output) -> io.TextIOWrapper:
+    """A UTF-8 text stream over ``out`` (a character UTF-8 cannot encode, a lone surrogate in
+    a drive's free-text ``source``, becomes ``?``); flushed, not closed, by the caller."""
+    return io.TextIOWrapper(out.stream, encoding="utf-8", errors="replace", newline="",
+                            write_through=True)
 
 
-def _publish_text(path: Path, write: Callable[[IO[str]], None]) -> None:
-    """Publish ``path`` atomically, its text written by ``write(stream)`` (UTF-8; a character
-    UTF-8 cannot encode, a lone surrogate in a drive's free-text ``source``, becomes ``?``)."""
-
-    def fill(partial: Path) -> None:
-        with open(partial, "w", encoding="utf-8", errors="replace", newline="") as out:
-            write(out)
-
-    _publish(path, fill)
-
-
-def _target(path: str | os.PathLike[str], what: str) -> Path:
-    target = Path(path)
-    if target.is_dir():
-        raise InputError(f"{target} is a directory: give the {what} file to write")
-    if not target.parent.is_dir():
-        raise InputError(f"{target.parent} is not a directory: cannot write {target.name}")
-    return target
+def _write_text(out: Output, write: Callable[[IO[str]], Any]) -> None:
+    text = _text(out)
+    write(text)
+    text.flush()
+    text.detach()  # the Output owns (and closes) the binary stream
 
 
 def export_graphml(store: MapStore, path: str | os.PathLike[str], level: str | None = None
@@ -73,50 +59,60 @@ def export_graphml(store: MapStore, path: str | os.PathLike[str], level: str | N
     Vertex level: O(V + E) time, memory of one chunk (streamed). Sequence level: O(V + E)
     time, O(S + drive pairs) memory.
     """
-    target = _target(path, "GraphML")
     started = time.monotonic()
-    with MapScan(store) as scan:
+    with Output(path, "GraphML", forbidden=[store.path]) as out, MapScan(store) as scan:
         chosen = choose_level(level, scan.vertices)
-        counts = (0, 0)
-
-        def write(out: IO[str]) -> None:
-            nonlocal counts
-            counts = write_vertex_graphml(scan, out)
-
         if chosen == "vertex":
-            _publish_text(target, write)
-        else:
-            def fill(partial: Path) -> None:
-                nonlocal counts
-                counts = write_sequence_graphml(scan, partial)
+            counts = (0, 0)
 
-            _publish(target, fill)
+            def write(text: IO[str]) -> None:
+                nonlocal counts
+                counts = write_vertex_graphml(scan, text)
+
+            _write_text(out, write)
+        else:
+            counts = write_sequence_graphml(scan, out.stream)
+        size = out.stream.tell() if out.stream.seekable() else 0
+        out.commit()
         sequences = len(scan.sequences)
-    return ExportReport("graphml", str(target), chosen, sequences, counts[0], counts[1],
-                        target.stat().st_size, round(time.monotonic() - started, 3))
+    return ExportReport("graphml", str(out.asked), chosen, sequences, counts[0], counts[1],
+                        size, round(time.monotonic() - started, 3))
 
 
 def export_csv(store: MapStore, directory: str | os.PathLike[str]) -> ExportReport:
     """Write ``sequences.csv``, ``vertices.csv`` and ``edges.csv`` into ``directory`` (made if
-    absent; files of those names are replaced). O(V + E) time, O(S) memory."""
+    absent; files of those names are replaced), as one unit: all three are written before
+    the first is published (:func:`~sprint_map.util.output.commit_all`). O(V + E) time, O(S)
+    memory."""
     root = Path(directory)
     if root.exists() and not root.is_dir():
         raise InputError(f"{root} is not a directory: give a directory for the CSV files")
-    root.mkdir(parents=True, exist_ok=True)
+    if inside(Path(os.path.realpath(root)), store.path):
+        raise InputError(f"{root} is inside the map {store.path}: write the CSV files outside "
+                         "the map directory")
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot make {root}: {exc.strerror or exc}") from exc
     started = time.monotonic()
     rows: dict[str, int] = {}
-    with MapScan(store) as scan:
-        for name, columns, source in TABLES:
-            def write(out: IO[str], columns: tuple[str, ...] = columns,
+    sizes: dict[str, int] = {}
+    with contextlib.ExitStack() as stack, MapScan(store) as scan:
+        outputs = [stack.enter_context(Output(root / name, "CSV", forbidden=[store.path]))
+                   for name, _, _ in TABLES]
+        for out, (name, columns, source) in zip(outputs, TABLES, strict=True):
+            def write(text: IO[str], columns: tuple[str, ...] = columns,
                       source: Callable[[MapScan], Iterator[tuple[Any, ...]]] = source,
                       name: str = name) -> None:
-                rows[name] = write_table(out, columns, source(scan))
+                rows[name] = write_table(text, columns, source(scan))
 
-            _publish_text(root / name, write)
+            _write_text(out, write)
+            sizes[name] = out.stream.tell() if out.stream.seekable() else 0
+        commit_all(outputs)
         sequences = len(scan.sequences)
     files = [str(root / name) for name, _, _ in TABLES]
     return ExportReport("csv", str(root), None, sequences, rows["vertices.csv"],
-                        rows["edges.csv"], sum(Path(f).stat().st_size for f in files),
+                        rows["edges.csv"], sum(sizes.values()),
                         round(time.monotonic() - started, 3), files)
 
 
@@ -128,23 +124,23 @@ def export_geojson(store: MapStore, path: str | os.PathLike[str]) -> ExportRepor
     InputError
         No drive of the map has positions (nothing is written).
     """
-    target = _target(path, "GeoJSON")
     started = time.monotonic()
     counts = (0, 0, 0)
-    with MapScan(store) as scan:
+    with Output(path, "GeoJSON", forbidden=[store.path]) as out, MapScan(store) as scan:
         if not has_positions(scan):
             raise InputError("the map has no positions: GeoJSON needs drives ingested with "
                              "--positions (export --csv or --graphml instead)")
 
-        def write(out: IO[str]) -> None:
+        def write(text: IO[str]) -> None:
             nonlocal counts
-            counts = write_geojson(scan, out, store.path.name)
+            counts = write_geojson(scan, text, store.path.name)
 
-        _publish_text(target, write)
+        _write_text(out, write)
+        size = out.stream.tell() if out.stream.seekable() else 0
+        out.commit()
         sequences = len(scan.sequences)
-    return ExportReport("geojson", str(target), None, sequences, counts[0], counts[1],
-                        target.stat().st_size, round(time.monotonic() - started, 3),
-                        skipped_edges=counts[2])
+    return ExportReport("geojson", str(out.asked), None, sequences, counts[0], counts[1],
+                        size, round(time.monotonic() - started, 3), skipped_edges=counts[2])
 
 
 __all__ = ["LEVELS", "VERTEX_LEVEL_LIMIT", "ExportReport", "choose_level", "export_csv",

@@ -27,7 +27,6 @@ import io
 import math
 import re
 from collections.abc import Iterator
-from pathlib import Path
 from typing import IO, Any, cast
 from xml.etree.ElementTree import tostring
 from xml.sax.saxutils import XMLGenerator
@@ -219,10 +218,11 @@ def _has_positions(scan: MapScan) -> Iterator[tuple[SequenceRecord, bool]]:
         yield seq, scan.position(seq.first_vertex) is not None
 
 
-def write_sequence_graphml(scan: MapScan, path: Path) -> tuple[int, int]:
-    """Write the sequence graph with ``networkx.write_graphml``; return (nodes, edges)."""
+def write_sequence_graphml(scan: MapScan, out: IO[bytes]) -> tuple[int, int]:
+    """Write the sequence graph with ``networkx.write_graphml`` to the binary stream ``out``;
+    return (nodes, edges)."""
     graph = sequence_graph(scan)
-    nx.write_graphml(graph, path)
+    nx.write_graphml(graph, out)
     return graph.number_of_nodes(), graph.number_of_edges()
 
 

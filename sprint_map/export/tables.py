@@ -5,8 +5,15 @@
 field is empty where the map does not know it); ``DIR/edges.csv``: ``src_seq, src_image,
 dst_seq, dst_image, prob, added_by, frame, time`` (one row per directed edge; ``added_by`` and
 ``frame`` empty when unknown). Written with the standard library's ``csv`` module (RFC 4180
-quoting, UTF-8, a header row), each file atomically (``*.partial``, fsync, ``os.replace``).
+quoting, UTF-8, a header row), the three files as one unit, each atomically (:mod:`sprint_map.util.output`).
 Floats are written as Python's shortest round-trip ``repr``.
+
+**Formula injection.** A spreadsheet runs a cell that starts with ``=``, ``+``, ``-`` or
+``@`` as a formula (``=HYPERLINK(...)``, ``=cmd|...``). The two free-text columns, ``name`` and
+``source``, hold what a user typed, so a text cell that starts with one of those, a tab, a
+carriage return or an apostrophe is written with an apostrophe first (:func:`text_cell`, the
+OWASP rule): a spreadsheet shows it as text, and :func:`read_text_cell` (drop one leading
+apostrophe) gives the name back exactly. Numbers are never escaped.
 
 Rows stream from the LMDB cursors of one snapshot (:class:`~sprint_map.storage.scan.MapScan`):
 memory is one drive's positions or one batch of edges, never the graph.
@@ -27,14 +34,29 @@ EDGE_COLUMNS = ("src_seq", "src_image", "dst_seq", "dst_image", "prob", "added_b
                 "time")
 
 
+#: First characters that make a spreadsheet read a cell as a formula, and the escape itself.
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r", "'")
+
+
+def text_cell(text: str) -> str:
+    """``text`` as a CSV cell no spreadsheet runs: an apostrophe is put before one that starts
+    with a formula character (:data:`FORMULA_START`). O(1)."""
+    return "'" + text if text.startswith(FORMULA_START) else text
+
+
+def read_text_cell(cell: str) -> str:
+    """The text a :func:`text_cell` cell holds (its leading apostrophe, if any, removed)."""
+    return cell[1:] if cell.startswith("'") else cell
+
+
 def _cell(value: float) -> float | str:
     return "" if math.isnan(value) else value
 
 
 def sequence_rows(scan: MapScan) -> Iterator[tuple[Any, ...]]:
     for seq in scan.sequences:
-        yield (seq.seq_id, seq.name, seq.length, scan.component.get(seq.seq_id, seq.seq_id),
-               seq.source, seq.created)
+        yield (seq.seq_id, text_cell(seq.name), seq.length,
+               scan.component.get(seq.seq_id, seq.seq_id), text_cell(seq.source), seq.created)
 
 
 def vertex_rows(scan: MapScan) -> Iterator[tuple[Any, ...]]:
@@ -72,5 +94,6 @@ def write_table(out: IO[str], columns: tuple[str, ...], rows: Iterator[tuple[Any
     return count
 
 
-__all__ = ["EDGE_COLUMNS", "SEQUENCE_COLUMNS", "TABLES", "VERTEX_COLUMNS", "edge_rows",
-           "sequence_rows", "vertex_rows", "write_table"]
+__all__ = ["EDGE_COLUMNS", "FORMULA_START", "SEQUENCE_COLUMNS", "TABLES", "VERTEX_COLUMNS",
+           "edge_rows", "read_text_cell", "sequence_rows", "text_cell", "vertex_rows",
+           "write_table"]

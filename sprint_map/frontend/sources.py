@@ -187,7 +187,7 @@ def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
         data = read_image_bytes(path)
         image = decode_image(data, str(path), grayscale=spec.grayscale)
         images.append(image)
-        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1]))
+        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1], image.shape[0]))
     return spec.describe_batch(images), thumbs
 
 

@@ -71,8 +71,8 @@ def check_lag(lag: object) -> int:
 class FixedLagSmoother:
     """Decisions of a query sequence with a fixed lag of ``lag`` frames (module docstring).
 
-    ``config`` and ``source`` as :class:`SprintFilter`'s, ``cache`` a shared component cache
-    (optional), ``lag`` the frames of delay, ``0 .. MAX_LAG``.
+    ``config`` and ``source`` as for :class:`SprintFilter`; ``cache`` a shared component
+    cache; ``lag`` the frames of delay, ``0 .. MAX_LAG``.
 
     Notes
     -----

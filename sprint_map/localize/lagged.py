@@ -58,22 +58,12 @@ def validate_lag(lag: object) -> int:
 class LaggedLocalizer:
     """Localise one query drive, answering each frame ``lag`` frames late.
 
-    Parameters
-    ----------
-    smap : LocalizableMap
-        The map (read-only is enough).
-    lag : int
-        Frames of delay, ``0 .. MAX_LAG`` (:class:`InputError` otherwise).
-    hmm : HMMConfig, optional
-        Model parameters; default the map's own.
-    cache : ComponentCache, optional
-        Where loaded components are kept (the server's sessions share one).
-    record : bool
-        Keep each frame's hits (``localizer.hits``) for the after-drive decisions, as
-        :class:`Localizer` does (the service's commit smooths the whole drive from them).
-
-    ``localizer`` (attribute) is the :class:`Localizer` that searches (and, with ``lag = 0``,
-    decides); its ``source``, ``timing``, recorded ``hits`` and ``frames_seen`` are this drive's.
+    ``smap``: the map (read-only is enough); ``lag``: frames of delay, ``0 .. MAX_LAG``
+    (:class:`InputError` otherwise); ``hmm``: model parameters (default the map's own);
+    ``cache``: where loaded components are kept (the server's sessions share one);
+    ``record``: keep each frame's hits for the after-drive decisions, as :class:`Localizer`
+    does. :attr:`localizer` searches (and, with ``lag = 0``, decides); its ``source``,
+    ``timing``, recorded ``hits`` and ``frames_seen`` are this drive's.
 
     Notes
     -----

@@ -12,7 +12,7 @@ hook); after every frame it keeps
 
 and :meth:`TraceRecorder.save` writes them, with the decisions the command reported (smoothed
 ones for ``--smooth`` and ``ingest``, with the merge rule's verdict), as one compressed
-``.npz`` written atomically (``*.partial``, fsync, ``os.replace``). Memory and file size are
+``.npz`` written atomically (:class:`~sprint_map.util.output.Output`: never inside the map). Memory and file size are
 O(frames * (k + top_n + active components)): bounded per frame, whatever the map's size.
 
 File format (``FORMAT``, ``VERSION`` in its ``meta`` JSON; arrays with ``F`` frames):
@@ -48,6 +48,9 @@ from __future__ import annotations
 
 import json
 import os
+import stat
+import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +60,7 @@ import numpy as np
 
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float32Array, Int64Array
-from sprint_map.util.atomic import publish
+from sprint_map.util.output import Output
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -65,7 +68,8 @@ if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer
     from sprint_map.storage.records import SequenceRecord
 
-__all__ = ["FORMAT", "TOP_N", "VERSION", "Trace", "TraceRecorder", "TracedMap", "read_trace"]
+__all__ = ["FORMAT", "MAX_TRACE_BYTES", "TOP_N", "VERSION", "Trace", "TraceRecorder",
+           "TracedMap", "read_trace"]
 
 FORMAT = "sprint-map-trace"
 VERSION = 1
@@ -148,12 +152,16 @@ class TraceRecorder:
         self._n_active.append(int(loc.filter.n_active_vertices) if loc.filter.frames else 0)
         self._decisions.append(decision)
 
-    def save(self, path: str | os.PathLike[str], *, final: Sequence[FrameDecision] | None = None,
+    def save(self, path: str | os.PathLike[str] | Output, *,
+             final: Sequence[FrameDecision] | None = None,
              merged: np.ndarray | None = None, meta: dict[str, Any] | None = None) -> None:
         """Write the trace to ``path`` atomically.
 
         Parameters
         ----------
+        path : path or Output
+            Where to write; an :class:`~sprint_map.util.output.Output` opened before the drive
+            was localised (so an unwritable path is refused before any work) is committed.
         final : decisions, optional
             What the command reported per frame (default: the causal decisions recorded).
         merged : bool array, optional
@@ -204,11 +212,11 @@ class TraceRecorder:
                 "top_n": self.top_n, "frames": n, **(meta or {})}
         arrays["meta"] = np.array(json.dumps(info))
 
-        def write(partial: Path) -> None:
-            with open(partial, "wb") as fh:
-                np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
-
-        publish(Path(path), write)
+        out = path if isinstance(path, Output) else Output(path, "trace",
+                                                            forbidden=[self.map.path])
+        with out:
+            np.savez_compressed(out.stream, **arrays)  # type: ignore[arg-type]
+            out.commit()
 
 
 @dataclass(frozen=True)
@@ -231,29 +239,142 @@ class Trace:
         return self.arrays["active_component"][lo:hi], self.arrays["active_mass"][lo:hi]
 
 
-def read_trace(path: str | os.PathLike[str]) -> Trace:
-    """Read a trace written by :meth:`TraceRecorder.save`.
+#: Largest trace read, in bytes of its arrays once loaded (checked from the ``.npy`` headers
+#: before anything is decompressed) and of the file itself: a 100,000-frame trace is ~60 MB.
+MAX_TRACE_BYTES = 512 * 1024 * 1024
+#: Largest ``meta`` JSON text read.
+MAX_META_BYTES = 64 * 1024
+_INT, _FLOAT, _BOOL = "iu", "f", "biu"
+#: Every array of a trace: (dtype kinds, shape in terms of F frames, K hits, T top states and
+#: A active entries).
+_LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
+    "hit_vertex": (_INT, ("F", "K")), "hit_seq": (_INT, ("F", "K")),
+    "hit_image": (_INT, ("F", "K")), "hit_dist": (_FLOAT, ("F", "K")),
+    "top_seq": (_INT, ("F", "T")), "top_image": (_INT, ("F", "T")),
+    "top_prob": (_FLOAT, ("F", "T")), "active_ptr": (_INT, ("F+1",)),
+    "active_component": (_INT, ("A",)), "active_mass": (_FLOAT, ("A",)),
+    "n_active_vertices": (_INT, ("F",)), "dec_seq": (_INT, ("F",)), "dec_image": (_INT, ("F",)),
+    "dec_prob": (_FLOAT, ("F",)), "novel_prob": (_FLOAT, ("F",)), "final_seq": (_INT, ("F",)),
+    "final_image": (_INT, ("F",)), "final_prob": (_FLOAT, ("F",)), "merged": (_BOOL, ("F",)),
+}
+
+
+def read_trace(path: str | os.PathLike[str], max_bytes: int = MAX_TRACE_BYTES) -> Trace:
+    """Read and validate, whole, a trace written by :meth:`TraceRecorder.save`.
+
+    Before anything is decompressed, every member's ``.npy`` header is read: the arrays must
+    be the module table's (no object dtype: never a pickle), of at most ``max_bytes`` in all.
+    Once loaded, the shapes must agree with ``meta["frames"]``, the CSR offsets must be
+    ordered, and every probability and shown distance finite: a trace that is served
+    answers every route. O(file size) time, at most ``max_bytes`` memory.
 
     Raises
     ------
     InputError
-        Not a readable trace file, or one of another format or a newer version.
+        Not a regular file, not an ``.npz`` of this format, damaged, too large, of another
+        format or a newer version.
     """
+    where = str(path)
     try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise InputError(f"{where}: not a sprint-map trace (cannot read it: "
+                         f"{exc.strerror or exc})") from exc
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{where}: not a sprint-map trace (not a regular file)")
+    if st.st_size > max_bytes:
+        raise InputError(f"{where}: trace of {st.st_size} bytes is larger than the "
+                         f"{max_bytes} bytes read")
+    try:
+        if not zipfile.is_zipfile(path):
+            raise InputError(f"{where}: not a sprint-map trace (an .npz file is expected)")
+        _check_members(path, max_bytes)
         with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-        meta = json.loads(str(arrays.pop("meta")))
-    except (OSError, ValueError, KeyError, EOFError) as exc:
-        raise InputError(f"{path}: not a sprint-map trace ({exc})") from exc
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise InputError(f"{path}: not a sprint-map trace")
-    if not isinstance(meta.get("version"), int) or meta["version"] > VERSION:
-        raise InputError(f"{path}: trace version {meta.get('version')} is newer than this "
-                         f"sprint-map reads ({VERSION})")
-    missing = {"hit_seq", "top_seq", "top_prob", "active_ptr", "dec_seq", "final_seq"} - set(arrays)
-    if missing:
-        raise InputError(f"{path}: trace lacks {', '.join(sorted(missing))}")
+            if "meta" not in data.files:
+                raise InputError(f"{where}: not a sprint-map trace (no meta)")
+            raw = data["meta"]
+            if raw.dtype.kind != "U" or raw.shape != () or len(str(raw)) > MAX_META_BYTES:
+                raise InputError(f"{where}: not a sprint-map trace (bad meta)")
+            meta = json.loads(str(raw), parse_constant=_no_constant)
+            _check_meta(where, meta)
+            missing = sorted(set(_LAYOUT) - set(data.files))
+            if missing:
+                raise InputError(f"{where}: trace lacks {', '.join(missing)}")
+            arrays = {key: data[key] for key in _LAYOUT}
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile,
+            zlib.error, NotImplementedError) as exc:
+        raise InputError(f"{where}: not a sprint-map trace ({type(exc).__name__}: "
+                         f"{str(exc)[:200]})") from exc
+    _check_arrays(where, meta, arrays)
     return Trace(meta, arrays)
+
+
+def _check_meta(where: str, meta: Any) -> None:
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{where}: not a sprint-map trace")
+    if not isinstance(meta.get("version"), int) or meta["version"] > VERSION:
+        raise InputError(f"{where}: trace version {meta.get('version')} is newer than this "
+                         f"sprint-map reads ({VERSION})")
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} in the trace's meta")
+
+
+def _check_members(path: str | os.PathLike[str], max_bytes: int) -> None:
+    """The members' headers: known names, plain dtypes, ``max_bytes`` in all. O(members)."""
+    total = 0
+    with zipfile.ZipFile(path) as archive:
+        infos = archive.infolist()
+        if len(infos) > 2 * len(_LAYOUT):
+            raise InputError(f"{path}: not a sprint-map trace ({len(infos)} members)")
+        for info in infos:
+            key = info.filename.removesuffix(".npy")
+            if key not in _LAYOUT and key != "meta":
+                continue  # never loaded
+            with archive.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+                else:
+                    raise InputError(f"{path}: {key} is of .npy version {version}")
+            if dtype.hasobject or dtype.fields is not None:
+                raise InputError(f"{path}: {key} holds objects (a trace holds numbers)")
+            total += int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            if total > max_bytes:
+                raise InputError(f"{path}: the trace's arrays exceed the {max_bytes} bytes read")
+
+
+def _check_arrays(where: str, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+    """Shapes, kinds, offsets and finite values (see :func:`read_trace`). O(array sizes)."""
+    frames = meta.get("frames")
+    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
+        raise InputError(f"{where}: bad frame count {frames!r}")
+    ptr = arrays["active_ptr"]
+    dims = {"F": frames, "F+1": frames + 1, "K": arrays["hit_seq"].shape[-1],
+            "T": arrays["top_seq"].shape[-1],
+            "A": int(ptr[-1]) if ptr.dtype.kind in _INT and ptr.ndim == 1 and len(ptr) else 0}
+    for key, (kinds, shape) in _LAYOUT.items():
+        arr = arrays[key]
+        if arr.dtype.kind not in kinds or arr.shape != tuple(dims[d] for d in shape):
+            raise InputError(f"{where}: trace array {key} is {arr.dtype} {arr.shape}, not of "
+                             f"shape ({', '.join(shape)}) with {frames} frames")
+    if ptr[0] != 0 or np.any(np.diff(ptr) < 0):
+        raise InputError(f"{where}: trace offsets active_ptr are not ordered from 0")
+    shown = arrays["hit_seq"] >= 0
+    for key in ("top_prob", "active_mass", "dec_prob", "novel_prob", "final_prob"):
+        if not np.all(np.isfinite(arrays[key])):
+            raise InputError(f"{where}: trace array {key} holds a value that is not finite")
+    if not np.all(np.isfinite(arrays["hit_dist"][shown])):
+        raise InputError(f"{where}: trace array hit_dist holds a value that is not finite")
+    for seq, image in (("top_seq", "top_image"), ("hit_seq", "hit_image"),
+                       ("dec_seq", "dec_image"), ("final_seq", "final_image")):
+        if np.any(arrays[image][arrays[seq] >= 0] < 0):
+            raise InputError(f"{where}: trace array {image} holds a negative image")
 
 
 class _Resolver:

@@ -11,7 +11,8 @@ from sprint_map.errors import InputError, UnsafeServeError
 from sprint_map.server.config import ServerConfig
 from sprint_map.util.validation import decode_text
 
-__all__ = ["check_bind", "is_loopback", "load_token", "token_matches"]
+__all__ = ["LOOPBACK_NAMES", "check_bind", "is_loopback", "load_token", "served_hosts",
+           "token_matches"]
 
 
 def load_token(config: ServerConfig) -> str | None:
@@ -45,6 +46,22 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
         return False  # a host name: it may resolve to anything
+
+
+#: Host names of this machine a tokenless server always answers.
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "[::1]"})
+
+
+def served_hosts(host: str, token: str | None, extra: tuple[str, ...] = ()
+                 ) -> frozenset[str] | None:
+    """The ``Host`` names a server bound to ``host`` answers: without a token its address,
+    the loopback names and ``extra`` (DNS rebinding: a page's own name is refused); with a
+    token, None (any: the token is the check)."""
+    if token is not None:
+        return None
+    bound = host.strip().lower()
+    bound = f"[{bound.strip('[]')}]" if ":" in bound else bound
+    return LOOPBACK_NAMES | {bound} | {name.strip().lower() for name in extra}
 
 
 def check_bind(host: str, token: str | None) -> None:

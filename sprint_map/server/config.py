@@ -80,6 +80,9 @@ class ServerConfig:
     batch_max_frames: int = 64
     #: OpenMP threads of the batched search (1: the other core answers HTTP).
     search_threads: int = 1
+    #: Without a token, ``Host`` names answered beside the bound address and the loopback names
+    #: (``localhost``, ``127.0.0.1``, ``[::1]``); any other is refused 403 (DNS rebinding).
+    allowed_hosts: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.port, int) or not 0 <= self.port <= 65535:

@@ -23,6 +23,17 @@ point: ``uvicorn.Config(http=<class>)``) with:
   ``/healthz`` and ``/readyz``, which always answer; beyond twice the limit a new connection is
   closed at once.
 
+Without a token (loopback only), two more checks stop a web page the user visits from driving
+the server (CSRF, DNS rebinding), from the headers alone:
+
+- the ``Host`` header must name the bound address, a loopback name or a configured name
+  (``ServerConfig.allowed_hosts``); otherwise 403 ``host``;
+- a write (POST, PUT, PATCH, DELETE) must say ``application/json``,
+  ``application/octet-stream`` or ``image/*``; a form or ``text/plain`` (what a page may send
+  cross-origin without asking) is 415, as is a write without a content type that a browser
+  sent (it carries ``Origin`` or ``Sec-Fetch-Mode``; other clients may omit the type of an
+  empty body).
+
 Body limits and the token (checked before any body byte is read) are ASGI middleware
 (:class:`sprint_map.server.app.RequestGuard`). Memory held by connections that have not
 authenticated is then bounded by ``2 x max_connections x (max_header_bytes + 256 KiB)``
@@ -42,7 +53,8 @@ from typing import Any
 import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-__all__ = ["ALWAYS_ANSWERED", "ConnectionLimits", "error_response", "guarded_protocol"]
+__all__ = ["ALWAYS_ANSWERED", "ConnectionLimits", "error_response", "guarded_protocol",
+           "host_name"]
 
 log = logging.getLogger("sprint_map.server")
 
@@ -57,6 +69,8 @@ class ConnectionLimits:
     max_connections: int
     max_header_bytes: int
     header_timeout_s: float
+    #: Host names a tokenless server answers (lower case, no port); None: no check (a token).
+    hosts: frozenset[str] | None = None
 
 
 def error_response(status: int, reason: str, code: str, message: str,
@@ -179,6 +193,14 @@ class _Guarded(HttpToolsProtocol):
         self._in_headers = False
         self._header_bytes = 0
         self._cancel_header_timer()
+        refusal = self._cross_site_refusal()
+        if refusal is not None:
+            app, self.app = self.app, refusal
+            try:
+                super().on_headers_complete()
+            finally:
+                self.app = app
+            return
         limit = self.limits.max_connections
         over = len(self.connections) > limit and len(self._open_peers()) > limit
         if over and httptools.parse_url(self.url).path not in ALWAYS_ANSWERED:
@@ -190,6 +212,25 @@ class _Guarded(HttpToolsProtocol):
             return
         super().on_headers_complete()
 
+    def _cross_site_refusal(self) -> Any:
+        """The app answering a tokenless request a web page could have sent, or None."""
+        hosts = self.limits.hosts
+        if hosts is None:
+            return None
+        headers = dict(self.headers)
+        host = headers.get(b"host")
+        if host is not None and host_name(host.decode("latin-1")) not in hosts:
+            return _answer(403, "host", "the Host header names another server (a server "
+                           "without a token answers its own address only)")
+        method = self.parser.get_method()
+        if method in WRITE_METHODS:
+            kind = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+            browser = b"origin" in headers or b"sec-fetch-mode" in headers
+            if kind not in WRITE_TYPES and not kind.startswith(b"image/") and (kind or browser):
+                return _answer(415, "unsupported_media_type", "a write needs the content type "
+                               "application/json, application/octet-stream or image/*")
+        return None
+
     def on_response_complete(self) -> None:
         self._served += 1
         self._quiet_since = self.loop.time()
@@ -200,6 +241,30 @@ class _Guarded(HttpToolsProtocol):
             self._in_headers = True
             self._header_bytes = 0
             self._arm_header_timer()
+
+
+WRITE_METHODS = frozenset({b"POST", b"PUT", b"PATCH", b"DELETE"})
+WRITE_TYPES = frozenset({b"application/json", b"application/octet-stream"})
+
+
+def host_name(header: str) -> str:
+    """The name of a ``Host`` header, lower case, without its port (``[::1]:80`` -> ``[::1]``)."""
+    value = header.strip().lower()
+    if value.startswith("["):
+        return value.partition("]")[0] + "]"
+    return value.rpartition(":")[0] if value.count(":") == 1 else value
+
+
+def _answer(status: int, code: str, message: str) -> Any:
+    body = json.dumps({"error": code, "message": message}, separators=(",", ":")).encode()
+
+    async def app(scope: Any, receive: Any, send: Any) -> None:
+        await send({"type": "http.response.start", "status": status, "headers": [
+            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close")]})
+        await send({"type": "http.response.body", "body": body})
+
+    return app
 
 
 async def _busy_app(scope: Any, receive: Any, send: Any) -> None:

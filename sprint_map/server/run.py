@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from sprint_map.errors import ListenError
 from sprint_map.map import SprintMap
-from sprint_map.server.auth import check_bind, load_token
+from sprint_map.server.auth import check_bind, load_token, served_hosts
 from sprint_map.server.config import ServerConfig
 
 if TYPE_CHECKING:  # FastAPI loads with the app, when serving starts
@@ -107,9 +107,9 @@ def serve_map(path: str | os.PathLike[str], config: ServerConfig,
     # The connection limits uvicorn's httptools protocol lacks (header deadline and size, a
     # connection limit that never refuses /healthz): see server/guard.py. The token and the
     # body's size and time are checked by the app's RequestGuard, before the body is read.
-    protocol = guarded_protocol(ConnectionLimits(config.max_connections,
-                                                 config.max_header_bytes,
-                                                 config.header_timeout_s))
+    protocol = guarded_protocol(ConnectionLimits(
+        config.max_connections, config.max_header_bytes, config.header_timeout_s,
+        served_hosts(config.host, token, config.allowed_hosts)))
     server = uvicorn.Server(uvicorn.Config(
         app, http=protocol, log_level="warning", access_log=False, lifespan="on",
         limit_concurrency=None,  # guard.py's limit instead (uvicorn's counts idle connections)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,8 @@ import numpy as np
 from sprint_map.errors import MapCorruptError, StorageIOError
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index.check import check_segments, has_segments
-from sprint_map.storage.index.map_index import file_problem, index_files
+from sprint_map.storage.index.map_index import file_problem, index_files, projection_dirs
+from sprint_map.storage.index.projection import LEARNED, Projection, read_learned
 from sprint_map.storage.keys import (
     COMP_VAL,
     DIGEST_BYTES,
@@ -47,7 +48,7 @@ from sprint_map.storage.lock import writer_active
 from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
-from sprint_map.storage.thumbnails import scan_thumbnails
+from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
 from sprint_map.util.lazy_faiss import faiss  # imported on first use
@@ -191,8 +192,10 @@ def sequence_edges(records: MapRecords, report: CheckReport | None = None
     return out
 
 
-def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
-    """Verify every invariant of ``store``; see ``docs/architecture.md``, "Invariants"."""
+def check_map(store: MapStore, *, seed: int = 0,
+              thumbnail_decodes: ThumbnailTest | None = None) -> CheckReport:
+    """Verify every invariant of ``store``; see ``docs/architecture.md``, "Invariants".
+    ``thumbnail_decodes`` (the facade's: an image decoder) is run on every thumbnail."""
     report = CheckReport()
     with store.env.read() as txn:
         records = MapRecords.read(store, txn)
@@ -209,7 +212,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
     _check_edges(records, report)
     _check_provenance(records, report)
     _check_components(records, sequence_edges(records, report), report)
-    check_thumbnails(store, records, report)
+    check_thumbnails(store, records, report, thumbnail_decodes)
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
     live = store.readonly and writer_active(store.path)
@@ -227,7 +230,7 @@ def check_map(store: MapStore, *, seed: int = 0) -> CheckReport:
                             "writer's open")
     for entry in partial_files(store):
         message = f"leftover temp file {entry.relative_to(store.path)}"
-        if live and entry.parent.name == INDEX_DIR:
+        if live and INDEX_DIR in (entry.parent.name, entry.parent.parent.name):
             report.notes.append(f"{message} (being written by the live writer)")
         elif entry.name == f"{CURRENT_NAME}{PARTIAL_SUFFIX}":  # never read: harmless
             report.notes.append(f"{message} (a compaction killed before its switch; removed "
@@ -435,12 +438,14 @@ def _check_components(records: MapRecords, edges: list[tuple[int, int, int, int]
     report.checked["components"] = len(groups)
 
 
-def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport) -> None:
+def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport,
+                     decodes: ThumbnailTest | None = None) -> None:
     """Every thumbnail names a frame of a live sequence and is JPEG bytes; a sequence has
     one per frame or none. O(thumbnails) reads (see
     :func:`sprint_map.storage.thumbnails.scan_thumbnails`)."""
     with store.env.read() as txn:
-        scan = scan_thumbnails(txn, store.env, {s.seq_id: s.length for s in records.seqs})
+        scan = scan_thumbnails(txn, store.env, {s.seq_id: s.length for s in records.seqs},
+                               decodes)
     for problem in scan.problems:
         report.violation("thumbnails", problem)
     report.checked["thumbnails"] = sum(scan.counts.values())
@@ -499,16 +504,21 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     ``docs/benchmarks.md``, "check, forgetting, robustness"). ``seed`` is unused by the exact index (every vector is
     compared) and kept for the segmented index's sample of codes.
     """
-    dim = store.config.dim
-
     def bad(message: str) -> None:
         report.violation("index", message)
 
-    if has_segments(store.data_path / INDEX_DIR):
-        check_segments(store.data_path / INDEX_DIR, store.config, store.shards, total, bad,
-                       report.notes, report.checked, seed, live)
+    projected = check_projection(store.data_path / INDEX_DIR, store.config.dim, report, live)
+    if projected is None:
         return
-    files = index_files(store.data_path / INDEX_DIR)
+    directory, projection = projected
+    config = store.config if projection is None else replace(store.config,
+                                                              dim=projection.dim_out)
+    dim = config.dim
+    if has_segments(directory):
+        check_segments(directory, config, store.shards, total, bad, report.notes,
+                       report.checked, seed, live, projection)
+        return
+    files = index_files(directory)
     for upto, path in files:
         if upto > total:
             message = f"index file {path.name} is {file_problem(path, upto, total, dim)}"
@@ -547,11 +557,50 @@ def check_index(store: MapStore, total: int, report: CheckReport, seed: int = 0,
     if upto < total:
         report.notes.append(f"index lags the map by {total - upto} vertices (caught up on load)")
     report.checked["index_vectors_compared"] = _compare_all(store, index, ids, upto, total,
-                                                            report, bad)
+                                                            report, bad, projection)
+
+
+def check_projection(index_dir: Path, dim_in: int, report: CheckReport, live: bool
+                     ) -> tuple[Path, Projection | None] | None:
+    """The learned projection (area ``index``): its pointer parses, the file it names has
+    its recorded size and checksum and the map's input dimension. Returns the directory of
+    the index to check and the projection (None: the plain index in ``index/``), or None if
+    the projection is bad (the index under it is then not checked). Directories it does not
+    name are notes (removed by the next writer's open). O(projection bytes)."""
+    try:
+        learned = read_learned(index_dir)
+    except ValueError as exc:
+        report.violation("index", f"projection pointer {LEARNED} is unusable: {exc}")
+        return None
+    named = learned.directory_name if learned.generation else None
+    for entry in projection_dirs(index_dir):
+        if entry.name != named:
+            report.notes.append(f"index directory {entry.name}/ is not the learned projection "
+                                "(an interrupted learning; removed by the next writer's open)")
+    if not learned.generation:
+        return index_dir, None
+    try:
+        projection = learned.read_projection(index_dir)
+    except FileNotFoundError as exc:
+        if live:  # the writer replaced it since we read the pointer
+            report.notes.append(f"learned projection replaced by the live writer ({exc})")
+        else:
+            report.violation("index", f"learned projection is missing: {exc}")
+        return None
+    except (ValueError, OSError) as exc:
+        report.violation("index", f"learned projection is unusable: {exc}")
+        return None
+    if projection.dim_in != dim_in:
+        report.violation("index", f"learned projection takes {projection.dim_in} dims, the "
+                         f"map's descriptors have {dim_in}")
+        return None
+    report.checked["projection_verified"] = 1
+    return index_dir / learned.directory_name, projection
 
 
 def _compare_all(store: MapStore, index: Any, ids: np.ndarray, upto: int, total: int,
-                 report: CheckReport, bad: Callable[[str], None]) -> int:
+                 report: CheckReport, bad: Callable[[str], None],
+                 projection: Projection | None = None) -> int:
     """Compare every vector of the flat ``index`` (ids ``ids``, a permutation of
     ``0..upto-1``) with its shard row, ``CHECK_BLOCK`` vertices at a time; report the first
     block that differs. Returns how many vectors were compared. O(upto * dim)."""
@@ -559,7 +608,7 @@ def _compare_all(store: MapStore, index: Any, ids: np.ndarray, upto: int, total:
     if not hasattr(inner, "get_xb"):
         bad(f"index holds a {type(inner).__name__}, not a flat index")
         return 0
-    dim = store.config.dim
+    dim = store.config.dim if projection is None else projection.dim_out
     vectors = faiss.rev_swig_ptr(inner.get_xb(), upto * dim).reshape(upto, dim)
     in_order = bool(np.array_equal(ids, np.arange(upto)))
     where = None if in_order else np.argsort(ids)  # where[v]: position of vertex v
@@ -572,7 +621,10 @@ def _compare_all(store: MapStore, index: Any, ids: np.ndarray, upto: int, total:
             report.notes.append(f"index vectors from vertex {start} on not compared: {exc}")
             break
         stored = vectors[start:stop] if where is None else vectors[where[start:stop]]
-        if not np.array_equal(stored, rows):
+        if projection is not None:
+            rows = projection.apply(rows)  # float64 then rounded: equal, but for a last bit
+        if not (np.array_equal(stored, rows) if projection is None
+                else np.allclose(stored, rows, rtol=0, atol=1e-6)):
             differ = start + int(np.flatnonzero((stored != rows).any(axis=1))[0])
             bad(f"index vector of vertex {differ} differs from its shard row")
             break
@@ -584,7 +636,8 @@ def partial_files(store: MapStore) -> list[Path]:
     """Leftover ``*.partial`` files of interrupted publications (map, generation, shards and
     index dirs)."""
     dirs = dict.fromkeys((store.path, store.data_path, store.data_path / SHARDS_DIR,
-                          store.data_path / INDEX_DIR))
+                          store.data_path / INDEX_DIR,
+                          *projection_dirs(store.data_path / INDEX_DIR)))
     return [entry for directory in dirs
             if directory.is_dir() for entry in sorted(directory.iterdir())
             if entry.name.endswith(PARTIAL_SUFFIX)]

@@ -71,6 +71,9 @@ class CompactableMap(Protocol):
     def shards(self) -> ShardSet: ...
 
     @property
+    def index(self) -> IndexStore: ...
+
+    @property
     def config(self) -> StoreConfig: ...
 
     @property
@@ -188,6 +191,7 @@ def compact_map(store: CompactableMap) -> CompactReport:
 
     index = store.new_index(new / "index")
     try:
+        index.adopt(store.index)  # the learned projection (descriptors, not ids: it carries over)
         index.rebuild(renumber.total, shards)
         index.merge_segments()  # an approximate index: its segments into one (else a no-op)
         atomic.fsync_dir(new)

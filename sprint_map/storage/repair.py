@@ -37,7 +37,7 @@ from sprint_map.storage.check import MapRecords, check_map, check_sequences, seq
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.records import RepairReport
 from sprint_map.storage.store import MapStore
-from sprint_map.storage.thumbnails import drop_broken
+from sprint_map.storage.thumbnails import ThumbnailTest, drop_broken
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.atomic import fsync_file, truncate
 
@@ -46,7 +46,8 @@ RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed"
 
 
 def repair_map(path: str | os.PathLike[str], *, seed: int = 0,
-               check_config: Callable[[dict[str, Any]], object] | None = None) -> RepairReport:
+               check_config: Callable[[dict[str, Any]], object] | None = None,
+               thumbnail_decodes: ThumbnailTest | None = None) -> RepairReport:
     """Repair the map at ``path`` as far as its own data allows, then check it.
 
     Takes the writer lock (``MapLockedError`` while another process writes). ``check_config``
@@ -78,16 +79,16 @@ def repair_map(path: str | os.PathLike[str], *, seed: int = 0,
     else:
         with MapStore.open(path) as store:
             report.repaired.extend(store.recovery)
-            before = check_map(store, seed=seed)
+            before = check_map(store, seed=seed, thumbnail_decodes=thumbnail_decodes)
             report.found = before.violations
             total = store.counter("next_vertex_id")
             report.repaired.extend(truncate_shard_tails(store, total))
             crash_point("repair.shards_truncated")
-            report.repaired.extend(rebuild_records(store, before.areas))
+            report.repaired.extend(rebuild_records(store, before.areas, thumbnail_decodes))
             crash_point("repair.committed")
             report.repaired.extend(_repair_index(store, total, before.areas, report.skipped))
     with MapStore.open(path, readonly=True) as store:
-        report.after = check_map(store, seed=seed)
+        report.after = check_map(store, seed=seed, thumbnail_decodes=thumbnail_decodes)
     return report
 
 
@@ -117,7 +118,8 @@ def truncate_shard_tails(store: MapStore, total: int) -> list[str]:
     return actions
 
 
-def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
+def rebuild_records(store: MapStore, areas: set[str],
+                    thumbnail_decodes: ThumbnailTest | None = None) -> list[str]:
     """Rebuild the derived LMDB records of the broken ``areas`` in one write transaction.
 
     Notes
@@ -174,7 +176,8 @@ def rebuild_records(store: MapStore, areas: set[str]) -> list[str]:
             actions.append(f"recounted {removed} removed vertices and dropped the positions of "
                            f"{len(records.stray_positions)} removed ranges")
         if "thumbnails" in todo:
-            actions.extend(drop_broken(txn, store.env, {s.seq_id: s.length for s in records.seqs}))
+            actions.extend(drop_broken(txn, store.env, {s.seq_id: s.length for s in records.seqs},
+                                       thumbnail_decodes))
         crash_point("repair.before_commit")
         return actions
 

@@ -38,6 +38,7 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
+from sprint_map.storage import learning
 from sprint_map.storage.compaction import compact_map
 from sprint_map.storage.generation import (
     current_data,
@@ -48,6 +49,7 @@ from sprint_map.storage.generation import (
 )
 from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.index.map_index import IndexStore
+from sprint_map.storage.index.projection import LearnReport
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
@@ -768,6 +770,36 @@ class MapStore:
                 self._persist_due = True
             else:
                 self.flush()
+        if not self._grouped:
+            self._learn_if_due()
+
+    def _learn_if_due(self) -> None:
+        """Retrain the projection after ``learn_every`` new edges (past a commit point: a
+        failure is a warning, the map keeps the projection it had)."""
+        try:
+            if learning.due(self):
+                report = learning.learn(self)
+                self.index.events.append(f"learned from {report.pairs} merged pairs: "
+                                         f"{'adopted' if report.adopted else 'not adopted'}")
+        except (OSError, ValueError, np.linalg.LinAlgError) as exc:
+            self.warnings.append(f"the descriptor projection was not retrained ({exc})")
+
+    def learn(self) -> LearnReport:
+        """Learn the projection from the merged edges (``index --learn``); see
+        :func:`sprint_map.storage.learning.learn`. StorageIOError if a file cannot be written."""
+        try:
+            return learning.learn(self)
+        except OSError as exc:
+            raise StorageIOError(f"cannot write the index in {self.data_path / INDEX_DIR}: "
+                                 f"{exc.strerror or exc}") from exc
+
+    def unlearn(self) -> bool:
+        """Drop the learned projection (``index --no-learn``); False if there was none."""
+        try:
+            return learning.unlearn(self)
+        except OSError as exc:
+            raise StorageIOError(f"cannot write the index in {self.data_path / INDEX_DIR}: "
+                                 f"{exc.strerror or exc}") from exc
 
     @contextlib.contextmanager
     def group_commit(self) -> Iterator[None]:
@@ -794,6 +826,8 @@ class MapStore:
                     self.flush()
                 except StorageIOError as exc:  # the sequences are committed: a warning
                     self.warnings.append(f"the index cache was not saved ({exc})")
+            if not self._grouped:
+                self._learn_if_due()
 
 
 

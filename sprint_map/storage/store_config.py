@@ -83,6 +83,13 @@ class StoreOptions:
     index_persist_growth: float = 1.0
     #: LMDB map size at creation in bytes (sparse file; it doubles on demand).
     initial_map_size: int = 1 << 30
+    #: The writer learns a descriptor projection from the map's merged edges again after this
+    #: many new edges (0: only ``index --learn``; :mod:`sprint_map.storage.learning`).
+    learn_every: int = 0
+    #: Dimensions the learned projection keeps.
+    learn_dim: int = 256
+    #: Fewest merged pairs a projection is learned from (fewer: the plain descriptor).
+    learn_min_pairs: int = 500
 
     def __post_init__(self) -> None:
         if self.shard_rows < 1:
@@ -108,6 +115,11 @@ class StoreOptions:
             raise ValueError("index_persist_growth must be >= 0")
         if self.initial_map_size < 1 << 20:
             raise ValueError("initial_map_size must be at least 1 MiB")
+        for name in ("learn_every", "learn_min_pairs"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be an integer >= 0")
+        if not isinstance(self.learn_dim, int) or self.learn_dim < 1:
+            raise ValueError("learn_dim must be a positive integer")
 
 
 @dataclass(frozen=True)

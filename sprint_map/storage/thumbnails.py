@@ -19,7 +19,7 @@ for none. They are not derivable from anything else in the map (the images are n
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import lmdb
@@ -122,9 +122,14 @@ class ThumbnailScan:
     broken_seqs: set[int] = field(default_factory=set)
 
 
-def scan_thumbnails(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]
-                    ) -> ThumbnailScan:
-    """Check every thumbnail against the live sequences ``lengths`` (seq_id -> frames).
+#: A caller's test that a thumbnail is an image (the front end decodes it; storage cannot).
+ThumbnailTest = Callable[[bytes], bool]
+
+
+def scan_thumbnails(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int],
+                    decodes: ThumbnailTest | None = None) -> ThumbnailScan:
+    """Check every thumbnail against the live sequences ``lengths`` (seq_id -> frames): the
+    signature, :data:`MAX_THUMBNAIL_BYTES`, and ``decodes(value)`` when given.
 
     Notes
     -----
@@ -150,10 +155,16 @@ def scan_thumbnails(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]
             continue
         scan.counts[seq_id] = scan.counts.get(seq_id, 0) + 1
         scan.total_bytes += len(value)
-        if not is_jpeg(value) and seq_id not in scan.broken_seqs:
+        if seq_id in scan.broken_seqs:
+            continue
+        if not is_jpeg(value) or len(value) > MAX_THUMBNAIL_BYTES:
             scan.broken_seqs.add(seq_id)
             scan.problems.append(f"thumbnail of sequence {seq_id} image {image_id} is not "
-                                 f"JPEG bytes ({len(value)} bytes)")
+                                 f"JPEG bytes of a thumbnail ({len(value)} bytes)")
+        elif decodes is not None and not decodes(bytes(value)):
+            scan.broken_seqs.add(seq_id)
+            scan.problems.append(f"thumbnail of sequence {seq_id} image {image_id} does not "
+                                 f"decode as an image ({len(value)} bytes)")
     for seq_id, count in sorted(scan.counts.items()):
         if count != lengths[seq_id] and seq_id not in scan.broken_seqs:
             scan.broken_seqs.add(seq_id)
@@ -162,7 +173,8 @@ def scan_thumbnails(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]
     return scan
 
 
-def drop_broken(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]) -> list[str]:
+def drop_broken(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int],
+                decodes: ThumbnailTest | None = None) -> list[str]:
     """Delete, in ``txn``, the thumbnails that break the invariants: stray keys, and every
     thumbnail of a sequence whose set is broken (the images are not kept, so nothing can be
     rebuilt; a sequence keeps all its thumbnails or none). Returns what was done.
@@ -171,7 +183,7 @@ def drop_broken(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]) ->
     -----
     O(thumbnails) reads (:func:`scan_thumbnails`) plus the deletes.
     """
-    scan = scan_thumbnails(txn, env, lengths)
+    scan = scan_thumbnails(txn, env, lengths, decodes)
     actions = []
     for key in scan.stray_keys:
         txn.delete(key, db=env.db(THUMBNAILS_DB))
@@ -191,6 +203,7 @@ __all__ = [
     "MAX_THUMBNAIL_BYTES",
     "THUMBNAILS_DB",
     "ThumbnailScan",
+    "ThumbnailTest",
     "count_thumbnails",
     "delete_thumbnails",
     "drop_broken",

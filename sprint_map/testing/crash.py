@@ -11,7 +11,7 @@ import os
 import signal
 
 __all__ = ["ADD_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
-           "INDEX_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
+           "INDEX_POINTS", "LEARN_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
            "UNMERGE_POINTS", "crash_point"]
 
 CRASH_ENV = "SPRINT_MAP_CRASH_AT"
@@ -74,9 +74,16 @@ COMPACT_POINTS = (
     "compact.old_partly_removed",  # part of the old generation deleted, the rest not yet
 )
 
+#: ``index --learn`` / ``--no-learn`` and the writer's retraining after ``learn_every`` edges.
+LEARN_POINTS = (
+    "learn.projection_written",  # index/pG/projection.f32 published, no index, no pointer
+    "learn.index_built",  # the index under the new projection (or none) built, no pointer
+    "learn.published",  # learned.json names the new state (the commit point), old not deleted
+)
+
 #: Every crash point in the write paths.
 CRASH_POINTS = (ADD_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
-                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS)
+                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + LEARN_POINTS)
 
 
 def crash_point(name: str) -> None:

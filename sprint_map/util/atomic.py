@@ -131,7 +131,9 @@ def remove_tree(path: Path) -> None:
 def publish(path: Path, write: Callable[[Path], Any], expected_size: int | None = None) -> None:
     """Write ``path`` atomically: ``write(partial)``, fsync, ``os.replace``, fsync the directory.
 
-    ``write`` receives the temporary path and must create the file there. Readers see either the
+    For the map's own files (under its writer lock) and reports; a file the user names as an
+    output goes through :class:`sprint_map.util.output.Output`. ``write`` receives the
+    temporary path (anything there before is removed first) and must create the file there. Readers see either the
     old file or the complete new one, never a torn one. Give ``expected_size`` when ``write``
     may fail silently: FAISS, for one, reports a failed write (``EFBIG``, ``ENOSPC``) only on
     stderr when it closes the file, and returns as if it had succeeded.
@@ -144,6 +146,9 @@ def publish(path: Path, write: Callable[[Path], Any], expected_size: int | None 
     """
     partial = path.with_name(path.name + PARTIAL_SUFFIX)
     try:
+        # Whatever is at the partial's name (a killed run's file, a planted link) goes first:
+        # unlink never follows a link, so ``write`` creates a new file, never writes through.
+        partial.unlink(missing_ok=True)
         _announce("create", partial)
         _announce("write", partial, data=None, offset=0)
         write(partial)
@@ -163,7 +168,7 @@ def publish_bytes(path: Path, data: bytes) -> None:
     """:func:`publish` a small file holding ``data``."""
 
     def write(partial: Path) -> None:
-        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
         try:
             os.write(fd, data)  # announced by publish() as one opaque whole-file write
         finally:

@@ -20,8 +20,8 @@ from sprint_map.errors import (
 )
 from sprint_map.util.arrays import Descriptors, Float64Array
 
-__all__ = ["decode_text", "name_key", "shown", "validate_descriptors", "validate_name",
-           "validate_positions"]
+__all__ = ["decode_text", "name_key", "parse_seq_ref", "shown", "validate_descriptors",
+           "validate_name", "validate_positions"]
 
 
 def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> Descriptors:
@@ -153,3 +153,16 @@ def name_key(name: str) -> bytes | None:
     if not name or len(encoded) > MAX_NAME_BYTES or not name.isprintable():
         return None
     return encoded
+
+
+def parse_seq_ref(text: str, by_name: bool = False) -> int | str:
+    """A sequence given on the command line: ASCII digits are an id, anything else a name.
+
+    The one parser of SEQ arguments (``remove``, ``unmerge``, ``edges``). Only ``0``-``9``
+    make an id: ``str.isdigit`` (and ``int``) also accept other scripts' digits, so a drive
+    named ``１`` (a fullwidth one) would be read as sequence 1. With ``by_name`` the text is
+    always a name. O(len(text)).
+    """
+    if by_name or not text or not text.isascii() or not text.isdigit():
+        return text
+    return int(text)

@@ -20,13 +20,14 @@ Routes (a contract for the page):
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from importlib import resources
 from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi.params import Depends
-from fastapi.responses import HTMLResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response
+from fastapi.routing import APIRoute
 
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.localize.trace import Trace
@@ -35,6 +36,7 @@ from sprint_map.viewer.matrix import MATRIX_SIZE, drive_detail, match_matrix
 from sprint_map.viewer.summary import MapSummary
 
 if TYPE_CHECKING:
+    from sprint_map.server.config import ServerConfig
     from sprint_map.server.service import LocalisationService
 
 __all__ = ["API_PREFIX", "create_view_app", "mount_viewer", "page_html", "viewer_router"]
@@ -60,9 +62,10 @@ def viewer_router(summary: MapSummary, trace: Trace | None = None,
     ``dependencies`` guard the API routes (the service's token check); the page is public.
     The routes are plain functions: FastAPI runs them in its thread pool, off the event loop.
     """
-    router = APIRouter()
+    router = APIRouter(route_class=_KnownDrivesRoute)
     # not in the OpenAPI schema: the page's own API, documented in docs/viewer.md
-    api = APIRouter(prefix=API_PREFIX, dependencies=list(dependencies), include_in_schema=False)
+    api = APIRouter(prefix=API_PREFIX, dependencies=list(dependencies), include_in_schema=False,
+                    route_class=_KnownDrivesRoute)
 
     @router.get("/", response_class=HTMLResponse, include_in_schema=False)
     def page() -> HTMLResponse:
@@ -112,6 +115,22 @@ def viewer_router(summary: MapSummary, trace: Trace | None = None,
     return router
 
 
+class _KnownDrivesRoute(APIRoute):
+    """A route whose ``UnknownSequenceError`` (a drive removed by another process while the
+    request read it) is a 404, never a 500."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def handle(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except UnknownSequenceError as exc:
+                return JSONResponse({"detail": str(exc)}, status_code=404)
+
+        return handle
+
+
 def _need(trace: Trace | None) -> Trace:
     if trace is None:
         raise HTTPException(404, "no trace shown (sprint-map view MAP --trace OUT)")
@@ -144,10 +163,15 @@ def mount_viewer(app: FastAPI, service: LocalisationService, guard: list[Any]) -
 
 
 def create_view_app(summary: MapSummary, trace: Trace | None = None,
-                    token: str | None = None) -> FastAPI:
+                    token: str | None = None, config: ServerConfig | None = None) -> FastAPI:
     """The app of ``sprint-map view``: the page and its API (with ``token``: API routes need
-    ``Authorization: Bearer <token>``, as in ``serve``)."""
+    ``Authorization: Bearer <token>``, as in ``serve``, checked by ``serve``'s
+    :class:`~sprint_map.server.app.RequestGuard` before any body byte is read)."""
+    from sprint_map.server.app import RequestGuard
     from sprint_map.server.auth import token_matches
+    from sprint_map.server.config import ServerConfig
+
+    config = config or ServerConfig()
 
     async def authorised(request: Request) -> None:
         if token is not None and not token_matches(request.headers.get("authorization"), token):
@@ -156,4 +180,6 @@ def create_view_app(summary: MapSummary, trace: Trace | None = None,
 
     app = FastAPI(title="sprint-map viewer", docs_url=None, redoc_url=None)
     app.include_router(viewer_router(summary, trace, [Depends(authorised)]))
+    app.add_middleware(RequestGuard, limit=config.max_request_bytes, token=token,
+                       body_timeout_s=config.body_timeout_s)
     return app

@@ -117,7 +117,7 @@ class MapSummary:
         vertices (ids are never reused), a removal takes sequences, an unmerge edges; a
         compaction renumbers vertices (fewer), which changes nothing shown but is seen too.
         O(1)."""
-        return tuple(sorted(self.read(self.map.stats).items()))
+        return tuple(sorted(self.read(lambda: self.map.stats()).items()))
 
     def state(self) -> MapState:
         """The cached state, re-read if the map changed since (O(1) to check)."""
@@ -127,15 +127,18 @@ class MapSummary:
                 self._state = self._load(key)
             return self._state
 
+    def _positions(self, seq_id: int) -> Any:
+        return self.map.positions(seq_id)  # the map current when the read runs
+
     def _load(self, key: tuple[Any, ...]) -> MapState:
-        seqs = self.read(self.map.sequences)
+        seqs = self.read(lambda: self.map.sequences())
         component = {}
-        for comp in self.read(self.map.components):
+        for comp in self.read(lambda: self.map.components()):
             for s in comp.sequences:
                 component[s] = comp.component
         positions = {}
         for s in seqs:
-            pos = self.read(functools.partial(self.map.positions, s.seq_id))
+            pos = self.read(functools.partial(self._positions, s.seq_id))
             if pos is not None and np.isfinite(pos[:, :2]).all():
                 positions[s.seq_id] = np.ascontiguousarray(pos[:, :2])
         return MapState(key, seqs, component, positions)
@@ -150,8 +153,8 @@ class MapSummary:
             return state.overview
 
     def _overview(self, st: MapState) -> dict[str, Any]:
-        info = self.read(self.map.info)
-        table = self.read(self.map.edge_table)
+        info = self.read(lambda: self.map.info())
+        table = self.read(lambda: self.map.edge_table())
         seqs = st.seqs
         first = np.array([s.first_vertex for s in seqs], np.int64)
         order = np.argsort(first)

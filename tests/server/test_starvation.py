@@ -86,7 +86,7 @@ def test_an_authenticated_slow_body_times_out(one_drive_map, start_server):
     host, port = stall.address(server.url)
     sid = server.client.post("/v1/sessions", headers=AUTH).json()["session_id"]
     with socket.create_connection((host, port), timeout=10) as sock:
-        sock.sendall(f"POST /v1/sessions/{sid}/frames HTTP/1.1\r\nHost: x\r\n"
+        sock.sendall(f"POST /v1/sessions/{sid}/frames HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                      f"Authorization: Bearer {TOKEN}\r\nContent-Type: application/json\r\n"
                      "Content-Length: 1000\r\n\r\n{\"descriptor\": [".encode())
         start = time.monotonic()
@@ -112,13 +112,13 @@ def test_healthz_answers_while_the_connection_limit_is_full_of_busy_requests(
     busy = []
     for _ in range(8):  # requests whose bodies are not all sent: in progress, not evictable
         sock = socket.create_connection((host, port), timeout=10)
-        sock.sendall(f"POST /v1/sessions/{sid}/frames HTTP/1.1\r\nHost: x\r\n"
+        sock.sendall(f"POST /v1/sessions/{sid}/frames HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                      "Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{".encode())
         busy.append(sock)
     time.sleep(0.3)
     assert stall.healthz_seconds(host, port) < 1.0
     with socket.create_connection((host, port), timeout=10) as sock:
-        sock.sendall(b"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n")
+        sock.sendall(b"POST /v1/sessions HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n\r\n")
         answer = stall.read_all(sock)
     assert answer.startswith(b"HTTP/1.1 503") and b'"error":"busy"' in answer, answer[:200]
     assert stall.count_open(busy) == 8  # none of the busy ones was dropped

@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.util.arrays import Descriptors, SearchResult
@@ -67,6 +68,10 @@ class RetrievalIndex(ABC):
     events : list of str, optional
         Where loading reports what it had to do (files discarded, rebuilt); shared with the
         caller, which shows them in ``check`` and ``info``.
+    projection : Projection, optional
+        The map's learned projection (:mod:`~sprint_map.storage.index.projection`): rows and
+        queries are given raw and searched projected (``config.dim`` is then its output
+        dimension); distances are squared L2 in the projected space.
     """
 
     #: Short name of the kind (``describe()["type"]`` says more).
@@ -77,8 +82,10 @@ class RetrievalIndex(ABC):
     files: ClassVar[str]
 
     def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
-                 events: list[str] | None = None) -> None:
+                 events: list[str] | None = None, projection: Projection | None = None
+                 ) -> None:
         self.directory = directory
+        self.projection = projection
         self.config = config
         self.dim = config.dim
         self.writable = writable
@@ -118,6 +125,13 @@ class RetrievalIndex(ABC):
     @abstractmethod
     def describe(self) -> dict[str, Any]:
         """What ``info`` reports: at least ``"type"`` (a str); loaded or not. O(1) reads."""
+
+    def project(self, rows: Descriptors) -> Descriptors:
+        """``rows`` (raw descriptors) in the searched space: projected if the map learned a
+        projection, else as they are (C-contiguous float32). O(len(rows) * dim_in * dim)."""
+        if self.projection is None:
+            return np.ascontiguousarray(rows, dtype=np.float32)
+        return self.projection.apply(rows)
 
     def require_loaded(self) -> ShardSet:
         """The shards of the loaded index; :class:`IndexNotLoadedError` if not loaded."""

@@ -35,6 +35,7 @@ from sprint_map.storage.index.manifest import (
     read_manifest,
 )
 from sprint_map.storage.index.model import Model, gather_rows, read_faiss
+from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.util.lazy_faiss import faiss  # imported on first use
@@ -67,11 +68,13 @@ def segment_ids(index: Any) -> np.ndarray:
 
 def check_segments(directory: Path, config: StoreConfig, shards: ShardSet, total: int,
                    bad: Callable[[str], None], notes: list[str], checked: dict[str, int],
-                   seed: int = 0, live: bool = False) -> None:
+                   seed: int = 0, live: bool = False,
+                   projection: Projection | None = None) -> None:
     """Check the segmented index in ``directory`` against a map of ``total`` vertices.
 
     ``bad`` records a violation; with ``live`` (a writer holds the lock) a file missing or
-    ahead is its publication in flight: a note.
+    ahead is its publication in flight: a note. ``projection``: the map's learned projection
+    the index was built under (``config.dim`` is its output dimension).
 
     Notes
     -----
@@ -115,6 +118,7 @@ def check_segments(directory: Path, config: StoreConfig, shards: ShardSet, total
     except OSError as exc:
         bad(f"index model is unreadable: {exc}")
         return
+    model.projection = projection
     if model.nlist != manifest.nlist or model.ivf.d != config.index_dim:
         bad(f"index model has {model.nlist} lists of dim {model.ivf.d}, the manifest says "
             f"{manifest.nlist} and the map indexes dim {config.index_dim}")

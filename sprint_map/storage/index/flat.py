@@ -22,6 +22,7 @@ import numpy as np
 
 from sprint_map.storage.index.base import IndexNotLoadedError, RetrievalIndex
 from sprint_map.storage.index.model import use_threads
+from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.testing.crash import crash_point
@@ -103,8 +104,10 @@ class FlatIndex(RetrievalIndex):
     files = "the flat file"
 
     def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
-                 events: list[str] | None = None) -> None:
-        super().__init__(directory, config, writable=writable, events=events)
+                 events: list[str] | None = None, projection: Projection | None = None
+                 ) -> None:
+        super().__init__(directory, config, writable=writable, events=events,
+                         projection=projection)
         self.index: faiss.IndexIDMap2 | None = None
         self._exact: ExactFlat | None = None  # the certified search over self.index
         self._persisted = 0  # vertices covered by the newest file on disk that we trust
@@ -230,7 +233,7 @@ class FlatIndex(RetrievalIndex):
         """
         if self.index is None:
             raise IndexNotLoadedError("the flat index is not loaded: load() first")
-        queries = np.ascontiguousarray(queries, dtype=np.float32)
+        queries = self.project(queries)  # float64 rounded: a query alone or in a batch alike
         use_threads(len(queries))
         if self._exact is None or self._exact.index is not self.index:
             self._exact = ExactFlat(self.index)
@@ -245,7 +248,7 @@ class FlatIndex(RetrievalIndex):
         if start != self.covered:
             raise ValueError(f"index covers {self.covered} vertices, cannot add at {start}")
         ids = np.arange(start, start + len(rows), dtype=np.int64)
-        self.index.add_with_ids(np.ascontiguousarray(rows, dtype=np.float32), ids)
+        self.index.add_with_ids(self.project(rows), ids)
 
     def after_commit(self, committed: int, shards: ShardSet) -> bool:
         """Due when the map outgrew the file by ``index_persist_every`` vertices and by

@@ -18,24 +18,52 @@ of the map or torn are dropped by the writer's open, the in-memory index is caug
 shards when loaded. A writer switching kind publishes the new index first and only then
 removes the old kind's files, so readers keep searching the old index until the new one is
 complete; a publication of a later kind in :data:`KINDS` supersedes the files of an earlier one.
+
+A map may search a projection learned from its merged edges
+(:mod:`~sprint_map.storage.index.projection`). Its index then lives in its own directory
+``index/pGGGGGG/`` (the projection's file beside the index's), and ``index/learned.json``, the
+pointer, names it: publishing the pointer is the commit point of learning or dropping one
+(:meth:`IndexStore.install`). Without a pointer (every map made before learning) the index
+files are in ``index/`` itself, as they always were.
 """
 
 from __future__ import annotations
 
+import re
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from sprint_map.storage.index.base import RetrievalIndex
 from sprint_map.storage.index.flat import FlatIndex, file_bytes, file_problem, index_files
-from sprint_map.storage.index.model import MIN_TRAIN
+from sprint_map.storage.index.model import MIN_TRAIN, publish_bytes
+from sprint_map.storage.index.projection import (
+    LEARNED,
+    PROJECTION_FILE,
+    Learned,
+    Projection,
+    checksum_bytes,
+    read_learned,
+)
 from sprint_map.storage.index.segmented import SegmentedIndex
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
+from sprint_map.testing.crash import crash_point
+from sprint_map.util import atomic
 from sprint_map.util.arrays import Descriptors, SearchResult
 
 __all__ = ["KINDS", "IndexStore", "approximate_kind", "file_bytes", "file_problem",
-           "index_files"]
+           "index_files", "projection_dirs"]
+
+PROJECTION_DIR_RE = re.compile(r"^p(\d{6})$")
+
+
+def projection_dirs(directory: Path) -> list[Path]:
+    """The projection directories ``pGGGGGG`` in ``directory`` (``index/``). O(entries)."""
+    if not directory.is_dir():
+        return []
+    return sorted(e for e in directory.iterdir() if PROJECTION_DIR_RE.match(e.name))
 
 #: Every kind of index, in ascending precedence: a publication of a later kind supersedes
 #: the files of the earlier ones (they are leftovers of a kill before their removal).
@@ -76,6 +104,10 @@ class IndexStore:
         self.writable = writable
         self.config = config if config is not None else StoreConfig(dim=dim, index_type="flat")
         self.events: list[str] = []  # what loading had to do (for check/info reports)
+        #: The projection pointer the active index follows, and its projection once read.
+        self.learned = Learned()
+        self.projection: Projection | None = None
+        self._pinned = False  # install() builds under a pointer not yet published
         self.active: RetrievalIndex = self._make(FlatIndex)
         #: Seconds spent training (and encoding the map with) new models in this process.
         self.train_s = 0.0
@@ -83,8 +115,140 @@ class IndexStore:
         self._committed = 0
 
     def _make(self, kind: type[RetrievalIndex]) -> RetrievalIndex:
-        """A new, unloaded index of ``kind`` on this directory. O(1): nothing is read."""
-        return kind(self.directory, self.config, writable=self.writable, events=self.events)
+        """A new, unloaded index of ``kind`` in the directory of the followed projection
+        (``index/`` without one). O(1): nothing is read."""
+        learned = self.learned
+        if not learned.generation:
+            return kind(self.directory, self.config, writable=self.writable, events=self.events)
+        return kind(self.directory / learned.directory_name,
+                    replace(self.config, dim=learned.dim_out), writable=self.writable,
+                    events=self.events, projection=self.projection)
+
+    # --- the learned projection --------------------------------------------------------------
+    def _sync(self, matrix: bool = False) -> None:
+        """Follow the published pointer while nothing is loaded (a loaded index keeps the
+        projection it was loaded with); with ``matrix`` also read and verify the projection.
+        A garbled pointer or projection is a cache event: the plain descriptor is searched.
+        One small file read (plus O(projection bytes) with ``matrix``)."""
+        if self.active.loaded or self._pinned:
+            return
+        try:
+            learned = read_learned(self.directory)
+        except (ValueError, OSError) as exc:
+            self.events.append(f"projection pointer unusable ({exc}); plain descriptor used")
+            learned = Learned()
+        if learned.generation != self.learned.generation:
+            self.projection = None
+        self.learned = learned
+        if matrix or self.projection is None:
+            self.active = self._make(FlatIndex)
+        if matrix and learned.generation and self.projection is None:
+            try:
+                self.projection = learned.read_projection(self.directory)
+            except (ValueError, OSError) as exc:
+                self.events.append(f"projection unusable ({exc}); plain descriptor used")
+                self.learned = Learned(attempted_at_edges=learned.attempted_at_edges)
+            self.active = self._make(FlatIndex)
+
+    def learned_state(self) -> Learned:
+        """The published pointer (what ``info`` reports; ``Learned()`` if none or garbled).
+        One small file read."""
+        self._sync()
+        return self.learned
+
+    def install(self, learned: Learned, projection: Projection | None, committed: int,
+                shards: ShardSet) -> None:
+        """Make ``projection`` (None: the plain descriptor) the map's, with ``learned``'s
+        record, and the index built under it; the writer only.
+
+        A new projection gets a new directory ``index/pGGGGGG/``: its file, then its whole
+        index are published there (``learn.projection_written``, ``learn.index_built``) while
+        readers keep the old index; then the pointer (``learn.published``, the commit point);
+        then the old projection's directory (or the plain index's files) is deleted. A kill
+        leaves the old projection with its index or the new one with its index; the next
+        writer's open deletes what the pointer does not name.
+
+        Notes
+        -----
+        O(projection bytes) plus a rebuild of the index (O(committed * dim) and training).
+        """
+        assert self.writable
+        self._sync()
+        old, old_projection = self.learned, self.projection
+        self.reset()
+        if projection is not None:
+            numbers = [int(d.name[1:]) for d in projection_dirs(self.directory)]
+            generation = 1 + max(numbers + [old.generation])
+            learned = replace(learned, generation=generation)
+            target = self.directory / learned.directory_name
+            target.mkdir()
+            atomic.fsync_dir(self.directory)
+            data = projection.to_bytes()
+            publish_bytes(target / PROJECTION_FILE, data)
+            learned = replace(learned, file_bytes=len(data), checksum=checksum_bytes(data),
+                              dim_in=projection.dim_in, dim_out=projection.dim_out)
+            crash_point("learn.projection_written")
+        else:
+            learned = Learned(attempted_at_edges=learned.attempted_at_edges)
+        if learned.generation != old.generation:
+            self.learned, self.projection = learned, projection
+            self._pinned = True
+            try:
+                self.active = self._make(FlatIndex)
+                self.rebuild(committed, shards)
+            except BaseException:
+                self.reset()
+                self.learned, self.projection = old, old_projection
+                self.active = self._make(FlatIndex)
+                raise
+            finally:
+                self._pinned = False
+            crash_point("learn.index_built")
+        publish_bytes(self.directory / LEARNED, learned.encode())
+        crash_point("learn.published")
+        self.learned, self.projection = learned, projection
+        if old.generation != learned.generation:
+            self._remove_followed(old)
+
+    def record_attempt(self, edges: int) -> None:
+        """Record a learning attempt at ``edges`` that changed nothing (the pointer is
+        republished with it; the projection in use stays). One small file published."""
+        assert self.writable
+        self._sync()
+        publish_bytes(self.directory / LEARNED,
+                      replace(self.learned, attempted_at_edges=edges).encode())
+        self.learned = replace(self.learned, attempted_at_edges=edges)
+
+    def _remove_followed(self, learned: Learned) -> list[str]:
+        """Delete the index files of ``learned`` (its directory; without a projection the
+        plain index's files in ``index/``). Returns what was removed."""
+        if learned.generation:
+            target = self.directory / learned.directory_name
+            if not target.exists():
+                return []
+            atomic.remove_tree(target)
+            atomic.fsync_dir(self.directory)
+            return [target.name]
+        removed = []
+        for kind in KINDS:
+            removed.extend(kind(self.directory, self.config, writable=True).remove_files())
+        return removed
+
+    def adopt(self, other: IndexStore) -> None:
+        """Publish ``other``'s projection and pointer here (``compact``'s new generation,
+        before its index is built). O(projection bytes)."""
+        assert self.writable
+        other._sync(matrix=True)
+        learned, projection = other.learned, other.projection
+        if not learned.generation and not learned.attempted_at_edges:
+            return
+        if projection is not None:
+            target = self.directory / learned.directory_name
+            target.mkdir(parents=True, exist_ok=True)
+            publish_bytes(target / PROJECTION_FILE, projection.to_bytes())
+        publish_bytes(self.directory / LEARNED, learned.encode())
+        self.learned, self.projection = learned, projection
+        self.active = self._make(FlatIndex)
 
     def _replace(self, index: RetrievalIndex) -> None:
         """Make ``index`` the active one; the old one is closed (its memory released)."""
@@ -94,6 +258,7 @@ class IndexStore:
 
     def _on_disk(self) -> RetrievalIndex:
         """An unloaded index of the kind whose files are published (flat if none)."""
+        self._sync()
         for kind in reversed(KINDS[1:]):
             index = self._make(kind)
             if index.published():
@@ -122,6 +287,7 @@ class IndexStore:
 
     def has_files(self) -> bool:
         """Whether an index is persisted at all (a flat file, or a segment manifest)."""
+        self._sync()
         return any(self._make(kind).has_files() for kind in KINDS)
 
     def describe(self) -> dict[str, Any]:
@@ -137,13 +303,48 @@ class IndexStore:
         -----
         One ``stat`` per index file: O(segments), O(log map size) with tiered merging.
         """
-        actions = []
+        actions = self._discard_projections()
         for kind in KINDS:
             actions.extend(self._make(kind).discard_untrusted(committed))
         winner = self._on_disk()
         for kind in KINDS[: KINDS.index(type(winner))]:
             actions.extend(f"removed index {name}: superseded by {winner.files}"
                            for name in self._make(kind).remove_files())
+        return actions
+
+    def _discard_projections(self) -> list[str]:
+        """Drop a garbled pointer or a projection failing its checks (the plain descriptor
+        again), projection directories the pointer does not name (a kill before or after its
+        publication) and, when it names one, the plain index's files. O(projection bytes)."""
+        actions = []
+        self.reset()
+        try:
+            learned = read_learned(self.directory)
+        except ValueError as exc:
+            learned = Learned()
+            atomic.unlink(self.directory / LEARNED)
+            actions.append(f"removed the projection pointer {LEARNED}: {exc}")
+        if learned.generation:
+            try:
+                learned.read_projection(self.directory)
+            except (ValueError, OSError) as exc:
+                actions.append(f"dropped the learned projection: {exc}")
+                learned = Learned(attempted_at_edges=learned.attempted_at_edges)
+                publish_bytes(self.directory / LEARNED, learned.encode())
+        for entry in projection_dirs(self.directory):
+            if entry.name != (learned.directory_name if learned.generation else None):
+                atomic.remove_tree(entry)
+                actions.append(f"removed index {entry.name}/: not the learned projection")
+        if learned.generation:
+            actions.extend(f"removed index {name}: superseded by the learned projection"
+                           for name in self._remove_followed(Learned()))
+            actions.extend(f"removed leftover temp file {learned.directory_name}/{p.name}"
+                           for p in atomic.remove_partials(self.directory
+                                                           / learned.directory_name))
+        if actions:
+            atomic.fsync_dir(self.directory)
+        self.learned, self.projection = Learned(), None
+        self._sync()
         return actions
 
     def load(self, committed: int, shards: ShardSet) -> None:
@@ -155,6 +356,7 @@ class IndexStore:
         the flat index.
         """
         self._shards, self._committed = shards, committed
+        self._sync(matrix=True)
         train = self.writable and approximate_kind(self.config, committed) is not None
         active = self.active
         if active.loaded and not (train and active.exact):
@@ -231,6 +433,7 @@ class IndexStore:
         Training plus O(committed * dim) to re-encode.
         """
         assert self.writable
+        self._sync(matrix=True)
         if approximate_kind(self.config, committed) is None:
             self.rebuild(committed, shards)
             return [f"rebuilt the flat index ({committed} vertices)"]
@@ -246,6 +449,7 @@ class IndexStore:
         The segmented index is retrained (a new generation); the flat one rewritten.
         """
         assert self.writable
+        self._sync(matrix=True)
         if approximate_kind(self.config, committed) is not None:
             self.train(committed, shards)
             return

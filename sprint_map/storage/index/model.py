@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map.errors import MapCorruptError
+from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.util.arrays import Descriptors, Int64Array
@@ -187,14 +188,18 @@ class Model:
     kind: str
     pca: faiss.VectorTransform | None
     ivf: Any
+    #: The map's learned projection, applied first (raw rows in, indexed space out).
+    projection: Projection | None = None
 
     @property
     def nlist(self) -> int:
         return int(self.ivf.nlist)
 
     def transform(self, rows: Descriptors) -> Descriptors:
-        """Rows in the indexed space (PCA applied if any), C-contiguous float32."""
-        rows = np.ascontiguousarray(rows, dtype=np.float32)
+        """Raw rows in the indexed space (the projection, then the PCA, if any),
+        C-contiguous float32."""
+        rows = (np.ascontiguousarray(rows, dtype=np.float32) if self.projection is None
+                else self.projection.apply(rows))
         return rows if self.pca is None else self.pca.apply(rows)
 
     def publish(self, directory: Path, generation: int) -> tuple[int, int]:

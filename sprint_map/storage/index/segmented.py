@@ -67,6 +67,7 @@ from sprint_map.storage.index.model import (
     train_model,
     use_threads,
 )
+from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.testing.crash import crash_point
@@ -112,8 +113,10 @@ class SegmentedIndex(RetrievalIndex):
     files = "the segments"
 
     def __init__(self, directory: Path, config: StoreConfig, *, writable: bool,
-                 events: list[str] | None = None) -> None:
-        super().__init__(directory, config, writable=writable, events=events)
+                 events: list[str] | None = None, projection: Projection | None = None
+                 ) -> None:
+        super().__init__(directory, config, writable=writable, events=events,
+                         projection=projection)
         self._manifest: Manifest | None = None
         self._model: Model | None = None
         self._segments: list[Any] = []
@@ -285,6 +288,7 @@ class SegmentedIndex(RetrievalIndex):
 
     def _start(self, manifest: Manifest, model: Model) -> None:
         """Hold ``model`` and open the segments of ``manifest``; an empty tail after them."""
+        model.projection = self.projection
         self._manifest, self._model = manifest, model
         self.tail_start, self.tail_len = manifest.sealed, 0
         self._tail = np.empty((0, self.config.index_dim), dtype=np.float32)
@@ -368,17 +372,20 @@ class SegmentedIndex(RetrievalIndex):
         Notes
         -----
         IVF: one coarse quantization plus ``nprobe`` lists of codes over all segments; tail:
-        O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards.
+        O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards (with a
+        learned projection, also O(rerank * dim * learn_dim) to project them).
         """
         shards = self.require_loaded()
         # Every covered row was committed, even when the last load() was an older
         # snapshot's (storage/snapshot.py): re-ranking may read them all.
         committed = self.covered
-        queries = np.ascontiguousarray(queries, dtype=np.float32)
-        nq = len(queries)
+        raw = np.ascontiguousarray(queries, dtype=np.float32)
+        nq = len(raw)
         use_threads(nq)
         n_cand = max(self.config.index_rerank, k)
-        reduced = self.model.transform(queries)
+        # The query in the searched space (float32: only compared), then the model's PCA.
+        queries = raw if self.projection is None else self.projection.apply(raw, exact=False)
+        reduced = queries if self.model.pca is None else self.model.pca.apply(queries)
         ids = []
         if self._stacked is not None:
             self._stacked.nprobe = min(self.config.index_nprobe, self._stacked.nlist)
@@ -395,6 +402,8 @@ class SegmentedIndex(RetrievalIndex):
         valid = cand[cand >= 0]
         unique = np.unique(valid)
         rows = self._reader.rows(shards, unique, committed)
+        if self.projection is not None:  # only compared with each other: float32 is enough
+            rows = self.projection.apply(rows, exact=False)
         for q in range(nq):
             mine = cand[q][cand[q] >= 0]
             if not len(mine):
@@ -577,7 +586,8 @@ class SegmentedIndex(RetrievalIndex):
         config, directory = self.config, self.directory
         sample = gather_rows(shards, sample_ids(committed, config.index_train_sample,
                                                 generation), committed)
-        model = train_model(config, kind, sample)
+        model = train_model(config, kind, self.project(sample))
+        model.projection = self.projection
         model_bytes, pca_bytes = model.publish(directory, generation)
         crash_point("index.model_trained")
         manifest = Manifest(
