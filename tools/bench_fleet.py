@@ -75,7 +75,7 @@ async def _request(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, m
                    path: str, body: bytes = b"", kind: str = "application/json"
                    ) -> tuple[int, bytes]:
     """One HTTP/1.1 request on a keep-alive connection: ``(status, body)``."""
-    writer.write(f"{method} {path} HTTP/1.1\r\nHost: bench\r\nContent-Type: {kind}\r\n"
+    writer.write(f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {kind}\r\n"
                  f"Content-Length: {len(body)}\r\n\r\n".encode() + body)
     status_line = await reader.readline()
     if not status_line:

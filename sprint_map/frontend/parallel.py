@@ -17,8 +17,10 @@ import multiprocessing
 import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
+
+if TYPE_CHECKING:
+    from concurrent.futures import Executor, Future
 
 __all__ = ["EXECUTORS", "default_workers", "ordered_map"]
 
@@ -70,6 +72,8 @@ def ordered_map(
     limit = max_in_flight if max_in_flight is not None else 2 * workers
     if limit < 1:
         raise ValueError("max_in_flight must be >= 1")
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
     pool: Executor
     if executor == "thread":
         pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="sprint-frontend")

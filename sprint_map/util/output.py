@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import secrets
 import stat
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -103,7 +102,7 @@ class Output:
             else:
                 remove_stale_partials(self.target)
                 self.partial = self.target.with_name(
-                    f"{self.target.name}.{os.getpid()}-{secrets.token_hex(4)}"
+                    f"{self.target.name}.{os.getpid()}-{os.urandom(4).hex()}"
                     f"{atomic.PARTIAL_SUFFIX}")
                 fd = os.open(self.partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
                              | os.O_CLOEXEC, 0o644)

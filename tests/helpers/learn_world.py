@@ -42,7 +42,7 @@ def build(path: Path, *, seed: int = 0, places: int = PLACES, wrong: float = 0.0
     target = np.arange(places)
     bad = rng.random(places) < wrong
     target[bad] = rng.integers(0, places, int(bad.sum()))
-    cfg = MapConfig.from_dict({"dim": DIM, "learn_dim": 16, "learn_min_pairs": 200, **config})
+    cfg = MapConfig.from_dict({"dim": DIM, "store": {"learn_dim": 16, "learn_min_pairs": 200, **config}})
     with MapStore.create(path, cfg) as store:
         store.add_sequence(first, name="first")
         store.add_sequence(second, name="second", edges=[

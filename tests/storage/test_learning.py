@@ -185,7 +185,7 @@ def test_a_map_made_before_learning_opens_and_works_unchanged(tmp_path):
         store.flush()
     files = sorted(p.name for p in (path / "index").iterdir())
     with SprintMap.open(path) as m:
-        assert m.config.learn_every == 0
+        assert m.config.store.learn_every == 0
         assert m.info()["projection"] is None
         m.add_sequence(first[:10], name="more")
     assert ok(path)

@@ -26,7 +26,6 @@ size and BLAKE2b-128 checksum (see :mod:`~sprint_map.storage.index.map_index`).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -69,6 +68,8 @@ ROW_SAMPLE = 20000
 
 def checksum_bytes(data: bytes) -> str:
     """BLAKE2b-128 of ``data``, hex (the index manifest's checksum). O(len(data))."""
+    import hashlib  # (here: `info` needs no OpenSSL)
+
     return hashlib.blake2b(data, digest_size=16).hexdigest()
 
 
