@@ -533,7 +533,7 @@ def check(map_path: str, repair: bool, as_json: bool) -> None:
 @click.option("--by-name", is_flag=True, help="Read every SEQ as a name, even all digits.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def remove(map_path: str, seqs: tuple[str, ...], by_name: bool, as_json: bool) -> None:
-    """Forget the sequences SEQ... of MAP (ids, or names), in one atomic commit.
+    """Forget the given sequences of MAP (ids or names) in one atomic commit.
 
     Their edges go and components split where nothing else joins them; their space is
     reclaimed by `sprint-map compact`. A SEQ of ASCII digits (0-9) is a sequence id, anything
