@@ -24,6 +24,12 @@ the map for every later drive. Summary per run: recall@1 pooled over
 the earlier half of the traversals (1 .. N/2 - 1) and over the later half (N/2 .. N - 1), and
 merge minus no-merge on the later half, in points.
 
+The two halves are different frames: early drives can only be scored where the small map
+reaches, later drives everywhere, so "later minus earlier" mixes the map's growth with what the
+drives ask. The *snapshot* control separates them: each later-half drive is also localised
+against a copy of the map as it stood before the later half, and both answers are scored on the
+frames that copy can match ("grown - before", per run).
+
 Which decisions: ``merge`` scores ``IngestResult.decisions``, the ones the merge used (made
 from the smoothed posterior once the drive has been seen); ``no-merge``, whose ingest localises
 nothing, scores ``SprintMap.localize(rows, smooth=True)``, documented as the same decisions.
@@ -58,6 +64,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -169,12 +176,23 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             config: MapConfig | None = None, learn_every: int = 0) -> list[dict[str, Any]]:
     """The lifelong protocol on one fresh map (default config: HoG); one row per traversal
     after the first. ``learn_every`` > 0: the map learns its descriptor (``index --learn``)
-    after every ``learn_every`` drives."""
+    after every ``learn_every`` drives. Each later-half drive is also localised against a copy
+    of the map as it stood before the later half (the *snapshot*), and both maps' answers are
+    scored on the frames the snapshot can match (``snapshot_*`` keys of the rows)."""
     rows_out: list[dict[str, Any]] = []
     config = config or MapConfig.for_descriptor("hog")
     name = ("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
-    with SprintMap.create(work / f"{name}.map", config) as m:
+    split = len(drives) // 2  # the first traversal of the later half (as summarise splits)
+    path = work / f"{name}.map"
+    snapshot: SprintMap | None = None
+    m = SprintMap.create(path, config)
+    try:
         for i, drive in enumerate(drives):
+            if i == split:
+                m.close()
+                shutil.copytree(path, work / f"{name}-snapshot.map")
+                snapshot = SprintMap.open(work / f"{name}-snapshot.map", readonly=True)
+                m = SprintMap.open(path)
             if learn_every and i and i % learn_every == 0:
                 m.learn()
             if i == 0:
@@ -218,11 +236,33 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
                 d.seq_id is None or d.image_id is None
                 or not gt.correct(drive.name, d.frame, names[d.seq_id], d.image_id)
                 for d in merged)
+            if snapshot is not None:
+                row.update(snapshot_scores(snapshot, drive, gt, decisions, names))
             stats = m.stats()
             row.update(edges_added=result.added.edges_added, components=stats["components"],
                        seconds=round(time.perf_counter() - start, 2))
             rows_out.append(row)
+    finally:
+        m.close()
+        if snapshot is not None:
+            snapshot.close()
     return rows_out
+
+
+def snapshot_scores(snapshot: SprintMap, drive: Drive, gt: GroundTruth,
+                    decisions: list[FrameDecision], names: dict[int, str]) -> dict[str, int]:
+    """The drive localised against the ``snapshot`` (smoothed, as ingest decides) and the grown
+    map's ``decisions`` (against ``names``), both scored on the frames the snapshot can match:
+    what the map's growth alone changed, on the same frames."""
+    snap_names = {s.seq_id: s.name for s in snapshot.sequences()}
+    frames = np.arange(len(drive.rows))
+    has_match = gt.has_match(drive.name, frames, list(snap_names.values()))
+    snap, _ = snapshot.localize(drive.rows, smooth=True, thumbnails=drive.thumbnails)
+    return {"snapshot_frames_with_match": int(has_match.sum()),
+            "snapshot_sprint_correct": score(snap, drive.name, gt, snap_names,
+                                             has_match)["sprint_correct"],
+            "grown_sprint_correct_on_snapshot_frames": score(
+                decisions, drive.name, gt, names, has_match)["sprint_correct"]}
 
 
 def pooled(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -253,6 +293,21 @@ def pooled(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def snapshot_summary(later: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The later half against the map before it (the snapshot) and against the grown map, on
+    the same frames (those the snapshot can match): recall@1 of each and grown minus snapshot
+    in points. None without snapshot rows."""
+    rows = [r for r in later if "snapshot_frames_with_match" in r]
+    frames = sum(r["snapshot_frames_with_match"] for r in rows)
+    if not frames:
+        return None
+    snap = sum(r["snapshot_sprint_correct"] for r in rows) / frames
+    grown = sum(r["grown_sprint_correct_on_snapshot_frames"] for r in rows) / frames
+    return {"frames": frames, "snapshot_recall@1": round(snap, 4),
+            "grown_recall@1": round(grown, 4),
+            "grown_minus_snapshot_points": round(100 * (grown - snap), 2)}
+
+
 def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
     """Earlier half vs later half per arm, and merge vs no-merge on the later half."""
     out: dict[str, Any] = {}
@@ -265,7 +320,8 @@ def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
                     "later_minus_earlier_points": round(
                         100 * (lat["sprint_recall@1"] - e["sprint_recall@1"]), 2),
                     "accepted_later_minus_earlier_points": round(
-                        100 * (lat["accepted_recall@1"] - e["accepted_recall@1"]), 2)}
+                        100 * (lat["accepted_recall@1"] - e["accepted_recall@1"]), 2),
+                    "snapshot": snapshot_summary(later)}
     for key, prefix in (("sprint_recall@1", ""), ("online_sprint_recall@1", "online_"),
                         ("accepted_recall@1", "accepted_"),
                         ("online_accepted_recall@1", "online_accepted_")):
@@ -316,6 +372,13 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
               f"{pct(e['accepted_recall@1'])} {{{pct(e['online_accepted_recall@1'])}}}, later half "
               f"{pct(lat['accepted_recall@1'])} {{{pct(lat['online_accepted_recall@1'])}}}, "
               f"later - earlier {s[arm]['accepted_later_minus_earlier_points']:+.1f} points")
+    for arm in ARMS:
+        snap = s[arm].get("snapshot")
+        if snap:
+            print(f"  {arm:>8}: later half on the frames the map before it can match "
+                  f"({snap['frames']:.0f}): against that map {pct(snap['snapshot_recall@1'])}, "
+                  f"against the grown map {pct(snap['grown_recall@1'])}, grown - before "
+                  f"{snap['grown_minus_snapshot_points']:+.1f} points (the map's growth alone)")
     merge = s["merge"]
     print(f"  merged decisions (edges): precision {pct(merge['earlier']['merge_precision'])} "
           f"({merge['earlier']['merged_wrong']:.0f} wrong of {merge['earlier']['merged']:.0f}) on the "
@@ -360,6 +423,9 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         }
         for key in ("later_minus_earlier_points", "accepted_later_minus_earlier_points"):
             out[arm][key] = mean((arm, key))
+        if all(s[arm].get("snapshot") for s in summaries):
+            out[arm]["snapshot"] = {key: mean((arm, "snapshot", key)) for key in (
+                "frames", "snapshot_recall@1", "grown_recall@1", "grown_minus_snapshot_points")}
     for key in ("merge_minus_no_merge_later_points", "online_merge_minus_no_merge_later_points",
                 "accepted_merge_minus_no_merge_later_points",
                 "online_accepted_merge_minus_no_merge_later_points",
