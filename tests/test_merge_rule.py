@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sprint_map.localize.localizer import FrameDecision
-from sprint_map.merge.rule import MergeRule, run_lengths, select_merges
+from sprint_map.merge.rule import MergeRule, run_lengths, select_merges, teleports
 from sprint_map.merge.smoothing import local_quantiles
 
 
@@ -168,3 +168,18 @@ def test_runs_on_images_the_other_run_never_saw_are_no_teleport():
     # the map drive looped: its images 233-264 and 148-203 are neighbouring streets
     drive = along(40, start=233) + along(40, start=148, first_frame=40)
     assert select_merges(drive, MergeRule.permissive(window=3, min_run=20)).all()
+
+
+def test_a_run_that_skips_over_the_images_of_another_is_no_teleport():
+    # the first run steps 10 images at a 3-frame gap (19 -> 29), the second, later, holds
+    # only images 21-27: the runs share that range of images but no frame of the first lies
+    # on it (a latent lifelong drive crashed here once)
+    gap = [FrameDecision(20 + i, None, None, 0.0) for i in range(2)]
+    first = along(20, start=0) + gap + along(18, start=29, first_frame=22)
+    off = [FrameDecision(40 + i, None, None, 0.0) for i in range(20)]
+    second = along(7, start=21, first_frame=60)
+    drive = first + off + second
+    assert select_merges(drive, MergeRule.permissive(window=3)).sum() == len(first) - 2 + 7
+    seq = np.array([-1 if d.seq_id is None else d.seq_id for d in drive])
+    img = np.array([-1 if d.image_id is None else d.image_id for d in drive])
+    assert not teleports(seq, img, 3, 3.0).any()

@@ -275,6 +275,10 @@ def teleports(seq: np.ndarray, img: np.ndarray, max_gap: int, max_rate: float) -
                 continue
             on_a = first[(img[first] >= lo) & (img[first] <= hi)]
             on_b = second[(img[second] >= lo) & (img[second] <= hi)]
+            if not on_a.size or not on_b.size:
+                # One run stepped over the shared images (a step of a run spans at most
+                # max_rate * max_gap + 1 images): none of its frames lies on them to contest.
+                continue
             # frames between leaving the shared images and coming back to them
             gap = int(max(on_b[0] - on_a[-1], on_a[0] - on_b[-1]))
             if gap > 0 and hi - lo + 1 > max_rate * (gap + max_gap):
