@@ -193,8 +193,9 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
                 shutil.copytree(path, work / f"{name}-snapshot.map")
                 snapshot = SprintMap.open(work / f"{name}-snapshot.map", readonly=True)
                 m = SprintMap.open(path)
+            learned = None
             if learn_every and i and i % learn_every == 0:
-                m.learn()
+                learned = m.learn()
             if i == 0:
                 m.ingest(drive.rows, name=drive.name, positions=drive.xy, merge=merge,
                          thumbnails=drive.thumbnails)
@@ -236,6 +237,8 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
                 d.seq_id is None or d.image_id is None
                 or not gt.correct(drive.name, d.frame, names[d.seq_id], d.image_id)
                 for d in merged)
+            if learned is not None:
+                row["learned"] = learned
             if snapshot is not None:
                 row.update(snapshot_scores(snapshot, drive, gt, decisions, names))
             stats = m.stats()
@@ -331,6 +334,10 @@ def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
         out["learn_minus_merge_later_points"] = {key: round(100 * (
             out["merge+learn"]["later"][key] - out["merge"]["later"][key]), 2) for key in (
             "sprint_recall@1", "online_sprint_recall@1", "knn_recall@1")}
+        reports = [r["learned"] for r in arms["merge+learn"] if "learned" in r]
+        out["learn_adopted"] = {"tried": len(reports),
+                                "adopted": sum(bool(r["adopted"]) for r in reports),
+                                "pairs_last": reports[-1]["pairs"] if reports else 0}
     out["ingest_differs_from_localize"] = sum(r["ingest_differs_from_localize"]
                                               for r in arms["merge"])
     return out
@@ -393,7 +400,9 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
         learn = s["merge+learn"]
         print(f"  merge+learn: later half {pct(learn['later']['sprint_recall@1'])} "
               f"(merge precision {pct(learn['later']['merge_precision'])}); learn - merge on "
-              f"the later half (points): {s['learn_minus_merge_later_points']}")
+              f"the later half (points): {s['learn_minus_merge_later_points']}; projection "
+              f"adopted {s['learn_adopted']['adopted']} of {s['learn_adopted']['tried']} times "
+              f"(last from {s['learn_adopted']['pairs_last']} pairs)")
     if s.get("ingest_differs_from_localize"):
         print(f"  WARNING: on {s['ingest_differs_from_localize']:.0f} frames ingest's decision "
               "differs from localize(smooth=True)'s: the runs score different procedures")
