@@ -77,6 +77,10 @@ class StoreOptions:
     index_auto_vertices: int = 200_000
     #: Vertices sampled (seeded) to train PCA and the quantizer.
     index_train_sample: int = 65536
+    #: The writer trains the approximate index again (a new generation, like ``index
+    #: --train``) once the map holds this many times the vertices its model was trained on,
+    #: so that its lists and codebooks follow the map as it grows (0: never).
+    index_retrain_growth: float = 4.0
     #: A writer persists the index once this many vertices were added since the last file and the
     #: map grew by ``index_persist_growth`` times that file's size (0: every time).
     index_persist_every: int = 200_000
@@ -109,6 +113,8 @@ class StoreOptions:
             raise ValueError("index_auto_vertices must be >= 1")
         if self.index_train_sample < self.index_nlist:
             raise ValueError("index_train_sample must be >= index_nlist")
+        if not (self.index_retrain_growth == 0 or self.index_retrain_growth > 1):
+            raise ValueError("index_retrain_growth must be 0 (never) or > 1")
         if self.index_persist_every < 1:
             raise ValueError("index_persist_every must be >= 1")
         if not self.index_persist_growth >= 0:

@@ -74,7 +74,8 @@ def test_config_defaults_validation_and_old_maps():
     old = MapConfig.from_dict({"dim": 8, "index_type": "flat", "shard_rows": 64})
     assert old.store.index_type == "flat" and old.store.index_nlist == 1024
     for bad in ({"index_type": "hnsw"}, {"index_nprobe": 2000}, {"index_nlist": 0},
-                {"index_pq_m": 7}, {"index_merge_factor": 1}, {"index_train_sample": 10}):
+                {"index_pq_m": 7}, {"index_merge_factor": 1}, {"index_train_sample": 10},
+                {"index_retrain_growth": 1.0}, {"index_retrain_growth": -2}):
         with pytest.raises(ConfigError):
             MapConfig.from_dict({"dim": 128, **bad})
 
@@ -166,6 +167,32 @@ def test_auto_switches_from_flat_when_the_map_grows(tmp_path, rng, centres):
     assert read_manifest(path / INDEX_DIR).trained_on == 4200
     _, ids = search_all(path, rows[::50], 1)
     np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(rows), 50))
+
+
+@pytest.mark.parametrize("growth", [0, 2.0])
+def test_the_writer_retrains_as_the_map_grows(tmp_path, rng, centres, growth):
+    # trained at 300 vertices; with growth 2 trained again once the map holds 600
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [300], index_retrain_growth=growth)
+    first = read_manifest(path / INDEX_DIR)
+    assert first.trained_on == 300
+    with MapStore.open(path) as store:
+        for n in (250, 50, 400):
+            rows = np.concatenate([rows, clustered(rng, n, centres)])
+            store.add_sequence(rows[-n:])
+            manifest = store.index.active.manifest
+            if growth and len(rows) >= 600:
+                assert manifest.trained_on == (600 if len(rows) < 1200 else len(rows))
+                assert manifest.generation > first.generation
+            else:
+                assert manifest == first or manifest.generation == first.generation
+    assert read_manifest(path / INDEX_DIR).trained_on == (600 if growth else 300)
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+    assert report.ok, report.violations
+    dists, ids = search_all(path, rows[::25], 1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(rows), 25))
+    assert np.allclose(dists[:, 0], 0.0)
 
 
 # --- untrusted files --------------------------------------------------------------------------

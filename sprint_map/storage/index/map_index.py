@@ -406,7 +406,24 @@ class IndexStore:
         self._shards, self._committed = shards, committed
         if approximate_kind(self.config, committed) is not None and self.active.exact:
             self.load(committed, shards)  # the published segments, or train them now
+        elif self.retrain_due(committed):
+            self.train(committed, shards)
         return self.active.after_commit(committed, shards)
+
+    def retrain_due(self, committed: int) -> bool:
+        """Whether the loaded approximate index's model was trained on a map
+        ``index_retrain_growth`` times smaller than ``committed`` (never with growth 0).
+
+        Notes
+        -----
+        O(1). A retraining costs what :meth:`train` costs; at growth ``g`` every vertex is
+        encoded ``g / (g - 1)`` times over the map's life (4/3 at the default 4).
+        """
+        growth = self.config.index_retrain_growth
+        active = self.active
+        if not growth or not isinstance(active, SegmentedIndex) or not active.loaded:
+            return False
+        return committed >= growth * max(active.manifest.trained_on, 1)
 
     def persist(self) -> bool:
         """Make the files cover what they should: seal full tail blocks (segmented), train
