@@ -444,6 +444,9 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
         out["learn_minus_merge_later_points"] = {key: mean(("learn_minus_merge_later_points", key))
                                                  for key in summaries[0][
                                                      "learn_minus_merge_later_points"]}
+        out["learn_adopted"] = {key: sum(s["learn_adopted"][key] for s in summaries)
+                                for key in ("tried", "adopted")}
+        out["learn_adopted"]["pairs_last"] = summaries[-1]["learn_adopted"]["pairs_last"]
     return out
 
 
