@@ -118,6 +118,8 @@ class RowReader:
             self.close()
             self._directory = shards.directory
         out = np.empty((len(ids), shards.dim), dtype=np.float32)
+        if not len(ids):
+            return out
         view = memoryview(out.data).cast("B")
         size, per_shard, fds = shards.row_bytes, shards.shard_rows, self._fds
         for i, vid in enumerate(np.asarray(ids, dtype=np.int64).tolist()):

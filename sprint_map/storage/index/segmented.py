@@ -318,6 +318,13 @@ class SegmentedIndex(RetrievalIndex):
             lists = faiss.downcast_InvertedLists(index.invlists)
             if isinstance(lists, faiss.OnDiskInvertedLists):
                 lists.prefetch_nthread = 0  # prefetch threads cost 10x a small search
+            table = getattr(index, "precomputed_table", None)
+            if table is not None and table.size():
+                # Only the stacked index searches (with its own table): a segment's copy of
+                # the model's precomputed PQ table (nlist * 256 * pq_m floats, 16 MB at 1,024
+                # lists) is dropped; a direct search would compute its tables on the fly.
+                index.use_precomputed_table = -1
+                table.resize(0)
             segments.append(index)
             opened[seg.file] = index
         self._segments = segments
@@ -401,7 +408,7 @@ class SegmentedIndex(RetrievalIndex):
         cand = np.concatenate(ids, axis=1)
         valid = cand[cand >= 0]
         unique = np.unique(valid)
-        rows = self._reader.rows(shards, unique, committed)
+        rows = self._candidate_rows(shards, unique, committed)
         if self.projection is not None:  # only compared with each other: float32 is enough
             rows = self.projection.apply(rows, exact=False)
         for q in range(nq):
@@ -414,6 +421,19 @@ class SegmentedIndex(RetrievalIndex):
             out_d[q, : len(order)] = exact[order]
             out_i[q, : len(order)] = mine[order]
         return out_d, out_i
+
+    def _candidate_rows(self, shards: ShardSet, ids: np.ndarray, committed: int
+                        ) -> Descriptors:
+        """The raw rows of the candidates ``ids`` (ascending): read from the shards, except
+        those of the tail when the indexed space is the raw one (no PCA, no projection), which
+        the tail holds as they are. O(len(ids)) reads at most."""
+        if self.model.pca is not None or self.projection is not None or not self.tail_len:
+            return self._reader.rows(shards, ids, committed)
+        split = int(np.searchsorted(ids, self.tail_start))
+        rows = np.empty((len(ids), self._tail.shape[1]), dtype=np.float32)
+        rows[:split] = self._reader.rows(shards, ids[:split], committed)
+        rows[split:] = self._tail[ids[split:] - self.tail_start]
+        return rows
 
     # --- writing (the writer only) ------------------------------------------------------------
     def after_commit(self, committed: int, shards: ShardSet) -> bool:
