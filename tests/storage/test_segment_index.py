@@ -255,7 +255,7 @@ import sys, numpy as np
 from sprint_map.storage.store import MapStore
 path, mode, DIM = sys.argv[1], sys.argv[2], int(sys.argv[3])
 with MapStore.open(path) as store:
-    if mode == "add":
+    if mode in ("add", "grow"):  # grow: 4x the vertices the index was trained on, retrained
         rng = np.random.default_rng(5)
         store.add_sequence(rng.standard_normal((700, DIM)).astype(np.float32) * 3)
     else:
@@ -269,23 +269,27 @@ def run_child(path: Path, mode: str, point: str | None) -> int:
                           capture_output=True, timeout=120).returncode
 
 
-@pytest.mark.parametrize("mode", ["add", "train"])
+@pytest.mark.parametrize("mode", ["add", "train", "grow"])
 @pytest.mark.parametrize("point", SEGMENT_POINTS)
 def test_kill_at_each_segment_point(tmp_path, rng, centres, point, mode):
     """Killed while training, sealing or publishing: the map is intact, a writer's open
     removes the leftovers, the index (old or new) finds every vertex, check passes."""
     path = tmp_path / "m"
-    # 200 vertices: flat (below MIN_TRAIN); "train" mode starts from a trained index.
-    rows = build(path, rng, centres, [200] if mode == "add" else [200, 700])
+    # 200 vertices: flat (below MIN_TRAIN); "train" mode starts from a trained index; "grow"
+    # from one trained on 256, retrained by the commit that brings the map to 956.
+    lengths = {"add": [200], "train": [200, 700], "grow": [256]}[mode]
+    rows = build(path, rng, centres, lengths, index_retrain_growth=3.0)
     before = read_manifest(path / INDEX_DIR)
+    assert mode == "add" or before.trained_on == sum(lengths)
     assert run_child(path, mode, point) == -9
     with MapStore.open(path, readonly=True) as store:
         total = store.stats()["vertices"]
         report = check_map(store)
         assert report.ok, report.violations  # leftovers are notes, never violations
         all_rows = store.shards.rows(0, total, total).copy()
-    assert total == 900 and (mode == "add" or np.array_equal(all_rows, rows))
-    if mode == "train":  # readers still have the old generation whole
+    assert total == sum(lengths) + (0 if mode == "train" else 700)
+    assert mode == "add" or np.array_equal(all_rows[: len(rows)], rows)
+    if mode != "add":  # readers still have the old generation whole
         assert read_manifest(path / INDEX_DIR).generation == before.generation + (
             point == "index.manifest_published")
     with MapStore.open(path) as store:

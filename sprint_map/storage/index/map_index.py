@@ -406,7 +406,7 @@ class IndexStore:
         self._shards, self._committed = shards, committed
         if approximate_kind(self.config, committed) is not None and self.active.exact:
             self.load(committed, shards)  # the published segments, or train them now
-        elif self.retrain_due(committed):
+        if self.retrain_due(committed):
             self.train(committed, shards)
         return self.active.after_commit(committed, shards)
 
