@@ -399,6 +399,16 @@ class SprintMap:
         """
         return self.store.rebuild_index(train=train)
 
+    def retrain_index_beside(self, exclusive: Callable[[], AbstractContextManager[object]]
+                             ) -> bool:
+        """Stop retraining the approximate index inside commits (``index_retrain_growth``)
+        and do it here instead, if the map outgrew it: trained while searches go on, switched
+        under ``exclusive()`` (a lock that excludes this process's searches and commits). For
+        a service's writer thread, between commits; True if the index was retrained. See
+        :meth:`sprint_map.storage.index.map_index.IndexStore.retrain_beside`."""
+        self.store.index.defer_retrain = True
+        return self.store.retrain_index_beside(exclusive)
+
     def learn(self) -> dict[str, Any]:
         """Learn a descriptor projection from the map's merged edges and rebuild the index
         with it if it retrieves held-back pairs better (``sprint-map index --learn``):

@@ -11,6 +11,7 @@ the index update hold the map gate exclusively.
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -31,6 +32,8 @@ from sprint_map.server.gate import MapGate
 from sprint_map.util.arrays import Descriptors
 
 __all__ = ["CommitJob", "CommitOutcome", "CommitWriter", "NameClaims"]
+
+log = logging.getLogger("sprint_map.server")
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,7 @@ class CommitWriter:
             self._thread.join(timeout)
 
     def _run(self) -> None:
+        self._retrain_index()  # from now on, never inside a commit
         while True:
             item = self._queue.get()
             if item is None:  # stop
@@ -150,6 +154,16 @@ class CommitWriter:
                 future.set_result(self.commit(job))
             except BaseException as exc:  # the caller gets every failure, the thread goes on
                 future.set_exception(exc)
+            self._retrain_index()
+
+    def _retrain_index(self) -> None:
+        """Retrain the approximate index if the map outgrew it, beside the frames: only the
+        switch to the new generation holds the gate (``SprintMap.retrain_index_beside``)."""
+        try:
+            if self.smap.retrain_index_beside(self.gate.exclusive):
+                log.info("index trained again beside the sessions")
+        except Exception:  # the commits are durable; the old index goes on answering
+            log.exception("index retraining failed; the previous index is kept")
 
     def commit(self, job: CommitJob) -> CommitOutcome:
         """Commit one drive (in the writer thread; also usable directly when no thread runs)."""

@@ -22,6 +22,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -658,6 +659,15 @@ class MapStore:
                                  f"{exc.strerror or exc}") from exc
         return [f"rebuilt the index from the shards ({total} vertices): "
                 f"{self.index.describe()['type']}"]
+
+    def retrain_index_beside(self, exclusive: Callable[[], AbstractContextManager[object]]
+                             ) -> bool:
+        """Retrain the approximate index if the map outgrew it (``index_retrain_growth``)
+        while searches go on, switching under ``exclusive()``
+        (:meth:`IndexStore.retrain_beside
+        <sprint_map.storage.index.map_index.IndexStore.retrain_beside>`); True if it did."""
+        self.require_writer()
+        return self.index.retrain_beside(self.counter("next_vertex_id"), self.shards, exclusive)
 
     # --- removal ----------------------------------------------------------------------------
     def removed_vertices(self, txn: lmdb.Transaction | None = None) -> int:

@@ -195,6 +195,60 @@ def test_the_writer_retrains_as_the_map_grows(tmp_path, rng, centres, growth):
     assert np.allclose(dists[:, 0], 0.0)
 
 
+def test_the_service_retrains_beside_the_searches(tmp_path, rng, centres):
+    # Deferred (a service): the commit does not retrain; retrain_index_beside does, while
+    # another thread keeps searching under the shared side of a lock; only the switch takes
+    # the exclusive side.
+    import threading
+    from contextlib import contextmanager
+
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [300], index_retrain_growth=2.0)
+    lock = threading.Lock()
+    switches = []
+
+    @contextmanager
+    def exclusive():
+        with lock:
+            switches.append(len(found))
+            yield
+
+    found: list[bool] = []
+    stop = threading.Event()
+    with MapStore.open(path) as store:
+        store.index.defer_retrain = True
+        more = clustered(rng, 400, centres)
+        store.add_sequence(more)
+        rows = np.concatenate([rows, more])
+        assert store.index.active.manifest.trained_on == 300  # not inside the commit
+
+        def search() -> None:
+            i = 0
+            while not stop.is_set():
+                with lock:
+                    _, ids = store.search(rows[i % len(rows)][None], 1)
+                found.append(int(ids[0, 0]) == i % len(rows))
+                i += 7
+
+        searcher = threading.Thread(target=search)
+        searcher.start()
+        try:
+            assert store.retrain_index_beside(exclusive)
+        finally:
+            stop.set()
+            searcher.join()
+        assert store.index.active.manifest.trained_on == 700
+        assert not store.retrain_index_beside(exclusive)  # not due again
+    assert found and all(found)
+    assert len(switches) == 2
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+        assert report.ok, report.violations
+        assert not [n for n in report.notes if "not in the manifest" in n]
+    _, ids = search_all(path, rows[::20], 1)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(rows), 20))
+
+
 # --- untrusted files --------------------------------------------------------------------------
 
 
@@ -255,9 +309,19 @@ import sys, numpy as np
 from sprint_map.storage.store import MapStore
 path, mode, DIM = sys.argv[1], sys.argv[2], int(sys.argv[3])
 with MapStore.open(path) as store:
-    if mode in ("add", "grow"):  # grow: 4x the vertices the index was trained on, retrained
+    if mode in ("add", "grow", "beside"):  # grow: past 3x the vertices trained on, retrained
         rng = np.random.default_rng(5)
+        store.index.defer_retrain = mode == "beside"
+        if mode == "beside":  # killed in the retraining only, not in the commit's seal
+            import contextlib, os
+            from sprint_map.testing.crash import CRASH_ENV
+            point = os.environ.pop(CRASH_ENV, None)
         store.add_sequence(rng.standard_normal((700, DIM)).astype(np.float32) * 3)
+        if mode == "beside":  # (a service's writer thread, between commits)
+            store.index.active.wait()
+            if point:
+                os.environ[CRASH_ENV] = point
+            store.retrain_index_beside(contextlib.nullcontext)
     else:
         store.rebuild_index(train=True)
 """
@@ -269,7 +333,7 @@ def run_child(path: Path, mode: str, point: str | None) -> int:
                           capture_output=True, timeout=120).returncode
 
 
-@pytest.mark.parametrize("mode", ["add", "train", "grow"])
+@pytest.mark.parametrize("mode", ["add", "train", "grow", "beside"])
 @pytest.mark.parametrize("point", SEGMENT_POINTS)
 def test_kill_at_each_segment_point(tmp_path, rng, centres, point, mode):
     """Killed while training, sealing or publishing: the map is intact, a writer's open
@@ -277,7 +341,7 @@ def test_kill_at_each_segment_point(tmp_path, rng, centres, point, mode):
     path = tmp_path / "m"
     # 200 vertices: flat (below MIN_TRAIN); "train" mode starts from a trained index; "grow"
     # from one trained on 256, retrained by the commit that brings the map to 956.
-    lengths = {"add": [200], "train": [200, 700], "grow": [256]}[mode]
+    lengths = {"add": [200], "train": [200, 700], "grow": [256], "beside": [256]}[mode]
     rows = build(path, rng, centres, lengths, index_retrain_growth=3.0)
     before = read_manifest(path / INDEX_DIR)
     assert mode == "add" or before.trained_on == sum(lengths)

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -113,6 +115,9 @@ class IndexStore:
         self.train_s = 0.0
         self._shards: ShardSet | None = None
         self._committed = 0
+        #: Leave the growth retraining to :meth:`retrain_beside` (a service: the commit path
+        #: holds every session while it runs) instead of doing it in :meth:`after_commit`.
+        self.defer_retrain = False
 
     def _make(self, kind: type[RetrievalIndex]) -> RetrievalIndex:
         """A new, unloaded index of ``kind`` in the directory of the followed projection
@@ -406,9 +411,57 @@ class IndexStore:
         self._shards, self._committed = shards, committed
         if approximate_kind(self.config, committed) is not None and self.active.exact:
             self.load(committed, shards)  # the published segments, or train them now
-        if self.retrain_due(committed):
+        if not self.defer_retrain and self.retrain_due(committed):
             self.train(committed, shards)
         return self.active.after_commit(committed, shards)
+
+    def retrain_beside(self, committed: int, shards: ShardSet,
+                       exclusive: Callable[[], AbstractContextManager[object]]) -> bool:
+        """The growth retraining (:meth:`retrain_due`) with searches going on: the new
+        generation is trained and encoded while this index keeps answering from the old one,
+        and only the switch runs under ``exclusive()`` (the caller's lock against searches
+        and commits of this process). The writer's thread, between commits: nothing may
+        commit or seal meanwhile. True if the index was retrained.
+
+        Crash safe like :meth:`train`: the new files are named by the manifest published at
+        the switch; a kill before it leaves unnamed files, removed by the next writer's open.
+
+        Notes
+        -----
+        What :meth:`train` costs, outside the lock; under it, a seal in flight finishing,
+        then O(segments) to open the new ones and the tail's catch-up.
+        """
+        assert self.writable
+        active = self.active
+        if not self.retrain_due(committed) or not isinstance(active, SegmentedIndex):
+            return False
+        with exclusive():
+            active.wait()  # the old generation publishes nothing more until the switch
+            fresh = self._make(SegmentedIndex)
+        assert isinstance(fresh, SegmentedIndex)
+        started = time.perf_counter()
+        try:
+            fresh.rebuild(committed, shards, publish=False)
+        except OSError as exc:  # the old index goes on; the unnamed files go at the next open
+            fresh.close()
+            self.events.append(f"index retraining failed ({exc.strerror or exc}); the "
+                               "previous generation is kept")
+            return False
+        with exclusive():
+            try:
+                fresh.finish(committed, shards)
+            except OSError as exc:  # the old index (files and all) still answers here
+                fresh.close()
+                self.events.append(f"index retraining not installed ({exc.strerror or exc})")
+                return False
+            self.active = fresh
+            active.close()
+        self._shards, self._committed = shards, committed
+        self.train_s += time.perf_counter() - started
+        desc = fresh.describe()
+        self.events.append(f"index trained again beside searches: {desc['type']}, "
+                           f"{desc['segments']} segments")
+        return True
 
     def retrain_due(self, committed: int) -> bool:
         """Whether the loaded approximate index's model was trained on a map

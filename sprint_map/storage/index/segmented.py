@@ -577,13 +577,16 @@ class SegmentedIndex(RetrievalIndex):
         return True
 
     # --- building -----------------------------------------------------------------------------
-    def rebuild(self, committed: int, shards: ShardSet) -> None:
+    def rebuild(self, committed: int, shards: ShardSet, *, publish: bool = True) -> None:
         """Train a new generation's model on a seeded sample, seal ``[0, committed)`` in full
         segments, publish it, then delete the files of older generations.
 
         The kind is the config's (``ivf-pq`` for ``auto``). Nothing is visible until the
         manifest is replaced, so readers keep the previous index until then; a kill leaves
-        the old one (its files named by the old manifest) or the new one.
+        the old one (its files named by the old manifest) or the new one. With ``publish``
+        False the new generation's files are written but not named: :meth:`finish` names
+        them (until then, another index in this directory must not publish a manifest, which
+        would delete them as leftovers).
 
         Raises
         ------
@@ -623,11 +626,18 @@ class SegmentedIndex(RetrievalIndex):
             crash_point("index.segment_written")
         self._manifest = replace(manifest, segments=tuple(entries))
         self.tail_start = self.manifest.sealed
-        publish_manifest(directory, self.manifest)
+        if publish:
+            self.finish(committed, shards)
+
+    def finish(self, committed: int, shards: ShardSet) -> None:
+        """Publish the manifest of a :meth:`rebuild` made with ``publish=False``, open its
+        segments, catch the tail up to ``committed`` and delete every file it does not name
+        (the older generations'). O(segments) plus the catch-up."""
+        publish_manifest(self.directory, self.manifest)
         self._open_segments()
         self.shards = shards
         self.catch_up(committed, shards)
-        remove_unlisted(directory, self.manifest)
+        remove_unlisted(self.directory, self.manifest)
 
     def _encode(self, shards: ShardSet, start: int, stop: int, committed: int) -> Any:
         segment = faiss.clone_index(self.model.ivf)
