@@ -454,8 +454,8 @@ class IndexStore:
                 fresh.close()
                 self.events.append(f"index retraining not installed ({exc.strerror or exc})")
                 return False
-            self.active = fresh
-            active.close()
+            old, self.active = self.active, fresh
+            old.close()
         self._shards, self._committed = shards, committed
         self.train_s += time.perf_counter() - started
         desc = fresh.describe()
