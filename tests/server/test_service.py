@@ -337,3 +337,39 @@ def test_token_sources_and_matching(tmp_path, monkeypatch):
     assert token_matches("Bearer abc", "abc") and token_matches("bearer abc", "abc")
     assert not token_matches("Bearer abd", "abc") and not token_matches(None, "abc")
     assert not token_matches("Basic abc", "abc")
+
+
+def test_the_writer_retrains_the_index_beside_the_sessions(tmp_path, rng):
+    """A commit that brings the map past ``index_retrain_growth`` times what its approximate
+    index was trained on: the writer thread retrains after the commit, sessions go on."""
+    places = rng.standard_normal((300, DIM))
+    path = tmp_path / "m.map"
+    config = MapConfig.from_dict({
+        "dim": DIM, "index_type": "ivf-pq", "index_nlist": 8, "index_nprobe": 8,
+        "index_segment_rows": 128, "index_merge_factor": 3, "index_train_sample": 1000,
+        "index_rerank": 50, "index_retrain_growth": 2.0})
+    with SprintMap.create(path, config) as m:
+        m.ingest(drive(places, rng), name="first")
+        m.search(places[:1], 1)  # the index is loaded (and trained) like a service's
+        trained = m.store.index.active.manifest
+    assert trained.trained_on == 300
+    second = drive(places, rng)
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        sid = (await client.post("/v1/sessions")).json()["session_id"]
+        await frames(client, sid, second)
+        done = (await client.post(f"/v1/sessions/{sid}/commit")).json()
+        assert done["edges_added"] > 0
+        index = service.map.store.index
+        for _ in range(200):  # the writer thread retrains after answering the commit
+            if index.active.manifest.trained_on > 300:
+                break
+            await asyncio.sleep(0.05)
+        assert index.active.manifest.trained_on == 300 + len(second)
+        assert index.active.manifest.generation == trained.generation + 1
+        assert index.defer_retrain and any("beside searches" in e for e in index.events)
+        watcher = (await client.post("/v1/sessions")).json()["session_id"]
+        answers = await frames(client, watcher, drive(places, rng)[:60])
+        assert sum(a["seq_id"] is not None for a in answers[10:]) >= 40
+
+    run_service(path, body)
