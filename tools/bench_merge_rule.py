@@ -19,9 +19,14 @@ merges) where the world declares twins, and seconds; then the mean over seeds pe
 or an ``HMMConfig`` field (``k``, ``hmm.k``) of every run; the default configuration then runs
 too as the baseline (skip it with ``--no-baseline``), and the table shows both.
 
+``--gnss-sigma M`` also runs every evaluation GNSS-aided (``eval --gnss-sigma``: fixes simulated
+from the ground truth with M metres of drift, dropouts and jumps); its figures are the rows
+``<config>+gnss`` beside the image-only ones.
+
     python tools/bench_merge_rule.py --family city city-novel latent --seeds 0 1 2 --json m.json
     python tools/bench_merge_rule.py --family latent --seeds 0 --set merge_max_contrast=0.9
     python tools/bench_merge_rule.py --family latent --quick     # 5 traversals x 120 frames
+    python tools/bench_merge_rule.py --family latent city-novel --gnss-sigma 10
 
 Cost: a latent world generates in ~2 s; a city renders in ~10-20 s (once, then cached); each
 evaluation is ~30 s (latent, 10 x 300) or ~20-40 s (city, 6 x 300) on one core.
@@ -201,14 +206,15 @@ def figures(results: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_one(path: Path, family: str, changes: dict[str, Any]
+def run_one(path: Path, family: str, changes: dict[str, Any], gnss_sigma: float = 0.0
             ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate one cached world; returns (figures, full results without private keys)."""
     dataset = Dataset.open(path)
     base = config_for(dataset) if family == "latent" else MapConfig.for_descriptor("hog")
     config = configured(base, changes)
+    options = EvalOptions(protocol="lifelong", gnss_sigma=gnss_sigma)
     with tempfile.TemporaryDirectory(prefix="bench-merge-") as tmp:
-        results = run_evaluation(dataset, Path(tmp), config, EvalOptions(protocol="lifelong"),
+        results = run_evaluation(dataset, Path(tmp), config, options,
                                  describe=CachedDescribe(path))
     clean = {k: v for k, v in results.items() if not k.startswith("_")}
     return figures(results), clean
@@ -232,14 +238,14 @@ def pct(value: float | None) -> str:
 
 def print_table(family: str, rows: list[tuple[str, str, dict[str, Any]]]) -> None:
     print(f"\n{family}")
-    print(f"{'seed':>5} {'config':>8} | {'mergeP':>6} {'P-twin':>6} {'mergeR':>6} {'novelM':>6} "
+    print(f"{'seed':>5} {'config':>12} | {'mergeP':>6} {'P-twin':>6} {'mergeR':>6} {'novelM':>6} "
           f"{'worstQ':>6} {'smooth':>6} | {'kNN@1':>6} {'kNN@10':>6} | {'merged':>6} "
           f"{'twins':>11} | {'s':>5}")
     for seed, arm, r in rows:
         twins = ("/".join(f"{r[k]:.0f}" for k in ("twin_merged_wrong", "twin_merged",
                                                    "twin_frames"))
                  if "twin_frames" in r else "-")
-        print(f"{seed:>5} {arm:>8} | {pct(r.get('merge_precision')):>6} "
+        print(f"{seed:>5} {arm:>12} | {pct(r.get('merge_precision')):>6} "
               f"{pct(r.get('merge_precision_no_twins')):>6} "
               f"{pct(r.get('merge_recall')):>6} {pct(r.get('novel_merged')):>6} "
               f"{pct(r.get('worst_query_precision')):>6} {pct(r.get('smoothed_recall@1')):>6} | "
@@ -261,8 +267,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --set: do not also run the default configuration")
     parser.add_argument("--cache", type=Path, default=default_cache(),
                         help="where generated worlds and descriptors are kept")
+    parser.add_argument("--gnss-sigma", type=float, default=0.0, metavar="M",
+                        help="also run GNSS-aided with fixes of M metres (rows '<config>+gnss')")
     parser.add_argument("--json", type=Path, help="write every figure (and full results) here")
     args = parser.parse_args(argv)
+    if not args.gnss_sigma >= 0:
+        parser.error("--gnss-sigma must be >= 0 metres")
     try:
         changes = parse_overrides(args.overrides)
         configured(MapConfig(dim=8), changes)  # fail before any work
@@ -288,19 +298,26 @@ def main(argv: list[str] | None = None) -> int:
             path = world(args.cache, family, seed, traversals, frames)
             made = time.perf_counter() - t0
             for arm, arm_changes in arms:
-                row, results = run_one(path, family, arm_changes)
+                row, results = run_one(path, family, arm_changes, args.gnss_sigma)
                 table.append((str(seed), arm, row))
                 runs.append({"seed": seed, "arm": arm, "world": str(path),
                              "world_seconds": round(made, 1), "figures": row,
                              "results": results})
+                if "gnss" in results:
+                    aided = figures({**results["gnss"], "seconds": results["seconds"]})
+                    table.append((str(seed), f"{arm}+gnss", aided))
+                    runs.append({"seed": seed, "arm": f"{arm}+gnss", "world": str(path),
+                                 "figures": aided})
                 made = 0.0
-        for arm, _ in arms:
+        names = [arm for arm, _ in arms] + (
+            [f"{arm}+gnss" for arm, _ in arms] if args.gnss_sigma else [])
+        for arm in names:
             table.append(("mean", arm, mean_row([r for _, a, r in table if a == arm])))
         print_table(f"{family} ({traversals} x {frames} frames per seed)", table)
         out["families"][family] = {
             "traversals": traversals, "frames": frames, "runs": runs,
             "mean": {arm: mean_row([r["figures"] for r in runs if r["arm"] == arm])
-                     for arm, _ in arms}}
+                     for arm in names}}
     seconds = time.perf_counter() - started
     out["seconds"] = round(seconds, 1)
     print(f"\n{seconds:.0f} s in all (merge P, merge P without the identical twins' merges, merge "
