@@ -12,6 +12,7 @@ from typing import Any
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localize.gnss import GnssConfig
+from sprint_map.merge.admission import Admission
 from sprint_map.merge.rule import MergeRule
 from sprint_map.storage.store_config import (
     INDEX_TYPES,
@@ -23,7 +24,7 @@ from sprint_map.storage.store_config import (
 from sprint_map.util import dataclass_dict
 
 __all__ = ["DESCRIPTOR_KINDS", "INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION",
-           "GnssConfig", "HMMConfig", "MapConfig", "MergeRule", "StoreOptions", "nest_flat_keys"]
+           "Admission", "GnssConfig", "HMMConfig", "MapConfig", "MergeRule", "StoreOptions", "nest_flat_keys"]
 
 #: "precomputed": descriptors are given as arrays (.npy); otherwise the front end's kinds.
 DESCRIPTOR_KINDS = ("precomputed", "hog", "patchnorm", "onnx")
@@ -52,9 +53,8 @@ class MapConfig:
     gnss : GnssConfig
         How a drive's GNSS fixes weigh localisation and merging, where the map stores positions
         (:mod:`sprint_map.localize.gnss`; a map stored without it takes the defaults).
-
-    A dict in the flat form of maps written before the config was nested (``index_type``,
-    ``merge_min_run``, ... at the top level) is read by :meth:`from_dict` into these parts.
+    admission : Admission
+        Which frames are stored: all, or what the map lacks (:mod:`sprint_map.merge.admission`).
     """
 
     dim: int
@@ -64,6 +64,7 @@ class MapConfig:
     hmm: HMMConfig = field(default_factory=HMMConfig)
     merge: MergeRule = field(default_factory=MergeRule)
     gnss: GnssConfig = field(default_factory=GnssConfig)
+    admission: Admission = field(default_factory=Admission)
 
     def __post_init__(self) -> None:
         if not isinstance(self.dim, int) or self.dim < 1:
@@ -109,7 +110,8 @@ class MapConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MapConfig:
         """Build from a dict (as stored in the map's meta record), nested or in the flat form
-        of older maps (see the class); a flat key overrides the same field of a nested part."""
+        of maps written before the config was nested; a flat key overrides the same field of
+        a nested part."""
         return dataclass_dict.from_dict(cls, nest_flat_keys(data))
 
     def to_dict(self) -> dict[str, Any]:

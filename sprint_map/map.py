@@ -253,8 +253,7 @@ class SprintMap:
             decisions = (self.smoothed(localizer, thumbnails=thumbnails)
                          if localizer is not None else [])
             done = drive.commit(decisions, positions, thumbnails=thumbnails)
-        return IngestResult(done.added, decisions, localizer.timing if localizer else Timing(),
-                            done.merged)
+        return done.result(decisions, localizer.timing if localizer else Timing(), drive.name)
 
     def begin_drive(self, name: str | None = None, source: str = "",
                     reserved: Container[str] = ()) -> DriveWriter:
@@ -269,7 +268,7 @@ class SprintMap:
         """
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
                            self.config.merge, self.config.merge.both_ways,
-                           self.store.component_of)
+                           self.store.component_of, self.config.admission)
 
     def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
                        hmm: HMMConfig | None = None) -> PreparedDrive:
@@ -305,7 +304,7 @@ class SprintMap:
             for batch in batches:
                 drive.append(batch)
             done = drive.commit(prepared.decisions, positions)
-        return IngestResult(done.added, prepared.decisions, prepared.timing, done.merged), None
+        return done.result(prepared.decisions, prepared.timing, drive.name), None
 
     def ingest_drives(
         self,
@@ -336,9 +335,10 @@ class SprintMap:
         return select_merges(decisions, self.config.merge)
 
     def merge(self, descriptors: Any, decisions: Sequence[FrameDecision], name: str | None = None,
-              positions: np.ndarray | None = None, source: str = "") -> AddResult:
+              positions: np.ndarray | None = None, source: str = "") -> AddResult | None:
         """Commit a localised drive with the decisions the merge rule selects as edges,
-        atomically (``decisions``: usually :meth:`localize` with ``smooth=True``)."""
+        atomically (``decisions``: usually :meth:`localize` with ``smooth=True``). None when the
+        map's admission stored no frame of it (its sightings were committed)."""
         with self.begin_drive(name, source) as drive:
             return drive.commit(decisions, positions, rows=descriptors).added
 

@@ -52,14 +52,15 @@ def test_ingest_info_sequences_components_check(map_path, drives, tmp_path):
     csv = tmp_path / "pos.csv"
     csv.write_text("frame,x,y\n" + "".join(f"{i},{i}.0,0\n" for i in range(60)))
     first = json.loads(run("ingest", map_path, drives[0], "--positions", csv, "--json").output)
-    assert first == {"seq_id": 0, "name": "drive0", "frames": 60, "component": 0,
+    assert first == {"seq_id": 0, "name": "drive0", "frames": 60, "frames_stored": 60,
+                     "frames_skipped": 0, "sightings": 0, "component": 0,
                      "edges_added": 0, "already_committed": False, "decisions": [],
                      "timing": first["timing"]}
     second = json.loads(run("ingest", map_path, drives[1], "--json").output)
     assert len(second["decisions"]) == 60
     assert set(second["decisions"][0]) == {"frame", "seq_id", "image_id", "prob", "novel_prob",
                                            "distance", "contrast", "confirmed", "verified",
-                                           "gnss_dist_m", "merged"}
+                                           "gnss_dist_m", "merged", "stored_as"}
     assert second["edges_added"] > 0 and second["component"] == 0
     assert {"retrieval_ms_per_frame", "hmm_ms_per_frame"} <= set(second["timing"])
     third = json.loads(run("ingest", map_path, drives[2], "--no-merge", "--json").output)
@@ -282,3 +283,25 @@ def test_index_learn_and_no_learn_json_contract(tmp_path):
     assert run("check", path).exit_code == 0
     assert run("index", path, "--no-learn").exit_code == 0
     assert json.loads(run("info", path, "--json").output)["projection"] is None
+
+
+def test_init_admission_novel_is_stored_and_ingest_reports_what_it_stored(tmp_path, drives):
+    path = tmp_path / "fleet.map"
+    result = run("init", path, "--dim", DIM, "--admission", "novel")
+    assert result.exit_code == 0, result.output
+    info = json.loads(run("info", path, "--json").output)
+    assert info["config"]["admission"]["mode"] == "novel"
+    run("ingest", path, drives[0], "--json")
+    again = json.loads(run("ingest", path, drives[0], "--name", "again", "--json").output)
+    # the very drive again: every frame matched where retrieval alone finds it
+    assert (again["frames"], again["frames_stored"], again["frames_skipped"]) == (60, 0, 60)
+    assert again["seq_id"] is None and again["sightings"] == 60
+    assert all(d["stored_as"] is None for d in again["decisions"])
+    line = run("ingest", path, drives[0], "--name", "third").output
+    assert line.startswith("stored nothing of third: 60 frames, 60 matched, 60 places seen")
+    new = json.loads(run("ingest", path, drives[1], "--name", "new", "--json").output)
+    stored = [d["stored_as"] for d in new["decisions"] if d["stored_as"] is not None]
+    assert len(stored) == new["frames_stored"] and new["seq_id"] in (None, 1)
+    assert [image for _, image in stored] == list(range(len(stored)))
+    bad = run("init", tmp_path / "other.map", "--dim", DIM, "--admission", "some")
+    assert bad.exit_code != 0 and "some" in bad.output

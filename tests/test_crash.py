@@ -40,6 +40,7 @@ from sprint_map.testing.crash import (
     REMOVE_POINTS,
     REPAIR_POINTS,
     SEGMENT_POINTS,
+    SIGHTING_POINTS,
     UNMERGE_POINTS,
 )
 from tests.helpers import crash_worker
@@ -250,6 +251,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
     tested |= set(GROUP_POINTS)  # tests/test_drives.py (a real multi-drive ingest killed)
     tested |= set(LEARN_POINTS)  # tests/storage/test_learning.py (learn and unlearn killed)
+    tested |= set(SIGHTING_POINTS)  # tests/merge/test_admission.py (an admitted drive killed)
     assert tested == set(CRASH_POINTS)
 
 

@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
                 "smooth_ms_per_frame": t["smooth_ms_per_frame"] if i else None,
                 "retrieval_ms_per_frame": t["retrieval_ms_per_frame"] if i else None,
                 "active_vertices_mean": t["active_vertices_mean"] if i else None,
-                "edges_added": result.added.edges_added,
+                "edges_added": result.edges_added,
                 "components": m.stats()["components"],
                 "ingest_s": round(time.perf_counter() - start, 3),
                 # the GNSS step, per frame it ran on (causal and smoothing passes alike)

@@ -57,6 +57,15 @@ first aiming at 20 % of its frames on streets the map has not seen; exact k-NN@1
 ~75 %. Its drives have no images, so no thumbnails (the merge verifies nothing on images).
 
     python tools/bench_lifelong.py --world latent --json lifelong-latent.json   # ~3 min/seed
+
+``--admission`` adds an arm ``merge+novel``: the merge run on a map created with
+``admission="novel"`` (:mod:`sprint_map.merge.admission`: a drive stores only what the map does
+not hold). Per drive it reports the frames stored, the map's vertices and disk bytes, and the
+per-frame cost (retrieval + HMM); the summary gives the map's size in traversals' worth of
+frames, its growth over the last fifth of the drives, and novel minus merge on the later half
+(recall@1 and merge precision). The ground truth of a stored stretch is its frames' positions.
+
+    python tools/bench_lifelong.py --world latent --traversals 100 --admission --png grow.png
 """
 
 from __future__ import annotations
@@ -68,6 +77,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +89,7 @@ from sprint_map.frontend import GroundTruth
 from sprint_map.frontend.thumbnails import make_thumbnail
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
+from sprint_map.merge.commit import IngestResult
 from sprint_map.synth import CityConfig, iter_city
 from sprint_map.synth.latent import LATENT_PRESETS, LatentConfig, make_latent
 
@@ -98,6 +109,8 @@ WORLDS = {
 LATENT = LATENT_PRESETS["latent-lifelong"]
 KS = (1, 10)
 ARMS = ("merge", "no-merge")
+#: ``--admission``: the merge run on a map that stores only what it lacks.
+NOVEL_ARM = "merge+novel"
 
 
 @dataclasses.dataclass
@@ -109,6 +122,7 @@ class Drive:
     rows: np.ndarray  # (N, dim) float32 HoG
     xy: np.ndarray  # (N, 2)
     thumbnails: list[bytes] | None  # one JPEG per frame, as ``ingest --thumbnails`` keeps them
+    positions: np.ndarray  # (N, 3 or 4): the ground truth's ``frame, x, y[, heading_deg]``
 
 
 def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
@@ -127,7 +141,7 @@ def render_drives(seed: int, traversals: int, frames: int, config: CityConfig,
         rows = spec.describe_batch(traversal.images)
         thumbs = [make_thumbnail(image) for image in traversal.images] if thumbnails else None
         drives.append(Drive(traversal.name, traversal.condition, rows,
-                            traversal.positions[:, 1:3].copy(), thumbs))
+                            traversal.positions[:, 1:3].copy(), thumbs, traversal.positions))
         positions[traversal.name] = traversal.positions
     gt = GroundTruth(config.ground_truth_spec(), positions=positions)
     return drives, gt, time.perf_counter() - start
@@ -138,8 +152,8 @@ def latent_drives(seed: int, traversals: int, frames: int, config: LatentConfig
     """The latent world's drives (descriptors and positions; no images, so no thumbnails)."""
     start = time.perf_counter()
     world = make_latent(traversals, frames, seed, config)
-    drives = [Drive(t.name, t.condition, t.descriptors, t.positions[:, 1:3].copy(), None)
-              for t in world.traversals]
+    drives = [Drive(t.name, t.condition, t.descriptors, t.positions[:, 1:3].copy(), None,
+                    t.positions) for t in world.traversals]
     return drives, world.ground_truth(), time.perf_counter() - start
 
 
@@ -174,14 +188,47 @@ def score(decisions: list[FrameDecision], query: str, gt: GroundTruth, names: di
 
 def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             config: MapConfig | None = None, learn_every: int = 0) -> list[dict[str, Any]]:
+    """See :func:`run_arm_on`; a map with admission ``novel`` gets a ground truth of its own,
+    where each stored sequence has the positions of the frames it stored."""
+    config = config or MapConfig.for_descriptor("hog")
+    if config.admission.mode == "all":
+        return run_arm_on(drives, gt, merge, work, config, learn_every)
+    positions = {d.name: d.positions for d in drives}
+    stored_gt = GroundTruth(gt.spec, positions=positions)
+
+    def stored(drive: Drive, result: IngestResult) -> None:
+        if result.frames_stored < len(drive.rows):
+            table = drive.positions[result.image_of >= 0].copy()
+            table[:, 0] = np.arange(len(table))
+            positions[drive.name] = table
+
+    rows = run_arm_on(drives, stored_gt, merge, work, config, learn_every, stored)
+    rows[-1]["reingest_stored"] = reingest_stored(work / "merge-novel.map", drives[-1])
+    return rows
+
+
+def reingest_stored(path: Path, drive: Drive, noise: float = 0.01) -> int:
+    """Frames stored when ``drive``, already in the map at ``path``, is ingested again with
+    Gaussian noise of ``noise`` times its descriptors' spread."""
+    rng = np.random.default_rng(0)
+    again = drive.rows + rng.normal(0, noise * float(drive.rows.std()), drive.rows.shape)
+    with SprintMap.open(path) as m:
+        return m.ingest(again.astype(np.float32), name=drive.name + "-again",
+                        positions=drive.xy, thumbnails=drive.thumbnails).frames_stored
+
+
+def run_arm_on(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
+               config: MapConfig, learn_every: int = 0,
+               on_stored: Callable[[Drive, IngestResult], None] | None = None
+               ) -> list[dict[str, Any]]:
     """The lifelong protocol on one fresh map (default config: HoG); one row per traversal
     after the first. ``learn_every`` > 0: the map learns its descriptor (``index --learn``)
     after every ``learn_every`` drives. Each later-half drive is also localised against a copy
     of the map as it stood before the later half (the *snapshot*), and both maps' answers are
     scored on the frames the snapshot can match (``snapshot_*`` keys of the rows)."""
     rows_out: list[dict[str, Any]] = []
-    config = config or MapConfig.for_descriptor("hog")
-    name = ("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
+    name = (("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
+            + ("-novel" if config.admission.mode != "all" else ""))
     split = len(drives) // 2  # the first traversal of the later half (as summarise splits)
     path = work / f"{name}.map"
     snapshot: SprintMap | None = None
@@ -242,9 +289,16 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             if snapshot is not None:
                 row.update(snapshot_scores(snapshot, drive, gt, decisions, names))
             stats = m.stats()
-            row.update(edges_added=result.added.edges_added, components=stats["components"],
+            timing = result.timing.to_dict()
+            row.update(edges_added=result.edges_added, components=stats["components"],
+                       frames_stored=result.frames_stored, map_vertices_after=stats["vertices"],
+                       disk_bytes=m.store.disk_bytes(),
+                       frame_ms=round(timing["retrieval_ms_per_frame"]
+                                      + timing["hmm_ms_per_frame"], 4),
                        seconds=round(time.perf_counter() - start, 2))
             rows_out.append(row)
+            if on_stored is not None:  # scored as a query: from now on a stored stretch
+                on_stored(drive, result)
     finally:
         m.close()
         if snapshot is not None:
@@ -338,9 +392,38 @@ def summarise(arms: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
         out["learn_adopted"] = {"tried": len(reports),
                                 "adopted": sum(bool(r["adopted"]) for r in reports),
                                 "pairs_last": reports[-1]["pairs"] if reports else 0}
+    if NOVEL_ARM in arms:
+        out["admission"] = admission_summary(arms[NOVEL_ARM], arms["merge"])
+        out["novel_minus_merge_later_points"] = {key: (
+            None if out[NOVEL_ARM]["later"][key] is None or out["merge"]["later"][key] is None
+            else round(100 * (out[NOVEL_ARM]["later"][key] - out["merge"]["later"][key]), 2))
+            for key in ("sprint_recall@1", "accepted_recall@1", "merge_precision")}
     out["ingest_differs_from_localize"] = sum(r["ingest_differs_from_localize"]
                                               for r in arms["merge"])
     return out
+
+
+def admission_summary(novel: list[dict[str, Any]], everything: list[dict[str, Any]]
+                      ) -> dict[str, Any]:
+    """The admitted map's size against the keep-everything map's: vertices at the end (and in
+    traversals' worth of frames), frames stored per drive over the last fifth of the drives,
+    disk bytes, and the per-frame cost (retrieval + HMM) of the last drives over the drives
+    around the tenth (or the first ones of a shorter run)."""
+    frames = novel[0]["frames"]
+    tail = novel[-max(1, len(novel) // 5):]
+    early = novel[8:11] or novel[:3]
+    return {
+        "vertices": novel[-1]["map_vertices_after"],
+        "vertices_all": everything[-1]["map_vertices_after"],
+        "traversals_worth": round(novel[-1]["map_vertices_after"] / frames, 2),
+        "stored_fraction_last_fifth": round(
+            sum(r["frames_stored"] for r in tail) / (frames * len(tail)), 4),
+        "disk_bytes": novel[-1]["disk_bytes"],
+        "disk_bytes_all": everything[-1]["disk_bytes"],
+        "reingest_stored_fraction": round(novel[-1]["reingest_stored"] / frames, 4),
+        "frame_ms_early": round(float(np.median([r["frame_ms"] for r in early])), 4),
+        "frame_ms_last": round(float(np.median([r["frame_ms"] for r in tail])), 4),
+    }
 
 
 def print_rows(seed: int, arms: dict[str, list[dict[str, Any]]]) -> None:
@@ -403,6 +486,16 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
               f"the later half (points): {s['learn_minus_merge_later_points']}; projection "
               f"adopted {s['learn_adopted']['adopted']} of {s['learn_adopted']['tried']} times "
               f"(last from {s['learn_adopted']['pairs_last']} pairs)")
+    if "admission" in s:
+        a, d = s["admission"], s["novel_minus_merge_later_points"]
+        print(f"  merge+novel (admission): {a['vertices']:.0f} vertices "
+              f"({a['traversals_worth']:.1f} traversals' worth; keep-everything "
+              f"{a['vertices_all']:.0f}), {100 * a['stored_fraction_last_fifth']:.1f} % of a "
+              f"drive stored per drive over the last fifth, disk {a['disk_bytes'] / 1e6:.1f} "
+              f"MB (keep-everything {a['disk_bytes_all'] / 1e6:.1f} MB), per-frame cost "
+              f"{a['frame_ms_early']:.2f} -> {a['frame_ms_last']:.2f} ms; the last drive "
+              f"again stores {100 * a['reingest_stored_fraction']:.1f} %; novel - merge on "
+              f"the later half (points): {d}")
     if s.get("ingest_differs_from_localize"):
         print(f"  WARNING: on {s['ingest_differs_from_localize']:.0f} frames ingest's decision "
               "differs from localize(smooth=True)'s: the runs score different procedures")
@@ -422,7 +515,8 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
 
     out: dict[str, Any] = {}
     learned = ("merge+learn",) if "merge+learn" in summaries[0] else ()
-    for arm in ARMS + learned:
+    novel = (NOVEL_ARM,) if NOVEL_ARM in summaries[0] else ()
+    for arm in ARMS + learned + novel:
         out[arm] = {
             half: {key: mean((arm, half, key)) for key in
                    ("sprint_recall@1", "online_sprint_recall@1", "accepted_recall@1",
@@ -440,6 +534,11 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
                 "online_accepted_merge_minus_no_merge_later_points",
                 "ingest_differs_from_localize"):
         out[key] = mean((key,))
+    if novel:
+        out["admission"] = {key: mean(("admission", key)) for key in summaries[0]["admission"]}
+        out["novel_minus_merge_later_points"] = {
+            key: mean(("novel_minus_merge_later_points", key))
+            for key in summaries[0]["novel_minus_merge_later_points"]}
     if learned:
         out["learn_minus_merge_later_points"] = {key: mean(("learn_minus_merge_later_points", key))
                                                  for key in summaries[0][
@@ -451,25 +550,43 @@ def mean_summary(summaries: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def plot(path: Path, results: list[dict[str, Any]]) -> None:
+    """Recall@1 per traversal (mean over seeds) per arm; with ``--admission`` also the map's
+    vertices and the per-frame cost against drives, admission on and off."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 4.2))
-    for arm, style in (("merge", "o-"), ("no-merge", "s--")):
-        per_seed = [[r["sprint_recall@1"] for r in res["arms"][arm]] for res in results]
-        x = [r["traversal"] for r in results[0]["arms"][arm]]
-        mean = np.mean(per_seed, axis=0)
-        ax.plot(x, 100 * mean, style, label=f"SPRINT, {arm}" + (
-            f" (mean of {len(results)} seeds)" if len(results) > 1 else ""))
-    knn = np.mean([[r["knn_recall@1"] for r in res["arms"]["merge"]] for res in results], axis=0)
-    ax.plot(x, 100 * knn, ":", color="grey", label="exact k-NN@1")
+    admitted = NOVEL_ARM in results[0]["arms"]
+    fig, axes = plt.subplots(1, 3 if admitted else 1, figsize=(15 if admitted else 8, 4.2),
+                             squeeze=False)
+    ax = axes[0][0]
+
+    def mean_of(arm: str, key: str) -> Any:
+        return np.mean([[r[key] for r in res["arms"][arm]] for res in results], axis=0)
+
+    x = [r["traversal"] for r in results[0]["arms"]["merge"]]
+    styles = (("merge", "o-"), ("no-merge", "s--")) + (((NOVEL_ARM, "^-"),) if admitted else ())
+    for arm, style in styles:
+        ax.plot(x, 100 * mean_of(arm, "sprint_recall@1"), style, ms=3,
+                label=f"SPRINT, {arm}" + (f" (mean of {len(results)} seeds)"
+                                          if len(results) > 1 else ""))
+    ax.plot(x, 100 * mean_of("merge", "knn_recall@1"), ":", color="grey",
+            label="exact k-NN@1")
     ax.axvline((len(x) + 1) // 2 - 0.5, color="lightgrey", lw=0.8)  # earlier | later half
     ax.set(xlabel="traversal (localised against all earlier ones)", ylabel="recall@1 (%)",
-           title="Lifelong: recall@1 per traversal, merging vs appending without edges",
-           ylim=(0, 100))
+           title="Lifelong: recall@1 per traversal", ylim=(0, 100))
     ax.legend(loc="lower right")
+    if admitted:
+        for arm, style in (("merge", "o-"), (NOVEL_ARM, "^-")):
+            axes[0][1].plot(x, mean_of(arm, "map_vertices_after"), style, ms=3,
+                            label="keep everything" if arm == "merge" else "admission novel")
+            axes[0][2].plot(x, mean_of(arm, "frame_ms"), style, ms=3, label=arm)
+        axes[0][1].set(xlabel="traversal", ylabel="map vertices", title="Map size")
+        axes[0][2].set(xlabel="traversal", ylabel="ms per frame (retrieval + HMM)",
+                       title="Per-frame cost", ylim=(0, None))
+        axes[0][1].legend(loc="upper left")
+        axes[0][2].legend(loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -492,6 +609,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--learn-every", type=int, default=0, metavar="N",
                         help="add an arm 'merge+learn': the map learns its descriptor from its "
                         "merges (index --learn) after every N drives")
+    parser.add_argument("--admission", action="store_true",
+                        help="add an arm 'merge+novel': the merge run on a map that stores "
+                        "only what it lacks (init --admission novel)")
     parser.add_argument("--json", type=Path, help="write per-traversal rows and summaries here")
     parser.add_argument("--png", type=Path, help="plot recall@1 per traversal here")
     args = parser.parse_args(argv)
@@ -516,6 +636,9 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             for arm in ARMS:
                 arms[arm] = run_arm(drives, gt, arm == "merge", Path(tmp), map_config)
+            if args.admission:
+                arms[NOVEL_ARM] = run_arm(drives, gt, True, Path(tmp), map_config.replace(
+                    admission={"mode": "novel"}))
             if args.learn_every:
                 arms["merge+learn"] = run_arm(drives, gt, True, Path(tmp), map_config,
                                               args.learn_every)

@@ -93,8 +93,11 @@ def main() -> None:
 @click.option("--config", "config_json", type=click.Path(exists=True, dir_okay=False),
               help="JSON file of further MapConfig fields, e.g. {\"index_type\": \"flat\", "
               "\"hmm\": {\"k\": 20}} (docs/hmm.md, \"HMMConfig\").")
+@click.option("--admission", type=click.Choice(["all", "novel"]), default=None,
+              help="Which frames of an ingested drive the map stores: all (default) or only "
+              "those it does not already hold (novel: a lifelong map that stays bounded).")
 def init(map_path: str, dim: int | None, descriptor: str | None, model: str | None,
-         model_card: str | None, config_json: str | None) -> None:
+         model_card: str | None, config_json: str | None, admission: str | None) -> None:
     """Create an empty map in MAP (which must be absent or empty).
 
     \b
@@ -102,8 +105,11 @@ def init(map_path: str, dim: int | None, descriptor: str | None, model: str | No
       sprint-map init city.map --descriptor hog      # images and video, the paper's HoG
       sprint-map init city.map --dim 256             # precomputed .npy descriptors
       sprint-map init city.map --descriptor onnx --model eigenplaces.onnx
+      sprint-map init fleet.map --dim 256 --admission novel
     """
     options = _read_json_config(config_json)
+    if admission is not None:
+        options["admission"] = {**options.get("admission", {}), "mode": admission}
     kind = descriptor or options.pop("descriptor", None) or (
         "onnx" if model is not None else "precomputed" if dim is not None else "hog")
     if (model is not None or model_card is not None) != (kind == "onnx"):
@@ -320,7 +326,8 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             try:
                 recorder.save(trace_out, final=result.decisions, merged=result.merged,
                               meta={"command": "ingest", "source": str(sources[0]),
-                                    "smoothed": True, "seq_id": result.added.sequence.seq_id})
+                                    "smoothed": True,
+                                    "seq_id": result.to_dict()["seq_id"]})
             except (SprintMapError, OSError) as exc:
                 m.warnings.append(f"the drive is committed, but its trace was not written: "
                                   f"{exc}")
@@ -348,7 +355,12 @@ def _ingest_line(out: dict[str, Any]) -> str:
         return (f"sequence {out['seq_id']} ({out['name']}) was already committed with these "
                 f"{out['frames']} frames: nothing added")
     matched = sum(d["seq_id"] is not None for d in out["decisions"])
-    return (f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames, "
+    if out["seq_id"] is None:  # admission stored nothing: the drive's sightings only
+        return (f"stored nothing of {out['name']}: {out['frames']} frames, {matched} matched, "
+                f"{out['sightings']} places seen again")
+    stored = ("" if out["frames_stored"] == out["frames"]
+              else f" ({out['frames_stored']} stored, {out['sightings']} places seen again)")
+    return (f"added sequence {out['seq_id']} ({out['name']}): {out['frames']} frames{stored}, "
             f"{matched} matched, {out['edges_added']} edges, component {out['component']}")
 
 

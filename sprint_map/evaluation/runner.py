@@ -444,7 +444,7 @@ def _run_protocol(dataset: Dataset, work_dir: Path, config: MapConfig, options: 
                                     thumbnails=thumbs, fixes=fixes)
                 result.score_merge(ingested.decisions, ingested.merged, gt, seq_names,
                                    _edges_per_decision(m.config))
-                result.edges_added = ingested.added.edges_added
+                result.edges_added = ingested.edges_added
                 result.twin = dataset.twin_frames(traversal.name, options.stride)
                 results.append(result)
     return results

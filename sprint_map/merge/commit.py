@@ -11,7 +11,13 @@ commits under its map gate; all of them end in :meth:`DriveWriter.commit`, which
 1. runs the map's merge rule (:mod:`sprint_map.merge.rule`) over the drive's decisions and
    turns the selected ones into edges (:func:`merge_edges`, both ways if
    ``merge_both_ways``);
-2. commits the sequence with those edges in one LMDB transaction (the commit point; see
+2. with the map's admission ``novel``, keeps only the frames the map lacks
+   (:mod:`sprint_map.merge.admission`): their rows, positions and thumbnails, their merge
+   edges, the edges stitching each stored run into the map, and a sighting of each place the
+   other frames matched. Such a drive's rows are held in memory until the commit (the rows to
+   store are known only once the whole drive is decided); a drive with nothing to store
+   commits its sightings alone and no sequence (:attr:`DriveCommit.added` None);
+3. commits the sequence with those edges in one LMDB transaction (the commit point; see
    :mod:`sprint_map.storage.sequence_writer`), a retry of a drive already committed under its
    name with the same rows included (``AddResult.already_committed``).
 
@@ -28,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sprint_map.merge.admission import Admission, AdmissionPlan, plan_admission
 from sprint_map.merge.rule import MergeRule, select_merges
 from sprint_map.storage.records import AddResult, EdgeSpec
 from sprint_map.storage.sequence_writer import SequenceWriter
@@ -42,27 +49,58 @@ __all__ = ["DriveCommit", "DriveWriter", "IngestResult", "merge_edges"]
 @dataclass(frozen=True)
 class IngestResult:
     """What :meth:`SprintMap.ingest <sprint_map.map.SprintMap.ingest>` did: the commit, the
-    decisions that made its edges."""
+    decisions that made its edges.
 
-    added: AddResult
+    ``added`` is None for a drive of a ``novel``-admission map that stored no frame (its
+    sightings were committed); ``name`` is the drive's name either way, ``frames`` its length.
+    """
+
+    added: AddResult | None
     decisions: list[FrameDecision]
     timing: Timing
     #: The merge rule's verdict per decision: which became edges (empty without a merge).
     merged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: Each frame's image id in the new sequence, -1 where it was not stored (empty: all were).
+    image_of: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    name: str = ""
+    frames: int = 0
+    sightings: int = 0
+
+    @property
+    def edges_added(self) -> int:
+        return self.added.edges_added if self.added is not None else 0
+
+    @property
+    def frames_stored(self) -> int:
+        if not len(self.image_of):
+            return self.frames
+        return int((self.image_of >= 0).sum())
+
+    def stored_as(self, frame: int) -> tuple[int, int] | None:
+        """``(seq_id, image_id)`` of the vertex frame ``frame`` became, or None."""
+        if self.added is None:
+            return None
+        image = int(self.image_of[frame]) if len(self.image_of) else frame
+        return None if image < 0 else (self.added.sequence.seq_id, image)
 
     def to_dict(self) -> dict[str, Any]:
-        seq = self.added.sequence
+        added = self.added
         merged = self.merged.tolist() if len(self.merged) else [False] * len(self.decisions)
+        stored = [self.stored_as(d.frame) for d in self.decisions]
         return {
-            "seq_id": seq.seq_id,
-            "name": seq.name,
-            "frames": seq.length,
-            "component": self.added.component,
-            "edges_added": self.added.edges_added,
+            "seq_id": added.sequence.seq_id if added is not None else None,
+            "name": added.sequence.name if added is not None else self.name,
+            "frames": self.frames,
+            "frames_stored": self.frames_stored,
+            "frames_skipped": self.frames - self.frames_stored,
+            "sightings": self.sightings,
+            "component": added.component if added is not None else None,
+            "edges_added": self.edges_added,
             # a retry of a drive committed under this name with these very descriptors
-            "already_committed": self.added.already_committed,
-            "decisions": [{**d.to_dict(), "merged": m}
-                          for d, m in zip(self.decisions, merged, strict=True)],
+            "already_committed": added.already_committed if added is not None else False,
+            "decisions": [{**d.to_dict(), "merged": m,
+                           "stored_as": list(s) if s is not None else None}
+                          for d, m, s in zip(self.decisions, merged, stored, strict=True)],
             "timing": self.timing.to_dict(),
         }
 
@@ -71,21 +109,35 @@ class IngestResult:
 class DriveCommit:
     """What :meth:`DriveWriter.commit` committed.
 
-    ``merged`` is the merge rule's verdict per decision (which became edges); ``changed`` the
-    components the commit changed: the new sequence's and those its edges joined into it (as
-    they were before the commit), for a cache of components to invalidate.
+    ``added`` is None when admission stored no frame of the drive; ``merged`` is the merge
+    rule's verdict per decision (which became edges); ``changed`` the components the commit
+    changed: the new sequence's and those its edges joined into it (as they were before the
+    commit), for a cache of components to invalidate; ``plan`` what admission stored of the
+    drive (every frame with ``"all"``); ``frames`` the drive's length.
     """
 
-    added: AddResult
+    added: AddResult | None
     merged: np.ndarray
     changed: frozenset[int]
+    plan: AdmissionPlan | None = None
+    frames: int = 0
+    sightings: int = 0
+
+    def result(self, decisions: list[FrameDecision], timing: Timing, name: str
+               ) -> IngestResult:
+        """The :class:`IngestResult` of this commit."""
+        image_of = self.plan.image_of if self.plan is not None else np.zeros(0, dtype=np.int64)
+        return IngestResult(self.added, decisions, timing, self.merged, image_of, name,
+                            self.frames, self.sightings)
 
 
 class DriveWriter:
     """One drive being written into a map open for writing; use as a context manager.
 
     Made by :meth:`SprintMap.begin_drive <sprint_map.map.SprintMap.begin_drive>`. Rows go to the
-    map's shards as they are appended, invisible to readers until :meth:`commit`.
+    map's shards as they are appended, invisible to readers until :meth:`commit` (with
+    admission ``novel`` they are held in memory until then: which ones are stored is known
+    only at the commit).
 
     Parameters
     ----------
@@ -97,14 +149,21 @@ class DriveWriter:
         Store each merge edge in both directions (the map's ``merge_both_ways``).
     component_of : callable
         The component id of a sequence of the map (for :attr:`DriveCommit.changed`).
+    admission : Admission
+        Which frames are stored (:mod:`sprint_map.merge.admission`; default every one).
     """
 
     def __init__(self, writer: SequenceWriter, rule: MergeRule, both_ways: bool,
-                 component_of: Callable[[int], int]) -> None:
+                 component_of: Callable[[int], int], admission: Admission | None = None
+                 ) -> None:
         self._writer = writer
         self._rule = rule
         self._both_ways = both_ways
         self._component_of = component_of
+        self._admission = admission if admission is not None else Admission()
+        #: rows held until the commit (admission ``novel``)
+        self._held: list[np.ndarray] | None = [] if self._admission.mode != "all" else None
+        self._held_frames = 0
 
     @property
     def name(self) -> str:
@@ -114,7 +173,7 @@ class DriveWriter:
     @property
     def frames(self) -> int:
         """Rows appended so far."""
-        return self._writer.frames
+        return self._held_frames if self._held is not None else self._writer.frames
 
     def __enter__(self) -> DriveWriter:
         return self
@@ -124,10 +183,18 @@ class DriveWriter:
 
     def append(self, rows: Any) -> None:
         """Write a batch of descriptor rows (validated, fsynced, not yet visible). O(n * dim)."""
-        self._writer.append(rows)
+        if self._held is None:
+            self._writer.append(rows)
+            return
+        batch = validate_descriptors(rows, self._writer.store.config.dim)
+        self._held.append(batch)
+        self._held_frames += len(batch)
 
     def abort(self) -> None:
         """Drop every row appended so far; nothing is committed."""
+        if self._held is not None:
+            self._held.clear()
+            self._held_frames = 0
         self._writer.abort()
 
     def commit(
@@ -152,32 +219,62 @@ class DriveWriter:
 
         Notes
         -----
-        O(D) for the merge rule over D decisions, plus the commit: O(N * dim) shard I/O (for
-        ``rows``), O(N) LMDB puts and O(E log n) for the edges and their unions.
+        O(D) for the merge rule and admission over D decisions, plus the commit: O(N * dim)
+        shard I/O (for ``rows``, or the rows held), O(N) LMDB puts and O(E log n) for the edges
+        and their unions.
         """
         merged = select_merges(decisions, self._rule)
-        edges = merge_edges(decisions, merged, self._both_ways)
+        writer = self._writer
+        if rows is not None:
+            if self.frames:
+                raise ValueError("rows given to commit after rows were appended")
+            rows = validate_descriptors(rows, writer.store.config.dim)
+        admit = self._held is not None and len(decisions) > 0
+        plan = None
+        if admit:
+            if rows is None:
+                rows = (np.concatenate(self._held) if self._held
+                        else np.zeros((0, writer.store.config.dim), dtype=np.float32))
+            if len(decisions) != len(rows):
+                raise ValueError(f"{len(decisions)} decisions for a drive of {len(rows)} frames")
+            plan = plan_admission(decisions, merged, self._admission, self._both_ways)
+            edges = plan.edges
+            frames = len(rows)
+            rows = plan.select(rows)
+            positions = plan.select(None if positions is None else np.asarray(positions))
+            thumbnails = plan.select(thumbnails)  # type: ignore[assignment]
+            sightings = plan.sightings
+        else:
+            if rows is None and self._held is not None:  # not localised: every frame
+                rows = np.concatenate(self._held) if self._held else None
+            edges = merge_edges(decisions, merged, self._both_ways)
+            sightings = []
+            frames = len(rows) if rows is not None else writer.frames
         before: set[int] = set()
         if on_commit is not None:
             # Only the map's one writer changes the union-find, so these roots hold until the
             # commit.
             before = {self._component_of(seq)
                       for seq in {s for e in edges for s, _ in (e.src, e.dst) if s is not None}}
-        writer = self._writer
+            before |= {self._component_of(s) for s, _, _ in sightings}
+        if plan is not None and plan.frames_stored == 0:
+            writer.abort()  # nothing to store: the sightings alone are committed
+            with exclusive() if exclusive is not None else nullcontext():
+                counted = writer.store.record_sightings(writer.name, sightings)
+                if on_commit is not None:
+                    on_commit(set())
+            return DriveCommit(None, merged, frozenset(), plan, frames, counted)
         if rows is not None:
-            if writer.frames:
-                raise ValueError("rows given to commit after rows were appended")
-            rows = validate_descriptors(rows, writer.store.config.dim)
             writer.prepare(positions, edges, len(rows))  # nothing is written for bad input
             writer.append(rows)
         if exclusive is not None:
             writer.sync()  # the rows' fsync, the slow part, before the gate: not under it
         with exclusive() if exclusive is not None else nullcontext():
-            added = writer.commit(positions, edges, thumbnails)
+            added = writer.commit(positions, edges, thumbnails, sightings)
             changed = before | {added.component}
             if on_commit is not None:
                 on_commit(changed)
-        return DriveCommit(added, merged, frozenset(changed))
+        return DriveCommit(added, merged, frozenset(changed), plan, frames, len(sightings))
 
 
 def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_ways: bool
@@ -190,12 +287,4 @@ def merge_edges(decisions: Sequence[FrameDecision], merged: np.ndarray, both_way
     ``both_ways`` also ``(s, j) -> (new, i)``, so that belief can later cross from the old drive
     into the new one as well as back.
     """
-    edges = []
-    for d, keep in zip(decisions, np.asarray(merged, dtype=bool).tolist(), strict=True):
-        if not keep or d.seq_id is None or d.image_id is None:
-            continue
-        weight = min(1.0, float(d.prob))
-        edges.append(EdgeSpec((None, d.frame), (d.seq_id, d.image_id), weight, d.frame))
-        if both_ways:
-            edges.append(EdgeSpec((d.seq_id, d.image_id), (None, d.frame), weight, d.frame))
-    return edges
+    return plan_admission(decisions, merged, Admission(), both_ways).edges

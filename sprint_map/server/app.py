@@ -76,11 +76,14 @@ class LaggedAnswer(BaseModel):
 
 
 class CommitAnswer(BaseModel):
-    seq_id: int
+    seq_id: int | None = Field(description="The new sequence; null when the map's admission "
+                                           "stored no frame of the drive.")
     name: str
     frames: int
+    frames_stored: int
+    frames_skipped: int
     edges_added: int
-    component: int
+    component: int | None
     decisions: list[LaggedAnswer] | None = Field(
         None, description="A session with a lag: the answers of its last frames (those not "
                           "answered yet), in frame order; absent otherwise.")

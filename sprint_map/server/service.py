@@ -176,7 +176,7 @@ class LocalisationService:
                 log.warning("shutdown: a session's commit failed: %s", exc)
                 continue
             self.metrics.commits.inc(result="ok")
-            self.metrics.edges.inc(outcome.added.edges_added)
+            self.metrics.edges.inc(outcome.edges_added)
         await anyio.to_thread.run_sync(self._close)
         self.gc_pauses.uninstall()
 
@@ -387,10 +387,13 @@ class LocalisationService:
         m = self.metrics
         m.commit_seconds.observe(time.perf_counter() - start)
         m.commit_exclusive_seconds.observe(outcome.exclusive_s)
-        m.edges.inc(outcome.added.edges_added)
-        seq = outcome.added.sequence
-        out = {"seq_id": seq.seq_id, "name": seq.name, "frames": seq.length,
-               "edges_added": outcome.added.edges_added, "component": outcome.added.component}
+        m.edges.inc(outcome.edges_added)
+        added = outcome.added
+        out: dict[str, Any] = {
+            "seq_id": added.sequence.seq_id if added else None, "name": outcome.name,
+            "frames": outcome.frames, "frames_stored": outcome.frames_stored,
+            "frames_skipped": outcome.frames - outcome.frames_stored,
+            "edges_added": outcome.edges_added, "component": added.component if added else None}
         if flushed is not None:  # the lagged session's last answers, in frame order
             out["decisions"] = [{key: d.to_dict()[key] for key in _ANSWER_FIELDS}
                                 for d in flushed]

@@ -55,11 +55,21 @@ class CommitJob:
 
 @dataclass(frozen=True)
 class CommitOutcome:
-    """A durable commit: what the store committed and how long frames were held up."""
+    """A durable commit: what the store committed and how long frames were held up.
 
-    added: AddResult
+    ``added`` is None for a drive of a ``novel``-admission map that stored no frame;
+    ``frames`` is the drive's length, ``frames_stored`` the frames its sequence holds."""
+
+    added: AddResult | None
     changed: frozenset[int]
     exclusive_s: float
+    name: str = ""
+    frames: int = 0
+    frames_stored: int = 0
+
+    @property
+    def edges_added(self) -> int:
+        return self.added.edges_added if self.added is not None else 0
 
 
 
@@ -196,4 +206,5 @@ class CommitWriter:
             if job.name is None and self.names is not None:
                 self.names.release(begun.name)  # nothing was committed under it
             raise
-        return CommitOutcome(done.added, done.changed, held)
+        stored = done.added.sequence.length if done.added is not None else 0
+        return CommitOutcome(done.added, done.changed, held, begun.name, done.frames, stored)

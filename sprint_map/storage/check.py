@@ -47,6 +47,7 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lock import writer_active
 from sprint_map.storage.provenance import ADDED_BY_AT
 from sprint_map.storage.records import CheckReport, SequenceRecord
+from sprint_map.storage.sightings import scan_sightings
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY
@@ -54,7 +55,7 @@ from sprint_map.util.atomic import PARTIAL_SUFFIX
 from sprint_map.util.lazy_faiss import faiss  # imported on first use
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
-           "check_map", "check_sequences", "check_shards", "check_thumbnails", "edge_added_by",
+           "check_map", "check_sequences", "check_shards", "check_sightings", "check_thumbnails", "edge_added_by",
            "partial_files", "sequence_edges", "vertex_owner"]
 
 #: Rows compared (index vectors with shard rows) or hashed per block: bounds check's memory.
@@ -68,7 +69,7 @@ MALFORMED = -1
 #: derivable either (the images are not kept), but they are only a view: the repair drops the
 #: ones that break the invariants, and says so.
 REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp",
-                        "removed", "thumbnails"})
+                        "removed", "thumbnails", "sightings"})
 
 
 @dataclass
@@ -213,6 +214,7 @@ def check_map(store: MapStore, *, seed: int = 0,
     _check_provenance(records, report)
     _check_components(records, sequence_edges(records, report), report)
     check_thumbnails(store, records, report, thumbnail_decodes)
+    check_sightings(store, records, report)
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
     live = store.readonly and writer_active(store.path)
@@ -449,6 +451,16 @@ def check_thumbnails(store: MapStore, records: MapRecords, report: CheckReport,
     for problem in scan.problems:
         report.violation("thumbnails", problem)
     report.checked["thumbnails"] = sum(scan.counts.values())
+
+
+def check_sightings(store: MapStore, records: MapRecords, report: CheckReport) -> None:
+    """Every record of a place seen again names a frame of a live sequence and decodes.
+    O(records) reads (see :func:`sprint_map.storage.sightings.scan_sightings`)."""
+    with store.env.read() as txn:
+        scan = scan_sightings(txn, store.env, {s.seq_id: s.length for s in records.seqs})
+    for problem in scan.problems:
+        report.violation("sightings", problem)
+    report.checked["sightings"] = sum(scan.records.values())
 
 
 def check_digests(store: MapStore, records: MapRecords, report: CheckReport) -> None:

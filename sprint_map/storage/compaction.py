@@ -97,7 +97,7 @@ class CompactableMap(Protocol):
 COPY_ROWS = 65536
 BATCH = 65536
 #: Databases copied unchanged: keyed by sequence id, which compaction keeps.
-SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests", "thumbnails")
+SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests", "thumbnails", "sightings")
 #: Databases whose keys are 1 or 2 big-endian vertex ids, renumbered on the way.
 VERTEX_KEYED = {"vertex_data": 1, "edges": 2, "edges_rev": 2}
 

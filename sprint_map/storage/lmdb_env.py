@@ -41,10 +41,11 @@ DB_NAMES = (
     "removed",  # >Q last vertex of a removed sequence -> >QI first vertex, seq_id (schema 2)
     "digests",  # >I seq_id -> 16-byte BLAKE2b of its descriptor rows (absent: older writer)
     "thumbnails",  # >I seq_id >I image_id -> JPEG bytes (only for drives ingested with them)
+    "sightings",  # >I seq_id >I image_id -> >Idf count, last seen, distance + last drive name
 )
 #: Databases a map of an older schema may lack: a writer's open creates them (the migration),
 #: a reader reads such a map as if they were empty.
-OPTIONAL_DBS = frozenset({"removed", "digests", "thumbnails"})
+OPTIONAL_DBS = frozenset({"removed", "digests", "thumbnails", "sightings"})
 MAX_DBS = 16
 
 #: LMDB errors that mean the file's pages are not what LMDB wrote: the corrupt-map error.

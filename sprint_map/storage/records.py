@@ -259,6 +259,8 @@ AREAS = {
     "removed": "removed vertex ranges hold no positions; the removed_vertices counter",
     "thumbnails": "thumbnails name frames of live sequences, are JPEG bytes, and a sequence "
                   "has one per frame or none",
+    "sightings": "records of places seen again (admission) name frames of live sequences and "
+                 "decode",
 }
 
 

@@ -26,6 +26,7 @@ from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import RemoveResult, SequenceRecord
+from sprint_map.storage.sightings import delete_sightings
 from sprint_map.storage.thumbnails import delete_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
 from sprint_map.testing.crash import crash_point
@@ -178,9 +179,11 @@ def remove_sequences(store: RecordStore, seq_ids: Iterable[int]) -> RemoveResult
         for src, dst in sorted(doomed):
             edges_removed += bool(txn.delete(EDGE_KEY.pack(src, dst), db=db("edges")))
             txn.delete(EDGE_KEY.pack(dst, src), db=db("edges_rev"))
-        # 2. the sequences: record, name, vertex range, positions, thumbnails -> a removed range
+        # 2. the sequences: record, name, vertex range, positions, thumbnails, sightings -> a
+        # removed range
         for rec in records:
             delete_thumbnails(txn, env, rec.seq_id)
+            delete_sightings(txn, env, rec.seq_id)
             txn.delete(u32(rec.seq_id), db=db("sequences"))
             txn.delete(rec.name.encode(), db=db("seq_names"))
             txn.delete(u64(rec.last_vertex), db=db("vrange"))

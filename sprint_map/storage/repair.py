@@ -36,13 +36,15 @@ import lmdb
 from sprint_map.storage.check import MapRecords, check_map, check_sequences, sequence_edges
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.records import RepairReport
+from sprint_map.storage.sightings import drop_stray_sightings
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.thumbnails import ThumbnailTest, drop_broken
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.atomic import fsync_file, truncate
 
 #: Areas rebuilt by the LMDB transaction of step 3.
-RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails")
+RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails",
+                "sightings")
 
 
 def repair_map(path: str | os.PathLike[str], *, seed: int = 0,
@@ -178,6 +180,9 @@ def rebuild_records(store: MapStore, areas: set[str],
         if "thumbnails" in todo:
             actions.extend(drop_broken(txn, store.env, {s.seq_id: s.length for s in records.seqs},
                                        thumbnail_decodes))
+        if "sightings" in todo:
+            actions.extend(drop_stray_sightings(
+                txn, store.env, {s.seq_id: s.length for s in records.seqs}))
         crash_point("repair.before_commit")
         return actions
 

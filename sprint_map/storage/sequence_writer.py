@@ -51,6 +51,7 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.sightings import record_sightings
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
 from sprint_map.storage.union_find import UnionFindStore
@@ -62,7 +63,8 @@ from sprint_map.util.validation import (
 )
 
 __all__ = ["ResolvedEdge", "SequenceWriter", "StagedSequence", "UncommittedRows", "WritableMap",
-           "default_name", "resolve_edge", "write_sequence", "write_staged"]
+           "default_name", "record_live_sightings", "resolve_edge", "write_sequence",
+           "write_staged"]
 
 #: An edge with global endpoints: (src vertex, dst vertex, src seq, dst seq, spec).
 ResolvedEdge = tuple[int, int, int, int, EdgeSpec]
@@ -112,6 +114,9 @@ class WritableMap(Protocol):
 
     def after_commit(self, first: int, frames: int) -> None: ...
 
+    def record_sightings(self, drive: str, sightings: Sequence[tuple[int, int, float]]
+                         ) -> int: ...
+
 
 def default_name(seq_id: int, taken: Callable[[str], bool]) -> str:
     """The default name of sequence ``seq_id``: ``seq-<id>``, unless that name is ``taken``.
@@ -142,6 +147,9 @@ class StagedSequence:
     positions: np.ndarray | None
     edges: list[ResolvedEdge]
     thumbnails: list[bytes] | None
+    #: ``(seq_id, image_id, distance)`` of the stored vertices the drive saw again
+    #: (:mod:`sprint_map.storage.sightings`)
+    sightings: tuple[tuple[int, int, float], ...] = ()
 
 
 class UncommittedRows(ABC):
@@ -309,7 +317,8 @@ class SequenceWriter(UncommittedRows):
             raise
 
     def stage(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
-              thumbnails: Sequence[bytes] | None = None) -> StagedSequence | AddResult:
+              thumbnails: Sequence[bytes] | None = None,
+              sightings: Sequence[tuple[int, int, float]] = ()) -> StagedSequence | AddResult:
         """Validate the sequence's records and make it ready for its transaction; no more rows.
 
         Returns what the transaction writes (:func:`write_staged`, after the rows are fsynced:
@@ -344,15 +353,19 @@ class SequenceWriter(UncommittedRows):
             self._rollback_after_error()
             raise
         self._done = True
-        return StagedSequence(record, digest, dict(self._lengths), pos, resolved, thumbs)
+        return StagedSequence(record, digest, dict(self._lengths), pos, resolved, thumbs,
+                              tuple(sightings))
 
     def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
-               thumbnails: Sequence[bytes] | None = None) -> AddResult:
+               thumbnails: Sequence[bytes] | None = None,
+               sightings: Sequence[tuple[int, int, float]] = ()) -> AddResult:
         """Record the sequence with its positions, edges and thumbnails in one LMDB transaction.
 
         ``thumbnails``, if given, are one JPEG per frame (see
         :mod:`sprint_map.storage.thumbnails`); they are read here, at the commit, so a list a
-        frame source fills while its batches stream is complete by then.
+        frame source fills while its batches stream is complete by then. ``sightings``:
+        ``(seq_id, image_id, distance)`` of stored vertices the drive saw again, counted in the
+        same transaction (:mod:`sprint_map.storage.sightings`).
 
         Raises
         ------
@@ -365,7 +378,7 @@ class SequenceWriter(UncommittedRows):
         """
         if self._grouped:
             raise SprintMapError("a sequence of a group is committed by its group")
-        staged = self.stage(positions, edges, thumbnails)
+        staged = self.stage(positions, edges, thumbnails, sightings)
         if isinstance(staged, AddResult):
             return staged
         record = staged.record
@@ -464,8 +477,28 @@ def write_staged(store: WritableMap, txn: lmdb.Transaction, staged: StagedSequen
     if staged.thumbnails is not None:
         put_thumbnails(txn, store.env, staged.record.seq_id, staged.thumbnails)
         crash_point("add.thumbnails_written")
+    if staged.sightings:
+        record_live_sightings(store, txn, staged.sightings, staged.record.name)
     return write_sequence(store, txn, staged.record, staged.lengths, staged.positions,
                           staged.edges)
+
+
+def record_live_sightings(store: WritableMap, txn: lmdb.Transaction,
+                          sightings: Sequence[tuple[int, int, float]], drive: str) -> int:
+    """Count ``sightings`` (``(seq_id, image_id, distance)``) by ``drive`` in ``txn``, but
+    those of vertices no longer in the map (a sequence removed since the drive was localised:
+    they are statistics, dropped). Returns how many were counted. O(m log n)."""
+    live: dict[int, int] = {}
+    kept = []
+    for seq_id, image_id, distance in sightings:
+        if seq_id not in live:
+            try:
+                live[seq_id] = store.sequence(seq_id, txn).length
+            except UnknownSequenceError:
+                live[seq_id] = 0
+        if 0 <= image_id < live[seq_id]:
+            kept.append((seq_id, image_id, distance))
+    return record_sightings(txn, store.env, kept, drive, time.time())
 
 
 def write_sequence(store: WritableMap, txn: lmdb.Transaction, record: SequenceRecord,

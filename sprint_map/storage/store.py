@@ -76,8 +76,9 @@ from sprint_map.storage.records import (
     UnmergeResult,
 )
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
-from sprint_map.storage.sequence_writer import SequenceWriter
+from sprint_map.storage.sequence_writer import SequenceWriter, record_live_sightings
 from sprint_map.storage.shards import ShardSet
+from sprint_map.storage.sightings import Sighting, get_sighting
 from sprint_map.storage.store_config import (
     READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
@@ -580,6 +581,36 @@ class MapStore:
         with self.env.read() as txn:
             self.vertex_id(seq_id, image_id, txn)
             return get_thumbnail(txn, self.env, seq_id, image_id)
+
+    def record_sightings(self, drive: str, sightings: Sequence[tuple[int, int, float]]) -> int:
+        """Commit, alone, the sightings of a drive that stored no frame: ``(seq_id, image_id,
+        distance)`` per redundant frame (:mod:`sprint_map.storage.sightings`; those of vertices
+        no longer in the map are dropped). Returns how many were counted. One LMDB
+        transaction, O(m log n)."""
+        self.require_writer()
+        if self._writing is not None:
+            raise SprintMapError("a sequence is being written: commit or abort it first")
+
+        def body(txn: lmdb.Transaction) -> int:
+            counted = record_live_sightings(self, txn, sightings, drive)
+            crash_point("sightings.before_commit")
+            return counted
+
+        counted: int = self.env.write(body)
+        crash_point("sightings.committed")
+        return counted
+
+    def sighting(self, seq_id: int, image_id: int) -> Sighting | None:
+        """The record of vertex ``(seq_id, image_id)`` being seen again, or None. O(log n).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence, or no such frame in it.
+        """
+        with self.env.read() as txn:
+            self.vertex_id(seq_id, image_id, txn)
+            return get_sighting(txn, self.env, seq_id, image_id)
 
     def thumbnail_count(self, seq_id: int) -> int:
         """Thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count)."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import signal
 
-__all__ = ["ADD_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
+__all__ = ["ADD_POINTS", "SIGHTING_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
            "INDEX_POINTS", "LEARN_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
            "UNMERGE_POINTS", "crash_point"]
 
@@ -22,6 +22,11 @@ ADD_POINTS = (
     "add.thumbnails_written",  # inside the LMDB write transaction: thumbnails put, not committed
     "add.before_commit",  # inside the LMDB write transaction, before it commits
     "add.committed",  # LMDB committed, in-memory index not yet updated
+)
+#: A drive of a ``novel``-admission map that stored no frame: its sightings committed alone.
+SIGHTING_POINTS = (
+    "sightings.before_commit",  # inside the LMDB write transaction, before it commits
+    "sightings.committed",  # committed, not yet returned
 )
 #: Several drives in one ingest (``SprintMap.ingest_drives``, ``sprint-map ingest A B ...``);
 #: the last three are the group commit of appended drives (``storage/group_writer.py``).
@@ -82,7 +87,7 @@ LEARN_POINTS = (
 )
 
 #: Every crash point in the write paths.
-CRASH_POINTS = (ADD_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
+CRASH_POINTS = (ADD_POINTS + SIGHTING_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
                 + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + LEARN_POINTS)
 
 

@@ -233,3 +233,24 @@ def test_sigterm_commits_open_sessions_when_configured(one_drive_map, places, rn
         assert m.descriptors(1).tobytes() == rows[:30].tobytes()
         assert m.info()["index"]["persisted"] == m.stats()["vertices"]
         assert m.check().ok
+
+
+def test_a_novel_admission_map_commits_what_it_lacks(places, rng, start_server, tmp_path):
+    from sprint_map import MapConfig
+
+    path = tmp_path / "fleet.map"
+    first = drive(places, rng)
+    with SprintMap.create(path, MapConfig(dim=DIM).replace(admission={"mode": "novel"})) as m:
+        m.ingest(first, name="first")
+    server = start_server(path)
+    c = server.client
+    sid = c.post("/v1/sessions", json={"name": "again"}).json()["session_id"]
+    stream(c, sid, first)  # the very drive again: the map holds all of it
+    committed = c.post(f"/v1/sessions/{sid}/commit").json()
+    assert committed["seq_id"] is None and committed["name"] == "again"
+    assert (committed["frames"], committed["frames_stored"]) == (len(first), 0)
+    assert committed["frames_skipped"] == len(first) and committed["edges_added"] == 0
+    assert server.terminate() == 0
+    with SprintMap.open(path, readonly=True) as m:
+        assert m.stats()["sequences"] == 1 and m.check().ok
+        assert m.store.sighting(0, 5).count == 1

@@ -104,3 +104,31 @@ def test_quick_run_on_the_latent_world(bench: Any, tmp_path: Path) -> None:
         assert a["knn_recall@1"] == b["knn_recall@1"]
         assert a["ingest_differs_from_localize"] == 0 and b["edges_added"] == 0
     assert sum(r["frames_with_match"] for r in merge) > 0
+
+
+def test_quick_run_with_admission_reports_the_map_size(bench: Any, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """``--admission``: the merge run again on a map that stores only what it lacks."""
+    out_json, out_png = tmp_path / "lifelong.json", tmp_path / "grow.png"
+    assert bench.main(["--quick", "--world", "latent", "--admission", "--json", str(out_json),
+                       "--png", str(out_png)]) == 0
+    [run] = json.loads(out_json.read_text())["seeds"]
+    merge, novel = run["arms"]["merge"], run["arms"][bench.NOVEL_ARM]
+    assert [r["traversal"] for r in novel] == [r["traversal"] for r in merge]
+    before = 60  # the first drive, stored whole
+    for a, b in zip(merge, novel, strict=True):
+        assert b["map_vertices"] == before and 0 <= b["frames_stored"] <= b["frames"] == 60
+        assert b["map_vertices_after"] == b["map_vertices"] + b["frames_stored"]
+        before = b["map_vertices_after"]
+        assert a["frames_stored"] == 60 and b["map_vertices"] <= a["map_vertices"]
+        assert b["frame_ms"] > 0 and b["disk_bytes"] > 0
+    assert sum(r["frames_stored"] for r in novel) < sum(r["frames_stored"] for r in merge)
+    size = run["summary"]["admission"]
+    assert size["vertices"] == novel[-1]["map_vertices_after"] < size["vertices_all"] == 480
+    assert size["traversals_worth"] == pytest.approx(size["vertices"] / 60, abs=0.01)
+    assert size["reingest_stored_fraction"] <= 0.05  # the last drive again: (almost) nothing
+    assert set(run["summary"]["novel_minus_merge_later_points"]) == {
+        "sprint_recall@1", "accepted_recall@1", "merge_precision"}
+    assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "merge+novel (admission):" in capsys.readouterr().out

@@ -1,0 +1,187 @@
+"""Admission: which frames of a localised drive a map stores, and what it records instead.
+
+A map created with ``admission="all"`` (the default) stores every frame of every drive. With
+``admission="novel"`` it stores only what it does not already hold. A frame is **redundant**
+when
+
+1. the merge rule merged it (:mod:`sprint_map.merge.rule`): the map localised it confidently,
+   on a run that stands out, and
+2. retrieval alone already finds that place first: its ``contrast`` (the best hit inside the
+   decided place over the best hit anywhere else, :func:`sprint_map.hmm.decision.place_contrast`)
+   is below ``max_contrast``.
+
+Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
+localise confidently, and a known place seen under an appearance the map does not match by
+retrieval alone (merged thanks to the sequence, but something elsewhere in the map looks as
+much like the frame). So a new condition is stored, drive after drive, until the map's own
+views of it make retrieval land on the place first; then it is redundant. Short flickers are
+smoothed away: a stored stretch shorter than ``min_run`` frames is not stored, then a redundant
+stretch shorter than ``min_run`` frames between (or before or after) stored frames is stored,
+so the stored vertices form runs of at least ``min_run`` frames (or the whole drive).
+
+The stored frames become one sequence, in drive order (image ``j`` is the drive's ``j``-th
+stored frame). What is not stored still counts:
+
+- each redundant frame records a **sighting** of the vertex it was matched to
+  (:mod:`sprint_map.storage.sightings`: how often, when and by which drive, at what distance);
+- a stored frame that was merged keeps its merge edge(s), as with ``"all"``;
+- each stored run is **stitched** into the map: an edge from the vertex the frame before the
+  run was matched to into the run's first vertex (where the drive came from), and one from the
+  run's last vertex to the vertex the frame after it was matched to (where it went), weighted
+  by those decisions' probabilities. A later drive's belief flows along the map, into the new
+  stretch and back out.
+
+Runs of one drive are stored one after the other in its sequence, so the HMM's forward window
+can carry belief from the end of one run into the start of the next (a few images): the
+stitching edges carry the right belief, and the observations decide.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sprint_map.merge.rule import MergeDecision
+from sprint_map.storage.records import EdgeSpec
+
+__all__ = ["ADMISSION_MODES", "Admission", "AdmissionPlan", "plan_admission"]
+
+#: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
+ADMISSION_MODES = ("all", "novel")
+
+
+@dataclass(frozen=True)
+class Admission:
+    """Which frames a map stores (``MapConfig.admission``); see the module docstring.
+    ValueError for a value out of range."""
+
+    #: ``"all"`` or ``"novel"``.
+    mode: str = "all"
+    #: A merged frame whose contrast is below this is redundant (``novel`` only).
+    max_contrast: float = 1.0
+    #: Frames of the shortest stored run and of the shortest redundant gap (``novel`` only).
+    min_run: int = 5
+
+    def __post_init__(self) -> None:
+        if self.mode not in ADMISSION_MODES:
+            raise ValueError(f"admission must be one of {', '.join(ADMISSION_MODES)}, "
+                             f"not {self.mode!r}")
+        if not 0 <= self.max_contrast < math.inf:
+            raise ValueError("admission max_contrast must be a finite number >= 0")
+        if not isinstance(self.min_run, int) or self.min_run < 1:
+            raise ValueError("admission min_run must be an integer >= 1")
+
+
+@dataclass(frozen=True)
+class AdmissionPlan:
+    """What committing one localised drive stores (:func:`plan_admission`).
+
+    ``stored``: bool per frame; ``image_of``: each frame's image id in the new sequence (-1
+    where it is not stored); ``edges``: merge and stitching edges (``(None, image)`` is the new
+    sequence); ``sightings``: ``(seq_id, image_id, distance)`` per redundant frame.
+    """
+
+    stored: np.ndarray
+    image_of: np.ndarray
+    edges: list[EdgeSpec] = field(default_factory=list)
+    sightings: list[tuple[int, int, float]] = field(default_factory=list)
+
+    @property
+    def frames_stored(self) -> int:
+        return int(self.stored.sum())
+
+    def select(self, per_frame: Sequence[object] | np.ndarray | None) -> object:
+        """``per_frame`` (rows, positions, thumbnails) reduced to the stored frames."""
+        if per_frame is None:
+            return None
+        if isinstance(per_frame, np.ndarray):
+            return per_frame[self.stored]
+        return [x for x, keep in zip(per_frame, self.stored.tolist(), strict=True) if keep]
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each run of True in ``mask``. O(n)."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    return [(int(a), int(b)) for a, b in zip(edges[0::2], edges[1::2], strict=True)]
+
+
+def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
+                  admission: Admission) -> np.ndarray:
+    """Which frames ``admission`` stores (bool per frame; see the module docstring). O(n)."""
+    n = len(decisions)
+    if admission.mode == "all" or n == 0:
+        return np.ones(n, dtype=bool)
+    contrast = np.array([d.contrast for d in decisions], dtype=float)
+    matched = np.array([d.seq_id is not None for d in decisions], dtype=bool)
+    with np.errstate(invalid="ignore"):
+        redundant = np.asarray(merged, dtype=bool) & matched & (contrast < admission.max_contrast)
+    stored: np.ndarray = ~redundant
+    short = admission.min_run
+    for a, b in _runs(stored):
+        if b - a < short and b - a < n:
+            stored[a:b] = False
+    for a, b in _runs(~stored):
+        if b - a < short and b - a < n:
+            stored[a:b] = True
+    return stored
+
+
+def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
+                   admission: Admission, both_ways: bool) -> AdmissionPlan:
+    """What to store of a drive, its edges and its sightings (see the module docstring).
+
+    ``decisions`` are the drive's consecutive frames (``frame`` is ``0 .. n-1``), ``merged``
+    the merge rule's verdict per decision. With ``admission.mode == "all"`` every frame is
+    stored and the edges are the merge edges (:func:`sprint_map.merge.commit.merge_edges`).
+
+    Notes
+    -----
+    O(n) for n decisions.
+    """
+    n = len(decisions)
+    merged = np.asarray(merged, dtype=bool) if len(merged) else np.zeros(n, dtype=bool)
+    stored = stored_frames(decisions, merged, admission)
+    image_of = np.full(n, -1, dtype=np.int64)
+    image_of[stored] = np.arange(int(stored.sum()), dtype=np.int64)
+    edges: list[EdgeSpec] = []
+    sightings: list[tuple[int, int, float]] = []
+    for i, d in enumerate(decisions):
+        if not merged[i] or d.seq_id is None or d.image_id is None:
+            continue
+        if not stored[i]:
+            sightings.append((d.seq_id, d.image_id, float(d.distance)))
+            continue
+        j = int(image_of[i])
+        weight = min(1.0, float(d.prob))
+        edges.append(EdgeSpec((None, j), (d.seq_id, d.image_id), weight, j))
+        if both_ways:
+            edges.append(EdgeSpec((d.seq_id, d.image_id), (None, j), weight, j))
+    if admission.mode != "all":
+        edges.extend(_stitches(decisions, merged, stored, image_of))
+    return AdmissionPlan(stored, image_of, edges, sightings)
+
+
+def _stitches(decisions: Sequence[MergeDecision], merged: np.ndarray, stored: np.ndarray,
+              image_of: np.ndarray) -> list[EdgeSpec]:
+    """The edges into and out of each stored run from the places the drive was matched to
+    right before and after it (only where those frames were merged and not stored)."""
+    out: list[EdgeSpec] = []
+    n = len(decisions)
+    for a, b in _runs(stored):
+        if a > 0 and merged[a - 1] and not stored[a - 1]:
+            before = decisions[a - 1]
+            if before.seq_id is not None and before.image_id is not None:
+                first = int(image_of[a])
+                out.append(EdgeSpec((before.seq_id, before.image_id), (None, first),
+                                    min(1.0, float(before.prob)), first))
+        if b < n and merged[b] and not stored[b]:
+            after = decisions[b]
+            if after.seq_id is not None and after.image_id is not None:
+                last = int(image_of[b - 1])
+                out.append(EdgeSpec((None, last), (after.seq_id, after.image_id),
+                                    min(1.0, float(after.prob)), last))
+    return out

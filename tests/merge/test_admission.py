@@ -1,0 +1,242 @@
+"""Admission (``--admission novel``): which frames a drive stores, what it records instead."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sprint_map import MapConfig
+from sprint_map.localize.localizer import FrameDecision
+from sprint_map.map import SprintMap
+from sprint_map.merge.admission import Admission, plan_admission, stored_frames
+from sprint_map.merge.commit import merge_edges
+from sprint_map.storage.records import EdgeSpec
+from sprint_map.testing.crash import CRASH_ENV
+from tests.helpers.worlds import road_places, traverse, unit
+
+# --- the plan, from decisions ----------------------------------------------------------------
+
+
+def matched(frame: int, image: int, contrast: float = 0.5, seq: int = 0, prob: float = 0.9
+            ) -> FrameDecision:
+    return FrameDecision(frame, seq, image, prob, contrast=contrast, distance=0.25)
+
+
+def unmatched(frame: int) -> FrameDecision:
+    return FrameDecision(frame, None, None, 0.1, novel_prob=0.9)
+
+
+NOVEL = Admission(mode="novel")
+
+
+def detour_decisions() -> tuple[list[FrameDecision], np.ndarray]:
+    """40 frames matched to sequence 0 (images 10..49), 30 unmatched, 30 matched (60..89)."""
+    ds = ([matched(i, 10 + i) for i in range(40)] + [unmatched(i) for i in range(40, 70)]
+          + [matched(i, i - 10) for i in range(70, 100)])
+    merged = np.array([d.seq_id is not None for d in ds])
+    return ds, merged
+
+
+def test_all_stores_every_frame_with_the_merge_edges():
+    ds, merged = detour_decisions()
+    plan = plan_admission(ds, merged, Admission(), both_ways=True)
+    assert plan.stored.all() and plan.image_of.tolist() == list(range(100))
+    assert plan.edges == merge_edges(ds, merged, True) and not plan.sightings
+
+
+def test_novel_stores_the_detour_stitched_into_the_map():
+    ds, merged = detour_decisions()
+    plan = plan_admission(ds, merged, NOVEL, both_ways=True)
+    assert np.flatnonzero(plan.stored).tolist() == list(range(40, 70))
+    assert plan.image_of[40] == 0 and plan.image_of[69] == 29 and plan.image_of[0] == -1
+    # where the drive came from (frame 39 on image 49) and where it went (frame 70 on 60)
+    assert plan.edges == [EdgeSpec((0, 49), (None, 0), 0.9, 0), EdgeSpec((None, 29), (0, 60), 0.9, 29)]
+    assert [(s, i) for s, i, _ in plan.sightings] == (
+        [(0, 10 + i) for i in range(40)] + [(0, i - 10) for i in range(70, 100)])
+    assert all(d == 0.25 for _, _, d in plan.sightings)
+
+
+def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
+    # merged (the sequence found it) but a lookalike is as close: retrieval alone would not
+    ds = [matched(i, i, contrast=1.2 if 20 <= i < 50 else 0.4) for i in range(60)]
+    ds[25] = matched(25, 25, contrast=math.nan)  # no contrast: not known to be redundant
+    plan = plan_admission(ds, np.ones(60, dtype=bool), NOVEL, both_ways=False)
+    assert np.flatnonzero(plan.stored).tolist() == list(range(20, 50))
+    merge = [e for e in plan.edges if e.src[0] is None and e.dst == (0, e.src[1] + 20)]
+    assert len(merge) == 30  # each stored merged frame keeps its edge to its place
+    assert len(plan.sightings) == 30
+
+
+@pytest.mark.parametrize(("pattern", "expected"), [
+    ("RRRRRRRRRRSSRRRRRRRRRR", "RRRRRRRRRRRRRRRRRRRRRR"),  # a 2-frame blip is not stored
+    ("SSSSSSSSSSRRSSSSSSSSSS", "SSSSSSSSSSSSSSSSSSSSSS"),  # a 2-frame gap is stored through
+    ("SSRRRRRRRRRRRRRRRRRRRR", "RRRRRRRRRRRRRRRRRRRRRR"),  # at the ends too
+    ("RRRRRRRRRRSSSSSSRRRRRR", "RRRRRRRRRRSSSSSSRRRRRR"),  # runs of min_run stay
+    ("SSS", "SSS"), ("RRR", "RRR"),  # a short drive is one run either way
+])
+def test_short_runs_are_smoothed(pattern, expected):
+    ds = [matched(i, i) if c == "R" else unmatched(i) for i, c in enumerate(pattern)]
+    merged = np.array([c == "R" for c in pattern])
+    got = stored_frames(ds, merged, NOVEL)
+    assert "".join("S" if s else "R" for s in got) == expected
+
+
+def test_a_merged_frame_without_a_place_or_not_merged_is_stored():
+    ds = [matched(i, i) for i in range(30)]
+    merged = np.ones(30, dtype=bool)
+    merged[10:20] = False  # the rule refused these: localisation is not sure there
+    assert np.flatnonzero(stored_frames(ds, merged, NOVEL)).tolist() == list(range(10, 20))
+
+
+@pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_contrast": -1.0},
+                                 {"max_contrast": math.inf}, {"min_run": 0}, {"min_run": 2.5}])
+def test_bad_admission_values_are_refused(bad):
+    with pytest.raises(ValueError, match="admission"):
+        Admission(**bad)
+
+
+# --- on a map -------------------------------------------------------------------------------
+
+DIM = 64
+
+
+@pytest.fixture
+def world():
+    rng = np.random.default_rng(0)
+    return rng, road_places(rng, 400, DIM, corr=0.9), road_places(rng, 120, DIM, corr=0.9)
+
+
+def detour_drive(rng, road, detour):
+    """100 frames on the road (places 0..99), 100 on the detour, 100 back on it (150..249)."""
+    parts = [traverse(rng, road, 0, 100, 0.3, speed=(1, 1))[0],
+             traverse(rng, detour, 0, 100, 0.3, speed=(1, 1))[0],
+             traverse(rng, road, 150, 100, 0.3, speed=(1, 1))[0]]
+    return np.concatenate(parts)
+
+
+@pytest.fixture
+def novel_map(tmp_path, world):
+    rng, road, _ = world
+    m = SprintMap.create(tmp_path / "m.map", MapConfig(dim=DIM).replace(
+        admission={"mode": "novel"}))
+    m.ingest(traverse(rng, road, 0, 300, 0.3, speed=(1, 1))[0], name="first")
+    yield m
+    m.close()
+
+
+def test_a_drive_already_in_the_map_stores_nothing_and_counts_its_sightings(novel_map, world):
+    rng, _, _ = world
+    rows = novel_map.descriptors(0)[:]
+    again = unit(rows + 0.02 * rng.standard_normal(rows.shape))
+    result = novel_map.ingest(again, name="again")
+    assert result.added is None and result.frames == 300
+    assert result.frames_stored <= 3  # at most 1 %
+    out = result.to_dict()
+    assert out["seq_id"] is None and out["name"] == "again" and out["frames_skipped"] == 300
+    assert all(d["stored_as"] is None for d in out["decisions"])
+    seen = novel_map.store.sighting(0, 150)
+    assert seen is not None and seen.count == 1 and seen.last_drive == "again"
+    novel_map.ingest(again, name="again-2")
+    assert novel_map.store.sighting(0, 150).count == 2
+    assert novel_map.stats()["sequences"] == 1 and novel_map.check().ok
+
+
+def test_a_detour_is_stored_stitched_and_found_by_the_next_drive(novel_map, world):
+    rng, road, detour = world
+    result = novel_map.ingest(detour_drive(rng, road, detour), name="detour")
+    assert result.added is not None
+    seq = result.added.sequence.seq_id
+    stored = [f for f in range(300) if result.stored_as(f) is not None]
+    assert 90 <= len(stored) <= 110 and set(range(105, 195)) <= set(stored)
+    assert result.stored_as(150) == (seq, 150 - stored[0])
+    out = result.to_dict()
+    assert (out["frames"], out["frames_stored"]) == (300, len(stored))
+    assert out["decisions"][150]["stored_as"] == [seq, 150 - stored[0]]
+    ends = {(e.src_seq, e.dst_seq) for e in novel_map.edges(seq)}
+    assert ends == {(0, seq), (seq, 0)}  # in from the road and back out to it
+    # the next drive on the detour is localised on it, and stores (almost) nothing
+    decisions, _ = novel_map.localize(detour_drive(rng, road, detour), smooth=True)
+    assert sum(d.seq_id == seq for d in decisions[100:200]) >= 90
+    again = novel_map.ingest(detour_drive(rng, road, detour), name="detour-2")
+    assert again.frames_stored <= 3
+    assert novel_map.check().ok
+
+
+def test_remove_and_compact_keep_sightings_consistent(novel_map, world):
+    rng, road, detour = world
+    seq = novel_map.ingest(detour_drive(rng, road, detour), name="detour").added.sequence.seq_id
+    novel_map.ingest(detour_drive(rng, road, detour), name="detour-2")
+    assert novel_map.store.sighting(seq, 50) is not None
+    novel_map.compact()
+    assert novel_map.store.sighting(seq, 50) is not None and novel_map.check().ok
+    novel_map.remove_sequences([seq])
+    report = novel_map.check()
+    assert report.ok and report.checked["sightings"] > 0  # the road's, not the detour's
+    assert novel_map.store.sighting(0, 150) is not None
+
+
+def test_a_map_without_admission_stores_every_frame(tmp_path, world):
+    rng, road, _ = world
+    with SprintMap.create(tmp_path / "m.map", MapConfig(dim=DIM)) as m:
+        rows = traverse(rng, road, 0, 300, 0.3, speed=(1, 1))[0]
+        m.ingest(rows, name="first")
+        result = m.ingest(unit(rows + 0.02 * rng.standard_normal(rows.shape)), name="again")
+        out = result.to_dict()
+        assert (out["frames"], out["frames_stored"], out["frames_skipped"]) == (300, 300, 0)
+        assert out["decisions"][7]["stored_as"] == [1, 7] and out["sightings"] == 0
+
+
+# --- a kill at any instant of an admitted commit ----------------------------------------------
+
+KILL_SCRIPT = """
+import sys
+import numpy as np
+from sprint_map.map import SprintMap
+path, which = sys.argv[1], sys.argv[2]
+with SprintMap.open(path) as m:
+    rows = np.load(sys.argv[3])
+    m.ingest(rows, name=which)
+"""
+
+
+@pytest.mark.parametrize(("which", "point"), [
+    ("again", "sightings.before_commit"), ("again", "sightings.committed"),
+    ("detour", "add.shards_written"), ("detour", "add.before_commit"),
+    ("detour", "add.committed"),
+])
+def test_a_kill_leaves_the_drive_whole_or_absent(novel_map, world, tmp_path, which, point):
+    rng, road, detour = world
+    rows = (unit(novel_map.descriptors(0)[:] + 0.02 * rng.standard_normal((300, DIM)))
+            if which == "again" else detour_drive(rng, road, detour))
+    np.save(tmp_path / "rows.npy", rows)
+    path = novel_map.path
+    novel_map.close()
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, CRASH_ENV: point, "PYTHONPATH": str(root)}
+    done = subprocess.run([sys.executable, "-c", KILL_SCRIPT, str(path), which,
+                           str(tmp_path / "rows.npy")], env=env, cwd=root, timeout=120)
+    assert done.returncode == -9
+    after = point.endswith("committed")
+    with SprintMap.open(path) as m:
+        assert m.check().ok
+        seen = m.store.sighting(0, 150)
+        assert (seen is not None) == after  # the sightings count with the drive or not at all
+        names = [s.name for s in m.sequences()]
+        assert ("detour" in names) == (after and which == "detour")
+        m.ingest(rows, name=which + "-retry")  # the writer goes on
+        assert m.check().ok
+
+
+def test_unmerge_of_an_admitted_drive_revokes_its_stitches(novel_map, world):
+    rng, road, detour = world
+    seq = novel_map.ingest(detour_drive(rng, road, detour), name="detour").added.sequence.seq_id
+    assert novel_map.edges(seq)
+    result = novel_map.unmerge("detour")
+    assert result.edges_removed >= 2 and not novel_map.edges(seq)
+    assert novel_map.component_of(seq) != novel_map.component_of(0) and novel_map.check().ok
