@@ -6,18 +6,18 @@ when
 
 1. the merge rule merged it (:mod:`sprint_map.merge.rule`): the map localised it confidently,
    on a run that stands out, and
-2. retrieval alone already finds that place first: its ``contrast`` (the best hit inside the
-   decided place over the best hit anywhere else, :func:`sprint_map.hmm.decision.place_contrast`)
-   is below ``max_contrast``.
+2. the map already holds a view of that place that looks like the frame: the squared distance
+   from the frame to the nearest of the decided vertex and its neighbours (``±2`` images) is at
+   most ``max_step_ratio`` times the drive's own median squared distance between consecutive
+   frames (how much the view changes from one frame to the next: a scale of "alike" that each
+   drive brings, whatever the descriptor).
 
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
-localise confidently, and a known place seen under an appearance the map does not match by
-retrieval alone (merged thanks to the sequence, but something elsewhere in the map looks as
-much like the frame). So a new condition is stored, drive after drive, until the map's own
-views of it make retrieval land on the place first; then it is redundant. Short flickers are
-smoothed away: a stored stretch shorter than ``min_run`` frames is not stored, then a redundant
-stretch shorter than ``min_run`` frames between (or before or after) stored frames is stored,
-so the stored vertices form runs of at least ``min_run`` frames (or the whole drive).
+localise confidently, and a known place seen under an appearance the map does not hold (merged
+thanks to the sequence, but its views look unlike the frame). So a new condition is stored
+until the map holds views of it; then it is redundant. Short flickers are smoothed away: a
+stored stretch shorter than ``min_run`` frames is not stored, then a redundant stretch shorter
+than ``min_skip`` frames between (or before or after) stored frames is stored.
 
 The stored frames become one sequence, in drive order (image ``j`` is the drive's ``j``-th
 stored frame). What is not stored still counts:
@@ -39,7 +39,7 @@ stitching edges carry the right belief, and the observations decide.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +47,8 @@ import numpy as np
 from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
 
-__all__ = ["ADMISSION_MODES", "Admission", "AdmissionPlan", "plan_admission"]
+__all__ = ["ADMISSION_MODES", "Admission", "AdmissionPlan", "drive_step", "place_distances",
+           "plan_admission", "stored_frames"]
 
 #: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
 ADMISSION_MODES = ("all", "novel")
@@ -60,19 +61,23 @@ class Admission:
 
     #: ``"all"`` or ``"novel"``.
     mode: str = "all"
-    #: A merged frame whose contrast is below this is redundant (``novel`` only).
-    max_contrast: float = 1.0
-    #: Frames of the shortest stored run and of the shortest redundant gap (``novel`` only).
+    #: A merged frame this close to its place, in the drive's steps, is redundant (``novel``).
+    max_step_ratio: float = 1.0
+    #: Frames of the shortest stored run (``novel`` only).
     min_run: int = 5
+    #: Frames of the shortest redundant stretch left out between stored frames (``novel``).
+    min_skip: int = 20
 
     def __post_init__(self) -> None:
         if self.mode not in ADMISSION_MODES:
             raise ValueError(f"admission must be one of {', '.join(ADMISSION_MODES)}, "
                              f"not {self.mode!r}")
-        if not 0 <= self.max_contrast < math.inf:
-            raise ValueError("admission max_contrast must be a finite number >= 0")
+        if not 0 <= self.max_step_ratio < math.inf:
+            raise ValueError("admission max_step_ratio must be a finite number >= 0")
         if not isinstance(self.min_run, int) or self.min_run < 1:
             raise ValueError("admission min_run must be an integer >= 1")
+        if not isinstance(self.min_skip, int) or self.min_skip < 1:
+            raise ValueError("admission min_skip must be an integer >= 1")
 
 
 @dataclass(frozen=True)
@@ -110,33 +115,39 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
-                  admission: Admission) -> np.ndarray:
-    """Which frames ``admission`` stores (bool per frame; see the module docstring). O(n)."""
+                  admission: Admission, closeness: np.ndarray | None) -> np.ndarray:
+    """Which frames ``admission`` stores (bool per frame; see the module docstring):
+    ``closeness`` is each frame's distance to its place in the drive's steps (NaN or inf where
+    unknown: stored). O(n)."""
     n = len(decisions)
-    if admission.mode == "all" or n == 0:
+    if admission.mode == "all" or n == 0 or closeness is None:
         return np.ones(n, dtype=bool)
-    contrast = np.array([d.contrast for d in decisions], dtype=float)
     matched = np.array([d.seq_id is not None for d in decisions], dtype=bool)
     with np.errstate(invalid="ignore"):
-        redundant = np.asarray(merged, dtype=bool) & matched & (contrast < admission.max_contrast)
+        alike = np.asarray(closeness, dtype=float) <= admission.max_step_ratio
+    redundant = np.asarray(merged, dtype=bool) & matched & alike
     stored: np.ndarray = ~redundant
-    short = admission.min_run
     for a, b in _runs(stored):
-        if b - a < short and b - a < n:
+        if b - a < admission.min_run and b - a < n:
             stored[a:b] = False
     for a, b in _runs(~stored):
-        if b - a < short and b - a < n:
+        if b - a < admission.min_skip and b - a < n:
             stored[a:b] = True
     return stored
 
 
 def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
-                   admission: Admission, both_ways: bool) -> AdmissionPlan:
+                   admission: Admission, both_ways: bool,
+                   place_dist: np.ndarray | None = None, step: float = math.inf
+                   ) -> AdmissionPlan:
     """What to store of a drive, its edges and its sightings (see the module docstring).
 
     ``decisions`` are the drive's consecutive frames (``frame`` is ``0 .. n-1``), ``merged``
-    the merge rule's verdict per decision. With ``admission.mode == "all"`` every frame is
-    stored and the edges are the merge edges (:func:`sprint_map.merge.commit.merge_edges`).
+    the merge rule's verdict per decision, ``place_dist`` each frame's squared distance to its
+    place and ``step`` the drive's median squared distance between consecutive frames
+    (:func:`place_distances`; None: every frame is stored). With ``admission.mode == "all"``
+    every frame is stored and the edges are the merge edges
+    (:func:`sprint_map.merge.commit.merge_edges`).
 
     Notes
     -----
@@ -144,7 +155,8 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
     """
     n = len(decisions)
     merged = np.asarray(merged, dtype=bool) if len(merged) else np.zeros(n, dtype=bool)
-    stored = stored_frames(decisions, merged, admission)
+    closeness = None if place_dist is None else place_dist / max(step, 1e-30)
+    stored = stored_frames(decisions, merged, admission, closeness)
     image_of = np.full(n, -1, dtype=np.int64)
     image_of[stored] = np.arange(int(stored.sum()), dtype=np.int64)
     edges: list[EdgeSpec] = []
@@ -153,7 +165,8 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
         if not merged[i] or d.seq_id is None or d.image_id is None:
             continue
         if not stored[i]:
-            sightings.append((d.seq_id, d.image_id, float(d.distance)))
+            assert place_dist is not None
+            sightings.append((d.seq_id, d.image_id, float(place_dist[i])))
             continue
         j = int(image_of[i])
         weight = min(1.0, float(d.prob))
@@ -163,6 +176,39 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
     if admission.mode != "all":
         edges.extend(_stitches(decisions, merged, stored, image_of))
     return AdmissionPlan(stored, image_of, edges, sightings)
+
+
+def drive_step(rows: np.ndarray) -> float:
+    """The drive's median squared distance between consecutive frames (inf for one frame).
+    O(n * dim)."""
+    if len(rows) < 2:
+        return math.inf
+    diff = np.diff(np.asarray(rows, dtype=np.float32), axis=0)
+    return float(np.median(np.einsum("ij,ij->i", diff, diff)))
+
+
+def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged: np.ndarray,
+                    read: Callable[[int, int, int], np.ndarray], lengths: Callable[[int], int],
+                    radius: int = 2) -> np.ndarray:
+    """Each merged frame's squared distance to the nearest view of its place: the decided
+    image and up to ``radius`` images either side on its sequence (inf for the other frames).
+    ``read(seq_id, start, stop)`` gives stored rows, ``lengths(seq_id)`` a sequence's length
+    (0 for one no longer in the map).
+
+    Notes
+    -----
+    O(m * (2 radius + 1) * dim) for m merged frames, plus the reads.
+    """
+    out = np.full(len(decisions), np.inf)
+    for i, d in enumerate(decisions):
+        if not merged[i] or d.seq_id is None or d.image_id is None:
+            continue
+        lo, hi = max(0, d.image_id - radius), min(lengths(d.seq_id), d.image_id + radius + 1)
+        if hi <= lo:  # a sequence removed since the drive was localised
+            continue
+        views = np.asarray(read(d.seq_id, lo, hi), dtype=np.float32) - rows[i]
+        out[i] = float(np.einsum("ij,ij->i", views, views).min())
+    return out
 
 
 def _stitches(decisions: Sequence[MergeDecision], merged: np.ndarray, stored: np.ndarray,

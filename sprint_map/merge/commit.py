@@ -34,7 +34,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.merge.admission import Admission, AdmissionPlan, plan_admission
+from sprint_map.errors import UnknownSequenceError
+from sprint_map.merge.admission import (
+    Admission,
+    AdmissionPlan,
+    drive_step,
+    place_distances,
+    plan_admission,
+)
 from sprint_map.merge.rule import MergeRule, select_merges
 from sprint_map.storage.records import AddResult, EdgeSpec
 from sprint_map.storage.sequence_writer import SequenceWriter
@@ -197,6 +204,30 @@ class DriveWriter:
             self._held_frames = 0
         self._writer.abort()
 
+    def _place_distances(self, rows: np.ndarray, decisions: Sequence[FrameDecision],
+                         merged: np.ndarray) -> tuple[np.ndarray, float]:
+        """Each merged frame's squared distance to its place's stored views, and the drive's
+        step (:func:`sprint_map.merge.admission.place_distances`). O(m * dim) reads."""
+        store = self._writer.store
+        total = store.counter("next_vertex_id")
+        lengths: dict[int, tuple[int, int]] = {}
+
+        def span(seq_id: int) -> tuple[int, int]:
+            if seq_id not in lengths:
+                try:
+                    rec = store.sequence(seq_id)
+                    lengths[seq_id] = (rec.first_vertex, rec.length)
+                except UnknownSequenceError:  # removed since the drive was localised
+                    lengths[seq_id] = (0, 0)
+            return lengths[seq_id]
+
+        def read(seq_id: int, start: int, stop: int) -> np.ndarray:
+            first = span(seq_id)[0]
+            return store.shards.rows(first + start, first + stop, total)
+
+        return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1]),
+                drive_step(rows))
+
     def commit(
         self,
         decisions: Sequence[FrameDecision],
@@ -237,7 +268,8 @@ class DriveWriter:
                         else np.zeros((0, writer.store.config.dim), dtype=np.float32))
             if len(decisions) != len(rows):
                 raise ValueError(f"{len(decisions)} decisions for a drive of {len(rows)} frames")
-            plan = plan_admission(decisions, merged, self._admission, self._both_ways)
+            plan = plan_admission(decisions, merged, self._admission, self._both_ways,
+                                  *self._place_distances(rows, decisions, merged))
             edges = plan.edges
             frames = len(rows)
             rows = plan.select(rows)

@@ -14,7 +14,13 @@ import pytest
 from sprint_map import MapConfig
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.merge.admission import Admission, plan_admission, stored_frames
+from sprint_map.merge.admission import (
+    Admission,
+    drive_step,
+    place_distances,
+    plan_admission,
+    stored_frames,
+)
 from sprint_map.merge.commit import merge_edges
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.testing.crash import CRASH_ENV
@@ -23,50 +29,55 @@ from tests.helpers.worlds import road_places, traverse, unit
 # --- the plan, from decisions ----------------------------------------------------------------
 
 
-def matched(frame: int, image: int, contrast: float = 0.5, seq: int = 0, prob: float = 0.9
-            ) -> FrameDecision:
-    return FrameDecision(frame, seq, image, prob, contrast=contrast, distance=0.25)
+def matched(frame: int, image: int, seq: int = 0, prob: float = 0.9) -> FrameDecision:
+    return FrameDecision(frame, seq, image, prob, distance=0.25)
 
 
 def unmatched(frame: int) -> FrameDecision:
     return FrameDecision(frame, None, None, 0.1, novel_prob=0.9)
 
 
-NOVEL = Admission(mode="novel")
+NOVEL = Admission(mode="novel", min_skip=5)
+STEP = 0.5  # the drive's median squared step: a place within it is a view alike
 
 
-def detour_decisions() -> tuple[list[FrameDecision], np.ndarray]:
-    """40 frames matched to sequence 0 (images 10..49), 30 unmatched, 30 matched (60..89)."""
+def detour_decisions() -> tuple[list[FrameDecision], np.ndarray, np.ndarray]:
+    """40 frames matched to sequence 0 (images 10..49), 30 unmatched, 30 matched (60..89);
+    the matched ones as close to their place as to their next frame."""
     ds = ([matched(i, 10 + i) for i in range(40)] + [unmatched(i) for i in range(40, 70)]
           + [matched(i, i - 10) for i in range(70, 100)])
     merged = np.array([d.seq_id is not None for d in ds])
-    return ds, merged
+    return ds, merged, np.where(merged, 0.4, np.inf)
 
 
 def test_all_stores_every_frame_with_the_merge_edges():
-    ds, merged = detour_decisions()
-    plan = plan_admission(ds, merged, Admission(), both_ways=True)
+    ds, merged, dist = detour_decisions()
+    plan = plan_admission(ds, merged, Admission(), True, dist, STEP)
     assert plan.stored.all() and plan.image_of.tolist() == list(range(100))
     assert plan.edges == merge_edges(ds, merged, True) and not plan.sightings
 
 
 def test_novel_stores_the_detour_stitched_into_the_map():
-    ds, merged = detour_decisions()
-    plan = plan_admission(ds, merged, NOVEL, both_ways=True)
+    ds, merged, dist = detour_decisions()
+    plan = plan_admission(ds, merged, NOVEL, True, dist, STEP)
     assert np.flatnonzero(plan.stored).tolist() == list(range(40, 70))
     assert plan.image_of[40] == 0 and plan.image_of[69] == 29 and plan.image_of[0] == -1
     # where the drive came from (frame 39 on image 49) and where it went (frame 70 on 60)
-    assert plan.edges == [EdgeSpec((0, 49), (None, 0), 0.9, 0), EdgeSpec((None, 29), (0, 60), 0.9, 29)]
+    assert plan.edges == [EdgeSpec((0, 49), (None, 0), 0.9, 0),
+                          EdgeSpec((None, 29), (0, 60), 0.9, 29)]
     assert [(s, i) for s, i, _ in plan.sightings] == (
         [(0, 10 + i) for i in range(40)] + [(0, i - 10) for i in range(70, 100)])
-    assert all(d == 0.25 for _, _, d in plan.sightings)
+    assert all(d == 0.4 for _, _, d in plan.sightings)  # each frame's distance to its place
+    # without place distances nothing is known to be redundant
+    assert plan_admission(ds, merged, NOVEL, True).stored.all()
 
 
 def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
-    # merged (the sequence found it) but a lookalike is as close: retrieval alone would not
-    ds = [matched(i, i, contrast=1.2 if 20 <= i < 50 else 0.4) for i in range(60)]
-    ds[25] = matched(25, 25, contrast=math.nan)  # no contrast: not known to be redundant
-    plan = plan_admission(ds, np.ones(60, dtype=bool), NOVEL, both_ways=False)
+    # merged (the sequence found it) but its views look unlike the frame: farther than a step
+    ds = [matched(i, i) for i in range(60)]
+    dist = np.where((np.arange(60) >= 20) & (np.arange(60) < 50), 3 * STEP, 0.5 * STEP)
+    dist[25] = np.nan  # unknown: not known to be redundant
+    plan = plan_admission(ds, np.ones(60, dtype=bool), NOVEL, False, dist, STEP)
     assert np.flatnonzero(plan.stored).tolist() == list(range(20, 50))
     merge = [e for e in plan.edges if e.src[0] is None and e.dst == (0, e.src[1] + 20)]
     assert len(merge) == 30  # each stored merged frame keeps its edge to its place
@@ -77,25 +88,60 @@ def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
     ("RRRRRRRRRRSSRRRRRRRRRR", "RRRRRRRRRRRRRRRRRRRRRR"),  # a 2-frame blip is not stored
     ("SSSSSSSSSSRRSSSSSSSSSS", "SSSSSSSSSSSSSSSSSSSSSS"),  # a 2-frame gap is stored through
     ("SSRRRRRRRRRRRRRRRRRRRR", "RRRRRRRRRRRRRRRRRRRRRR"),  # at the ends too
-    ("RRRRRRRRRRSSSSSSRRRRRR", "RRRRRRRRRRSSSSSSRRRRRR"),  # runs of min_run stay
+    ("RRRRRRRRRRSSSSSSRRRRRR", "RRRRRRRRRRSSSSSSRRRRRR"),  # runs of min_run / min_skip stay
     ("SSS", "SSS"), ("RRR", "RRR"),  # a short drive is one run either way
 ])
 def test_short_runs_are_smoothed(pattern, expected):
     ds = [matched(i, i) if c == "R" else unmatched(i) for i, c in enumerate(pattern)]
     merged = np.array([c == "R" for c in pattern])
-    got = stored_frames(ds, merged, NOVEL)
+    got = stored_frames(ds, merged, NOVEL, np.zeros(len(pattern)))
     assert "".join("S" if s else "R" for s in got) == expected
 
 
-def test_a_merged_frame_without_a_place_or_not_merged_is_stored():
+def test_the_default_skips_only_stretches_a_merge_run_long():
+    ds = [matched(i, i) for i in range(60)]
+    merged = np.ones(60, dtype=bool)
+
+    def stored(far: list[range]) -> list[int]:
+        closeness = np.zeros(60)
+        for r in far:
+            closeness[r] = 5.0
+        return np.flatnonzero(stored_frames(ds, merged, Admission(mode="novel"),
+                                            closeness)).tolist()
+
+    # 20 redundant frames before, 30 after: both skipped
+    assert stored([range(20, 30)]) == list(range(20, 30))
+    # 15 redundant frames between two stored runs, 10 at the end: stored through
+    assert stored([range(20, 30), range(45, 50)]) == list(range(20, 60))
+    # 20 between them and 20 at the end: skipped (at least a merge run long); 5 at the start not
+    assert stored([range(5, 15), range(35, 40)]) == list(range(0, 15)) + list(range(35, 40))
+
+
+def test_a_frame_the_rule_did_not_merge_is_stored():
     ds = [matched(i, i) for i in range(30)]
     merged = np.ones(30, dtype=bool)
     merged[10:20] = False  # the rule refused these: localisation is not sure there
-    assert np.flatnonzero(stored_frames(ds, merged, NOVEL)).tolist() == list(range(10, 20))
+    assert np.flatnonzero(stored_frames(ds, merged, NOVEL, np.zeros(30))).tolist() == list(
+        range(10, 20))
 
 
-@pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_contrast": -1.0},
-                                 {"max_contrast": math.inf}, {"min_run": 0}, {"min_run": 2.5}])
+def test_drive_step_and_place_distances():
+    rows = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 2.0], [1.0, 3.0]], dtype=np.float32)
+    assert drive_step(rows) == 1.0 and drive_step(rows[:1]) == math.inf
+    stored = {0: np.array([[5.0, 5.0], [0.5, 0.0], [1.0, 2.5], [9.0, 9.0]], dtype=np.float32)}
+    ds = [matched(0, 0), matched(1, 0), matched(2, 3), unmatched(3)]
+    got = place_distances(rows, ds, np.array([True, True, False, False]),
+                          lambda s, a, b: stored[s][a:b], lambda s: len(stored[s]), radius=1)
+    # frame 0 nearest to image 1 of the decided 0 +- 1; frame 1 too; the others not merged
+    assert got.tolist() == [0.25, 0.25, math.inf, math.inf]
+    gone = place_distances(rows, ds, np.ones(4, dtype=bool), lambda s, a, b: stored[s][a:b],
+                           lambda s: 0)  # the sequence was removed meanwhile
+    assert np.isinf(gone).all()
+
+
+@pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_step_ratio": -1.0},
+                                 {"max_step_ratio": math.inf}, {"min_run": 0},
+                                 {"min_run": 2.5}, {"min_skip": 0}])
 def test_bad_admission_values_are_refused(bad):
     with pytest.raises(ValueError, match="admission"):
         Admission(**bad)
@@ -108,33 +154,40 @@ DIM = 64
 
 @pytest.fixture
 def world():
+    """A seeded rng, a drive of 300 frames along a road and one of 100 along a detour, each
+    under its own appearance."""
     rng = np.random.default_rng(0)
-    return rng, road_places(rng, 400, DIM, corr=0.9), road_places(rng, 120, DIM, corr=0.9)
+    road = traverse(rng, road_places(rng, 400, DIM, corr=0.9), 0, 300, 0.3, speed=(1, 1))[0]
+    detour = traverse(rng, road_places(rng, 120, DIM, corr=0.9), 0, 100, 0.3, speed=(1, 1))[0]
+    return rng, road, detour
+
+
+def again(rng, rows):
+    """``rows`` driven again under the same appearance: a little noise."""
+    return unit(rows + 0.02 * rng.standard_normal(rows.shape))
 
 
 def detour_drive(rng, road, detour):
-    """100 frames on the road (places 0..99), 100 on the detour, 100 back on it (150..249)."""
-    parts = [traverse(rng, road, 0, 100, 0.3, speed=(1, 1))[0],
-             traverse(rng, detour, 0, 100, 0.3, speed=(1, 1))[0],
-             traverse(rng, road, 150, 100, 0.3, speed=(1, 1))[0]]
-    return np.concatenate(parts)
+    """100 frames on the road (its frames 0..99), 100 on the detour, 100 back on the road
+    (150..249), all under the appearances the drives had."""
+    return np.concatenate([again(rng, road[:100]), again(rng, detour),
+                           again(rng, road[150:250])])
 
 
 @pytest.fixture
 def novel_map(tmp_path, world):
-    rng, road, _ = world
+    _, road, _ = world
     m = SprintMap.create(tmp_path / "m.map", MapConfig(dim=DIM).replace(
         admission={"mode": "novel"}))
-    m.ingest(traverse(rng, road, 0, 300, 0.3, speed=(1, 1))[0], name="first")
+    m.ingest(road, name="first")
     yield m
     m.close()
 
 
 def test_a_drive_already_in_the_map_stores_nothing_and_counts_its_sightings(novel_map, world):
-    rng, _, _ = world
-    rows = novel_map.descriptors(0)[:]
-    again = unit(rows + 0.02 * rng.standard_normal(rows.shape))
-    result = novel_map.ingest(again, name="again")
+    rng, road, _ = world
+    rows = again(rng, road)
+    result = novel_map.ingest(rows, name="again")
     assert result.added is None and result.frames == 300
     assert result.frames_stored <= 3  # at most 1 %
     out = result.to_dict()
@@ -142,7 +195,7 @@ def test_a_drive_already_in_the_map_stores_nothing_and_counts_its_sightings(nove
     assert all(d["stored_as"] is None for d in out["decisions"])
     seen = novel_map.store.sighting(0, 150)
     assert seen is not None and seen.count == 1 and seen.last_drive == "again"
-    novel_map.ingest(again, name="again-2")
+    novel_map.ingest(rows, name="again-2")
     assert novel_map.store.sighting(0, 150).count == 2
     assert novel_map.stats()["sequences"] == 1 and novel_map.check().ok
 
@@ -184,9 +237,8 @@ def test_remove_and_compact_keep_sightings_consistent(novel_map, world):
 def test_a_map_without_admission_stores_every_frame(tmp_path, world):
     rng, road, _ = world
     with SprintMap.create(tmp_path / "m.map", MapConfig(dim=DIM)) as m:
-        rows = traverse(rng, road, 0, 300, 0.3, speed=(1, 1))[0]
-        m.ingest(rows, name="first")
-        result = m.ingest(unit(rows + 0.02 * rng.standard_normal(rows.shape)), name="again")
+        m.ingest(road, name="first")
+        result = m.ingest(again(rng, road), name="again")
         out = result.to_dict()
         assert (out["frames"], out["frames_stored"], out["frames_skipped"]) == (300, 300, 0)
         assert out["decisions"][7]["stored_as"] == [1, 7] and out["sightings"] == 0
@@ -212,8 +264,7 @@ with SprintMap.open(path) as m:
 ])
 def test_a_kill_leaves_the_drive_whole_or_absent(novel_map, world, tmp_path, which, point):
     rng, road, detour = world
-    rows = (unit(novel_map.descriptors(0)[:] + 0.02 * rng.standard_normal((300, DIM)))
-            if which == "again" else detour_drive(rng, road, detour))
+    rows = again(rng, road) if which == "again" else detour_drive(rng, road, detour)
     np.save(tmp_path / "rows.npy", rows)
     path = novel_map.path
     novel_map.close()

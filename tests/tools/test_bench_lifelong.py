@@ -123,9 +123,9 @@ def test_quick_run_with_admission_reports_the_map_size(bench: Any, tmp_path: Pat
         before = b["map_vertices_after"]
         assert a["frames_stored"] == 60 and b["map_vertices"] <= a["map_vertices"]
         assert b["frame_ms"] > 0 and b["disk_bytes"] > 0
-    assert sum(r["frames_stored"] for r in novel) < sum(r["frames_stored"] for r in merge)
+    assert sum(r["frames_stored"] for r in novel) <= sum(r["frames_stored"] for r in merge)
     size = run["summary"]["admission"]
-    assert size["vertices"] == novel[-1]["map_vertices_after"] < size["vertices_all"] == 480
+    assert size["vertices"] == novel[-1]["map_vertices_after"] <= size["vertices_all"] == 480
     assert size["traversals_worth"] == pytest.approx(size["vertices"] / 60, abs=0.01)
     assert size["reingest_stored_fraction"] <= 0.05  # the last drive again: (almost) nothing
     assert set(run["summary"]["novel_minus_merge_later_points"]) == {
