@@ -815,6 +815,7 @@ class SprintMap:
             "components": stats["components"],
             "dim": self.config.dim,
             "descriptor": self.config.descriptor,
+            "admission": self.config.admission.mode,
             "index": {
                 **index.describe(),
                 # The index is a cache that catches up from the shards when loaded, so a search

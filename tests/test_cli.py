@@ -290,7 +290,8 @@ def test_init_admission_novel_is_stored_and_ingest_reports_what_it_stored(tmp_pa
     result = run("init", path, "--dim", DIM, "--admission", "novel")
     assert result.exit_code == 0, result.output
     info = json.loads(run("info", path, "--json").output)
-    assert info["config"]["admission"]["mode"] == "novel"
+    assert info["admission"] == info["config"]["admission"]["mode"] == "novel"
+    assert "admission: novel" in run("info", path).output
     run("ingest", path, drives[0], "--json")
     again = json.loads(run("ingest", path, drives[0], "--name", "again", "--json").output)
     # the very drive again: every frame matched where retrieval alone finds it

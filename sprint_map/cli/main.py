@@ -463,7 +463,7 @@ def info(map_path: str, as_json: bool) -> None:
     text = "\n".join(
         f"{key}: {data[key]}"
         for key in ("path", "schema_version", "sequences", "vertices", "edges", "components",
-                    "dim", "descriptor", "index", "disk_bytes")
+                    "dim", "descriptor", "admission", "index", "disk_bytes")
     )
     _emit(data, as_json, text)
 
