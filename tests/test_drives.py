@@ -245,6 +245,8 @@ def test_kill_inside_an_appended_group(tmp_path, drives, point):
     assert again.returncode == 0, again.stderr
     assert [(r["name"], r["already_committed"]) for r in json.loads(again.stdout)] == \
         [(f"d{i}", GROUP_COMMITTED[point]) for i in (1, 2, 3)]
+    assert [(r["frames"], r["frames_stored"]) for r in json.loads(again.stdout)] == \
+        [(len(drives[i]), len(drives[i])) for i in (1, 2, 3)]
     state = snapshot(path)
     append_serially(tmp_path / "serial", drives, [f"d{i}" for i in range(4)])
     assert [s[1:] for s in state["sequences"]] == [  # type: ignore[attr-defined]

@@ -174,6 +174,7 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
                 failure = exc
                 break
         added = writer.commit()
-    out.extend(IngestResult(a, [], Timing()) for a in added)
+    out.extend(IngestResult(a, [], Timing(), name=a.sequence.name, frames=a.sequence.length)
+               for a in added)
     if failure is not None:
         raise failure
