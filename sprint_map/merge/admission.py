@@ -17,7 +17,10 @@ localise confidently, and a known place seen under an appearance the map does no
 thanks to the sequence, but its views look unlike the frame). So a new condition is stored
 until the map holds views of it; then it is redundant. Short flickers are smoothed away: a
 stored stretch shorter than ``min_run`` frames is not stored, then a redundant stretch shorter
-than ``min_skip`` frames between (or before or after) stored frames is stored.
+than ``min_skip`` frames between (or before or after) stored frames is stored. Each stored run
+then takes ``margin`` redundant frames on either side: the run overlaps the places the drive
+came from and went to, and its merged frames there keep their edges, so belief crosses into
+the run and out of it over many edges, not one.
 
 The stored frames become one sequence, in drive order (image ``j`` is the drive's ``j``-th
 stored frame). What is not stored still counts:
@@ -67,6 +70,8 @@ class Admission:
     min_run: int = 5
     #: Frames of the shortest redundant stretch left out between stored frames (``novel``).
     min_skip: int = 20
+    #: Redundant frames stored on either side of each stored run (``novel``).
+    margin: int = 10
 
     def __post_init__(self) -> None:
         if self.mode not in ADMISSION_MODES:
@@ -78,6 +83,8 @@ class Admission:
             raise ValueError("admission min_run must be an integer >= 1")
         if not isinstance(self.min_skip, int) or self.min_skip < 1:
             raise ValueError("admission min_skip must be an integer >= 1")
+        if not isinstance(self.margin, int) or self.margin < 0:
+            raise ValueError("admission margin must be an integer >= 0")
 
 
 @dataclass(frozen=True)
@@ -133,6 +140,9 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     for a, b in _runs(~stored):
         if b - a < admission.min_skip and b - a < n:
             stored[a:b] = True
+    if admission.margin and not stored.all():
+        for a, b in _runs(stored):
+            stored[max(0, a - admission.margin):b + admission.margin] = True
     return stored
 
 

@@ -37,7 +37,7 @@ def unmatched(frame: int) -> FrameDecision:
     return FrameDecision(frame, None, None, 0.1, novel_prob=0.9)
 
 
-NOVEL = Admission(mode="novel", min_skip=5)
+NOVEL = Admission(mode="novel", min_skip=5, margin=0)
 STEP = 0.5  # the drive's median squared step: a place within it is a view alike
 
 
@@ -106,7 +106,7 @@ def test_the_default_skips_only_stretches_a_merge_run_long():
         closeness = np.zeros(60)
         for r in far:
             closeness[r] = 5.0
-        return np.flatnonzero(stored_frames(ds, merged, Admission(mode="novel"),
+        return np.flatnonzero(stored_frames(ds, merged, Admission(mode="novel", margin=0),
                                             closeness)).tolist()
 
     # 20 redundant frames before, 30 after: both skipped
@@ -115,6 +115,17 @@ def test_the_default_skips_only_stretches_a_merge_run_long():
     assert stored([range(20, 30), range(45, 50)]) == list(range(20, 60))
     # 20 between them and 20 at the end: skipped (at least a merge run long); 5 at the start not
     assert stored([range(5, 15), range(35, 40)]) == list(range(0, 15)) + list(range(35, 40))
+
+
+def test_each_stored_run_takes_a_margin_of_redundant_frames():
+    ds = [matched(i, i) for i in range(100)]
+    closeness = np.zeros(100)
+    closeness[40:60] = 5.0
+    got = stored_frames(ds, np.ones(100, dtype=bool), Admission(mode="novel"), closeness)
+    assert np.flatnonzero(got).tolist() == list(range(30, 70))  # the default margin: 10
+    closeness[:] = 0.0  # nothing to store: no margin either
+    assert not stored_frames(ds, np.ones(100, dtype=bool), Admission(mode="novel"),
+                             closeness).any()
 
 
 def test_a_frame_the_rule_did_not_merge_is_stored():
@@ -141,7 +152,7 @@ def test_drive_step_and_place_distances():
 
 @pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_step_ratio": -1.0},
                                  {"max_step_ratio": math.inf}, {"min_run": 0},
-                                 {"min_run": 2.5}, {"min_skip": 0}])
+                                 {"min_run": 2.5}, {"min_skip": 0}, {"margin": -1}])
 def test_bad_admission_values_are_refused(bad):
     with pytest.raises(ValueError, match="admission"):
         Admission(**bad)
@@ -206,7 +217,8 @@ def test_a_detour_is_stored_stitched_and_found_by_the_next_drive(novel_map, worl
     assert result.added is not None
     seq = result.added.sequence.seq_id
     stored = [f for f in range(300) if result.stored_as(f) is not None]
-    assert 90 <= len(stored) <= 110 and set(range(105, 195)) <= set(stored)
+    # the detour (frames 100..199) and the default margin of 10 frames either side
+    assert 110 <= len(stored) <= 130 and set(range(95, 205)) <= set(stored)
     assert result.stored_as(150) == (seq, 150 - stored[0])
     out = result.to_dict()
     assert (out["frames"], out["frames_stored"]) == (300, len(stored))
@@ -231,7 +243,7 @@ def test_remove_and_compact_keep_sightings_consistent(novel_map, world):
     novel_map.remove_sequences([seq])
     report = novel_map.check()
     assert report.ok and report.checked["sightings"] > 0  # the road's, not the detour's
-    assert novel_map.store.sighting(0, 150) is not None
+    assert novel_map.store.sighting(0, 200) is not None
 
 
 def test_a_map_without_admission_stores_every_frame(tmp_path, world):
@@ -276,7 +288,7 @@ def test_a_kill_leaves_the_drive_whole_or_absent(novel_map, world, tmp_path, whi
     after = point.endswith("committed")
     with SprintMap.open(path) as m:
         assert m.check().ok
-        seen = m.store.sighting(0, 150)
+        seen = m.store.sighting(0, 200)
         assert (seen is not None) == after  # the sightings count with the drive or not at all
         names = [s.name for s in m.sequences()]
         assert ("detour" in names) == (after and which == "detour")
