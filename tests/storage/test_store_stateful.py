@@ -57,6 +57,8 @@ class StoreMachine(RuleBasedStateMachine):
         self.rows: list[np.ndarray] = []
         self.positions: list[np.ndarray | None] = []
         self.edges: dict[tuple[int, int], tuple[float, int, int | None]] = {}
+        #: (seq_id, image_id) -> (count, last drive, last distance) of places seen again
+        self.sightings: dict[tuple[int, int], tuple[int, str, float]] = {}
 
     def teardown(self) -> None:
         self.store.close()
@@ -191,6 +193,23 @@ class StoreMachine(RuleBasedStateMachine):
         assert pair_distances(query[0], all_rows[found : found + 1])[0] == 0.0
         assert found <= sum(len(r) for r in self.rows[:seq]) + image
 
+    @precondition(lambda self: self.rows)
+    @rule(data=st.data())
+    def see_again(self, data):
+        """A drive that stored nothing: its sightings committed alone (admission)."""
+        n = data.draw(st.integers(0, 6))
+        seen = []
+        for _ in range(n):
+            seq = data.draw(st.integers(0, len(self.rows) - 1))
+            image = data.draw(st.integers(0, len(self.rows[seq]) - 1))
+            seen.append((seq, image, data.draw(st.floats(0, 10, width=32))))
+        seen.append((len(self.rows) + 5, 0, 1.0))  # a sequence not in the map: dropped
+        drive = data.draw(NAMES)
+        assert self.store.record_sightings(drive, seen) == n
+        for seq, image, dist in seen[:-1]:
+            count = self.sightings.get((seq, image), (0, "", 0.0))[0]
+            self.sightings[(seq, image)] = (count + 1, drive, dist)
+
     @rule()
     def components_match(self):
         got = {frozenset(c.sequences) for c in self.store.components()}
@@ -217,6 +236,10 @@ class StoreMachine(RuleBasedStateMachine):
         got = {(e.src, e.dst): (e.weight, e.query_seq, e.frame) for e in store.edges()}
         assert got == self.edges
         assert {frozenset(c.sequences) for c in store.components()} == self.components()
+        for (seq, image), (count, drive, dist) in self.sightings.items():
+            seen = store.sighting(seq, image)
+            assert seen is not None and (seen.count, seen.last_drive) == (count, drive)
+            assert seen.last_distance == dist
 
 
 TestStoreStateful = StoreMachine.TestCase
