@@ -137,7 +137,9 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
     sequence (named after its source, or after its folder where two sources share a name)
     localised against the map holding the earlier ones, as separate commands would, and
     committed in groups. A failure stops there: the drives before it stay committed. Each
-    drive's positions: --positions, else a bag's GNSS, else its folder's positions.csv.
+    drive's positions: --positions, else a bag's GNSS, else its folder's positions.csv. A map
+    made with `init --admission novel` stores only the frames it lacks (--json:
+    frames_stored, frames_skipped, each decision's stored_as).
 
     \b
     Examples:
