@@ -155,8 +155,8 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
     ``decisions`` are the drive's consecutive frames (``frame`` is ``0 .. n-1``), ``merged``
     the merge rule's verdict per decision, ``place_dist`` each frame's squared distance to its
     place and ``step`` the drive's median squared distance between consecutive frames
-    (:func:`place_distances`; None: every frame is stored). With ``admission.mode == "all"``
-    every frame is stored and the edges are the merge edges
+    (:func:`place_distances`; None, or an infinite step: every frame is stored). With
+    ``admission.mode == "all"`` every frame is stored and the edges are the merge edges
     (:func:`sprint_map.merge.commit.merge_edges`).
 
     Notes
@@ -165,7 +165,9 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
     """
     n = len(decisions)
     merged = np.asarray(merged, dtype=bool) if len(merged) else np.zeros(n, dtype=bool)
-    closeness = None if place_dist is None else place_dist / max(step, 1e-30)
+    # Without a finite step (a one-frame drive) there is no scale of "alike": store all.
+    closeness = (None if place_dist is None or not math.isfinite(step)
+                 else place_dist / max(step, 1e-30))
     stored = stored_frames(decisions, merged, admission, closeness)
     image_of = np.full(n, -1, dtype=np.int64)
     image_of[stored] = np.arange(int(stored.sum()), dtype=np.int64)

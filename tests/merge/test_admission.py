@@ -68,8 +68,9 @@ def test_novel_stores_the_detour_stitched_into_the_map():
     assert [(s, i) for s, i, _ in plan.sightings] == (
         [(0, 10 + i) for i in range(40)] + [(0, i - 10) for i in range(70, 100)])
     assert all(d == 0.4 for _, _, d in plan.sightings)  # each frame's distance to its place
-    # without place distances nothing is known to be redundant
+    # without place distances, or a scale for them, nothing is known to be redundant
     assert plan_admission(ds, merged, NOVEL, True).stored.all()
+    assert plan_admission(ds, merged, NOVEL, True, dist, math.inf).stored.all()
 
 
 def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
