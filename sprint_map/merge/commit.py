@@ -288,7 +288,6 @@ class DriveWriter:
             # commit.
             before = {self._component_of(seq)
                       for seq in {s for e in edges for s, _ in (e.src, e.dst) if s is not None}}
-            before |= {self._component_of(s) for s, _, _ in sightings}
         if plan is not None and plan.frames_stored == 0:
             writer.abort()  # nothing to store: the sightings alone are committed
             with exclusive() if exclusive is not None else nullcontext():

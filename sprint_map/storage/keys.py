@@ -22,9 +22,9 @@ from typing import Any
 from sprint_map.errors import MapCorruptError
 
 __all__ = ["COMP_VAL", "DIGEST_BYTES", "EDGE_KEY", "EDGE_VAL", "NO_QUERY", "REMOVED_VAL", "Raw",
-           "RecordStruct", "THUMB_KEY", "U32", "U64", "UF_VAL", "VERTEX_VAL", "VERTEX_VAL_SIGMA",
+           "RecordStruct", "SEQ_IMAGE_KEY", "THUMB_KEY", "U32", "U64", "UF_VAL", "VERTEX_VAL", "VERTEX_VAL_SIGMA",
            "decode_json", "decode_vertex",
-           "decode_number", "decode_text", "read_u32", "read_u64", "u32", "u64"]
+           "decode_number", "decode_text", "read_u32", "read_u64", "sequence_keys", "u32", "u64"]
 
 
 class RecordStruct(struct.Struct):
@@ -72,8 +72,23 @@ def decode_vertex(raw: Raw) -> tuple[float, float, float, float, float]:
 REMOVED_VAL = RecordStruct(">QI")
 #: content digest of a sequence's descriptor rows (``digests`` database): BLAKE2b, 16 bytes
 DIGEST_BYTES = 16
+#: a per-frame record keyed ``(sequence id, image id)``: a sequence's records are one key range
+SEQ_IMAGE_KEY = RecordStruct(">II")
 #: a frame's thumbnail (``thumbnails`` database): sequence id, image id -> JPEG bytes
-THUMB_KEY = RecordStruct(">II")
+THUMB_KEY = SEQ_IMAGE_KEY
+
+
+def sequence_keys(txn: Any, db: Any, seq_id: int) -> list[bytes]:
+    """The keys of sequence ``seq_id`` in a database keyed by :data:`SEQ_IMAGE_KEY` (the
+    ``thumbnails`` and ``sightings`` databases): one seek and a range scan, O(log n + count)."""
+    out: list[bytes] = []
+    cursor = txn.cursor(db=db)
+    if cursor.set_range(SEQ_IMAGE_KEY.pack(seq_id, 0)):
+        for key in cursor.iternext(keys=True, values=False):
+            if len(key) != SEQ_IMAGE_KEY.size or SEQ_IMAGE_KEY.unpack(key)[0] != seq_id:
+                break
+            out.append(bytes(key))
+    return out
 
 NO_QUERY = 0xFFFFFFFF  # provenance query id for edges given directly, not by a localisation
 

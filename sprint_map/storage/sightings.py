@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import lmdb
 
 from sprint_map.errors import MapCorruptError
-from sprint_map.storage.keys import RecordStruct
+from sprint_map.storage.keys import SEQ_IMAGE_KEY, sequence_keys
 from sprint_map.storage.lmdb_env import LmdbEnv
 
 __all__ = ["SIGHTINGS_DB", "SIGHT_KEY", "Sighting", "SightingScan", "delete_sightings", "drop_stray_sightings", "get_sighting", "record_sightings",
@@ -36,7 +36,7 @@ __all__ = ["SIGHTINGS_DB", "SIGHT_KEY", "Sighting", "SightingScan", "delete_sigh
 
 SIGHTINGS_DB = "sightings"
 #: ``(seq_id, image_id)`` of the vertex seen again.
-SIGHT_KEY = RecordStruct(">II")
+SIGHT_KEY = SEQ_IMAGE_KEY
 #: count, last_seen, last_distance; the last drive's name (UTF-8) follows.
 _SIGHT_HEAD = struct.Struct(">Idf")
 
@@ -100,23 +100,12 @@ def get_sighting(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int, image_id: int
     return None if raw is None else _decode(key, bytes(raw))
 
 
-def _seq_keys(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int) -> list[bytes]:
-    out: list[bytes] = []
-    if not env.has_db(SIGHTINGS_DB):
-        return out
-    cursor = txn.cursor(db=env.db(SIGHTINGS_DB))
-    if cursor.set_range(SIGHT_KEY.pack(seq_id, 0)):
-        for key in cursor.iternext(keys=True, values=False):
-            if len(key) != SIGHT_KEY.size or SIGHT_KEY.unpack(key)[0] != seq_id:
-                break
-            out.append(bytes(key))
-    return out
-
-
 def delete_sightings(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int) -> int:
     """Delete sequence ``seq_id``'s sighting records in ``txn``; return how many.
     O(log n + its records)."""
-    keys = _seq_keys(txn, env, seq_id)
+    if not env.has_db(SIGHTINGS_DB):
+        return 0
+    keys = sequence_keys(txn, env.db(SIGHTINGS_DB), seq_id)
     for key in keys:
         txn.delete(key, db=env.db(SIGHTINGS_DB))
     return len(keys)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import lmdb
 
 from sprint_map.errors import InputError, MapCorruptError
-from sprint_map.storage.keys import THUMB_KEY
+from sprint_map.storage.keys import THUMB_KEY, sequence_keys
 from sprint_map.storage.lmdb_env import LmdbEnv
 
 THUMBNAILS_DB = "thumbnails"
@@ -81,16 +81,9 @@ def get_thumbnail(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int, image_id: in
 
 def _seq_keys(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int) -> list[bytes]:
     """Keys of sequence ``seq_id``'s thumbnails: one seek and a range scan."""
-    out: list[bytes] = []
     if not env.has_db(THUMBNAILS_DB):
-        return out
-    cursor = txn.cursor(db=env.db(THUMBNAILS_DB))
-    if cursor.set_range(THUMB_KEY.pack(seq_id, 0)):
-        for key in cursor.iternext(keys=True, values=False):
-            if len(key) != THUMB_KEY.size or THUMB_KEY.unpack(key)[0] != seq_id:
-                break
-            out.append(bytes(key))
-    return out
+        return []
+    return sequence_keys(txn, env.db(THUMBNAILS_DB), seq_id)
 
 
 def count_thumbnails(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int) -> int:
