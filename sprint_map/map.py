@@ -13,6 +13,7 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable, Container, Iterable, Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -389,6 +390,28 @@ class SprintMap:
         :func:`sprint_map.storage.compaction.compact_map`.
         """
         return self.store.compact()
+
+    def summarize(self, per_place: int = 1) -> dict[str, Any]:
+        """Drop the views a place already has (at most ``per_place`` alike views kept per place
+        and appearance), as a new generation selected atomically (like :meth:`compact`, which
+        it also does). Returns ``vertices_before``, ``vertices_after``, ``sequences_before``,
+        ``sequences_after``, ``stitches``, ``sightings``, ``bytes_before``, ``bytes_after``
+        and ``seconds``. See :mod:`sprint_map.merge.summary` (what is redundant) and
+        :mod:`sprint_map.storage.reduction` (how the rest is written).
+
+        Raises
+        ------
+        ValueError
+            ``per_place`` below 1.
+        """
+        from sprint_map.merge.summary import plan_summary
+
+        started = time.monotonic()
+        plan = plan_summary(self.store, per_place, self.config.admission)
+        report = self.store.summarize(plan.reduction)
+        return {**plan.to_dict(), "bytes_before": report.bytes_before,
+                "bytes_after": report.bytes_after,
+                "seconds": round(time.monotonic() - started, 3)}
 
     def rebuild_index(self, *, train: bool = False) -> list[str]:
         """Rebuild the retrieval index from the shards; with ``train`` also retrain the

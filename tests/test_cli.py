@@ -306,3 +306,18 @@ def test_init_admission_novel_is_stored_and_ingest_reports_what_it_stored(tmp_pa
     assert [image for _, image in stored] == list(range(len(stored)))
     bad = run("init", tmp_path / "other.map", "--dim", DIM, "--admission", "some")
     assert bad.exit_code != 0 and "some" in bad.output
+
+
+def test_summarize_json_contract(map_path, drives, tmp_path):
+    run("ingest", map_path, drives[0], "--name", "first")
+    run("ingest", map_path, drives[0], "--name", "again")  # every frame a view the map has
+    data = json.loads(run("summarize", map_path, "--json").output)
+    assert {k: data[k] for k in ("vertices_before", "vertices_after", "sequences_before",
+                                 "sequences_after")} == {
+        "vertices_before": 120, "vertices_after": 60, "sequences_before": 2,
+        "sequences_after": 1}
+    assert data["sightings"] == 60 and data["bytes_after"] < data["bytes_before"]
+    assert run("summarize", map_path).output.startswith("summarised: 60 -> 60 vertices")
+    bad = CliRunner().invoke(main, ["summarize", str(map_path), "--per-place", "0"])
+    assert bad.exit_code == 2 and "--per-place" in bad.output
+    assert run("check", map_path).exit_code == 0

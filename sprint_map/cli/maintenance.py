@@ -251,6 +251,35 @@ def compact(map_path: str, as_json: bool) -> None:
 
 @main.command()
 @click.argument("map_path", metavar="MAP", type=click.Path())
+@click.option("--per-place", type=click.IntRange(min=1), default=1, show_default=True,
+              metavar="K", help="Views kept per place and appearance: a view goes when K kept "
+              "views of its place (older drives') look like it.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON: "
+              "{vertices_before, vertices_after, sequences_before, sequences_after, stitches, "
+              "sightings, bytes_before, bytes_after, seconds}.")
+def summarize(map_path: str, per_place: int, as_json: bool) -> None:
+    """Drop the views the map repeats: what `init --admission novel` would not have stored.
+
+    A view of a place goes when it was merged to an older drive's view and K kept views of
+    that place look like it; each place keeps its first drive and every appearance no kept
+    view has. A dropped view's edges move to the view standing for it, which counts a
+    sighting; kept stretches are stitched to the places between them. The map is rewritten
+    like `compact` (vertex ids renumbered, sequence ids and names kept; a drive with nothing
+    left goes) and selected atomically: a kill at any point leaves the map as before or after.
+
+    \b
+    Example:
+      sprint-map summarize city.map --json
+    """
+    with SprintMap.open(map_path) as m:
+        data = m.summarize(per_place)
+    emit(data, as_json, f"summarised: {data['vertices_before']} -> {data['vertices_after']} "
+                         f"vertices, {data['sequences_before']} -> {data['sequences_after']} "
+                         f"sequences, {data['bytes_before']} -> {data['bytes_after']} bytes")
+
+
+@main.command()
+@click.argument("map_path", metavar="MAP", type=click.Path())
 @click.option("--rebuild", "action", flag_value="rebuild", help="Rebuild the index from the "
               "shards (the approximate index keeps its kind, retrained on a fresh sample).")
 @click.option("--train", "action", flag_value="train", help="Retrain PCA and the quantizer on "

@@ -51,7 +51,7 @@ from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
 
 __all__ = ["ADMISSION_MODES", "Admission", "AdmissionPlan", "drive_step", "place_distances",
-           "plan_admission", "stored_frames"]
+           "plan_admission", "runs", "smooth_stored", "stored_frames"]
 
 #: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
 ADMISSION_MODES = ("all", "novel")
@@ -114,7 +114,7 @@ class AdmissionPlan:
         return [x for x, keep in zip(per_frame, self.stored.tolist(), strict=True) if keep]
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """``[start, stop)`` of each run of True in ``mask``. O(n)."""
     padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
     edges = np.flatnonzero(np.diff(padded))
@@ -132,16 +132,24 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     matched = np.array([d.seq_id is not None for d in decisions], dtype=bool)
     with np.errstate(invalid="ignore"):
         alike = np.asarray(closeness, dtype=float) <= admission.max_step_ratio
-    redundant = np.asarray(merged, dtype=bool) & matched & alike
-    stored: np.ndarray = ~redundant
-    for a, b in _runs(stored):
+    return smooth_stored(np.asarray(merged, dtype=bool) & matched & alike, admission)
+
+
+def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
+    """Which frames of a drive (or a stored sequence) are kept, from which are redundant:
+    stored runs shorter than ``min_run`` dropped, redundant stretches shorter than
+    ``min_skip`` stored through, ``margin`` frames added either side of each stored run (see
+    the module docstring). O(n)."""
+    n = len(redundant)
+    stored: np.ndarray = ~np.asarray(redundant, dtype=bool)
+    for a, b in runs(stored):
         if b - a < admission.min_run and b - a < n:
             stored[a:b] = False
-    for a, b in _runs(~stored):
+    for a, b in runs(~stored):
         if b - a < admission.min_skip and b - a < n:
             stored[a:b] = True
     if admission.margin and not stored.all():
-        for a, b in _runs(stored):
+        for a, b in runs(stored):
             stored[max(0, a - admission.margin):b + admission.margin] = True
     return stored
 
@@ -229,7 +237,7 @@ def _stitches(decisions: Sequence[MergeDecision], merged: np.ndarray, stored: np
     right before and after it (only where those frames were merged and not stored)."""
     out: list[EdgeSpec] = []
     n = len(decisions)
-    for a, b in _runs(stored):
+    for a, b in runs(stored):
         if a > 0 and merged[a - 1] and not stored[a - 1]:
             before = decisions[a - 1]
             if before.seq_id is not None and before.image_id is not None:

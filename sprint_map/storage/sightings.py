@@ -31,8 +31,9 @@ from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import SEQ_IMAGE_KEY, sequence_keys
 from sprint_map.storage.lmdb_env import LmdbEnv
 
-__all__ = ["SIGHTINGS_DB", "SIGHT_KEY", "Sighting", "SightingScan", "delete_sightings", "drop_stray_sightings", "get_sighting", "record_sightings",
-           "scan_sightings"]
+__all__ = ["SIGHTINGS_DB", "SIGHT_KEY", "Sighting", "SightingScan", "decode_sighting",
+           "delete_sightings", "drop_stray_sightings", "encode_sighting", "get_sighting",
+           "record_sightings", "scan_sightings"]
 
 SIGHTINGS_DB = "sightings"
 #: ``(seq_id, image_id)`` of the vertex seen again.
@@ -58,7 +59,8 @@ class Sighting:
                 "last_drive": self.last_drive}
 
 
-def _decode(key: bytes, value: bytes) -> Sighting:
+def decode_sighting(key: bytes, value: bytes) -> Sighting:
+    """One record of the ``sightings`` database (MapCorruptError if it does not decode)."""
     seq_id, image_id = SIGHT_KEY.unpack(key)
     if len(value) < _SIGHT_HEAD.size:
         raise MapCorruptError(f"sighting of sequence {seq_id} image {image_id} is "
@@ -72,20 +74,24 @@ def _decode(key: bytes, value: bytes) -> Sighting:
     return Sighting(seq_id, image_id, count, seen, dist, drive)
 
 
+def encode_sighting(count: int, last_seen: float, last_distance: float, last_drive: str
+                    ) -> bytes:
+    """The value of one sighting record."""
+    return _SIGHT_HEAD.pack(count, float(last_seen), float(last_distance)) + last_drive.encode()
+
+
 def record_sightings(txn: lmdb.Transaction, env: LmdbEnv,
                      seen: Iterable[tuple[int, int, float]], drive: str, when: float) -> int:
     """Count, in ``txn``, one sighting per ``(seq_id, image_id, distance)`` by drive
     ``drive`` at ``when``; a vertex named twice counts twice (the last distance is kept).
     Returns the number counted. O(m log n) for m sightings."""
     db = env.db(SIGHTINGS_DB)
-    name = drive.encode()
     counted = 0
     for seq_id, image_id, distance in seen:
         key = SIGHT_KEY.pack(int(seq_id), int(image_id))
         raw = txn.get(key, db=db)
-        count = 0 if raw is None else _decode(key, bytes(raw)).count
-        txn.put(key, _SIGHT_HEAD.pack(min(count + 1, 2**32 - 1), float(when),
-                                      float(distance)) + name, db=db)
+        count = 0 if raw is None else decode_sighting(key, bytes(raw)).count
+        txn.put(key, encode_sighting(min(count + 1, 2**32 - 1), when, distance, drive), db=db)
         counted += 1
     return counted
 
@@ -97,7 +103,7 @@ def get_sighting(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int, image_id: int
         return None
     key = SIGHT_KEY.pack(seq_id, image_id)
     raw = txn.get(key, db=env.db(SIGHTINGS_DB))
-    return None if raw is None else _decode(key, bytes(raw))
+    return None if raw is None else decode_sighting(key, bytes(raw))
 
 
 def delete_sightings(txn: lmdb.Transaction, env: LmdbEnv, seq_id: int) -> int:
@@ -138,7 +144,7 @@ def scan_sightings(txn: lmdb.Transaction, env: LmdbEnv, lengths: dict[int, int]
         return scan
     for key, value in txn.cursor(db=env.db(SIGHTINGS_DB)):
         try:
-            seen = _decode(bytes(key), bytes(value))
+            seen = decode_sighting(bytes(key), bytes(value))
         except MapCorruptError as exc:
             scan.stray_keys.append(bytes(key))
             scan.problems.append(f"sighting record {bytes(key).hex()}: {exc}")

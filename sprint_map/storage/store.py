@@ -75,6 +75,7 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
+from sprint_map.storage.reduction import Reduction
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter, record_live_sightings
 from sprint_map.storage.shards import ShardSet
@@ -724,6 +725,11 @@ class MapStore:
     def compact(self) -> CompactReport:
         """Reclaim removed sequences' space: see :func:`compaction.compact_map`."""
         return compact_map(self)
+
+    def summarize(self, reduction: Reduction) -> CompactReport:
+        """Write the map without the vertices ``reduction`` drops, as a new generation selected
+        atomically: see :mod:`reduction` and :func:`compaction.compact_map`."""
+        return compact_map(self, reduction)
 
     def remove_sequences(self, seq_ids: Iterable[int]) -> RemoveResult:
         """Retire sequences in one LMDB transaction; see :func:`removal.remove_sequences`."""

@@ -12,7 +12,7 @@ import signal
 
 __all__ = ["ADD_POINTS", "SIGHTING_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
            "INDEX_POINTS", "LEARN_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
-           "UNMERGE_POINTS", "crash_point"]
+           "SUMMARIZE_POINTS", "UNMERGE_POINTS", "crash_point"]
 
 CRASH_ENV = "SPRINT_MAP_CRASH_AT"
 
@@ -78,6 +78,15 @@ COMPACT_POINTS = (
     "compact.published",  # CURRENT names gen-N (the commit point), old generation still there
     "compact.old_partly_removed",  # part of the old generation deleted, the rest not yet
 )
+#: ``summarize``: the map without its redundant views, written like ``compact`` (a new
+#: generation selected atomically; the old one is removed at ``compact.old_partly_removed``).
+SUMMARIZE_POINTS = (
+    "summarize.staging_created",  # gen-N/ created, empty
+    "summarize.shards_written",  # kept rows copied into gen-N/shards, fsynced
+    "summarize.lmdb_written",  # the summarised LMDB copied into gen-N/map.lmdb, fsynced
+    "summarize.before_publish",  # gen-N complete with its index, CURRENT not yet replaced
+    "summarize.published",  # CURRENT names gen-N (the commit point), old generation still there
+)
 
 #: ``index --learn`` / ``--no-learn`` and the writer's retraining after ``learn_every`` edges.
 LEARN_POINTS = (
@@ -88,7 +97,7 @@ LEARN_POINTS = (
 
 #: Every crash point in the write paths.
 CRASH_POINTS = (ADD_POINTS + SIGHTING_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
-                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + LEARN_POINTS)
+                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + SUMMARIZE_POINTS + LEARN_POINTS)
 
 
 def crash_point(name: str) -> None:
