@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map.merge.admission import Admission, drive_step, runs, smooth_stored
+from sprint_map.storage.provenance import edge_table
 from sprint_map.storage.records import EdgeRecord, SequenceRecord
 from sprint_map.storage.reduction import Reduction
 
@@ -96,10 +97,8 @@ class _Summariser:
             self.keep[s.first_vertex:s.last_vertex + 1] = True
         self.redirect = np.full(self.total, -1, dtype=np.int64)
         self.starts = np.array([s.first_vertex for s in self.seqs], dtype=np.int64)
-        edges = store.edges()
-        src = np.array([e.src for e in edges], dtype=np.int64)
-        dst = np.array([e.dst for e in edges], dtype=np.int64)
-        weight = np.array([e.weight for e in edges], dtype=np.float64)
+        table = edge_table(store)  # arrays, not an object per edge
+        src, dst, weight = table.src, table.dst, table.prob
         ends = np.concatenate([src, dst])  # both directions, sorted by the first end
         order = np.argsort(ends, kind="stable")
         self.vertex = ends[order]
