@@ -130,7 +130,7 @@ class Renumbering:
         self.old_last = np.array([s.last_vertex for s in self.live], dtype=np.int64)
         lengths = np.array([n for n in kept if n > 0], dtype=np.int64)
         self.lengths = lengths
-        self.new_first = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+        self.new_first = (np.cumsum(lengths) - lengths).astype(np.int64)  # [] when none is kept
         self.total = int(lengths.sum())
         self._dense: np.ndarray | None = None
         if keep is not None:  # old id -> new id, -1 where dropped or in no live sequence

@@ -148,3 +148,15 @@ def test_a_reduction_naming_a_dropped_stand_in_is_refused(tmp_path):
         with pytest.raises(InputError, match="cover"):
             store.summarize(Reduction(keep[:4], np.full(4, -1)))
         assert store.stats()["vertices"] == 6 and check_map(store).ok
+
+
+def test_a_reduction_that_keeps_nothing_leaves_an_empty_map_that_still_grows(tmp_path):
+    with MapStore.create(tmp_path / "m", CONFIG) as store:
+        store.add_sequence(np.zeros((3, DIM), np.float32), name="a")
+        store.add_sequence(np.ones((2, DIM), np.float32), name="b",
+                           edges=[EdgeSpec((0, 1), (None, 0), 0.5, 0)])
+        report = store.summarize(Reduction(np.zeros(5, dtype=bool), np.full(5, -1)))
+        assert report.vertices_after == 0 and store.sequences() == [] and store.edges() == []
+        assert check_map(store).ok
+        store.add_sequence(np.full((2, DIM), 2, np.float32), name="c")
+        assert [s.length for s in store.sequences()] == [2] and check_map(store).ok
