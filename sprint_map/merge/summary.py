@@ -144,9 +144,9 @@ class _Summariser:
         if not older.any() or not math.isfinite(step):
             return stand, dist, strength
         limit = self.admission.max_step_ratio * step
-        _, hits = self.store.search(rows, NEIGHBOURS)
         ends, reached = self.vertex[lo:hi][older], self.neighbour[lo:hi][older]
         weights = self.weight[lo:hi][older]
+        alike: list[tuple[int, np.ndarray, np.ndarray, float]] = []
         for v in np.unique(ends).tolist():
             mine = ends == v
             views = self.place_views(reached[mine], seq.first_vertex)
@@ -156,17 +156,19 @@ class _Summariser:
             diff = self.store.shards.take(views, self.total) - rows[i]
             d = np.einsum("ij,ij->i", diff, diff)
             # views of one drive count once: K views are K drives' views of the place
-            alike = np.searchsorted(self.starts, views[d <= limit], side="right")
-            if len(np.unique(alike)) < self.per_place:
-                continue
-            # retrieval still finds the place without v: the nearest kept view of an older
-            # drive is one of the place's views
-            row = hits[i]
+            drives = np.searchsorted(self.starts, views[d <= limit], side="right")
+            if len(np.unique(drives)) >= self.per_place:
+                alike.append((i, views, d, float(weights[mine].max())))
+        if not alike:
+            return stand, dist, strength
+        # retrieval still finds the place without the image: the nearest kept view of an
+        # older drive is one of the place's views (searched only for the alike images)
+        _, hits = self.store.search(rows[[i for i, *_ in alike]], NEIGHBOURS)
+        for (i, views, d, weight), row in zip(alike, hits, strict=True):
             row = row[(row >= 0) & (row < seq.first_vertex)]
             row = row[self.keep[row]]
             if len(row) and int(row[0]) in set(views.tolist()):
-                stand[i], dist[i] = views[int(np.argmin(d))], float(d.min())
-                strength[i] = float(weights[mine].max())
+                stand[i], dist[i], strength[i] = views[int(np.argmin(d))], float(d.min()), weight
         return stand, dist, strength
 
     def summarise(self, seq: SequenceRecord) -> int:
