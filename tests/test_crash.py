@@ -253,7 +253,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     tested |= set(GROUP_POINTS)  # tests/test_drives.py (a real multi-drive ingest killed)
     tested |= set(LEARN_POINTS)  # tests/storage/test_learning.py (learn and unlearn killed)
     tested |= set(SIGHTING_POINTS)  # tests/merge/test_admission.py (an admitted drive killed)
-    tested |= set(SUMMARIZE_POINTS)  # tests/merge/test_summary.py (summarize killed at each)
+    tested |= set(SUMMARIZE_POINTS)  # tests/merge/test_merge_summary.py (summarize killed at each)
     assert tested == set(CRASH_POINTS)
 
 
