@@ -801,6 +801,18 @@ class SprintMap:
         """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
         return self.store.search(queries, k)
 
+    def search_within(self, queries: DescriptorsLike, k: int, start: int,
+                      stop: int | None = None) -> SearchResult:
+        """:meth:`search` among vertex ids ``[start, stop)`` only, on the map's approximate
+        index (ValueError while it is exact): what a retrieval shard of the fleet answers.
+        O(the index segments holding ids of the range)."""
+        return self.store.search_within(queries, k, start, stop)
+
+    def index_segments(self) -> list[tuple[int, int]]:
+        """Vertex ranges ``(start, stop)`` of the approximate index's sealed segments (none
+        while it is exact): where retrieval shards cut the map. O(segments)."""
+        return self.store.index_segments()
+
     @staticmethod
     def cap_search_threads(n: int) -> None:
         """Use at most ``n`` OpenMP threads for the searches of the calling thread from now on

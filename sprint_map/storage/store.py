@@ -677,6 +677,39 @@ class MapStore:
             return self.index.search(queries, k)
         return search_live(self.index.search, queries, k, removed, total)
 
+    def search_within(self, queries: DescriptorsLike, k: int, start: int, stop: int | None
+                      ) -> SearchResult:
+        """:meth:`search` among the live vertex ids ``[start, stop)`` only (``stop`` None: to
+        the last committed), on the approximate index (ValueError while it is exact).
+
+        Notes
+        -----
+        The approximate index's search over the segments holding ids of the range
+        (:meth:`IndexStore.search_within
+        <sprint_map.storage.index.map_index.IndexStore.search_within>`).
+        """
+        queries = validate_descriptors(queries, self.config.dim)
+        with self.env.read() as txn:
+            total = self.counter("next_vertex_id", txn)
+            removed = self.removed_ranges(txn)
+        self.index.load(total, self.shards)
+        end = total if stop is None else min(stop, total)
+
+        def within(q: Descriptors, n: int) -> SearchResult:
+            return self.index.search_within(q, n, start, max(start, end))
+
+        if not removed.count:
+            return within(queries, k)
+        return search_live(within, queries, k, removed, total)
+
+    def index_segments(self) -> list[tuple[int, int]]:
+        """The vertex ranges ``(start, stop)`` of the approximate index's sealed segments, in
+        order (none while the index is exact). O(segments) once the index is loaded."""
+        with self.env.read() as txn:
+            total = self.counter("next_vertex_id", txn)
+        self.index.load(total, self.shards)
+        return self.index.segment_bounds()
+
     def rebuild_index(self, *, train: bool = False) -> list[str]:
         """Rebuild (flat) or retrain and re-encode (approximate) the index; publish it
         atomically. O(vertices * dim) plus training."""

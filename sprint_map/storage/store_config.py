@@ -20,7 +20,7 @@ from typing import Any, Protocol, TypeVar
 from sprint_map.errors import ConfigError, MapCorruptError, SprintMapError
 from sprint_map.util import dataclass_dict
 
-__all__ = ["INDEX_TYPES", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
+__all__ = ["INDEX_TYPES", "MIN_TRAIN", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
            "StoreConfig", "StoreOptions", "decode_stored_config"]
 
 _Config = TypeVar("_Config")
@@ -34,6 +34,8 @@ READABLE_SCHEMA_VERSIONS = (1, 2)
 
 #: Retrieval index kinds (``index_type``).
 INDEX_TYPES = ("flat", "ivf-pq", "ivf-sq8", "auto")
+#: Fewest vertices an approximate index is trained on (8-bit PQ codebooks have 256 centroids).
+MIN_TRAIN = 256
 
 
 class ConfigRecord(Protocol):
@@ -59,9 +61,13 @@ class StoreOptions:
     #: after PCA, candidates re-ranked exactly from the shards) or ``"auto"`` (flat while the map
     #: is small, ``ivf-pq`` from ``index_auto_vertices``).
     index_type: str = "auto"
-    #: IVF lists (coarse centroids), and lists scanned per query (at most ``index_nlist``).
-    index_nlist: int = 1024
-    index_nprobe: int = 16
+    #: IVF lists (coarse centroids); 0 follows the map's size: about the square root of the
+    #: vertices the model serves before it is trained again (``index_retrain_growth`` times
+    #: those it is trained on), so a list's length grows with the square root of the map, not
+    #: with the map (:func:`~sprint_map.storage.index.model.list_count`).
+    index_nlist: int = 0
+    #: Lists scanned per query (all of them where there are fewer).
+    index_nprobe: int = 24
     #: PQ sub-quantizers (must divide the indexed dimension); 0 picks the largest divisor with at
     #: least 8 dimensions per sub-quantizer.
     index_pq_m: int = 0
@@ -73,6 +79,9 @@ class StoreOptions:
     #: merged.
     index_segment_rows: int = 16384
     index_merge_factor: int = 8
+    #: Merges stop at segments of this many vertices (0: no limit), so that the retrieval
+    #: shards of a fleet can own ranges of whole segments (:mod:`sprint_map.fleet.shards`).
+    index_segment_max_rows: int = 1 << 20
     #: ``auto`` switches to the approximate index at this many 128-dimensional vertices' worth.
     index_auto_vertices: int = 200_000
     #: Vertices sampled (seeded) to train PCA and the quantizer.
@@ -100,19 +109,24 @@ class StoreOptions:
             raise ValueError("shard_rows must be >= 1")
         if self.index_type not in INDEX_TYPES:
             raise ValueError(f"index_type must be one of {', '.join(INDEX_TYPES)}")
-        for name in ("index_nlist", "index_nprobe", "index_rerank", "index_segment_rows"):
+        for name in ("index_nprobe", "index_rerank", "index_segment_rows"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer")
-        if self.index_nprobe > self.index_nlist:
-            raise ValueError("index_nprobe must be <= index_nlist")
+        if not isinstance(self.index_nlist, int) or self.index_nlist < 0:
+            raise ValueError("index_nlist must be an integer >= 0 (0: follow the map's size)")
         if self.index_pca_dim < 0 or self.index_pq_m < 0:
             raise ValueError("index_pca_dim and index_pq_m must be >= 0")
         if self.index_merge_factor < 2:
             raise ValueError("index_merge_factor must be >= 2")
+        if not isinstance(self.index_segment_max_rows, int) or not (
+                self.index_segment_max_rows == 0
+                or self.index_segment_max_rows >= self.index_segment_rows):
+            raise ValueError("index_segment_max_rows must be 0 (no limit) or >= "
+                             "index_segment_rows")
         if self.index_auto_vertices < 1:
             raise ValueError("index_auto_vertices must be >= 1")
-        if self.index_train_sample < self.index_nlist:
-            raise ValueError("index_train_sample must be >= index_nlist")
+        if self.index_train_sample < max(self.index_nlist, MIN_TRAIN):
+            raise ValueError(f"index_train_sample must be >= index_nlist and >= {MIN_TRAIN}")
         if not (self.index_retrain_growth == 0 or self.index_retrain_growth > 1):
             raise ValueError("index_retrain_growth must be 0 (never) or > 1")
         if self.index_persist_every < 1:

@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli.main import main
-from sprint_map.config import MapConfig
+from sprint_map.config import MapConfig, StoreOptions
 from sprint_map.errors import ConfigError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.index.manifest import MANIFEST, read_manifest
@@ -71,9 +71,12 @@ def test_config_defaults_validation_and_old_maps():
     assert MapConfig(dim=128).store.index_type == "auto"
     assert MapConfig(dim=1764).index_dim == 128 and MapConfig(dim=64).index_dim == 64
     assert MapConfig(dim=128).pq_m == 16 and MapConfig(dim=12).pq_m == 1
-    old = MapConfig.from_dict({"dim": 8, "index_type": "flat", "shard_rows": 64})
+    old = MapConfig.from_dict({"dim": 8, "index_type": "flat", "shard_rows": 64,
+                               "index_nlist": 1024})
     assert old.store.index_type == "flat" and old.store.index_nlist == 1024
-    for bad in ({"index_type": "hnsw"}, {"index_nprobe": 2000}, {"index_nlist": 0},
+    assert MapConfig(dim=8).store.index_nlist == 0  # lists follow the map's size
+    assert MapConfig.from_dict({"dim": 8, "index_nlist": 8}).store.index_nprobe == 24  # all 8
+    for bad in ({"index_type": "hnsw"}, {"index_nprobe": 0}, {"index_nlist": -1}, {"index_nlist": 2.5}, {"index_train_sample": 0},
                 {"index_pq_m": 7}, {"index_merge_factor": 1}, {"index_train_sample": 10},
                 {"index_retrain_growth": 1.0}, {"index_retrain_growth": -2}):
         with pytest.raises(ConfigError):
@@ -85,6 +88,11 @@ def test_tier_plan_is_what_sealing_and_merging_leave():
     assert tier_plan(100, 256, 3) == []
     plan = tier_plan(26 * 100, 100, 3)
     assert [b - a for a, b in plan] == [900, 900, 300, 300, 100, 100]
+    capped = tier_plan(26 * 100, 100, 3, max_rows=300)  # no merge past 300 rows
+    assert [b - a for a, b in capped] == [300] * 8 + [100, 100]
+    assert tier_plan(26 * 100, 100, 3, max_rows=299) == tier_plan(26 * 100, 100, 3, 100)
+    assert [(a, b) for a, b in capped] == [(300 * i, 300 * (i + 1)) for i in range(8)] + [
+        (2400, 2500), (2500, 2600)]
 
 
 # --- retrieval --------------------------------------------------------------------------------
@@ -107,6 +115,55 @@ def test_recall_and_exact_distances(tmp_path, rng, centres):
     np.testing.assert_array_equal(self_ids[:, 0], np.arange(len(rows))[::37])
 
 
+# 3,700 rows: segments [0, 2304), [2304, 3072), [3072, 3328), [3328, 3584) and a tail of 116
+@pytest.mark.parametrize("ranges", [
+    [(0, 2304), (2304, 3328), (3328, None)],  # at segment ends: no selector
+    [(0, 1000), (1000, 3500), (3500, None)],  # inside segments and the tail: a selector
+    [(3600, None), (0, 3600)],
+])
+def test_a_search_within_ranges_keeps_to_them(tmp_path, rng, centres, ranges):
+    rows = build(tmp_path / "m", rng, centres, [1500, 1500, 700])
+    queries = np.concatenate([clustered(rng, 40, centres), rows[::150]])
+    _, want = exact(rows, queries, 10)
+    with MapStore.open(tmp_path / "m", readonly=True) as store:
+        assert store.index_segments() == [(0, 2304), (2304, 3072), (3072, 3328), (3328, 3584)]
+        whole = store.search(queries, 10)
+        parts = [store.search_within(queries, 10, a, b) for a, b in ranges]
+    for (a, b), (dist, ids) in zip(ranges, parts, strict=True):
+        b = len(rows) if b is None else b
+        found = ids[ids >= 0]
+        assert ((found >= a) & (found < b)).all() and len(found) == ids.size
+        true = ((queries[:, None, :] - rows[ids]) ** 2).sum(-1)  # re-ranked: exact
+        np.testing.assert_allclose(dist, true, rtol=1e-5)
+    # the k best of the ranges' k best: every range re-ranks its own candidates, so at least
+    # the recall of the whole map's search, and every row finds itself
+    merged = np.concatenate([p[1] for p in parts], axis=1)
+    order = np.argsort(np.concatenate([p[0] for p in parts], axis=1), axis=1, kind="stable")
+    merged = np.take_along_axis(merged, order, axis=1)[:, :10]
+
+    def recall(ids):
+        return np.mean([len(set(a) & set(b)) for a, b in zip(ids.tolist(), want.tolist(),
+                                                            strict=True)])
+
+    assert recall(merged) >= recall(whole[1]) and recall(merged) >= 9.0
+    np.testing.assert_array_equal(merged[40:, 0], np.arange(0, len(rows), 150))
+
+
+def test_a_search_within_hides_removed_and_needs_the_approximate_index(tmp_path, rng, centres):
+    rows = build(tmp_path / "m", rng, centres, [1500, 1500, 700])
+    with MapStore.open(tmp_path / "m") as store:
+        store.remove_sequences([1])  # vertices [1500, 3000)
+    with MapStore.open(tmp_path / "m", readonly=True) as store:
+        _, ids = store.search_within(rows[1400:1600], 5, 1000, 2000)
+    assert ((ids >= 1000) & (ids < 1500)).all()
+    flat = tmp_path / "flat"
+    with MapStore.create(flat, MapConfig(dim=DIM, store=StoreOptions(index_type="flat"))) as s:
+        s.add_sequence(rows[:100])
+        assert s.index_segments() == []
+        with pytest.raises(ValueError, match="approximate"):
+            s.search_within(rows[:1], 1, 0, 50)
+
+
 def test_over_fetching_and_padding(tmp_path, rng, centres):
     rows = build(tmp_path / "m", rng, centres, [600])
     dist, ids = search_all(tmp_path / "m", rows[:3], 200)  # k above index_rerank
@@ -117,11 +174,15 @@ def test_over_fetching_and_padding(tmp_path, rng, centres):
     assert (few[0, found:] == -1).all() and (far[0, found:] == np.finfo(np.float32).max).all()
 
 
-def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres):
-    rows = build(tmp_path / "m", rng, centres, [300] * 10 + [100])  # 3100 rows
+@pytest.mark.parametrize("max_rows", [0, 768])
+def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres, max_rows):
+    rows = build(tmp_path / "m", rng, centres, [300] * 10 + [100],  # 3100 rows
+                 index_segment_max_rows=max_rows)
     manifest = read_manifest(tmp_path / "m" / INDEX_DIR)
-    # 12 blocks of 256 sealed one at a time, tiers of 3 merged: 2304 + 768 + 0 ... + tail.
-    assert [(s.start, s.stop) for s in manifest.segments] == tier_plan(3100, 256, 3)
+    # 12 blocks of 256 sealed one at a time, tiers of 3 merged: 2304 + 768 + 0 ... + tail,
+    # or with merges stopped at 768 rows: 4 x 768
+    assert [(s.start, s.stop) for s in manifest.segments] == tier_plan(3100, 256, 3, max_rows)
+    assert len(manifest.segments) == (2 if not max_rows else 4)
     assert manifest.sealed == 3072 and manifest.kind == "ivf-pq"
     files = sorted(p.name for p in (tmp_path / "m" / INDEX_DIR).iterdir())
     assert files == sorted([MANIFEST, f"model.{manifest.generation:06d}.faiss"]
@@ -130,23 +191,32 @@ def test_segments_sealed_merged_and_memory_mapped(tmp_path, rng, centres):
         store.search(rows[:1], 5)
         seg = store.index.active
         assert seg is not None and seg.tail_len == 28
-        assert len(seg.segments) == 2
+        assert len(seg.segments) == len(manifest.segments)
         for index in seg.segments:
             lists = faiss.downcast_InvertedLists(index.invlists)
             assert isinstance(lists, faiss.OnDiskInvertedLists)  # IO_FLAG_MMAP: not copied
         report = check_map(store)
     assert report.ok, report.violations
-    assert report.checked["index_segments"] == 2 and report.checked["index_codes_compared"] > 0
+    assert report.checked["index_segments"] == len(manifest.segments)
+    assert report.checked["index_codes_compared"] > 0
 
 
-def test_merge_segments_keeps_results(tmp_path, rng, centres):
-    rows = build(tmp_path / "m", rng, centres, [1400])
+@pytest.mark.parametrize(("max_rows", "merged"), [
+    (0, [(0, 1280)]),
+    # 1400 rows: five blocks of 256 sealed, none merged (a tier of 768 would pass 600); then
+    # runs of at most 600 rows
+    (600, [(0, 512), (512, 1024), (1024, 1280)]),
+])
+def test_merge_segments_keeps_results(tmp_path, rng, centres, max_rows, merged):
+    rows = build(tmp_path / "m", rng, centres, [1400], index_segment_max_rows=max_rows)
     queries = clustered(rng, 20, centres)
     before = search_all(tmp_path / "m", queries, 10)
     with MapStore.open(tmp_path / "m") as store:
         store.search(queries[:1], 1)
         assert store.index.merge_segments()
-        assert len(read_manifest(tmp_path / "m" / INDEX_DIR).segments) == 1
+        assert [(s.start, s.stop) for s in read_manifest(tmp_path / "m" / INDEX_DIR).segments
+                ] == merged
+        assert not store.index.merge_segments()  # nothing left to merge
     after = search_all(tmp_path / "m", queries, 10)
     np.testing.assert_array_equal(before[1], after[1])
     assert len(rows) == 1400
@@ -193,6 +263,36 @@ def test_the_writer_retrains_as_the_map_grows(tmp_path, rng, centres, growth):
     dists, ids = search_all(path, rows[::25], 1)
     np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(rows), 25))
     assert np.allclose(dists[:, 0], 0.0)
+
+
+def test_lists_follow_the_map_as_it_is_retrained(tmp_path, rng, centres):
+    # index_nlist 0: sqrt(4 * trained_on) lists, each retraining with more (the sample grows
+    # to feed them: 39 per list, at most the map); a map made with fixed lists keeps them
+    path = tmp_path / "m"
+    rows = build(path, rng, centres, [1000], index_nlist=0, index_train_sample=256,
+                 index_segment_rows=2048)
+    assert read_manifest(path / INDEX_DIR).nlist == 1000 // 39  # the whole map: 25 lists' worth
+    with MapStore.open(path) as store:
+        for n in (7000, 24000):  # trained again at 8,000 (4x 1,000), then at 32,000
+            rows = np.concatenate([rows, clustered(rng, n, centres)])
+            store.add_sequence(rows[-n:])
+            manifest = store.index.active.manifest
+            assert (manifest.trained_on, manifest.nlist) == {
+                8000: (8000, 179), 32000: (32000, 358)}[len(rows)]  # sqrt(4 * trained_on)
+    with MapStore.open(path, readonly=True) as store:
+        report = check_map(store)
+    assert report.ok, report.violations
+    # the same rows under 16 fixed lists (the 1,024 of old maps, scaled down): lists of
+    # 2,000 rows, where the grown map's hold ~90; it finds fewer of its own rows
+    fixed = tmp_path / "fixed"
+    config = MapConfig.from_dict({**SEGMENTED, "index_train_sample": 256,
+                                  "index_segment_rows": 2048})
+    with MapStore.create(fixed, config) as store:
+        store.add_sequence(rows)
+    assert read_manifest(fixed / INDEX_DIR).nlist == 16
+    every = np.arange(0, len(rows), 40)
+    found = {p: np.mean(search_all(p, rows[every], 1)[1][:, 0] == every) for p in (path, fixed)}
+    assert found[path] > 0.85 and found[path] > found[fixed], found
 
 
 def test_the_service_retrains_beside_the_searches(tmp_path, rng, centres):

@@ -397,6 +397,25 @@ class IndexStore:
         """
         return self.active.search(queries, k)
 
+    def search_within(self, queries: Descriptors, k: int, start: int, stop: int
+                      ) -> SearchResult:
+        """:meth:`search` among vertex ids ``[start, stop)`` only, on the approximate index
+        (a retrieval shard's range); ValueError while the index is the exact flat one.
+        Cost: the segments holding ids of the range, not the others."""
+        active = self.active
+        if not isinstance(active, SegmentedIndex):
+            raise ValueError("a search within a vertex range needs the approximate index; "
+                             "this map's index is exact")
+        return active.search(queries, k, (start, stop))
+
+    def segment_bounds(self) -> list[tuple[int, int]]:
+        """The ``(start, stop)`` vertex ids of each sealed segment, in order (none for the
+        exact index). O(segments)."""
+        active = self.active
+        if not isinstance(active, SegmentedIndex) or not active.loaded:
+            return []
+        return [(s.start, s.stop) for s in active.manifest.segments]
+
     # --- writing ------------------------------------------------------------------------------
     def after_commit(self, committed: int, shards: ShardSet, first: int) -> bool:
         """Update the index after a commit of vertices ``first..committed-1``; True if the
@@ -542,7 +561,8 @@ class IndexStore:
         return elapsed
 
     def merge_segments(self) -> bool:
-        """Merge every sealed segment into one (``compact``); False if nothing to merge.
+        """Merge the sealed segments into as few as ``index_segment_max_rows`` allows
+        (``compact``); False if nothing to merge.
 
         Published like a seal (segment file, then manifest): a kill leaves the old segments
         or the merged one. O(sealed codes) read and written.

@@ -13,6 +13,7 @@ Files (in ``index/``, each published atomically, named by generation ``GGGGGG``)
 from __future__ import annotations
 
 import errno
+import math
 import os
 import threading
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ import numpy as np
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
-from sprint_map.storage.store_config import StoreConfig
+from sprint_map.storage.store_config import MIN_TRAIN, StoreConfig
 from sprint_map.util.arrays import Descriptors, Int64Array
 from sprint_map.util.atomic import publish
 
@@ -33,17 +34,21 @@ if TYPE_CHECKING:
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.util.lazy_faiss import faiss
 
-__all__ = ["APPROX_KINDS", "CORES", "KMEANS_ITER", "MIN_TRAIN", "Model", "PCA_SAMPLE",
-           "POINTS_PER_LIST", "RowReader", "SAMPLE_SEED", "cap_threads", "gather_rows",
-           "model_name", "pca_name", "publish_bytes", "read_faiss", "sample_ids", "serialize",
-           "train_model", "use_threads"]
+__all__ = ["APPROX_KINDS", "CORES", "KMEANS_ITER", "MIN_LISTS", "MIN_TRAIN", "Model",
+           "PCA_SAMPLE", "POINTS_PER_LIST", "RowReader", "SAMPLE_SEED", "TRAIN_SAMPLE_BYTES",
+           "cap_threads", "gather_rows", "list_count", "model_name", "pca_name",
+           "publish_bytes", "read_faiss", "sample_ids", "serialize", "train_model",
+           "train_sample_size", "use_threads"]
 
-#: Fewest vertices an approximate index is trained on (8-bit PQ codebooks have 256 centroids).
-MIN_TRAIN = 256
 #: Training vectors per IVF list the coarse k-means wants at least (FAISS warns below 39).
 POINTS_PER_LIST = 39
 #: Vectors the PCA is trained on at most (its covariance costs dim^2 per vector).
 PCA_SAMPLE = 20000
+#: Fewest IVF lists a map's size gives (:func:`list_count`).
+MIN_LISTS = 64
+#: Descriptor bytes the training sample may hold at most (a sample for many lists of long
+#: descriptors is capped here, and with it the lists: :func:`train_sample_size`).
+TRAIN_SAMPLE_BYTES = 1 << 29
 #: k-means iterations for the coarse quantizer and the PQ codebooks.
 KMEANS_ITER = 10
 #: Seed of the training sample (with the generation): retraining the same map is reproducible.
@@ -223,11 +228,40 @@ class Model:
         return cls(kind, pca, ivf)
 
 
-def train_model(config: StoreConfig, kind: str, sample: Descriptors) -> Model:
-    """Train PCA (when ``dim > index_pca_dim``) and the IVF quantizer on ``sample`` rows.
+def list_count(config: StoreConfig, vertices: int) -> int:
+    """IVF lists of a model trained on a map of ``vertices``: ``index_nlist``, or with
+    ``index_nlist`` 0 the square root of the vertices it serves until it is trained again
+    (``index_retrain_growth`` times ``vertices``; ``vertices`` alone with growth 0), at least
+    :data:`MIN_LISTS`. O(1).
 
-    The number of lists is ``index_nlist`` but at most ``len(sample) / 39`` (FAISS's minimum
-    training points per list), so a small map trains a smaller quantizer.
+    >>> from sprint_map.storage.store_config import MIN_TRAIN, StoreConfig
+    >>> list_count(StoreConfig(dim=128), 800_000), list_count(StoreConfig(dim=128), 3_200_000)
+    (1789, 3578)
+    >>> list_count(StoreConfig(dim=128, index_nlist=1024), 3_200_000)
+    1024
+    """
+    if config.index_nlist:
+        return config.index_nlist
+    serves = vertices * max(config.index_retrain_growth, 1.0)
+    return max(MIN_LISTS, round(math.sqrt(serves)))
+
+
+def train_sample_size(config: StoreConfig, vertices: int) -> int:
+    """Vertices a model for a map of ``vertices`` is trained on: ``index_train_sample``, or
+    more where :func:`list_count` asks for more lists than that feeds
+    (:data:`POINTS_PER_LIST` each), within :data:`TRAIN_SAMPLE_BYTES` of descriptors. O(1).
+    """
+    wanted = POINTS_PER_LIST * list_count(config, vertices)
+    budget = TRAIN_SAMPLE_BYTES // (4 * config.dim)
+    return max(config.index_train_sample, min(wanted, budget))
+
+
+def train_model(config: StoreConfig, kind: str, sample: Descriptors, vertices: int) -> Model:
+    """Train PCA (when ``dim > index_pca_dim``) and the IVF quantizer on ``sample`` rows of a
+    map of ``vertices``.
+
+    The number of lists is :func:`list_count`'s but at most ``len(sample) / 39`` (FAISS's
+    minimum training points per list), so a small map trains a smaller quantizer.
 
     Notes
     -----
@@ -244,7 +278,7 @@ def train_model(config: StoreConfig, kind: str, sample: Descriptors) -> Model:
         pca = faiss.PCAMatrix(config.dim, d, 0, kind == "ivf-pq")
         pca.train(sample[:: max(1, len(sample) // PCA_SAMPLE)])
         sample = pca.apply(sample)
-    nlist = max(1, min(config.index_nlist, len(sample) // POINTS_PER_LIST))
+    nlist = max(1, min(list_count(config, vertices), len(sample) // POINTS_PER_LIST))
     quantizer = faiss.IndexFlatL2(d)
     ivf: Any
     if kind == "ivf-pq":

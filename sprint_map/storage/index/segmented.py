@@ -65,6 +65,7 @@ from sprint_map.storage.index.model import (
     sample_ids,
     serialize,
     train_model,
+    train_sample_size,
     use_threads,
 )
 from sprint_map.storage.index.projection import Projection
@@ -80,13 +81,34 @@ if TYPE_CHECKING:
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.util.lazy_faiss import faiss
 
-__all__ = ["SegmentedIndex", "tier_plan"]
+__all__ = ["WITHIN_CACHE", "SegmentedIndex", "tier_plan"]
 
-def tier_plan(committed: int, rows: int, factor: int) -> list[tuple[int, int]]:
+#: Ranges whose stacked index a searcher keeps (a retrieval shard searches one).
+WITHIN_CACHE = 8
+
+def tier_plan(committed: int, rows: int, factor: int, max_rows: int = 0
+              ) -> list[tuple[int, int]]:
     """The segments sealing ``[0, committed)`` one ``rows`` block at a time would leave after
-    tiered merging: the base-``factor`` digits of ``committed // rows``, largest tier first."""
-    blocks, sizes = committed // rows, []
+    tiered merging: the base-``factor`` digits of ``committed // rows``, largest tier first;
+    no merge makes a segment of more than ``max_rows`` (0: no limit), so the top tier holds
+    as many segments as it takes.
+
+    >>> [b - a for a, b in tier_plan(10 * 4 + 3, 4, 3)]
+    [36, 4]
+    >>> [b - a for a, b in tier_plan(10 * 4 + 3, 4, 3, max_rows=12)]
+    [12, 12, 12, 4]
+    """
+    blocks = committed // rows
+    sizes: list[int] = []
+    top = blocks  # blocks of the largest tier a merge may make: no limit
+    if max_rows:
+        top = 1
+        while rows * top * factor <= max_rows:
+            top *= factor
     while blocks:
+        if top == 1 or factor ** len(sizes) == top:
+            sizes.append(blocks)  # the top tier: every block left, no further merges
+            break
         blocks, digit = divmod(blocks, factor)
         sizes.append(digit)
     plan, start = [], 0
@@ -126,6 +148,8 @@ class SegmentedIndex(RetrievalIndex):
         self._pool: ThreadPoolExecutor | None = None
         self._stacked: Any | None = None
         self._stack_refs: list[Any] = []
+        #: the segments and cut of a range -> their stacked index, its refs, its selector
+        self._within: dict[tuple[int, int, int, int], tuple[Any, list[Any], Any]] = {}
         self.tail_start = 0
         self._tail = np.empty((0, config.index_dim), dtype=np.float32)
         self.tail_len = 0
@@ -298,6 +322,7 @@ class SegmentedIndex(RetrievalIndex):
     def _forget(self) -> None:
         self._manifest = self._model = None
         self._segments, self._opened, self._stacked, self._stack_refs = [], {}, None, []
+        self._within = {}
         self.tail_start = self.tail_len = 0
         self._tail = np.empty((0, self.config.index_dim), dtype=np.float32)
         self.shards = None
@@ -329,18 +354,51 @@ class SegmentedIndex(RetrievalIndex):
             opened[seg.file] = index
         self._segments = segments
         self._opened = opened
-        self._stacked = None
-        self._stack_refs = []
-        if segments:
-            lists = faiss.InvertedListsPtrVector()  # type: ignore[attr-defined]
-            for segment in segments:
-                lists.push_back(segment.invlists)
-            stacked: Any = faiss.clone_index(self.model.ivf)
-            hstack = faiss.HStackInvertedLists(lists.size(), lists.data())
-            stacked.replace_invlists(hstack, False)
-            stacked.ntotal = sum(int(s.ntotal) for s in segments)
-            self._stacked = stacked
-            self._stack_refs = [lists, hstack]  # the stacked index does not own them
+        self._stacked, self._stack_refs = self._stack(segments)
+        self._within = {}
+
+    def _stack(self, segments: list[Any]) -> tuple[Any, list[Any]]:
+        """One IVF index over ``segments``' lists (None for none), and what it does not own
+        but needs alive. O(segments)."""
+        if not segments:
+            return None, []
+        lists = faiss.InvertedListsPtrVector()  # type: ignore[attr-defined]
+        for segment in segments:
+            lists.push_back(segment.invlists)
+        stacked: Any = faiss.clone_index(self.model.ivf)
+        hstack = faiss.HStackInvertedLists(lists.size(), lists.data())
+        stacked.replace_invlists(hstack, False)
+        stacked.ntotal = sum(int(s.ntotal) for s in segments)
+        return stacked, [lists, hstack]  # the stacked index does not own them
+
+    def _stacked_within(self, start: int, stop: int) -> tuple[Any, Any]:
+        """The stacked index of the segments that hold ids in ``[start, stop)`` and the search
+        parameters that keep only those ids (a selector where a segment reaches past the
+        range); cached until the segments change. O(segments) the first time."""
+        entries = self.manifest.segments
+        inside = [i for i, s in enumerate(entries) if s.start < stop and s.stop > start]
+        low = start if inside and entries[inside[0]].start < start else -1
+        high = stop if inside and entries[inside[-1]].stop > stop else -1
+        # keyed by what is searched: an open-ended range whose stop moves with the commits
+        # keeps one entry while the segments stay
+        key = (inside[0] if inside else 0, len(inside), low, high)
+        if key not in self._within:
+            if len(self._within) >= WITHIN_CACHE:
+                self._within.clear()
+            stacked, refs = self._stack([self._segments[i] for i in inside])
+            selector = None
+            if low >= 0 or high >= 0:
+                selector = faiss.IDSelectorRange(max(low, 0), high if high >= 0 else 1 << 62)
+            self._within[key] = (stacked, refs, selector)
+        stacked, _, selector = self._within[key]
+        if stacked is None:
+            return None, None
+        if selector is None:
+            return stacked, None
+        params: Any = faiss.SearchParametersIVF()
+        params.sel = selector
+        params.nprobe = min(self.config.index_nprobe, stacked.nlist)
+        return stacked, params
 
     def outdated(self) -> bool:
         """A reader whose tail grew past two segments: the writer has sealed them since."""
@@ -373,14 +431,19 @@ class SegmentedIndex(RetrievalIndex):
         self.tail_start += n
 
     # --- search -------------------------------------------------------------------------------
-    def search(self, queries: Descriptors, k: int) -> SearchResult:
-        """k nearest vertices by exact squared L2, among the re-ranked candidates.
+    def search(self, queries: Descriptors, k: int,
+               within: tuple[int, int] | None = None) -> SearchResult:
+        """k nearest vertices by exact squared L2, among the re-ranked candidates; with
+        ``within = (start, stop)`` only among vertex ids ``[start, stop)`` (a retrieval shard's
+        range: :mod:`sprint_map.fleet.shards`).
 
         Notes
         -----
-        IVF: one coarse quantization plus ``nprobe`` lists of codes over all segments; tail:
-        O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads from the shards (with a
-        learned projection, also O(rerank * dim * learn_dim) to project them).
+        IVF: one coarse quantization plus ``nprobe`` lists of codes over all segments (within a
+        range: over the segments that hold ids of it, the ids of a segment reaching past it
+        skipped one by one); tail: O(tail * d); re-ranking: O(max(index_rerank, k) * dim) reads
+        from the shards (with a learned projection, also O(rerank * dim * learn_dim) to project
+        them).
         """
         shards = self.require_loaded()
         # Every covered row was committed, even when the last load() was an older
@@ -394,12 +457,18 @@ class SegmentedIndex(RetrievalIndex):
         queries = raw if self.projection is None else self.projection.apply(raw, exact=False)
         reduced = queries if self.model.pca is None else self.model.pca.apply(queries)
         ids = []
-        if self._stacked is not None:
-            self._stacked.nprobe = min(self.config.index_nprobe, self._stacked.nlist)
-            ids.append(self._stacked.search(reduced, n_cand)[1])
-        if self.tail_len:
-            i = faiss.knn(reduced, self._tail[: self.tail_len], min(n_cand, self.tail_len))[1]
-            ids.append(np.where(i >= 0, i + self.tail_start, -1))
+        stacked, params = (self._stacked, None) if within is None else self._stacked_within(
+            *within)
+        if stacked is not None:
+            stacked.nprobe = min(self.config.index_nprobe, stacked.nlist)
+            ids.append(stacked.search(reduced, n_cand, params=params)[1])
+        lo, hi = self.tail_start, self.tail_start + self.tail_len
+        if within is not None:
+            lo, hi = max(lo, within[0]), min(hi, within[1])
+        if hi > lo:
+            tail = self._tail[lo - self.tail_start : hi - self.tail_start]
+            i = faiss.knn(reduced, tail, min(n_cand, hi - lo))[1]
+            ids.append(np.where(i >= 0, i + lo, -1))
         out_d, out_i = padded_results(nq, k)
         if not ids:
             return out_d, out_i
@@ -501,7 +570,7 @@ class SegmentedIndex(RetrievalIndex):
         manifest names. Touches no state of ``self``."""
         if worker:
             use_threads(1)  # this thread's OpenMP pool: leave the other core to the writer
-        factor = self.config.index_merge_factor
+        factor, cap = self.config.index_merge_factor, self.config.index_segment_max_rows
         for block in blocks:
             segment = faiss.clone_index(self.model.ivf)
             segment.add_with_ids(self.model.transform(block),
@@ -510,7 +579,8 @@ class SegmentedIndex(RetrievalIndex):
             crash_point("index.segment_written")
             start += len(block)
             while len(segments) >= factor and len(
-                    {s.stop - s.start for s in segments[-factor:]}) == 1:
+                    {s.stop - s.start for s in segments[-factor:]}) == 1 and (
+                    not cap or factor * (segments[-1].stop - segments[-1].start) <= cap):
                 segments = segments[:-factor] + (self._merge_files(segments[-factor:]),)
         return segments
 
@@ -566,14 +636,24 @@ class SegmentedIndex(RetrievalIndex):
         return entry
 
     def merge(self) -> bool:
-        """Merge every sealed segment into one (``compact``). O(sealed codes)."""
+        """Merge the sealed segments into as few as ``index_segment_max_rows`` allows: runs of
+        consecutive segments, each at most that many vertices (one segment without a limit;
+        ``compact``). O(sealed codes)."""
         if not self.loaded:
             return False
         self.wait()
-        if len(self.manifest.segments) < 2:
+        cap = self.config.index_segment_max_rows
+        runs: list[list[SegmentEntry]] = []
+        for seg in self.manifest.segments:
+            if runs and (not cap or runs[-1][-1].stop - runs[-1][0].start
+                         + seg.stop - seg.start <= cap):
+                runs[-1].append(seg)
+            else:
+                runs.append([seg])
+        if len(runs) == len(self.manifest.segments):
             return False
-        self._publish(replace(self.manifest,
-                              segments=(self._merge_files(self.manifest.segments),)))
+        merged = tuple(run[0] if len(run) == 1 else self._merge_files(tuple(run)) for run in runs)
+        self._publish(replace(self.manifest, segments=merged))
         return True
 
     # --- building -----------------------------------------------------------------------------
@@ -607,9 +687,9 @@ class SegmentedIndex(RetrievalIndex):
         generation = 1 + max([int(p.name.split(".")[1]) for p in
                               self.directory.glob("model.*.faiss")] + [0])
         config, directory = self.config, self.directory
-        sample = gather_rows(shards, sample_ids(committed, config.index_train_sample,
+        sample = gather_rows(shards, sample_ids(committed, train_sample_size(config, committed),
                                                 generation), committed)
-        model = train_model(config, kind, self.project(sample))
+        model = train_model(config, kind, self.project(sample), committed)
         model.projection = self.projection
         model_bytes, pca_bytes = model.publish(directory, generation)
         crash_point("index.model_trained")
@@ -620,7 +700,7 @@ class SegmentedIndex(RetrievalIndex):
         self._start(manifest, model)
         entries = []
         for start, stop in tier_plan(committed, config.index_segment_rows,
-                                     config.index_merge_factor):
+                                     config.index_merge_factor, config.index_segment_max_rows):
             entries.append(self._publish_segment(self._encode(shards, start, stop, committed),
                                                  start, stop))
             crash_point("index.segment_written")
