@@ -1,7 +1,7 @@
 """Ray benchmarks (issue 16 item 4): the ingest farm against serial ingest, the fanned-out search
 against the in-process one, and the per-segment figures the sizing in ``docs/fleet.md`` rests on.
 
-Three sections, each printing a table; ``--json OUT`` writes them all. Ratios are measured in one
+Four sections, each printing a table; ``--json OUT`` writes them all. Ratios are measured in one
 run, back to back, on the same machine (it may be shared: compare the ratios, not the absolutes).
 
 * ``ingest``: ``--drives`` drives of ``--frames`` precomputed descriptors (``.npy``) over a base
@@ -19,8 +19,13 @@ run, back to back, on the same machine (it may be shared: compare the ratios, no
   in-process search runs one OpenMP thread, as each shard does; ``one_shard`` is the largest
   range searched in process alone (what each shard computes per search).
 * ``segments``: the segmented IVF-PQ index of maps of ``--segment-sizes`` vertices (trained on
-  the map, the map's defaults: 1,024 lists, 16 probed, PQ16 after PCA to 128, 100 re-ranked):
+  the map, the map's defaults: lists following its size, 24 probed, PQ16, 100 re-ranked):
   search latency per query, and disk bytes per vertex (shards, index, LMDB).
+* ``approx``: maps of ``--approx-sizes`` vertices searched by ``--shards`` approximate
+  retrieval shards (``ShardedIndex(approximate=True)``: each its range of the map's index
+  segments) on a simulated cluster, against the in-process search, one query per search;
+  ``one_shard`` is the largest range searched in process (a shard's compute per query), and
+  recall@10 of both against brute force.
 
 ::
 
@@ -36,6 +41,7 @@ import json
 import shutil
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -326,6 +332,91 @@ def bench_segments(work: Path, sizes: list[int], repeat: int, seed: int) -> list
     return out
 
 
+# --- approximate shards ---------------------------------------------------------------------
+def knn_recall(got: np.ndarray, want: np.ndarray) -> float:
+    """Mean |got's k ids intersect want's| / k."""
+    return round(float(np.mean([len(set(a) & set(b)) for a, b in
+                                zip(got.tolist(), want.tolist(), strict=True)])) / want.shape[1], 3)
+
+
+def approx_times(m: SprintMap, sharded: Any, queries: np.ndarray,
+                 largest: tuple[int, int | None]) -> dict[str, list[float]]:
+    """Each query searched in process, in the largest range alone and through the shards,
+    in turn (ms)."""
+    out: dict[str, list[float]] = {"in-process": [], "one-shard": [], "sharded": []}
+    for q in queries:
+        one = q[None]
+        for name, search in (("in-process", m.search), ("sharded", sharded.search),
+                             ("one-shard", partial(m.search_within, start=largest[0],
+                                                   stop=largest[1]))):
+            t0 = time.perf_counter()
+            search(one, 10)
+            out[name].append(1000 * (time.perf_counter() - t0))
+    return out
+
+
+def bench_approx_shards(work: Path, sizes: list[int], shards: int, repeat: int, seed: int
+                        ) -> list[dict[str, Any]]:
+    """Per map size: the map's approximate index searched in process against ``shards``
+    approximate retrieval shards (each its range of the map's segments) on a simulated
+    cluster, one query per search, timed interleaved; ``one_shard``: the largest range searched
+    in process alone (what each shard computes); recall@10 of each against brute force."""
+    import faiss
+    import ray
+    from ray.cluster_utils import Cluster
+
+    from sprint_map.fleet.shards import ShardedIndex
+
+    rng = np.random.default_rng(seed)
+    centres = unit(rng.standard_normal((20_000, DIM)))
+    cluster = Cluster(initialize_head=True,
+                      head_node_args={"num_cpus": 1, "include_dashboard": False})
+    for _ in range(shards - 1):
+        cluster.add_node(num_cpus=1)
+    ray.init(address=cluster.address, log_to_driver=False, logging_level="ERROR")
+    cluster.wait_for_nodes()
+    out = []
+    try:
+        for size in sizes:
+            path = work / f"approx{size}.map"
+            with SprintMap.create(path, MapConfig(dim=DIM, store=StoreOptions(
+                    index_type="ivf-pq"))) as m:
+                for start in range(0, size, 100_000):
+                    n = min(100_000, size - start)
+                    m.add_sequence(unit(centres[rng.integers(0, len(centres), n)]
+                                        + 0.5 * rng.standard_normal((n, DIM)) / np.sqrt(DIM)))
+                m.rebuild_index(train=True)  # trained on the whole map's sample
+            with SprintMap.open(path, readonly=True) as m:
+                SprintMap.cap_search_threads(1)
+                queries = unit(centres[rng.integers(0, len(centres), repeat)]
+                               + 0.5 * rng.standard_normal((repeat, DIM)) / np.sqrt(DIM))
+                m.search(queries[:1], 10)  # open the segments
+                sharded = ShardedIndex(m, shards, approximate=True)
+                try:
+                    a, b = max(sharded.ranges, key=lambda r: (size if r[1] is None else r[1])
+                               - r[0])
+                    m.search_within(queries[:1], 10, a, b)
+                    times = approx_times(m, sharded, queries, (a, b))
+                    want = faiss.knn(queries, m.vertex_rows(0), 10)[1]
+                    recall = {"in_process": knn_recall(m.search(queries, 10)[1], want),
+                              "sharded": knn_recall(sharded.search(queries, 10)[1], want)}
+                    segments = len(m.index_segments())
+                    ranges = sharded.ranges
+                finally:
+                    sharded.close()
+            row: dict[str, Any] = {"vertices": size, "segments": segments, "shards": len(ranges),
+                                   "largest_range": (size if b is None else b) - a}
+            for name, ms in times.items():
+                row[f"{name}_p50_ms"], row[f"{name}_p99_ms"] = percentiles(ms)
+            row.update({f"recall@10_{k}": v for k, v in recall.items()})
+            out.append(row)
+            shutil.rmtree(path)
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    return out
+
+
 def table(title: str, rows: list[dict[str, Any]]) -> None:
     print(f"\n{title}")
     if not rows:
@@ -338,7 +429,8 @@ def table(title: str, rows: list[dict[str, Any]]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
-    parser.add_argument("--only", choices=["ingest", "search", "segments"], action="append")
+    parser.add_argument("--only", choices=["ingest", "search", "segments", "approx"],
+                        action="append")
     parser.add_argument("--base", type=int, default=100_000, help="base map vertices (ingest)")
     parser.add_argument("--drives", type=int, default=10)
     parser.add_argument("--ray-cpus", type=int, default=2)
@@ -352,6 +444,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="skip the Ray Compiled Graph path of the search section")
     parser.add_argument("--shards", type=int, default=3)
     parser.add_argument("--segment-sizes", type=int, nargs="+", default=[250_000, 1_000_000])
+    parser.add_argument("--approx-sizes", type=int, nargs="+", default=[1_000_000],
+                        help="maps searched by approximate shards")
     parser.add_argument("--repeat", type=int, default=200)
     parser.add_argument("--seed", type=int, default=16)
     parser.add_argument("--quick", action="store_true")
@@ -360,8 +454,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.quick:
         args.base, args.drives, args.vertices = 5_000, 4, [20_000]
-        args.segment_sizes, args.repeat = [20_000], 20
-    only = args.only or ["ingest", "search", "segments"]
+        args.segment_sizes, args.approx_sizes, args.repeat = [20_000], [40_000], 20
+    only = args.only or ["ingest", "search", "segments", "approx"]
     work = Path(tempfile.mkdtemp(prefix="bench-ray-", dir=args.workdir))
     out: dict[str, Any] = {}
     try:
@@ -389,6 +483,12 @@ def main(argv: list[str] | None = None) -> int:
             out["segments"] = bench_segments(work / "segments", args.segment_sizes,
                                              args.repeat, args.seed)
             table("Segmented IVF-PQ index per node", out["segments"])
+        if "approx" in only:
+            (work / "approx").mkdir()
+            out["approx"] = bench_approx_shards(work / "approx", args.approx_sizes,
+                                                args.shards, args.repeat, args.seed)
+            table("Approximate shards: each its range of the map's segments (ms per query)",
+                  out["approx"])
     finally:
         shutil.rmtree(work, ignore_errors=True)
     if args.json:

@@ -1,17 +1,29 @@
 """Retrieval shards: Ray actors that each own a vertex range of the index; a search fans out.
 
-When a map's index outgrows one machine, it is cut into vertex ranges ``[a, b)`` (aligned to
-``ALIGN`` ids, the granularity of index segments and shard files). A :class:`ShardWorker`, run
-as a Ray actor, holds the rows of one range in an exact flat index; the last one is open-ended
+When a map's index outgrows one machine, it is cut into vertex ranges ``[a, b)``. A
+:class:`ShardWorker`, run as a Ray actor, answers for one range; the last one is open-ended
 and catches up with commits. :class:`ShardedIndex` (in the caller) sends each query batch to
 every shard at once, gets each one's k best and merges them into the k best overall.
 
-The answer equals the in-process exact search, ids and distances: each shard searches its
-rows as the map's flat index does (:class:`~sprint_map.util.exact_search.ExactFlat`: every
-distance a function of its two rows alone, ties ordered by vertex id), and the k best of the
-union of the ranges' k best (ranges in vertex order, so equal distances keep id order) are the
-k best of the whole. Removed sequences are hidden as
-the store hides them (``SprintMap.removed_ranges().search_live`` over the fanned-out search).
+Two kinds of shard:
+
+* *exact* (default): the range (aligned to ``ALIGN`` ids) held in an exact flat index. The
+  answer equals the in-process exact search, ids and distances: each shard searches its
+  rows as the map's flat index does (:class:`~sprint_map.util.exact_search.ExactFlat`: every
+  distance a function of its two rows alone, ties ordered by vertex id), and the k best of
+  the union of the ranges' k best (ranges in vertex order, so equal distances keep id order)
+  are the k best of the whole. Memory ``4 * dim`` bytes per vertex, a scan of every row.
+* *approximate* (``approximate=True``): the range cut at the map's index segment boundaries
+  (:func:`plan_segment_ranges`; ``index_segment_max_rows`` keeps segments small enough to cut)
+  and searched in the map's own approximate index, only over the segments holding it
+  (``SprintMap.search_within``: its codes, probed lists and re-ranking from the map's files,
+  which the actor reads on a shared filesystem). Each shard re-ranks its own
+  ``index_rerank`` candidates, so the merged answer holds every candidate the in-process
+  search re-ranks that is among a range's best, and more: its exact distances, at least the
+  in-process recall. A query costs each shard its share of the codes.
+
+Removed sequences are hidden as the store hides them (``SprintMap.removed_ranges().search_live``
+over the fanned-out search; an approximate shard hides them itself).
 
 How a search reaches the shards: by default over a direct TCP connection to each one
 (:mod:`sprint_map.fleet.channel`: raw float32 queries out, raw ids and distances back), not a
@@ -49,7 +61,7 @@ from sprint_map.util.lazy_faiss import faiss  # imported on first use
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["ALIGN", "TRANSPORTS", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk",
-           "plan_ranges", "spread"]
+           "plan_ranges", "plan_segment_ranges", "spread"]
 
 #: Shard boundaries are multiples of this many vertex ids.
 ALIGN = 1024
@@ -69,6 +81,32 @@ def plan_ranges(vertices: int, shards: int, align: int = ALIGN) -> list[tuple[in
     blocks = max(1, -(-vertices // align))
     shards = min(shards, blocks)
     cuts = [round(i * blocks / shards) * align for i in range(shards)]
+    return [(a, b) for a, b in zip(cuts, cuts[1:], strict=False)] + [(cuts[-1], None)]
+
+
+def plan_segment_ranges(segments: list[tuple[int, int]], shards: int
+                        ) -> list[tuple[int, int | None]]:
+    """At most ``shards`` vertex ranges ``[a, b)`` cut only at the ends of ``segments`` (the
+    index's sealed segments, in order), each cut the segment end nearest to an equal share of
+    the sealed vertices; the last range is open-ended (it takes the unsealed tail and later
+    commits). O(shards * segments).
+
+    >>> plan_segment_ranges([(0, 4), (4, 8), (8, 12), (12, 13)], 3)
+    [(0, 4), (4, 8), (8, None)]
+    >>> plan_segment_ranges([(0, 10)], 3)
+    [(0, None)]
+    """
+    if shards < 1:
+        raise ValueError("shards must be >= 1")
+    sealed = segments[-1][1] if segments else 0
+    ends = [stop for _, stop in segments[:-1]]
+    cuts = [0]
+    for n in range(1, shards):
+        later = [e for e in ends if e > cuts[-1]]
+        if not later:
+            break
+        cut = min(later, key=lambda e: abs(e - n * sealed / shards))
+        cuts.append(cut)
     return [(a, b) for a, b in zip(cuts, cuts[1:], strict=False)] + [(cuts[-1], None)]
 
 
@@ -106,33 +144,43 @@ def spread(nodes: list[str], n: int) -> Any:
 
 
 class ShardWorker:
-    """The exact index of one vertex range ``[start, stop)`` (``stop`` None: open-ended).
+    """One vertex range ``[start, stop)`` (``stop`` None: open-ended) of a map's index.
 
-    Run as a Ray actor by :class:`ShardedIndex`; a plain object otherwise. With ``rows`` None
-    the map at ``path`` is opened read-only and the range read from its shard files (a shared
-    filesystem); else ``rows`` are the range's descriptors, shipped by the caller.
+    Run as a Ray actor by :class:`ShardedIndex`; a plain object otherwise. Exact (default):
+    with ``rows`` None the map at ``path`` is opened read-only and the range read from its
+    shard files into a flat index (a shared filesystem); else ``rows`` are the range's
+    descriptors, shipped by the caller. ``approximate``: the map at ``path`` is opened
+    read-only and searched within the range (``SprintMap.search_within``).
 
     Notes
     -----
-    Memory: ``4 * dim`` bytes per vertex held (the flat index's copy of the rows). A search of
-    q queries costs O(q * rows * dim).
+    Exact: ``4 * dim`` bytes per vertex held (the flat index's copy of the rows), a search of
+    q queries O(q * rows * dim). Approximate: the map's codes of the range, memory-mapped; a
+    search scans the range's share of the probed lists and re-ranks ``index_rerank`` rows.
     """
 
     def __init__(self, path: str | None, start: int, stop: int | None, dim: int,
-                 rows: Descriptors | None = None, threads: int = 1) -> None:
+                 rows: Descriptors | None = None, threads: int = 1,
+                 approximate: bool = False) -> None:
         self.start = start
         self.threads = threads
         self.stop = stop
+        self.dim = dim
+        self.approximate = approximate
         self.index = faiss.IndexFlatL2(dim)
         self._exact: ExactFlat | None = None
         self.map: SprintMap | None = None
         # searches may come from the channel's thread while Ray calls load rows
         self._lock = threading.Lock()
         self._server: ChannelServer | None = None
-        if rows is None:
+        if rows is None or approximate:
             if path is None:
-                raise ValueError("a shard needs the map's path or its rows")
+                raise ValueError("a shard needs the map's path or its rows"
+                                 + (" (an approximate one: its path)" if approximate else ""))
             self.map = SprintMap.open(path, readonly=True)
+            if approximate:
+                self.map.search_within(np.zeros((1, dim), np.float32), 1, start, stop)
+                return  # (ValueError here if the map's index is exact)
             total = self.map.stats()["vertices"]
             self._load(self.map, total if stop is None else min(stop, total))
         else:
@@ -149,10 +197,15 @@ class ShardWorker:
 
     def covered(self) -> int:
         """One past the last vertex id this shard holds."""
+        if self.approximate and self.map is not None:
+            total = self.map.stats()["vertices"]
+            return max(self.start, total if self.stop is None else min(self.stop, total))
         return self.start + int(self.index.ntotal)
 
     def append(self, first: int, rows: Descriptors) -> int:
         """Add ``rows`` as vertex ids ``first..`` (must continue the covered range)."""
+        if self.approximate:
+            raise ValueError("an approximate shard reads the map's files: no rows to ship")
         if first != self.covered():
             raise ValueError(f"shard covers up to {self.covered()}, cannot add at {first}")
         if self.stop is not None and first + len(rows) > self.stop:
@@ -163,13 +216,17 @@ class ShardWorker:
 
     def catch_up(self, committed: int) -> int:
         """Read the vertices committed since (open-ended shard on a shared filesystem)."""
-        if self.map is not None:
+        if self.map is not None and not self.approximate:  # approximate: each search does
             end = committed if self.stop is None else min(self.stop, committed)
             self._load(self.map, end)
         return self.covered()
 
     def search(self, queries: Descriptors, k: int) -> SearchResult:
-        """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded."""
+        """k nearest of this range: ``(squared L2, global vertex ids)``, -1 padded (an
+        approximate shard: live vertices only)."""
+        if self.approximate and self.map is not None:
+            with self._lock:
+                return self.map.search_within(queries, k, self.start, self.stop)
         # One thread below 8 queries (latency-bound); the answer does not depend on it.
         faiss.omp_set_num_threads(1 if len(queries) < 8 else self.threads)
         with self._lock:
@@ -186,7 +243,7 @@ class ShardWorker:
         answer as :func:`~sprint_map.fleet.channel.pack_result`'s one buffer (Ray pickles
         bytes far cheaper than numpy arrays)."""
         if isinstance(queries, bytes):
-            queries = np.frombuffer(queries, np.float32).reshape(-1, int(self.index.d))
+            queries = np.frombuffer(queries, np.float32).reshape(-1, self.dim)
         return pack_result(self.search(queries, k))
 
     def listen(self, token: bytes, host: str | None = None) -> tuple[str, int]:
@@ -198,7 +255,7 @@ class ShardWorker:
 
                 node_ip: Any = ray.util.get_node_ip_address  # untyped in Ray
                 host = str(node_ip())
-            self._server = ChannelServer(self.search, int(self.index.d), token, host)
+            self._server = ChannelServer(self.search, self.dim, token, host)
         return self._server.address
 
     def pid(self) -> int:
@@ -221,10 +278,13 @@ class ShardWorker:
 
 
 class ShardedIndex:
-    """Exact k-NN over a map, fanned out to :class:`ShardWorker` actors (one per range).
+    """k-NN over a map, fanned out to :class:`ShardWorker` actors (one per range).
 
     ``smap``: the map (its path, size and removed ranges are read here); ``shards``: vertex
-    ranges (fewer for a tiny map: :func:`plan_ranges`); ``ship``: read the rows here and send
+    ranges (fewer for a tiny map: :func:`plan_ranges`, or with ``approximate`` fewer than its
+    index segments allow: :func:`plan_segment_ranges`); ``approximate``: each shard searches
+    its range in the map's approximate index (ValueError for a map whose index is exact, or
+    with ``ship``), else an exact copy of its rows; ``ship``: read the rows here and send
     them to the actors (no shared filesystem; default: each actor reads its range from the
     map's files); ``threads``: OpenMP threads of a shard's search of 8 queries or more (default
     1: one shard per core); ``actor_options``: Ray options of the actors (default ``num_cpus=0``,
@@ -244,17 +304,26 @@ class ShardedIndex:
 
     def __init__(self, smap: SprintMap, shards: int = 3, *, ship: bool = False,
                  threads: int = 1, actor_options: dict[str, Any] | None = None,
-                 transport: str = "auto", timeout: float = 60.0) -> None:
+                 transport: str = "auto", timeout: float = 60.0,
+                 approximate: bool = False) -> None:
         from sprint_map.fleet.runtime import require_ray
 
         if transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, not {transport!r}")
+        if approximate and ship:
+            raise ValueError("approximate shards search the map's own index files: they need "
+                             "a shared filesystem, not shipped rows")
+        self.dim = smap.config.dim
+        self.approximate = approximate
+        vertices = smap.stats()["vertices"]
+        if approximate:
+            smap.search_within(np.zeros((1, self.dim), np.float32), 1, 0)  # exact: ValueError
+            self.ranges = plan_segment_ranges(smap.index_segments(), shards)
+        else:
+            self.ranges = plan_ranges(vertices, shards)
         ray = require_ray()
         self._ray = ray
-        self.dim = smap.config.dim
         self.removed = smap.removed_ranges()
-        vertices = smap.stats()["vertices"]
-        self.ranges = plan_ranges(vertices, shards)
         remote = ray.remote(ShardWorker)
         path = str(smap.path)
         nodes = alive_nodes(ray)
@@ -267,7 +336,7 @@ class ShardedIndex:
                 rows = ray.put(np.ascontiguousarray(smap.vertex_rows(a, vertices if b is None
                                                                     else min(b, vertices))))
             self.actors.append(remote.options(**options).remote(
-                None if ship else path, a, b, self.dim, rows, threads))
+                None if ship else path, a, b, self.dim, rows, threads, approximate))
         self.covered: int = max(self._get([actor.covered.remote() for actor in self.actors]))
         self._lock = threading.Lock()
         self._lost: str | None = None
@@ -330,7 +399,7 @@ class ShardedIndex:
 
     def search_live(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k nearest *live* vertices (removed sequences hidden), as ``SprintMap.search``."""
-        if not self.removed.count:
+        if not self.removed.count or self.approximate:  # approximate shards hide them
             return self.search(queries, k)
         return self.removed.search_live(self.search, validate_descriptors(queries, self.dim), k,
                                         self.covered)

@@ -150,6 +150,59 @@ def test_actors_are_spread_over_the_nodes(cluster: object, tmp_path: Path,
             sharded.close()
 
 
+def build_segmented(path: Path, rng: np.random.Generator, lengths: list[int]) -> SprintMap:
+    """A map searched by its approximate index: segments of 512 rows, merged up to 1,024."""
+    centres = rng.standard_normal((200, DIM)).astype(np.float32)
+    options = StoreOptions(index_type="ivf-pq", index_nlist=32, index_nprobe=8,
+                           index_segment_rows=512, index_merge_factor=2,
+                           index_segment_max_rows=1024, index_train_sample=2000,
+                           index_rerank=40, shard_rows=3000)
+    smap = SprintMap.create(path, MapConfig(dim=DIM, store=options))
+    for n, length in enumerate(lengths):
+        rows = centres[rng.integers(len(centres), size=length)]
+        smap.add_sequence(rows + 0.2 * rng.standard_normal((length, DIM)).astype(np.float32),
+                          name=f"d{n}")
+    smap.flush()  # every full block sealed (a commit seals in the background)
+    return smap
+
+
+def test_approximate_shards_search_their_segments(cluster: object, tmp_path: Path,
+                                                  rng: np.random.Generator) -> None:
+    with build_segmented(tmp_path / "m", rng, [2500, 1700, 3100]) as smap:
+        segments = smap.index_segments()
+        assert max(b - a for a, b in segments) == 1024  # merges stop at index_segment_max_rows
+        sharded = ShardedIndex(smap, 3, approximate=True)
+        try:
+            ends = {b for _, b in segments}
+            assert len(sharded.actors) == 3 and sharded.ranges[-1][1] is None
+            assert all(b in ends for _, b in sharded.ranges[:-1])  # cut at segment ends
+            q = np.concatenate([smap.vertex_rows(0)[::97],
+                                rng.standard_normal((20, DIM)).astype(np.float32)])
+            got = sharded.search_live(q, 10)
+            # each shard answers what the map answers within its range; merged, the k best
+            parts = [smap.search_within(q, 10, a, b) for a, b in sharded.ranges]
+            want = merge_topk([p[0] for p in parts], [p[1] for p in parts], 10)
+            np.testing.assert_array_equal(got[1], want[1])
+            np.testing.assert_array_equal(got[0], want[0])
+            rows = len(smap.vertex_rows(0)[::97])
+            np.testing.assert_array_equal(got[1][:rows, 0], np.arange(0, 7300, 97))
+            # commits after the shards were made: the open-ended shard searches them
+            smap.add_sequence(smap.vertex_rows(0, 300) + 0.01, name="late")
+            smap.remove_sequences(["d1"])
+            assert sharded.catch_up(smap) == smap.stats()["vertices"]
+            _, ids = sharded.search_live(smap.vertex_rows(7300, 7310), 3)
+            assert (ids[:, 0] >= 7300).all() or (ids[:, 0] < 300).all()
+            _, ids = sharded.search_live(smap.vertex_rows(2500, 2600), 10)
+            assert not ((ids >= 2500) & (ids < 4200)).any()  # d1 removed: hidden
+        finally:
+            sharded.close()
+    with build(tmp_path / "flat", rng, [1500]) as smap:
+        with pytest.raises(ValueError, match="exact"):
+            ShardedIndex(smap, 2, approximate=True)
+        with pytest.raises(ValueError, match="shared filesystem"):
+            ShardedIndex(smap, 2, approximate=True, ship=True)
+
+
 def test_a_shard_refuses_rows_out_of_its_range() -> None:
     worker = ShardWorker(None, 0, ALIGN, 4, np.zeros((10, 4), np.float32))
     with pytest.raises(ValueError, match="cannot add"):
