@@ -218,6 +218,20 @@ def bench_dag(ray: Any, m: SprintMap, actors: list[Any], alone: Any, vertices: i
     return rows
 
 
+def simulated_cluster(nodes: int) -> Any:
+    """A ``ray.cluster_utils.Cluster`` of ``nodes`` one-CPU nodes, joined by this driver."""
+    import ray
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True,
+                      head_node_args={"num_cpus": 1, "include_dashboard": False})
+    for _ in range(nodes - 1):
+        cluster.add_node(num_cpus=1)
+    ray.init(address=cluster.address, log_to_driver=False, logging_level="ERROR")
+    cluster.wait_for_nodes()
+    return cluster
+
+
 def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: int,
                  dag: bool = True) -> dict[str, Any]:
     """Per map size and batch (1, 16, 64 queries): the in-process exact search against the
@@ -227,18 +241,12 @@ def bench_search(work: Path, sizes: list[int], shards: int, repeat: int, seed: i
     in-process search again (its actors serve the graph in a loop: timed apart)."""
     import faiss
     import ray
-    from ray.cluster_utils import Cluster
 
     from sprint_map.fleet.shards import ShardedIndex, ShardWorker
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    cluster = Cluster(initialize_head=True,
-                      head_node_args={"num_cpus": 1, "include_dashboard": False})
-    for _ in range(shards - 1):
-        cluster.add_node(num_cpus=1)
-    ray.init(address=cluster.address, log_to_driver=False, logging_level="ERROR")
-    cluster.wait_for_nodes()
+    cluster = simulated_cluster(shards)
     cluster_s = time.perf_counter() - t0
     rows: list[dict[str, Any]] = []
     notes: dict[str, Any] = {}
@@ -363,18 +371,12 @@ def bench_approx_shards(work: Path, sizes: list[int], shards: int, repeat: int, 
     in process alone (what each shard computes); recall@10 of each against brute force."""
     import faiss
     import ray
-    from ray.cluster_utils import Cluster
 
     from sprint_map.fleet.shards import ShardedIndex
 
     rng = np.random.default_rng(seed)
     centres = unit(rng.standard_normal((20_000, DIM)))
-    cluster = Cluster(initialize_head=True,
-                      head_node_args={"num_cpus": 1, "include_dashboard": False})
-    for _ in range(shards - 1):
-        cluster.add_node(num_cpus=1)
-    ray.init(address=cluster.address, log_to_driver=False, logging_level="ERROR")
-    cluster.wait_for_nodes()
+    cluster = simulated_cluster(shards)
     out = []
     try:
         for size in sizes:

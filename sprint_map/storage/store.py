@@ -669,13 +669,19 @@ class MapStore:
         has ``k`` live hits or the index has no more (see :func:`removal.search_live`).
         """
         queries = validate_descriptors(queries, self.config.dim)
+        total, removed = self._searchable()
+        if not removed.count:
+            return self.index.search(queries, k)
+        return search_live(self.index.search, queries, k, removed, total)
+
+    def _searchable(self) -> tuple[int, RemovedRanges]:
+        """The committed vertices and removed ranges of one snapshot, the index loaded to
+        them (what every search starts with). O(removed) plus the index's catch-up."""
         with self.env.read() as txn:
             total = self.counter("next_vertex_id", txn)
             removed = self.removed_ranges(txn)
         self.index.load(total, self.shards)
-        if not removed.count:
-            return self.index.search(queries, k)
-        return search_live(self.index.search, queries, k, removed, total)
+        return total, removed
 
     def search_within(self, queries: DescriptorsLike, k: int, start: int, stop: int | None
                       ) -> SearchResult:
@@ -689,10 +695,7 @@ class MapStore:
         <sprint_map.storage.index.map_index.IndexStore.search_within>`).
         """
         queries = validate_descriptors(queries, self.config.dim)
-        with self.env.read() as txn:
-            total = self.counter("next_vertex_id", txn)
-            removed = self.removed_ranges(txn)
-        self.index.load(total, self.shards)
+        total, removed = self._searchable()
         end = total if stop is None else min(stop, total)
 
         def within(q: Descriptors, n: int) -> SearchResult:
@@ -705,9 +708,7 @@ class MapStore:
     def index_segments(self) -> list[tuple[int, int]]:
         """The vertex ranges ``(start, stop)`` of the approximate index's sealed segments, in
         order (none while the index is exact). O(segments) once the index is loaded."""
-        with self.env.read() as txn:
-            total = self.counter("next_vertex_id", txn)
-        self.index.load(total, self.shards)
+        self._searchable()
         return self.index.segment_bounds()
 
     def rebuild_index(self, *, train: bool = False) -> list[str]:
