@@ -16,9 +16,11 @@ from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 from sprint_map.util.exact_search import (
     MARGIN,
+    RETRY_FACTOR,
     candidate_distances,
     certified_search,
     distance_error_bound,
+    margin_for,
     pair_distances,
     row_norm_max,
 )
@@ -118,13 +120,15 @@ def test_a_query_of_huge_values_finds_nothing_and_warns_not(world):
     assert (i == -1).all()
 
 
+@pytest.mark.parametrize("candidates", [18, 80])
 @pytest.mark.parametrize("dim", [3, 16, 128, 129, 1764])
-def test_candidate_distances_are_pair_distances_bit_for_bit(rng, dim):
+def test_candidate_distances_are_pair_distances_bit_for_bit(rng, dim, candidates):
     """All queries at once (the certification's fast path) as one query at a time, including
-    past numpy's pairwise-summation block (128) and across the chunks of queries."""
+    past numpy's pairwise-summation block (128), across the chunks of queries and (80
+    candidates of dim 1,764) in blocks of one query's candidates."""
     vectors = (3 * rng.standard_normal((500, dim))).astype(np.float32)
     queries = (3 * rng.standard_normal((70, dim))).astype(np.float32)
-    cand = rng.integers(0, 500, (70, 18))
+    cand = rng.integers(0, 500, (70, candidates))
     got = candidate_distances(queries, vectors, cand)
     for q in range(len(queries)):
         np.testing.assert_array_equal(got[q], pair_distances(queries[q], vectors[cand[q]]))
@@ -167,3 +171,25 @@ def test_map_search_and_localize_agree_frame_by_frame(tmp_path, rng):
         offline, _ = m.localize(query)
         streamed = m.localizer()
         assert [streamed.step(row) for row in query] == offline
+
+
+def test_an_uncertified_query_is_searched_deeper_before_every_row(world):
+    """A fast search whose short lists miss the true neighbours (but whose deeper lists hold
+    them) gives the exact answer from the second, deeper search."""
+    vectors, queries = world
+    exact_fast = flat_fast(vectors)
+    asked: list[int] = []
+
+    def shallow_wrong(q, n):
+        asked.append(n)
+        d, i = exact_fast(q, len(vectors))
+        if n > 5 + margin_for(5):  # the retry: the true lists
+            return d[:, :n].copy(), i[:, :n].copy()
+        return d[:, -n:][:, ::-1].copy(), i[:, -n:][:, ::-1].copy()  # the farthest rows
+
+    got = certified_search(shallow_wrong, vectors, row_norm_max(vectors), queries, 5)
+    want = brute(vectors, queries, 5)
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[0], want[0])
+    assert asked == [5 + margin_for(5), RETRY_FACTOR * (5 + margin_for(5))]
+

@@ -18,7 +18,7 @@ mass is below ``min_confidence`` or when the sink ("off the map") holds at least
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
+from collections.abc import Container
 from dataclasses import dataclass
 
 import numpy as np
@@ -249,7 +249,7 @@ def place_mass(view: BeliefView, slot: int, radius: int, hops: int = 1) -> float
 
 def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: list[float],
                    radius: int, hops: int, reach: int,
-                   rivals: Collection[int] | None = None) -> float:
+                   rivals: Container[int] | None = None) -> float:
     """How much the place of the vertex at ``slot`` stands out among a frame's hits.
 
     The distance of the frame's best hit inside the place (:func:`place_runs` with ``radius``

@@ -22,8 +22,9 @@ filter keeps running forward; only the live belief of the last ``L + 1`` frames 
   decides them. So with ``L`` at least the drive's length every answer comes from the flush
   and equals the smoothed pass over the same hits, float for float.
 
-Cost per frame: one filter update, ``L`` backward steps (each O(live), what a forward step
-costs; nothing is sized by the map) and one decision. Memory: the live belief and the hits of
+Cost per frame: one filter update, the backward operator from it onto the frame before (built
+as the frame is pushed, so every answer costs the same), ``L`` applications of the waiting
+frames' operators (each O(live); nothing is sized by the map) and one decision. Memory: the live belief and the hits of
 ``L + 3`` frames, whatever the drive's length, plus one dense decision vector per active
 component (as the filter's own belief).
 """
@@ -48,6 +49,7 @@ from sprint_map.hmm.smoother import (
     decide_posterior,
     gamma_of,
     nearest_hits,
+    pull_operators,
 )
 from sprint_map.hmm.sprint_filter import SprintFilter
 
@@ -142,6 +144,11 @@ class FixedLagSmoother:
         frame = FrameBelief(parts, sink, vids, [float(d) for d in vdists], lik, sink_lik)
         self._frames.append(frame)
         self._nearest.append(nearest_hits(frame, self.config.k))
+        if len(self._frames) >= 2:
+            # the backward step's operator onto the previous frame, built now: every answer
+            # then builds none, the first one (after ``lag`` pushes) included
+            before = self._frames[-2]
+            before.pulls = pull_operators(before, frame)
         if len(self._frames) <= self.lag:
             return None
         return self._answer_oldest()

@@ -33,6 +33,7 @@ plus its hits; decisions are made frame by frame during the backward pass.
 from __future__ import annotations
 
 import math
+from bisect import bisect_left
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
@@ -46,7 +47,7 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
-__all__ = ["DecisionScratch", "FrameBelief", "ForwardBackward", "Parts", "RIVAL_CONFIRMATIONS",
+__all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts", "RIVAL_CONFIRMATIONS",
            "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_step", "decide_posterior", "gamma_of",
            "nearest_hits", "pull_operators", "smooth"]
 
@@ -394,25 +395,42 @@ def _contrast(config: HMMConfig, views: list[BeliefView], vertex_id: int, t: int
             slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
             return place_contrast(view, slot, ids, dists, config.place_radius,
                                   config.place_hops, config.contrast_reach,
-                                  _confirmed(ids, t, nearest))
+                                  ConfirmedRivals(t, nearest))
     return math.nan  # not reached: the decided vertex lies in one of the views
 
 
-def _confirmed(ids: list[int], t: int, nearest: list[tuple[list[int], list[float]]]
-               ) -> set[int]:
-    """The hits ``ids`` of frame ``t`` that the frames around it confirm: at least
-    :data:`RIVAL_CONFIRMATIONS` of the frames ``t - 2 .. t + 2`` have a hit (among their
-    ``nearest``) within :data:`RIVAL_SLACK` images of where the same drive would be ``d``
-    frames away (vertex ids run along a sequence; near a sequence's end the next one may be
-    counted: a rival too many, never one too few). A rival route, not a stray near neighbour.
-    O(k^2)."""
-    n = len(nearest)
-    # frame t + d confirms h when one of its hits w has |w - (h + d)| <= slack: h is one of
-    # w - d - slack .. w - d + slack
-    reach = range(-RIVAL_SLACK, RIVAL_SLACK + 1)
-    near = [{w - d + s for w in nearest[t + d][0] for s in reach}
-            for d in (-2, -1, 1, 2) if 0 <= t + d < n]
-    return {h for h in ids if sum(h in covered for covered in near) >= RIVAL_CONFIRMATIONS}
+class ConfirmedRivals:
+    """The hits of frame ``t`` that the frames around it confirm, as a container: ``h in
+    rivals`` when at least :data:`RIVAL_CONFIRMATIONS` of the frames ``t - 2 .. t + 2`` have
+    a hit (among their ``nearest``) within :data:`RIVAL_SLACK` images of where the same drive
+    would be ``d`` frames away, ``h + d`` (vertex ids run along a sequence; near a sequence's
+    end the next one may be counted: a rival too many, never one too few). A rival route, not
+    a stray near neighbour.
+
+    Notes
+    -----
+    O(k log k) to sort the neighbours' hits, then O(log k) per membership test (made only for
+    the hits outside the decided place).
+    """
+
+    __slots__ = ("_around",)
+
+    def __init__(self, t: int, nearest: list[tuple[list[int], list[float]]]) -> None:
+        n = len(nearest)
+        self._around = [(d, sorted(nearest[t + d][0])) for d in (-2, -1, 1, 2) if 0 <= t + d < n]
+
+    def __contains__(self, h: object) -> bool:
+        if not isinstance(h, int | np.integer):
+            return False
+        confirmations = 0
+        for d, hits in self._around:
+            at = int(h) + d
+            i = bisect_left(hits, at - RIVAL_SLACK)
+            if i < len(hits) and hits[i] <= at + RIVAL_SLACK:
+                confirmations += 1
+                if confirmations >= RIVAL_CONFIRMATIONS:
+                    return True
+        return False
 
 
 def smooth(config: HMMConfig, source: GraphSource,

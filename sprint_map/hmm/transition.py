@@ -337,7 +337,8 @@ class ComponentTransition:
         m_slots = np.asarray(m_slots, dtype=_I64)
         n = slots.size
         kernel = self.kernel
-        origin, row, factor = slots, np.arange(n, dtype=_I64), None
+        # row: the source of each origin's window (None: origin i is source i, no edges)
+        origin, row, factor = slots, None, None
         if self.has_edges and n:
             factor = self._rinv[slots]
             e_lo = self.edge_src.searchsorted(slots)
@@ -346,20 +347,29 @@ class ComponentTransition:
             if n_edges:
                 eidx = ranges(e_lo, counts, n_edges)
                 origin = np.concatenate((slots, self.edge_dst[eidx]))
-                row = np.concatenate((row, np.repeat(row, counts)))
+                row = np.concatenate((np.arange(n, dtype=_I64),
+                                      np.repeat(np.arange(n, dtype=_I64), counts)))
                 factor = np.concatenate((factor, self.edge_coef[eidx]))
         end = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1]
         tgt = origin[:, None] + np.arange(len(kernel), dtype=_I64)
-        weights = kernel * factor[:, None] if factor is not None else np.broadcast_to(
-            kernel, tgt.shape)
         past = tgt >= end[:, None]
-        sink = np.bincount(row, weights=np.where(past, weights, 0.0).sum(axis=1), minlength=n)
-        if m_slots.size:
-            pos = np.minimum(m_slots.searchsorted(tgt), m_slots.size - 1)
-            found = (m_slots[pos] == tgt) & ~past
-            rows = np.broadcast_to(row[:, None], tgt.shape)[found]
-            return PullOperator(n, rows, pos[found], weights[found], sink)
-        return PullOperator(n, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, sink)
+        if past.any():  # mass past a sequence's end goes to the sink
+            spill = np.where(past, kernel, 0.0)
+            if factor is not None:
+                spill *= factor[:, None]
+            per = spill.sum(axis=1)
+            sink = per if row is None else np.bincount(row, weights=per, minlength=n)
+        else:
+            sink = np.zeros(n)
+        if not m_slots.size:
+            return PullOperator(n, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, sink)
+        pos = m_slots.searchsorted(tgt)
+        np.minimum(pos, m_slots.size - 1, out=pos)
+        found = m_slots[pos] == tgt
+        found &= ~past
+        at, step = found.nonzero()
+        weights = kernel[step] if factor is None else kernel[step] * factor[at]
+        return PullOperator(n, at if row is None else row[at], pos[at, step], weights, sink)
 
 
 class PullOperator:

@@ -13,8 +13,10 @@ streaming), in a batch of 16 (the service batching sessions) or of 256 (offline 
 3. the answer is *certified*: the matrix product's error is bounded
    (:func:`distance_error_bound`), so if the k-th recomputed distance plus that bound is below
    the candidate list's worst fast distance, no vertex outside the list can enter the top k.
-   A query that is not certified (rare: 0 of 3,576 Nordland queries with ``margin`` 8) is
-   recomputed against every vertex with :func:`pair_distances`.
+   A query that is not certified (rare: 0 of 3,576 Nordland queries with ``k`` 10, 0 of 1,500
+   with ``k`` 64 and its margin of 16) is searched again for :data:`RETRY_FACTOR` times as
+   many candidates and certified again; one that still is not is recomputed against every
+   vertex with :func:`pair_distances`.
 
 So the answer is the top ``k`` by :func:`pair_distances` over the whole index, ties broken by
 vertex id: a function of the query and the map only.
@@ -22,6 +24,7 @@ vertex id: a function of the query and the map only.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -32,21 +35,24 @@ if TYPE_CHECKING:
 else:  # imported on first use: commands that only read LMDB never load it
     from sprint_map.util.lazy_faiss import faiss
 
-__all__ = ["BLAS_FROM_QUERIES", "MARGIN", "ExactFlat", "candidate_distances", "certified_search",
-           "distance_error_bound", "pair_distances", "row_norm_max"]
+__all__ = ["BLAS_FROM_QUERIES", "MARGIN", "RETRY_FACTOR", "ExactFlat", "candidate_distances",
+           "certified_search", "distance_error_bound", "margin_for", "pair_distances",
+           "row_norm_max"]
 
-#: Extra candidates asked of the fast search, beyond ``k``.
+#: Extra candidates asked of the fast search beyond ``k``: at least this many, and a quarter of
+#: ``k`` for deep searches (:func:`margin_for`).
 MARGIN = 8
+#: An uncertified query's second fast search asks this many times the first one's candidates.
+RETRY_FACTOR = 4
 #: Queries from which FAISS's flat search computes distances by matrix product (its default,
 #: 20, searches smaller batches pair by pair, reading the whole index once per query). Any
 #: threshold gives the same answers (they are certified); :class:`ExactFlat` sets it.
 BLAS_FROM_QUERIES = 4
 #: float32 unit round-off.
 _U = 2.0 ** -24
-#: Rows per chunk when a query is recomputed against every vertex.
-_CHUNK = 4096
-#: float64 values per chunk of :func:`candidate_distances` (16 MB).
-_CHUNK_VALUES = 1 << 21
+#: float64 values per chunk of :func:`candidate_distances` (512 KiB: the temporary stays in
+#: the core's cache; 16 MiB chunks took 1.7x as long at dim 1,764).
+_CHUNK_VALUES = 1 << 16
 
 
 def pair_distances(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -63,6 +69,13 @@ def pair_distances(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
     np.square(diff, out=diff)
     out: np.ndarray = diff.sum(axis=1).astype(np.float32)
     return out
+
+
+def margin_for(k: int) -> int:
+    """The extra candidates :func:`certified_search` asks for beyond ``k`` by default:
+    ``max(MARGIN, k // 4)`` (the gaps between neighbours shrink with depth: with 8 extra,
+    3 of 1,500 Nordland queries at ``k`` 64 were not certified, each a pass over the map)."""
+    return max(MARGIN, k // 4)
 
 
 def row_norm_max(rows: np.ndarray) -> float:
@@ -89,7 +102,7 @@ def certified_search(
     norm_max: float,
     queries: np.ndarray,
     k: int,
-    margin: int = MARGIN,
+    margin: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The exact top ``k`` of each query, as described in the module docstring.
 
@@ -102,6 +115,9 @@ def certified_search(
         The indexed rows.
     norm_max : float
         The largest norm among ``vectors`` (:func:`row_norm_max`).
+    margin : int, optional
+        Extra candidates beyond ``k`` (default :func:`margin_for`); it changes the cost, never
+        the answer.
 
     Returns
     -------
@@ -112,16 +128,16 @@ def certified_search(
     -----
     The fast search, plus O(nq * (k + margin) * dim) to recompute the candidates (vectorised
     over the queries: ~1-2 us a query at dim 128, against ~15 us one query at a time), plus
-    O(n_total * dim) for each query not certified.
+    one fast search of ``RETRY_FACTOR`` times the candidates for the queries not certified and
+    O(n_total * dim) for each that still is not.
     """
     total = len(vectors)
-    want = min(k + margin, total)
+    want = min(k + (margin_for(k) if margin is None else margin), total)
     dist, ids = fast(queries, max(want, k))
     out_d = dist[:, :k].copy()
     out_i = ids[:, :k].copy()
     if not total or not len(queries):
         return out_d, out_i
-    dim = vectors.shape[1]
     cand = ids[:, :want]
     # FAISS leaves out rows at an infinite distance (a query of huge values): -1 in the list
     short = (cand < 0).any(axis=1)
@@ -135,14 +151,10 @@ def certified_search(
         out_d[full, :n] = np.take_along_axis(exact, top, axis=1)
         out_i[full, :n] = np.take_along_axis(c_full, top, axis=1)
         if want < total:
-            qnorms = np.sqrt(np.einsum("ij,ij->i", q_full, q_full, dtype=np.float64))
-            bound = (dim + 3) * _U * 1.01 * (qnorms + norm_max) ** 2  # distance_error_bound
-            kth = out_d[full, n - 1].astype(np.float64)
-            worst_fast = dist[full, want - 1].astype(np.float64)
-            for q in full[~(kth + bound < worst_fast - _U * np.abs(worst_fast))]:
-                every, exact_q, order_q = _everything(queries[q], vectors)
-                out_d[q, :n] = exact_q[order_q[:n]]
-                out_i[q, :n] = every[order_q[:n]]
+            unsure = full[~_certified(q_full, norm_max, out_d[full, n - 1], dist[full, want - 1])]
+            if len(unsure):
+                _recheck(fast, vectors, norm_max, queries, unsure, k, min(RETRY_FACTOR * want,
+                                                                            total), out_d, out_i)
     for q in np.flatnonzero(short):  # the rows found, re-measured and ordered; then -1
         found = cand[q][cand[q] >= 0]
         exact_q = pair_distances(queries[q], vectors[found])
@@ -152,6 +164,48 @@ def certified_search(
     return out_d, out_i
 
 
+def _certified(queries: np.ndarray, norm_max: float, kth: np.ndarray, worst_fast: np.ndarray
+               ) -> np.ndarray:
+    """Per query: whether no row outside its candidate list can beat its ``kth`` recomputed
+    distance, given the list's ``worst_fast`` distance (:func:`distance_error_bound`)."""
+    qnorms = np.sqrt(np.einsum("ij,ij->i", queries, queries, dtype=np.float64))
+    bound = (queries.shape[1] + 3) * _U * 1.01 * (qnorms + norm_max) ** 2
+    worst = worst_fast.astype(np.float64)
+    certified: np.ndarray = kth.astype(np.float64) + bound < worst - _U * np.abs(worst)
+    return certified
+
+
+def _recheck(fast: Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray]],
+             vectors: np.ndarray, norm_max: float, queries: np.ndarray, unsure: np.ndarray,
+             k: int, want: int, out_d: np.ndarray, out_i: np.ndarray) -> None:
+    """The exact top ``k`` of the queries ``unsure`` (rows of ``queries``), written into
+    ``out_d``/``out_i``: from a fast search for ``want`` candidates where that certifies,
+    else against every row."""
+    q_uns = np.ascontiguousarray(queries[unsure])
+    dist, ids = fast(q_uns, want)
+    every = np.arange(len(vectors), dtype=np.int64)
+    for j, q in enumerate(unsure.tolist()):
+        query = q_uns[j]
+        cand = ids[j]
+        if want < len(vectors) and not (cand < 0).any():
+            exact = candidate_distances(query[None, :], vectors, cand[None, :])[0]
+            order = np.lexsort((cand, exact))[:k]
+            if _certified(query[None, :], norm_max, exact[order[-1:]], dist[j, -1:])[0]:
+                out_d[q, :k], out_i[q, :k] = exact[order], cand[order]
+                continue
+        exact = _all_distances(query, vectors)
+        order = np.lexsort((every, exact))[:k]
+        out_d[q, :k], out_i[q, :k] = exact[order], every[order]
+
+
+def _all_distances(query: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """:func:`pair_distances` of ``query`` to every row, in chunks of rows whose float64
+    temporary stays in the cache (O(n * dim))."""
+    rows = max(1, _CHUNK_VALUES // max(1, vectors.shape[1]))
+    return np.concatenate([pair_distances(query, vectors[i : i + rows])
+                           for i in range(0, len(vectors), rows)] or [np.empty(0, np.float32)])
+
+
 def candidate_distances(queries: np.ndarray, vectors: np.ndarray, cand: np.ndarray
                         ) -> np.ndarray:
     """``(nq, m)`` float32: :func:`pair_distances` of each query to its ``m`` candidate rows
@@ -159,28 +213,51 @@ def candidate_distances(queries: np.ndarray, vectors: np.ndarray, cand: np.ndarr
 
     Notes
     -----
-    O(nq * m * dim), in chunks of queries whose float64 temporary stays under ~16 MB.
+    O(nq * m * dim), in chunks (of queries, or of one query's candidates) whose float64
+    temporary stays in the cache (:data:`_CHUNK_VALUES`).
     """
     nq, m = cand.shape
     dim = vectors.shape[1]
     out = np.empty((nq, m), np.float32)
-    step = max(1, _CHUNK_VALUES // max(1, m * dim))
-    for a in range(0, nq, step):
-        b = min(nq, a + step)
-        diff = vectors[cand[a:b]].astype(np.float64)
-        diff -= queries[a:b, None, :].astype(np.float64)
-        np.square(diff, out=diff)
-        out[a:b] = diff.sum(axis=2)  # each row summed as pair_distances sums it
+    buf, rows32 = _scratch()
+    if m * dim <= _CHUNK_VALUES:  # several queries a chunk
+        step = max(1, _CHUNK_VALUES // max(1, m * dim))
+        for a in range(0, nq, step):
+            b = min(nq, a + step)
+            gathered = rows32[: (b - a) * m * dim].reshape((b - a) * m, dim)
+            np.take(vectors, cand[a:b].reshape(-1), axis=0, out=gathered)
+            diff = buf[: (b - a) * m * dim].reshape(b - a, m, dim)
+            diff[...] = gathered.reshape(b - a, m, dim)  # float32 -> float64 is exact
+            diff -= queries[a:b, None, :].astype(np.float64)
+            np.square(diff, out=diff)
+            out[a:b] = diff.sum(axis=2)  # each row summed as pair_distances sums it
+        return out
+    per = max(1, _CHUNK_VALUES // dim)  # a query's candidates in blocks of rows
+    for q in range(nq):
+        query = queries[q].astype(np.float64)
+        for a in range(0, m, per):
+            ids = cand[q, a : a + per]
+            block = rows32[: len(ids) * dim].reshape(len(ids), dim)
+            np.take(vectors, ids, axis=0, out=block)
+            rows64 = buf[: len(ids) * dim].reshape(len(ids), dim)
+            rows64[...] = block
+            rows64 -= query
+            np.square(rows64, out=rows64)
+            out[q, a : a + per] = rows64.sum(axis=1)
     return out
 
 
-def _everything(query: np.ndarray, vectors: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(ids, distances, order)`` of ``query`` against every row, by (distance, id)."""
-    exact = np.concatenate([pair_distances(query, vectors[i : i + _CHUNK])
-                            for i in range(0, len(vectors), _CHUNK)])
-    ids = np.arange(len(vectors), dtype=np.int64)
-    return ids, exact, np.lexsort((ids, exact))
+_LOCAL = threading.local()
+
+
+def _scratch() -> tuple[np.ndarray, np.ndarray]:
+    """This thread's buffers of :data:`_CHUNK_VALUES` values, float64 and float32 (allocated
+    once: fresh temporaries of this size can cost page faults on every chunk)."""
+    bufs: tuple[np.ndarray, np.ndarray] | None = getattr(_LOCAL, "bufs", None)
+    if bufs is None or bufs[0].size != _CHUNK_VALUES:
+        bufs = _LOCAL.bufs = (np.empty(_CHUNK_VALUES, np.float64),
+                              np.empty(_CHUNK_VALUES, np.float32))
+    return bufs
 
 
 class ExactFlat:

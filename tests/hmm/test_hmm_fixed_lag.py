@@ -133,3 +133,23 @@ def test_a_bad_lag_is_refused(lag) -> None:
         check_lag(lag)
     with pytest.raises(ValueError, match="lag"):
         FixedLagSmoother(HMMConfig(), MemoryGraphSource([5]), lag=lag)
+
+
+def test_every_push_builds_one_operator_so_the_first_answer_costs_no_more(monkeypatch) -> None:
+    """The backward operator onto a frame is built when the next frame is pushed: the push
+    that gives the first answer builds one, like every other (not ``lag`` of them)."""
+    built: list[int] = []
+    real = ComponentTransition.pull_operator
+
+    def counting(self, slots, m_slots):
+        built.append(1)
+        return real(self, slots, m_slots)
+
+    monkeypatch.setattr(ComponentTransition, "pull_operator", counting)
+    fl = FixedLagSmoother(HMMConfig(), MemoryGraphSource([50]), lag=5)
+    per_push = []
+    for t in range(12):
+        built.clear()
+        fl.push(np.array([10 + t]), np.array([0.1]))
+        per_push.append(len(built))
+    assert per_push == [0] + [1] * 11

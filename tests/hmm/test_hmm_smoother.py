@@ -12,7 +12,13 @@ from hypothesis import strategies as st
 from test_hmm_equivalence import SETTINGS, configs, dense, frames, maps
 
 from sprint_map.hmm import FullGraphFilter, HMMConfig, MemoryGraphSource, SprintFilter
-from sprint_map.hmm.smoother import ForwardBackward, smooth
+from sprint_map.hmm.smoother import (
+    RIVAL_CONFIRMATIONS,
+    RIVAL_SLACK,
+    ConfirmedRivals,
+    ForwardBackward,
+    smooth,
+)
 
 
 def sparse_posteriors(fb: ForwardBackward, n: int) -> list[tuple[np.ndarray, float]]:
@@ -177,3 +183,20 @@ def test_a_rival_counts_only_if_the_frames_around_confirm_it() -> None:
     route = run(lambda t: 60 + t)
     assert stray == pytest.approx([0.0] * 8)
     assert route[2:6] == pytest.approx([1.0] * 4)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_confirmed_rivals_are_the_hits_two_of_the_four_frames_around_confirm(
+        data: st.DataObject) -> None:
+    """``h in ConfirmedRivals(t, nearest)`` exactly when at least RIVAL_CONFIRMATIONS of the
+    frames t - 2 .. t + 2 hold a hit within RIVAL_SLACK of h + d (the set definition)."""
+    hits = st.lists(st.integers(0, 60), max_size=10)
+    nearest = [(ids, [0.0] * len(ids)) for ids in data.draw(st.lists(hits, min_size=1,
+                                                                     max_size=7))]
+    t = data.draw(st.integers(0, len(nearest) - 1))
+    rivals = ConfirmedRivals(t, nearest)
+    for h in range(-5, 66):
+        around = [d for d in (-2, -1, 1, 2) if 0 <= t + d < len(nearest)
+                  and any(abs(w - (h + d)) <= RIVAL_SLACK for w in nearest[t + d][0])]
+        assert (h in rivals) == (len(around) >= RIVAL_CONFIRMATIONS), (h, t, nearest)
