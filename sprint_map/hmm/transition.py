@@ -378,7 +378,7 @@ class PullOperator:
     ``weights``: the entries of ``A`` into the target slots, ``sink``: each source's mass
     that leaves its sequence). O(entries) per application, three numpy calls."""
 
-    __slots__ = ("cols", "n", "rows", "sink", "weights")
+    __slots__ = ("cols", "n", "rows", "sink", "spills", "weights")
 
     def __init__(self, n: int, rows: np.ndarray, cols: np.ndarray, weights: np.ndarray,
                  sink: np.ndarray) -> None:
@@ -387,13 +387,17 @@ class PullOperator:
         self.cols = cols
         self.weights = weights
         self.sink = sink
+        #: Whether any source reaches past its sequence's end (else ``sink`` is all 0).
+        self.spills = bool(sink.any())
 
     def apply(self, m_vals: np.ndarray, m_sink: float) -> np.ndarray:
         """The pulled values of the ``n`` source slots."""
-        out: np.ndarray = self.sink * m_sink
-        if self.rows.size:
-            out += np.bincount(self.rows, weights=self.weights * m_vals[self.cols],
-                               minlength=self.n)
+        if not self.rows.size:
+            return self.sink * m_sink
+        out: np.ndarray = np.bincount(self.rows, weights=self.weights * m_vals[self.cols],
+                                      minlength=self.n)
+        if self.spills:
+            out += self.sink * m_sink
         return out
 
 

@@ -116,8 +116,7 @@ def certified_search(
     norm_max : float
         The largest norm among ``vectors`` (:func:`row_norm_max`).
     margin : int, optional
-        Extra candidates beyond ``k`` (default :func:`margin_for`); it changes the cost, never
-        the answer.
+        Extra candidates beyond ``k`` (default :func:`margin_for`): a cost, not the answer.
 
     Returns
     -------
@@ -126,10 +125,9 @@ def certified_search(
 
     Notes
     -----
-    The fast search, plus O(nq * (k + margin) * dim) to recompute the candidates (vectorised
-    over the queries: ~1-2 us a query at dim 128, against ~15 us one query at a time), plus
-    one fast search of ``RETRY_FACTOR`` times the candidates for the queries not certified and
-    O(n_total * dim) for each that still is not.
+    The fast search, O(nq * (k + margin) * dim) to recompute the candidates (vectorised),
+    one deeper fast search for the queries not certified and O(n_total * dim) for each that
+    still is not.
     """
     total = len(vectors)
     want = min(k + (margin_for(k) if margin is None else margin), total)
