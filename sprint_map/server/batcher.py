@@ -7,10 +7,13 @@ event loop hands each decoded frame to :meth:`FrameBatcher.submit`, and one thre
 frame waiting (up to ``max_frames``), searches them in one call under the map gate's shared
 side, and steps each frame's session with its hits
 (:meth:`sprint_map.server.sessions.Session.step`), in arrival order. While fewer frames wait
-than the previous batch held, it waits for more, until ``window_s`` after the oldest one
-arrived: sessions that were just answered send their next frames at about the same time, so
-the batch they made is expected again; a lone vehicle's frame (previous batch: 1) is searched
-at once, and a batch that took longer than the window finds the next one ready.
+than the larger of the last two batches held, it waits for more, until ``window_s`` after the
+oldest one arrived (and at least half a window after the last batch was answered): sessions
+that were just answered send their next frames at about the same time, so the batch they made
+is expected again, and a fleet that fell into two groups answered in turn (each group's frames
+arriving while the other's are stepped) is batched whole again; a lone vehicle's frame
+(previous batches: 1) is searched at once, and a batch that took longer than the window finds
+the next one ready.
 
 Answers equal offline ``localize`` frame for frame: the map's search gives a query the same
 ids and distances, bit for bit, whatever else is in its batch
@@ -162,6 +165,7 @@ class FrameBatcher:
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._expect = 1  # frames the previous batch held: the next one waits for as many
+        self._expect_before = 1  # ... or as many as the one before, if more
 
     @property
     def alive(self) -> bool:
@@ -204,18 +208,19 @@ class FrameBatcher:
             self._answer(batch)
 
     def _next_batch(self) -> list[Pending] | None:
+        free = time.perf_counter()  # when the previous batch was answered
         with self._cond:
             while not self._queue:
                 if self._stopping:
                     return None
                 self._cond.wait()
-            deadline = self._queue[0].arrived + self.window_s
-            expect = min(self._expect, self.max_frames)
+            deadline = max(self._queue[0].arrived + self.window_s, free + self.window_s / 2)
+            expect = min(max(self._expect, self._expect_before), self.max_frames)
             while (len(self._queue) < expect and not self._stopping
                    and (left := deadline - time.perf_counter()) > 0):
                 self._cond.wait(left)
             n = min(len(self._queue), self.max_frames)
-            self._expect = n
+            self._expect_before, self._expect = self._expect, n
             return [self._queue.popleft() for _ in range(n)]
 
     def _answer(self, batch: list[Pending]) -> None:

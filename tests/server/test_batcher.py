@@ -123,3 +123,43 @@ def test_a_failed_search_answers_every_frame_of_its_batch(one_drive_map: Path, p
     # Each request gets the library error's answer (503 storage_error), none is left waiting.
     assert [(e.status, e.code, e.message) for e in got] == \
         [(503, "storage_error", "the index is unreadable")] * len(rows)
+
+
+def test_a_fleet_split_in_two_groups_is_batched_whole_again(one_drive_map: Path, places, rng):
+    """Vehicles answered in two alternating groups make whole batches again: a batch waits
+    (at most ``window_s``) for as many frames as the larger of the last two batches held."""
+    from sprint_map.server.batcher import FrameBatcher
+    from sprint_map.server.gate import MapGate
+    from sprint_map.server.sessions import Session
+
+    rows = drive(places, rng)[:8]
+
+    async def body(smap: SprintMap) -> list[int]:
+        batcher = FrameBatcher(smap, MapGate(), k=5, window_s=0.5, max_frames=64)
+        sessions = [Session(None, smap.localizer(), smap.config.dim) for _ in range(4)]
+        sizes: list[int] = []
+
+        async def batch_of(frames: list[tuple[Session, np.ndarray]], late: int = 0) -> None:
+            futures = [batcher.submit(s, r) for s, r in frames[: len(frames) - late]]
+            if late:  # the other group's frames come 50 ms later
+                await asyncio.sleep(0.05)
+                futures += [batcher.submit(s, r) for s, r in frames[-late:]]
+            await asyncio.gather(*futures)
+            sizes.append(batcher.stats.last_size)
+
+        # Queued before the thread starts: the first four frames make one batch.
+        first = [batcher.submit(s, r) for s, r in zip(sessions, rows[:4], strict=True)]
+        batcher.start()
+        try:
+            await asyncio.gather(*first)
+            sizes.append(batcher.stats.last_size)
+            await batch_of(list(zip(sessions[:2], rows[4:6], strict=True)))  # half the fleet
+            await batch_of(list(zip(sessions, rows[4:8], strict=True)), late=2)
+        finally:
+            batcher.stop()
+        return sizes
+
+    with SprintMap.open(one_drive_map) as smap:
+        sizes = asyncio.run(body(smap))
+    # 2 after 4 (the window ran out); then 4 again, not the 2 that came first
+    assert sizes == [4, 2, 4]
