@@ -45,11 +45,11 @@ from sprint_map.hmm.smoother import (
     DecisionScratch,
     FrameBelief,
     Parts,
+    backward_operator,
     backward_step,
     decide_posterior,
     gamma_of,
     nearest_hits,
-    pull_operators,
 )
 from sprint_map.hmm.sprint_filter import SprintFilter
 
@@ -148,19 +148,19 @@ class FixedLagSmoother:
             # the backward step's operator onto the previous frame, built now: every answer
             # then builds none, the first one (after ``lag`` pushes) included
             before = self._frames[-2]
-            before.pulls = pull_operators(before, frame)
+            before.pulls = backward_operator(before, frame)
         if len(self._frames) <= self.lag:
             return None
         return self._answer_oldest()
 
     def _answer_oldest(self) -> Decision:
         frames = self._frames
-        betas = [np.ones(len(slots)) for _, slots, _ in frames[-1].parts]
+        beta = np.ones(frames[-1].starts()[-1])
         beta_sink = 1.0
         for i in range(len(frames) - 2, -1, -1):
-            betas, beta_sink = backward_step(self.config, frames[i], frames[i + 1], betas,
-                                             beta_sink, keep=True)
-        parts, sink = gamma_of(frames[0], betas, beta_sink)
+            beta, beta_sink = backward_step(self.config, frames[i], frames[i + 1], beta,
+                                            beta_sink, keep=True)
+        parts, sink = gamma_of(frames[0], beta, beta_sink)
         nearest = list(self._nearest)
         decision = decide_posterior(self.config, parts, sink, self._scratch, self._prefer,
                                     nearest, len(nearest) - len(frames))
@@ -208,13 +208,13 @@ class FixedLagSmoother:
     def _posteriors(self) -> Iterable[tuple[Parts, float]]:
         """The smoothed posterior of every waiting frame given all pushed, last first."""
         frames = self._frames
-        betas = [np.ones(len(slots)) for _, slots, _ in frames[-1].parts]
+        beta = np.ones(frames[-1].starts()[-1])
         beta_sink = 1.0
-        yield gamma_of(frames[-1], betas, beta_sink)
+        yield gamma_of(frames[-1], beta, beta_sink)
         for i in range(len(frames) - 2, -1, -1):
-            betas, beta_sink = backward_step(self.config, frames[i], frames[i + 1], betas,
-                                             beta_sink, keep=True)
-            yield gamma_of(frames[i], betas, beta_sink)
+            beta, beta_sink = backward_step(self.config, frames[i], frames[i + 1], beta,
+                                            beta_sink, keep=True)
+            yield gamma_of(frames[i], beta, beta_sink)
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """Re-read components after the map changed (:meth:`SprintFilter.invalidate`), and

@@ -42,13 +42,13 @@ import numpy as np
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_candidates
-from sprint_map.hmm.graph import GraphSource
+from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
 __all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts", "RIVAL_CONFIRMATIONS",
-           "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_step", "decide_posterior", "gamma_of",
+           "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator", "backward_step", "decide_posterior", "gamma_of",
            "nearest_hits", "pull_operators", "smooth"]
 
 #: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
@@ -93,9 +93,34 @@ class FrameBelief:
     #: Per part: the positions (ascending) of its slots that hold a hit, and their likelihood
     #: ratios; made on first use by :func:`backward_step` (None until then).
     hit_layout: list[tuple[np.ndarray, np.ndarray]] | None = None
-    #: The backward step's operators from the next frame onto this one, when kept
-    #: (:func:`backward_step` with ``keep``).
-    pulls: list[tuple[int, PullOperator]] | None = None
+    #: The backward step's operator from the next frame onto this one, when kept
+    #: (:func:`backward_step` with ``keep``; :func:`backward_operator`).
+    pulls: PullOperator | None = None
+    #: Where each part starts in the frame's values laid end to end (and their total, last);
+    #: made on first use by :meth:`starts`.
+    part_starts: list[int] | None = None
+    #: Per part holding hits: their positions in the values laid end to end, and their
+    #: likelihood ratios; made on first use by :meth:`hits_end_to_end`.
+    hit_positions: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+    def starts(self) -> list[int]:
+        """Where each part's values start when the parts are laid end to end, then their
+        total (``len(parts) + 1`` numbers; cached)."""
+        if self.part_starts is None:
+            out = [0]
+            for _, slots, _ in self.parts:
+                out.append(out[-1] + len(slots))
+            self.part_starts = out
+        return self.part_starts
+
+    def hits_end_to_end(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`hits_in_parts` of the parts that hold hits, positions counted in the parts'
+        values laid end to end (cached)."""
+        if self.hit_positions is None:
+            self.hit_positions = [(pos + start, lik) for (pos, lik), start
+                                  in zip(self.hits_in_parts(), self.starts(), strict=False)
+                                  if pos.size]
+        return self.hit_positions
 
     def hits_in_parts(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Where this frame's hits sit in its parts: per part, the positions (ascending) in
@@ -222,13 +247,13 @@ class ForwardBackward:
         if not frames:
             return
         last = frames[-1]
-        betas = [np.ones(len(slots)) for _, slots, _ in last.parts]
+        beta = np.ones(last.starts()[-1])
         beta_sink = 1.0
-        yield gamma_of(last, betas, beta_sink)
+        yield gamma_of(last, beta, beta_sink)
         for t in range(len(frames) - 2, -1, -1):
-            betas, beta_sink = backward_step(self.config, frames[t], frames[t + 1], betas,
-                                             beta_sink)
-            yield gamma_of(frames[t], betas, beta_sink)
+            beta, beta_sink = backward_step(self.config, frames[t], frames[t + 1], beta,
+                                            beta_sink)
+            yield gamma_of(frames[t], beta, beta_sink)
 
 
 _EMPTY_SLOTS = np.zeros(0, dtype=np.int64)
@@ -238,50 +263,45 @@ _EMPTY_VALS = np.zeros(0)
 Parts = list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
 
 
-def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief,
-                  betas: list[np.ndarray], beta_sink: float, *, keep: bool = False
-                  ) -> tuple[list[np.ndarray], float]:
-    """One step of the backward recursion: ``beta_t`` on the parts of frame ``now`` from
-    ``beta_{t+1}`` (``betas``, one per part of ``nxt``, and ``beta_sink``), rescaled so that
-    its largest value is 1 (the posterior is normalised anyway).
+def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: np.ndarray,
+                  beta_sink: float, *, keep: bool = False) -> tuple[np.ndarray, float]:
+    """One step of the backward recursion: ``beta_t`` on the parts of frame ``now`` (laid end
+    to end, :meth:`FrameBelief.starts`) from ``beta_{t+1}`` (``beta``, on the parts of ``nxt``
+    laid end to end, and ``beta_sink``), rescaled so that its largest value is 1 (the
+    posterior is normalised anyway).
 
-    The step is linear in ``beta_{t+1}``: its operator (:func:`pull_operators`) is built from
+    The step is linear in ``beta_{t+1}``: its operator (:func:`backward_operator`) is built from
     the two frames' supports and ``nxt``'s likelihoods; ``keep`` keeps it on ``now`` for the
     next step between the same frames (the fixed-lag smoother makes each step ``L`` times).
 
     Notes
     -----
     Building the operator is O(live W log live) per part (:meth:`ComponentTransition.
-    pull_operator`), what a forward step costs; applying it O(live W), a few numpy calls.
-    Nothing is sized by the map.
+    pull_operator`), what a forward step costs; applying it O(live W), a few numpy calls for
+    all the parts together. Nothing is sized by the map.
     """
     eps, nu = config.restart_prob, config.new_place_prob
-    ops = now.pulls if now.pulls is not None else pull_operators(now, nxt)
+    op = now.pulls if now.pulls is not None else backward_operator(now, nxt)
     if keep:
-        now.pulls = ops
-    # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into ops).
+        now.pulls = op
+    # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into op).
     hit_m = 0.0
-    for beta, (pos, lik) in zip(betas, nxt.hits_in_parts(), strict=True):
-        if pos.size:
-            hit_m += float(np.dot(lik, beta[pos]))
+    for pos, lik in nxt.hits_end_to_end():
+        hit_m += float(np.dot(lik, beta[pos]))
     m_sink = beta_sink * nxt.sink_lik
     n_hits = len(nxt.hit_ids)
     const = (eps * hit_m / n_hits + nu * m_sink) if n_hits else (eps + nu) * m_sink
-    new_betas = []
     top = beta_sink = (1.0 - eps - nu) * m_sink + const
-    for j, op in ops:
-        beta = op.apply(betas[j] if j >= 0 else _EMPTY_VALS, m_sink)
-        beta += const
-        if beta.size:
-            top = max(top, float(beta.max()))
-        new_betas.append(beta)
+    new = op.apply(beta, m_sink)
+    new += const
+    if new.size:
+        top = max(top, float(new.max()))
     # Rescale (gamma is normalised anyway): keep beta near 1.
     if top > 0.0:
         inv = 1.0 / top
-        for beta in new_betas:
-            beta *= inv
+        new *= inv
         beta_sink *= inv
-    return new_betas, beta_sink
+    return new, beta_sink
 
 
 def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOperator]]:
@@ -307,13 +327,32 @@ def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOp
     return out
 
 
-def gamma_of(frame: FrameBelief, betas: list[np.ndarray], beta_sink: float
-             ) -> tuple[Parts, float]:
+def backward_operator(now: FrameBelief, nxt: FrameBelief) -> PullOperator:
+    """The backward step's operator from ``nxt``'s parts laid end to end onto ``now``'s: the
+    per-part operators of :func:`pull_operators` as one, each part's rows and columns shifted
+    to where its values start (:meth:`FrameBelief.starts`), so that one application covers
+    every part. O(live W log live) to build, plus O(entries) to join the parts."""
+    ops = pull_operators(now, nxt)
+    if len(ops) == 1 and ops[0][0] <= 0:  # one part, and nothing to shift
+        return ops[0][1]
+    if not ops:
+        return PullOperator(0, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, _EMPTY_VALS)
+    starts, nxt_starts = now.starts(), nxt.starts()
+    return PullOperator(
+        starts[-1],
+        np.concatenate([op.rows + start for (_, op), start in zip(ops, starts, strict=False)]),
+        np.concatenate([op.cols + nxt_starts[max(j, 0)] for j, op in ops]),
+        np.concatenate([op.weights for _, op in ops]),
+        np.concatenate([op.sink for _, op in ops]))
+
+
+def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[Parts, float]:
     """The smoothed posterior ``normalise(alpha_t * beta_t)`` of ``frame`` (its parts with
-    gamma in place of alpha, and the sink's); the filtered one if the model gives the frames
-    zero probability. O(live)."""
-    parts = [(trans, slots, alpha * beta)
-             for (trans, slots, alpha), beta in zip(frame.parts, betas, strict=True)]
+    gamma in place of alpha, and the sink's) from ``beta_t`` on its parts laid end to end;
+    the filtered one if the model gives the frames zero probability. O(live)."""
+    starts = frame.starts()
+    parts = [(trans, slots, alpha * beta[starts[i] : starts[i + 1]])
+             for i, (trans, slots, alpha) in enumerate(frame.parts)]
     sink = frame.sink * beta_sink
     total = sink + sum(float(g.sum()) for _, _, g in parts)
     if not total > 0.0 or not np.isfinite(total):

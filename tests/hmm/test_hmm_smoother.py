@@ -17,6 +17,8 @@ from sprint_map.hmm.smoother import (
     RIVAL_SLACK,
     ConfirmedRivals,
     ForwardBackward,
+    backward_operator,
+    pull_operators,
     smooth,
 )
 
@@ -200,3 +202,26 @@ def test_confirmed_rivals_are_the_hits_two_of_the_four_frames_around_confirm(
         around = [d for d in (-2, -1, 1, 2) if 0 <= t + d < len(nearest)
                   and any(abs(w - (h + d)) <= RIVAL_SLACK for w in nearest[t + d][0])]
         assert (h in rivals) == (len(around) >= RIVAL_CONFIRMATIONS), (h, t, nearest)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObject) -> None:
+    """One application of :func:`backward_operator` over the parts laid end to end equals,
+    float for float, each part's own operator (:func:`pull_operators`) applied to its
+    component's part of the next frame (the sink's share alone where it has none)."""
+    lengths, edges = data.draw(maps())
+    config = data.draw(configs(prune=0.0))
+    source = MemoryGraphSource(lengths, edges)
+    fb = ForwardBackward(config, source)
+    for ids, dists in frames(data.draw, source.n_vertices, data.draw(st.integers(2, 6))):
+        fb.forward(ids, dists)
+    now, nxt = fb.frames[-2], fb.frames[-1]
+    beta = np.array(data.draw(st.lists(st.floats(0, 5), min_size=nxt.starts()[-1],
+                                       max_size=nxt.starts()[-1])))
+    sink = data.draw(st.floats(0, 5))
+    starts = nxt.starts()
+    each = [op.apply(beta[starts[j]: starts[j + 1]] if j >= 0 else np.zeros(0), sink)
+            for j, op in pull_operators(now, nxt)]
+    want = np.concatenate(each) if each else np.zeros(0)
+    np.testing.assert_array_equal(backward_operator(now, nxt).apply(beta, sink), want)
