@@ -37,7 +37,6 @@ from sprint_map.errors import (
     SchemaVersionError,
     SprintMapError,
     StorageIOError,
-    UnknownSequenceError,
 )
 from sprint_map.storage import learning
 from sprint_map.storage.compaction import compact_map
@@ -52,12 +51,8 @@ from sprint_map.storage.group_writer import GroupWriter
 from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.index.projection import LearnReport
 from sprint_map.storage.keys import (
-    EDGE_KEY,
-    VERTEX_VAL,
     decode_json,
     decode_number,
-    decode_vertex,
-    read_u32,
     read_u64,
     u32,
     u64,
@@ -65,11 +60,10 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
 from sprint_map.storage.provenance import unmerge_sequence
+from sprint_map.storage.reads import MapReads
 from sprint_map.storage.records import (
     AddResult,
     CompactReport,
-    ComponentInfo,
-    EdgeRecord,
     EdgeSpec,
     RemoveResult,
     SequenceRecord,
@@ -79,7 +73,6 @@ from sprint_map.storage.reduction import Reduction
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter, record_live_sightings
 from sprint_map.storage.shards import ShardSet
-from sprint_map.storage.sightings import Sighting, get_sighting
 from sprint_map.storage.store_config import (
     READABLE_SCHEMA_VERSIONS,
     SCHEMA_VERSION,
@@ -87,12 +80,11 @@ from sprint_map.storage.store_config import (
     StoreConfig,
     decode_stored_config,
 )
-from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.testing.crash import crash_point
-from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.atomic import fsync_dir, remove_partials
-from sprint_map.util.validation import decode_text, name_key, shown, validate_descriptors
+from sprint_map.util.validation import decode_text, validate_descriptors
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
@@ -100,10 +92,12 @@ INDEX_DIR = "index"
 COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
 
 
-class MapStore:
+class MapStore(MapReads):
     """A map directory opened for reading, or for writing by this process alone.
 
-    Use :meth:`create` or :meth:`open`; close with :meth:`close` or a ``with`` block.
+    Use :meth:`create` or :meth:`open`; close with :meth:`close` or a ``with`` block. What it
+    reads of the committed map (sequences, vertices, positions, thumbnails, sightings,
+    components, edges) is :class:`~sprint_map.storage.reads.MapReads`'.
 
     Notes
     -----
@@ -406,17 +400,6 @@ class MapStore:
             self._writing = None
 
     # --- meta -------------------------------------------------------------------------------
-    def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
-        if txn is None:
-            with self.env.read() as txn:
-                return self.counter(name, txn)
-        raw = txn.get(name.encode(), db=self.env.db("meta"))
-        if raw is None:
-            raise MapCorruptError(f"meta record {name!r} is missing")
-        if len(raw) != 8:
-            raise MapCorruptError(f"corrupt map record {name}: {len(raw)} bytes, not 8")
-        return read_u64(raw)
-
     def stats(self) -> dict[str, int]:
         """Counts of the map from its meta record. O(1)."""
         with self.env.read() as txn:
@@ -437,120 +420,7 @@ class MapStore:
                     total += os.stat(os.path.join(dirpath, name)).st_blocks * 512
         return total
 
-    # --- sequences and vertices -------------------------------------------------------------
-    def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord:
-        """The record of sequence ``seq_id``. O(log n_sequences)."""
-        if txn is None:
-            with self.env.read() as txn:
-                return self.sequence(seq_id, txn)
-        raw = txn.get(u32(seq_id), db=self.env.db("sequences")) if 0 <= seq_id < 2**32 else None
-        if raw is None:
-            raise UnknownSequenceError(f"no sequence {seq_id} in the map")
-        return SequenceRecord.decode(raw)
-
-    def sequence_by_name(self, name: str) -> SequenceRecord:
-        """The record of the sequence named ``name``. O(log n_sequences).
-
-        Raises
-        ------
-        UnknownSequenceError
-            No sequence has that name (none can have ``""`` or a name with a newline).
-        InputError
-            ``name`` is not UTF-8 text.
-        """
-        key = name_key(name)
-        with self.env.read() as txn:
-            raw = None if key is None else txn.get(key, db=self.env.db("seq_names"))
-            if raw is None:
-                raise UnknownSequenceError(f"no sequence named {shown(name)} in the map")
-            return self.sequence(read_u32(raw), txn)
-
-    def sequences(self) -> list[SequenceRecord]:
-        """All sequence records in id order. O(n_sequences)."""
-        with self.env.read() as txn:
-            return [SequenceRecord.decode(v) for _, v in txn.cursor(db=self.env.db("sequences"))]
-
-    def locate(self, vertex_ids: Iterable[int], txn: lmdb.Transaction | None = None
-               ) -> list[tuple[int, int]]:
-        """``(seq_id, image_id)`` of each vertex id. O(log n_sequences) per vertex."""
-        if txn is None:
-            with self.env.read() as txn:
-                return self.locate(vertex_ids, txn)
-        total = self.counter("next_vertex_id", txn)
-        cursor = txn.cursor(db=self.env.db("vrange"))
-        out = []
-        for vid in vertex_ids:
-            vid = int(vid)
-            if not 0 <= vid < total:
-                raise MapCorruptError(f"vertex {vid} is not in the map")
-            # Past the last live sequence, or before the one found: a removed range.
-            seq = self.sequence(read_u32(cursor.value()), txn) if cursor.set_range(
-                u64(vid)) else None
-            if seq is None or vid < seq.first_vertex:
-                raise UnknownSequenceError(f"vertex {vid} belonged to a removed sequence")
-            out.append((seq.seq_id, vid - seq.first_vertex))
-        return out
-
-    def vertex_id(self, seq_id: int, image_id: int, txn: lmdb.Transaction | None = None) -> int:
-        seq = self.sequence(seq_id, txn)
-        if not 0 <= image_id < seq.length:
-            raise UnknownSequenceError(
-                f"sequence {seq_id} has no image {image_id} (it has {seq.length})"
-            )
-        return seq.first_vertex + image_id
-
-    def descriptors(self, seq_id: int) -> Descriptors:
-        """The descriptors of a sequence (a read-only memory-mapped view when in one shard)."""
-        with self.env.read() as txn:
-            seq = self.sequence(seq_id, txn)
-            total = self.counter("next_vertex_id", txn)
-        return self.shards.rows(seq.first_vertex, seq.first_vertex + seq.length, total)
-
-    def positions(self, seq_id: int) -> Float64Array | None:
-        """Per-vertex ``(x, y, heading, timestamp)`` of a sequence, with a fifth column
-        ``sigma_m`` when any of its fixes has an accuracy; NaN rows for frames without a fix;
-        None if none were given. O(length) reads."""
-        with self.env.read() as txn:
-            seq = self.sequence(seq_id, txn)
-            db = self.env.db("vertex_data")
-            cursor = txn.cursor(db=db)
-            last = u64(seq.last_vertex)
-            if not cursor.set_range(u64(seq.first_vertex)) or bytes(cursor.key()) > last:
-                return None
-            # raw records gathered, then decoded at once (per record: ~10x less Python)
-            keys, values = [], []
-            wide = False
-            for key, value in cursor:
-                if len(key) != 8 or bytes(key) > last:  # fixed-width big-endian: as the ids
-                    if len(key) != 8:
-                        read_u64(key)  # a corrupt key: its error
-                    break
-                if len(value) != VERTEX_VAL.size:
-                    decode_vertex(value)  # a corrupt record raises; else the sigma form
-                    wide = True
-                keys.append(key)
-                values.append(value)
-            vids = np.frombuffer(b"".join(keys), dtype=">u8").astype(np.int64)
-            out = np.full((seq.length, 5 if wide else 4), np.nan)
-            if not wide:
-                out[vids - seq.first_vertex] = np.frombuffer(b"".join(values), dtype=">f8"
-                                                             ).reshape(-1, 4)
-            else:
-                out[vids - seq.first_vertex] = [decode_vertex(v) for v in values]
-        return out
-
-    def geo_frame(self) -> dict[str, Any] | None:
-        """The geographic frame record the map keeps its latitude/longitude positions in
-        (a JSON object; its meaning is the caller's), or None. O(1)."""
-        with self.env.read() as txn:
-            raw = txn.get(b"geo_frame", db=self.env.db("meta"))
-        if raw is None:
-            return None
-        record = decode_json(raw, "geo_frame")
-        if not isinstance(record, dict):
-            raise MapCorruptError("corrupt geo_frame record: not a JSON object")
-        return record
-
+    # --- small writes -----------------------------------------------------------------------
     def set_geo_frame(self, record: dict[str, Any]) -> dict[str, Any]:
         """Store ``record`` as the map's geographic frame unless it has one; return the one
         it keeps (set once, never replaced). One small LMDB transaction. O(1)."""
@@ -570,19 +440,6 @@ class MapStore:
         result: dict[str, Any] = self.env.write(body)
         return result
 
-    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
-        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None if the
-        drive was added without thumbnails. O(log n).
-
-        Raises
-        ------
-        UnknownSequenceError
-            No such sequence, or no such frame in it.
-        """
-        with self.env.read() as txn:
-            self.vertex_id(seq_id, image_id, txn)
-            return get_thumbnail(txn, self.env, seq_id, image_id)
-
     def record_sightings(self, drive: str, sightings: Sequence[tuple[int, int, float]]) -> int:
         """Commit, alone, the sightings of a drive that stored no frame: ``(seq_id, image_id,
         distance)`` per redundant frame (:mod:`sprint_map.storage.sightings`; those of vertices
@@ -600,65 +457,6 @@ class MapStore:
         counted: int = self.env.write(body)
         crash_point("sightings.committed")
         return counted
-
-    def sighting(self, seq_id: int, image_id: int) -> Sighting | None:
-        """The record of vertex ``(seq_id, image_id)`` being seen again, or None. O(log n).
-
-        Raises
-        ------
-        UnknownSequenceError
-            No such sequence, or no such frame in it.
-        """
-        with self.env.read() as txn:
-            self.vertex_id(seq_id, image_id, txn)
-            return get_sighting(txn, self.env, seq_id, image_id)
-
-    def thumbnail_count(self, seq_id: int) -> int:
-        """Thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count)."""
-        with self.env.read() as txn:
-            self.sequence(seq_id, txn)
-            return count_thumbnails(txn, self.env, seq_id)
-
-    # --- components --------------------------------------------------------------------------
-    def component_of(self, seq_id: int, txn: lmdb.Transaction | None = None) -> int:
-        """Component id (union-find root sequence) of ``seq_id``. O(alpha(n)) amortised."""
-        if txn is None:
-            with self.env.read() as txn:
-                return self.component_of(seq_id, txn)
-        self.sequence(seq_id, txn)
-        return self.uf.find(txn, seq_id)
-
-    def components(self) -> list[ComponentInfo]:
-        """Every component with its sequences and vertex count. O(n_sequences)."""
-        with self.env.read() as txn:
-            return [
-                ComponentInfo(root, self.uf.members(txn, root), verts)
-                for root, _, verts in self.uf.components(txn)
-            ]
-
-    def component_sequences(self, root: int, txn: lmdb.Transaction) -> list[SequenceRecord]:
-        return [self.sequence(s, txn) for s in self.uf.members(txn, root)]
-
-    # --- edges ------------------------------------------------------------------------------
-    def edges_from(self, first: int, last: int, txn: lmdb.Transaction | None = None
-                   ) -> list[EdgeRecord]:
-        """Edges whose source vertex lies in ``first..last``. O(log E + edges returned)."""
-        if txn is None:
-            with self.env.read() as txn:
-                return self.edges_from(first, last, txn)
-        out = []
-        cursor = txn.cursor(db=self.env.db("edges"))
-        if cursor.set_range(EDGE_KEY.pack(first, 0)):
-            for key, value in cursor:
-                if EDGE_KEY.unpack(key)[0] > last:
-                    break
-                out.append(EdgeRecord.decode(key, value))
-        return out
-
-    def edges(self) -> list[EdgeRecord]:
-        """Every edge. O(E): for export and checks, not for queries."""
-        with self.env.read() as txn:
-            return [EdgeRecord.decode(k, v) for k, v in txn.cursor(db=self.env.db("edges"))]
 
     # --- retrieval ---------------------------------------------------------------------------
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
