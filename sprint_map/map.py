@@ -27,44 +27,37 @@ from sprint_map.errors import (
     InputError,
 )
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.map_reading import MapReading
 from sprint_map.merge.commit import DriveWriter, IngestResult
 from sprint_map.merge.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.merge.rule import select_merges
 from sprint_map.storage.generation import current_data
 from sprint_map.storage.group_writer import GroupWriter
-from sprint_map.storage.index.model import cap_threads
-from sprint_map.storage.provenance import edge_table, list_edges
+from sprint_map.storage.provenance import list_edges
 from sprint_map.storage.records import (
     AddResult,
     CheckReport,
     CompactReport,
-    ComponentInfo,
     EdgeInfo,
     EdgeSpec,
-    EdgeTable,
     RemoveResult,
     RepairReport,
-    SequenceRecord,
     UnmergeResult,
 )
 from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.store_config import decode_stored_config
 from sprint_map.util import dataclass_dict
-from sprint_map.util.arrays import Descriptors, DescriptorsLike, Float64Array, SearchResult
-from sprint_map.util.geo import GeoFrame
+from sprint_map.util.arrays import DescriptorsLike, Float64Array
 from sprint_map.util.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
-    from sprint_map.export.report import ExportReport
     from sprint_map.frontend.bags import BagOptions
-    from sprint_map.frontend.positions import Positions
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.hmm.cache import ComponentCache
     from sprint_map.localize.gnss import GnssAid, PositionIndex
     from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
     from sprint_map.merge.prepared import PreparedDrive
-    from sprint_map.storage.removal import RemovedRanges
 
 
 __all__ = ["SprintMap", "stored_config"]
@@ -79,11 +72,13 @@ def stored_config(record: dict[str, Any]) -> MapConfig:
     return decode_stored_config(MapConfig.from_dict, record)
 
 
-class SprintMap:
+class SprintMap(MapReading):
     """A persistent place-recognition map.
 
     Open with :meth:`create` or :meth:`open`, preferably as a context manager; one process at a
     time may open a map for writing, any number for reading (each sees consistent snapshots).
+    Its reads (sequences, vertices, descriptors, positions, thumbnails, exports, search) are
+    :class:`~sprint_map.map_reading.MapReading`'s.
     """
 
     def __init__(self, store: MapStore) -> None:
@@ -638,24 +633,6 @@ class SprintMap:
         return source
 
     # --- reading ----------------------------------------------------------------------------
-    def sequence(self, seq_id: int) -> SequenceRecord:
-        return self.store.sequence(seq_id)
-
-    def sequences(self) -> list[SequenceRecord]:
-        return self.store.sequences()
-
-    def sequence_by_name(self, name: str) -> SequenceRecord:
-        """The sequence named ``name`` (UnknownSequenceError if none). O(log n_sequences)."""
-        return self.store.sequence_by_name(name)
-
-    def locate(self, vertex_ids: Iterable[int]) -> list[tuple[int, int]]:
-        """``(seq_id, image_id)`` of each vertex id (as :meth:`search` returns them).
-        O(log n_sequences) per vertex."""
-        return self.store.locate(vertex_ids)
-
-    def component_of(self, seq_id: int) -> int:
-        return self.store.component_of(seq_id)
-
     def edges(self, seq: int | str | None = None, *, added_by: int | str | None = None
               ) -> list[EdgeInfo]:
         """Edges between ``(seq, image)`` endpoints with their provenance (``added_by``: the
@@ -673,152 +650,7 @@ class SprintMap:
         return list_edges(self.store, None if seq is None else self._seq_id(seq),
                           None if added_by is None else self._seq_id(added_by))
 
-    def components(self) -> list[ComponentInfo]:
-        return self.store.components()
-
-    # --- exports ----------------------------------------------------------------------------
-    def export_graphml(self, path: str | os.PathLike[str], level: str | None = None
-                       ) -> ExportReport:
-        """Write the map as GraphML for networkx, Gephi or Cytoscape.
-
-        ``level`` ``"vertex"`` (a node per frame, streamed) or ``"sequence"`` (a node per
-        drive); by default the vertex level up to ``VERTEX_LEVEL_LIMIT`` (100,000) vertices,
-        the sequence level beyond. Edges carry their probability and provenance. See
-        :mod:`sprint_map.export.graphml`.
-        """
-        from sprint_map.export import export_graphml
-
-        return export_graphml(self.store, path, level)
-
-    def export_csv(self, directory: str | os.PathLike[str]) -> ExportReport:
-        """Write ``sequences.csv``, ``vertices.csv`` (with positions) and ``edges.csv`` into
-        ``directory``, streamed. See :mod:`sprint_map.export.tables`."""
-        from sprint_map.export import export_csv
-
-        return export_csv(self.store, directory)
-
-    def export_geojson(self, path: str | os.PathLike[str]) -> ExportReport:
-        """Write drives as lines on their positions and edges as segments, as GeoJSON.
-
-        Raises
-        ------
-        InputError
-            No drive has positions. See :mod:`sprint_map.export.geojson`.
-        """
-        from sprint_map.export import export_geojson
-
-        return export_geojson(self.store, path)
-
-    def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
-        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None when the
-        drive was ingested without ``--thumbnails``. O(log n).
-
-        Raises
-        ------
-        UnknownSequenceError
-            No such sequence, or no such frame in it.
-        """
-        return self.store.thumbnail(seq_id, image_id)
-
-    def thumbnail_count(self, seq_id: int) -> int:
-        """How many thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count).
-
-        Raises
-        ------
-        UnknownSequenceError
-            No such sequence.
-        """
-        return self.store.thumbnail_count(seq_id)
-
-    def edge_table(self) -> EdgeTable:
-        """Every edge as arrays of vertex ids, probabilities and provenance (for summaries of
-        large maps; :meth:`edges` gives ``(seq, image)`` records). O(E), one snapshot; see
-        :func:`sprint_map.storage.provenance.edge_table`."""
-        return edge_table(self.store)
-
-    def descriptors(self, seq_id: int) -> Descriptors:
-        return self.store.descriptors(seq_id)
-
-    def positions(self, seq_id: int) -> Float64Array | None:
-        """``(length, 4)`` ``x, y, heading_deg, timestamp`` of a sequence (a fifth column
-        ``sigma_m`` when a fix has an accuracy; NaN rows: frames without a fix), or None.
-        O(length)."""
-        return self.store.positions(seq_id)
-
-    def geo_frame(self) -> GeoFrame | None:
-        """The UTM zone this map keeps latitude/longitude in (set by the first geographic
-        positions it was given), or None. O(1)."""
-        record = self.store.geo_frame()
-        return None if record is None else GeoFrame.from_dict(record)
-
-    def metric_positions(self, positions: Positions | None) -> Float64Array | None:
-        """Positions as the map stores them (``(n, 5)`` ``x, y, heading, time, sigma_m``):
-        latitude/longitude are projected into the map's UTM zone, which the first geographic
-        positions a map is given choose (the zone of their first fix) and store, once, in a
-        transaction of their own. Planar positions are taken as they are. O(n).
-
-        Raises
-        ------
-        InputError
-            Geographic positions without a single fix.
-        """
-        if positions is None:
-            return None
-        if not positions.geographic:
-            return positions.rows()
-        frame = self.geo_frame()
-        if frame is None:
-            fix = positions.first_fix()
-            if fix is None:
-                raise InputError("geographic positions without any fix: nothing to place")
-            frame = GeoFrame.from_dict(self.store.set_geo_frame(
-                GeoFrame.for_fix(*fix).to_dict()))
-        return positions.metric(frame).rows()
-
-    def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
-        """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the
-        last committed vertex), removed sequences' rows included (their ids stay until
-        ``compact``). A read-only view when the range lies in one shard file.
-
-        Notes
-        -----
-        O((stop - start) * dim) bytes read; what a retrieval shard of the fleet loads
-        (:mod:`sprint_map.fleet.shards`).
-        """
-        total = self.stats()["vertices"]
-        return self.store.shards.rows(start, total if stop is None else stop, total)
-
-    def removed_ranges(self) -> RemovedRanges:
-        """The vertex ranges of removed sequences (hidden from every search). O(removed)."""
-        with self.store.env.read() as txn:
-            return self.store.removed_ranges(txn)
-
-    def stats(self) -> dict[str, int]:
-        """Counts of sequences, vertices, edges and components. O(1)."""
-        return self.store.stats()
-
-    def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
-        """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
-        return self.store.search(queries, k)
-
-    def search_within(self, queries: DescriptorsLike, k: int, start: int,
-                      stop: int | None = None) -> SearchResult:
-        """:meth:`search` among vertex ids ``[start, stop)`` only, on the map's approximate
-        index (ValueError while it is exact): what a retrieval shard of the fleet answers.
-        O(the index segments holding ids of the range)."""
-        return self.store.search_within(queries, k, start, stop)
-
-    def index_segments(self) -> list[tuple[int, int]]:
-        """Vertex ranges ``(start, stop)`` of the approximate index's sealed segments (none
-        while it is exact): where retrieval shards cut the map. O(segments)."""
-        return self.store.index_segments()
-
-    @staticmethod
-    def cap_search_threads(n: int) -> None:
-        """Use at most ``n`` OpenMP threads for the searches of the calling thread from now on
-        (any map; e.g. the service's batch searcher, whose other core answers HTTP)."""
-        cap_threads(n)
-
+    # --- checking ---------------------------------------------------------------------------
     @staticmethod
     def repair(path: str | os.PathLike[str], *, seed: int = 0) -> RepairReport:
         """Repair the map at ``path`` as far as its own data allows, then check it (``sprint-map
