@@ -9,7 +9,8 @@ when its best place is within ``--tolerance`` frames of the query frame (``recal
 ``eval``'s ``sprint_recall@1`` / ``smoothed_recall@1``); ``decision`` also needs it to be a
 match (not "no match"). Costs are per frame from the same runs: HMM (filter, backward pass,
 decision) and retrieval (batched searches, an equal share per frame), each against the causal
-run's.
+run's. ``causal k=64`` is the causal filter over as many hits as the lagged one reads (what the
+lag adds beyond its deeper retrieval).
 
     python tools/bench_lag.py --json lag.json --png lag.png
     python tools/bench_lag.py --lags 0 5 10 20 --limit 1000     # a quicker look
@@ -31,7 +32,7 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.evaluation.runner import describe
 from sprint_map.frontend.dataset import Dataset
-from sprint_map.localize.localizer import FrameDecision
+from sprint_map.localize.localizer import FrameDecision, recorded_k
 from sprint_map.map import SprintMap
 
 NORDLAND = Path(os.environ.get("SPRINT_MAP_NORDLAND", "/work/shared/data/nordland"))
@@ -72,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
                 for lag in args.lags:
                     decisions, timing = m.localize(rows, lag=lag)
                     runs.append((f"lag {lag}", decisions, timing.to_dict()))
+                # the causal filter over the hits a lagged one reads: the lag's own cost apart
+                depth = recorded_k(m.config.hmm)
+                decisions, timing = m.localize(rows, k=depth)
+                runs.append((f"causal k={depth}", decisions, timing.to_dict()))
                 recorder = m.localizer(record=True)
                 recorder.localize(rows)
                 start = time.perf_counter()
