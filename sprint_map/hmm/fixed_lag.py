@@ -24,9 +24,9 @@ filter keeps running forward; only the live belief of the last ``L + 1`` frames 
 
 Cost per frame: one filter update, the backward operator from it onto the frame before (built
 as the frame is pushed, so every answer costs the same), ``L`` applications of the waiting
-frames' operators (each O(live); nothing is sized by the map) and one decision. Memory: the live belief and the hits of
-``L + 3`` frames, whatever the drive's length, plus one dense decision vector per active
-component (as the filter's own belief).
+frames' operators (each O(live); nothing is sized by the map) and one decision. Memory: the
+live belief and the hits of ``L + 3`` frames, whatever the drive's length, plus one dense
+decision vector per active component (as the filter's own belief).
 """
 
 from __future__ import annotations

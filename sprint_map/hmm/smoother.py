@@ -47,9 +47,10 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
-__all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts", "RIVAL_CONFIRMATIONS",
-           "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator", "backward_step", "decide_posterior", "gamma_of",
-           "nearest_hits", "pull_operators", "smooth"]
+__all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts",
+           "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator",
+           "backward_step", "decide_posterior", "gamma_of", "nearest_hits", "pull_operators",
+           "smooth"]
 
 #: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
 #: this many of the 4 frames around it have a hit where the same drive would be then ...
