@@ -261,7 +261,8 @@ class ActiveSet:
     longer active), so pruning never rebuilds it.
     """
 
-    __slots__ = ("_dirty", "_ends", "_firsts", "_owners", "_slot0", "comps", "n_vertices")
+    __slots__ = ("_arrays", "_dirty", "_ends", "_firsts", "_owners", "_slot0", "comps",
+                 "n_vertices")
 
     def __init__(self) -> None:
         self.comps: dict[int, ActiveComponent] = {}
@@ -271,6 +272,8 @@ class ActiveSet:
         self._ends: list[int] = []
         self._owners: list[ActiveComponent] = []
         self._slot0: list[int] = []
+        #: The index as arrays (firsts, ends, slot0), for :meth:`locate_many` (made on use).
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.comps)
@@ -313,9 +316,53 @@ class ActiveSet:
                 return owner, self._slot0[i] + vertex_id - self._firsts[i]
         return None
 
+    def locate_many(self, vertex_ids: np.ndarray
+                    ) -> list[tuple[ActiveComponent, np.ndarray, np.ndarray]] | None:
+        """:meth:`locate` of many vertices at once: per active component holding some of them,
+        their slots there and their positions in ``vertex_ids`` (both in ``vertex_ids``'
+        order); None if any vertex is not in the active set.
+
+        Notes
+        -----
+        O(n log S_active), about 10 numpy calls whatever ``n``.
+        """
+        if self._dirty:
+            self._rebuild()
+        if self._arrays is None:
+            owners = self._owners
+            index = {id(o): n for n, o in enumerate(dict.fromkeys(owners))}
+            self._arrays = (np.asarray(self._firsts, dtype=_I64),
+                            np.asarray(self._ends, dtype=_I64),
+                            np.asarray(self._slot0, dtype=_I64),
+                            np.asarray([index[id(o)] for o in owners], dtype=_I64))
+        firsts, ends, slot0, owner_of = self._arrays
+        ids = np.asarray(vertex_ids, dtype=_I64)
+        if not ids.size:
+            return []
+        i = firsts.searchsorted(ids, "right") - 1
+        if bool((i < 0).any()) or not bool((ids < ends[i]).all()):
+            return None
+        slots = slot0[i] + ids - firsts[i]
+        owner = owner_of[i]
+        if bool((owner == owner[0]).all()):  # the common case: one component
+            groups = [(int(i[0]), slots, np.arange(ids.size, dtype=_I64))]
+        else:
+            at = np.argsort(owner, kind="stable")
+            cuts = (np.diff(owner[at]) != 0).nonzero()[0] + 1
+            # (a stable sort keeps each group's positions ascending)
+            groups = [(int(i[part[0]]), slots[part], part) for part in np.split(at, cuts)]
+        out = []
+        for row, group_slots, positions in groups:
+            comp = self._owners[row]
+            if self.comps.get(comp.component_id) is not comp:
+                return None  # an index entry of a component that left
+            out.append((comp, group_slots, positions))
+        return out
+
     def _rebuild(self) -> None:
         comps = list(self.comps.values())
         self._dirty = False
+        self._arrays = None
         if sum(c.graph.n_sequences for c in comps) <= 64:
             # Few sequences: sorting Python tuples beats the numpy round trip.
             rows = sorted((first, first + length, slot, i)

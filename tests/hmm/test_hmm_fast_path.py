@@ -1,12 +1,14 @@
-"""The one-hit fast path of ``SprintFilter.update`` against its general path, float for float."""
+"""The one-hit fast path of ``SprintFilter.update`` against its general path, and the general
+path's array injection of many hits against its hit-by-hit loop, float for float."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sprint_map.hmm import HMMConfig, MemoryGraphSource, SprintFilter
+from sprint_map.hmm import HMMConfig, MemoryGraphSource, SprintFilter, sprint_filter
 from tests.hmm.test_hmm_equivalence import configs, maps
 
 
@@ -76,3 +78,63 @@ def test_fast_path_is_taken_on_a_long_drive() -> None:
         f.update(np.array([v]), np.array([0.0]))
     assert calls == [1]  # the first frame (initialisation) only
     assert f.step(np.array([400]), np.array([0.0])).vertex_id == 400
+
+
+@st.composite
+def deep_drives(draw: st.DrawFn, n_vertices: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Frames of many distinct hits (a deep search): along the drive, and anywhere."""
+    out = []
+    v = draw(st.integers(0, n_vertices - 1))
+    for _ in range(draw(st.integers(1, 25))):
+        v = (v + draw(st.integers(0, 3))) % n_vertices
+        n = draw(st.integers(0, min(24, n_vertices)))
+        ids = np.unique(np.array([v] + draw(st.lists(st.integers(0, n_vertices - 1),
+                                                     min_size=n, max_size=n)), dtype=np.int64))
+        dists = np.array(draw(st.lists(st.sampled_from([0.0, 0.1, 0.3, 1.0, 2.5]),
+                                       min_size=ids.size, max_size=ids.size)))
+        out.append((ids, dists))
+    return out
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+def test_many_hits_injected_at_once_give_the_same_floats(data: st.DataObject) -> None:
+    lengths, edges = data.draw(maps())
+    prune = data.draw(st.sampled_from([0.0, 1e-4, 0.05]))
+    config = data.draw(configs(prune, data.draw(st.sampled_from([0.0, 1e-9, 1e-3]))))
+    source = MemoryGraphSource(lengths, edges)
+    arrays, loop = SprintFilter(config, source), SprintFilter(config, source)
+    for ids, dists in data.draw(deep_drives(sum(lengths))):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(sprint_filter, "MANY_HITS", 1)
+            arrays.update(ids, dists)
+            patch.setattr(sprint_filter, "MANY_HITS", 10**9)
+            loop.update(ids, dists)
+        assert state(arrays) == state(loop)
+
+
+@settings(max_examples=100, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+def test_locate_many_agrees_with_locate(data: st.DataObject) -> None:
+    lengths, edges = data.draw(maps())
+    f = SprintFilter(HMMConfig(), MemoryGraphSource(lengths, edges))
+    n = sum(lengths)
+    for _ in range(data.draw(st.integers(1, 4))):  # a few frames: components come and go
+        f.update(np.array([data.draw(st.integers(0, n - 1))]), np.array([0.1]))
+    active = f._active  # noqa: SLF001 (the filter's own index, read by its test)
+    ids = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=12, unique=True)),
+                   dtype=np.int64)
+    one = [active.locate(int(v)) for v in ids]
+    many = active.locate_many(ids)
+    if any(found is None for found in one):
+        assert many is None
+        return
+    assert many is not None
+    got = {}
+    for comp, slots, at in many:
+        assert np.all(np.diff(at) > 0)
+        for slot, i in zip(slots.tolist(), at.tolist(), strict=True):
+            got[i] = (comp, slot)
+    assert got == dict(enumerate(one))
