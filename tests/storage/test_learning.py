@@ -17,6 +17,7 @@ import pytest
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 from sprint_map.storage.check import check_map
+from sprint_map.storage.index.model import RowReader
 from sprint_map.storage.index.projection import (
     LEARNED,
     PROJECTION_FILE,
@@ -295,3 +296,29 @@ def test_the_segmented_index_searches_the_projection(tmp_path, kind):
         assert report.ok, report.violations
         assert report.checked["index_codes_compared"] > 0
         assert world.recall(store, QUERIES) > before + 0.5
+
+
+def test_tail_candidates_are_reranked_without_reading_the_shards(tmp_path, monkeypatch):
+    """With a projection and no PCA the tail holds projected rows: its candidates are re-ranked
+    from there (only sealed candidates are read and projected), at the projected distances."""
+    path = world.build(tmp_path / "m", index_type="ivf-sq8", index_nlist=8, index_nprobe=8,
+                       index_segment_rows=128, index_merge_factor=3, index_train_sample=400)
+    with SprintMap.open(path) as m:
+        assert m.learn()["adopted"]
+        desc = m.info()["index"]
+        sealed = desc["sealed"]
+        assert desc["tail"] > 0
+        read: list[int] = []
+        original = RowReader.rows
+
+        def recording(self, shards, ids, committed):
+            read.extend(np.asarray(ids).tolist())
+            return original(self, shards, ids, committed)
+
+        monkeypatch.setattr(RowReader, "rows", recording)
+        dists, ids = m.store.search(QUERIES, 20)
+        assert read and max(read) < sealed <= int(ids.max())
+        projection = m.store.index.projection
+        mapped = projection.apply(np.vstack(world.drives(0)))  # the map's rows, in id order
+        want = ((mapped[ids] - projection.apply(QUERIES)[:, None, :]) ** 2).sum(-1)
+        assert np.allclose(dists, want, rtol=1e-4, atol=1e-5)

@@ -478,8 +478,6 @@ class SegmentedIndex(RetrievalIndex):
         valid = cand[cand >= 0]
         unique = np.unique(valid)
         rows = self._candidate_rows(shards, unique, committed)
-        if self.projection is not None:  # only compared with each other: float32 is enough
-            rows = self.projection.apply(rows, exact=False)
         for q in range(nq):
             mine = cand[q][cand[q] >= 0]
             if not len(mine):
@@ -493,14 +491,20 @@ class SegmentedIndex(RetrievalIndex):
 
     def _candidate_rows(self, shards: ShardSet, ids: np.ndarray, committed: int
                         ) -> Descriptors:
-        """The raw rows of the candidates ``ids`` (ascending): read from the shards, except
-        those of the tail when the indexed space is the raw one (no PCA, no projection), which
-        the tail holds as they are. O(len(ids)) reads at most."""
-        if self.model.pca is not None or self.projection is not None or not self.tail_len:
-            return self._reader.rows(shards, ids, committed)
-        split = int(np.searchsorted(ids, self.tail_start))
+        """The candidates ``ids`` (ascending) in the re-ranking space: the raw rows, or with a
+        learned projection the projected ones. Those of the tail are the tail's own rows when
+        it holds them in that space (no PCA); the others are read from the shards (and
+        projected in float32: they are only compared with each other). O(len(ids)) reads at
+        most, plus O(reads * dim * learn_dim) to project them."""
+        split = int(np.searchsorted(ids, self.tail_start)) if self.model.pca is None else len(ids)
+        read = self._reader.rows(shards, ids[:split], committed) if split else None
+        if read is not None and self.projection is not None:
+            read = self.projection.apply(read, exact=False)
+        if read is not None and split == len(ids):
+            return read
         rows = np.empty((len(ids), self._tail.shape[1]), dtype=np.float32)
-        rows[:split] = self._reader.rows(shards, ids[:split], committed)
+        if read is not None:
+            rows[:split] = read
         rows[split:] = self._tail[ids[split:] - self.tail_start]
         return rows
 
