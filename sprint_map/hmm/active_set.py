@@ -272,7 +272,8 @@ class ActiveSet:
         self._ends: list[int] = []
         self._owners: list[ActiveComponent] = []
         self._slot0: list[int] = []
-        #: The index as arrays (firsts, ends, slot0), for :meth:`locate_many` (made on use).
+        #: The index as arrays (firsts, ends, slot0 and each entry's owner as a number), for
+        #: :meth:`locate_many` (made on first use after a rebuild).
         self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:

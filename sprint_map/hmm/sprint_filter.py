@@ -565,9 +565,10 @@ def inject_many(groups: list[tuple[ActiveComponent, np.ndarray, np.ndarray]], li
                 inject: float) -> None:
     """Step 4 for the hits of ``groups`` (:meth:`ActiveSet.locate_many`): each hit's raw belief
     becomes ``(x + inject) * lik``, its component's mass follows, and a hit outside the windows
-    is queued to open one (the hit-by-hit loop queues every hit of a component with several
-    windows; those inside one change nothing when the windows are rebuilt). The same floats as the hit-by-hit loop: the mass adds the changes
-    one by one in hit order. O(hits) with a few numpy calls per component."""
+    is queued to open one. The same floats as the hit-by-hit loop (the mass adds the changes
+    one by one, in hit order; that loop also queues the hits inside a component's several
+    windows, which change nothing when the windows are rebuilt). O(hits), a few numpy calls
+    per component."""
     for comp, slots, at in groups:
         x = comp.x
         old = x[slots]
