@@ -497,16 +497,13 @@ class SegmentedIndex(RetrievalIndex):
         projected in float32: they are only compared with each other). O(len(ids)) reads at
         most, plus O(reads * dim * learn_dim) to project them."""
         split = int(np.searchsorted(ids, self.tail_start)) if self.model.pca is None else len(ids)
-        read = self._reader.rows(shards, ids[:split], committed) if split else None
-        if read is not None and self.projection is not None:
+        tail: Descriptors = self._tail[ids[split:] - self.tail_start]
+        if not split:
+            return tail
+        read = self._reader.rows(shards, ids[:split], committed)
+        if self.projection is not None:
             read = self.projection.apply(read, exact=False)
-        if read is not None and split == len(ids):
-            return read
-        rows = np.empty((len(ids), self._tail.shape[1]), dtype=np.float32)
-        if read is not None:
-            rows[:split] = read
-        rows[split:] = self._tail[ids[split:] - self.tail_start]
-        return rows
+        return read if split == len(ids) else np.concatenate((read, tail))
 
     # --- writing (the writer only) ------------------------------------------------------------
     def after_commit(self, committed: int, shards: ShardSet) -> bool:
