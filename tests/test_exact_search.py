@@ -22,8 +22,14 @@ from sprint_map.util.exact_search import (
     distance_error_bound,
     margin_for,
     pair_distances,
+    pair_error_bound,
     row_norm_max,
 )
+
+
+def float64_distances(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The real squared distances, to float64 precision."""
+    return ((rows.astype(np.float64) - query.astype(np.float64)) ** 2).sum(axis=1)
 
 
 def brute(vectors: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -123,9 +129,8 @@ def test_a_query_of_huge_values_finds_nothing_and_warns_not(world):
 @pytest.mark.parametrize("candidates", [18, 80])
 @pytest.mark.parametrize("dim", [3, 16, 128, 129, 1764])
 def test_candidate_distances_are_pair_distances_bit_for_bit(rng, dim, candidates):
-    """All queries at once (the certification's fast path) as one query at a time, including
-    past numpy's pairwise-summation block (128), across the chunks of queries and (80
-    candidates of dim 1,764) in blocks of one query's candidates."""
+    """All queries at once (the certification's fast path) as one query at a time, in small
+    and large dimensions, with few and many candidates."""
     vectors = (3 * rng.standard_normal((500, dim))).astype(np.float32)
     queries = (3 * rng.standard_normal((70, dim))).astype(np.float32)
     cand = rng.integers(0, 500, (70, candidates))
@@ -151,9 +156,40 @@ def test_matrix_product_distances_are_within_the_bound(rng):
         d, i = flat_fast(vectors)(queries, 300)
         norm = row_norm_max(vectors)
         for q in range(len(queries)):
-            exact = pair_distances(queries[q], vectors[i[q]])
+            exact = float64_distances(queries[q], vectors[i[q]])
             bound = distance_error_bound(dim, float(np.linalg.norm(queries[q])), norm)
             assert np.abs(d[q] - exact).max() <= bound
+
+
+@pytest.mark.parametrize("dim", [1, 3, 8, 48, 129, 1764])
+def test_pair_distances_are_within_their_bound_and_ignore_alignment(rng, dim):
+    """Within pair_error_bound of the real distance; the same bits wherever the query and
+    the rows sit in memory (shifted by 1-7 floats: another alignment) and whichever rows
+    are measured with them."""
+    rows = (3 * rng.standard_normal((200, dim))).astype(np.float32)
+    query = (3 * rng.standard_normal(dim)).astype(np.float32)
+    got = pair_distances(query, rows)
+    exact = float64_distances(query, rows)
+    assert (np.abs(got - exact) <= pair_error_bound(dim) * exact).all()
+    for shift in range(1, 8):
+        q_buf = np.empty(dim + 8, np.float32)
+        r_buf = np.empty(rows.size + 8, np.float32)
+        q_buf[shift : shift + dim] = query
+        r_buf[shift : shift + rows.size] = rows.ravel()
+        shifted = pair_distances(q_buf[shift : shift + dim],
+                                 r_buf[shift : shift + rows.size].reshape(rows.shape))
+        np.testing.assert_array_equal(shifted, got)
+    np.testing.assert_array_equal(pair_distances(query, rows[::-7]), got[::-7])
+
+
+def test_candidate_distances_refuse_rows_that_are_not_there(rng):
+    vectors = rng.standard_normal((10, 4)).astype(np.float32)
+    with pytest.raises(IndexError):
+        candidate_distances(vectors[:1], vectors, np.array([[3, 10]]))
+    with pytest.raises(IndexError):
+        candidate_distances(vectors[:1], vectors, np.array([[-1]]))
+    with pytest.raises(ValueError):
+        candidate_distances(vectors[:2, :3], vectors, np.array([[1], [2]]))
 
 
 def test_map_search_and_localize_agree_frame_by_frame(tmp_path, rng):

@@ -8,15 +8,17 @@ streaming), in a batch of 16 (the service batching sessions) or of 256 (offline 
 
 1. the batch is searched the fast way (FAISS, matrix product) for ``k + margin`` candidates;
 2. each candidate's distance is recomputed by :func:`pair_distances`, a function of the two
-   vectors alone (float64 squares summed in a fixed order, rounded to float32), and the
+   vectors alone (FAISS's ``fvec_L2sqr``: the differences squared and summed in float32 in
+   one fixed order, whatever the batch, the row's position or its alignment), and the
    candidates ordered by ``(distance, vertex id)`` (so even exact ties are ordered the same);
-3. the answer is *certified*: the matrix product's error is bounded
-   (:func:`distance_error_bound`), so if the k-th recomputed distance plus that bound is below
-   the candidate list's worst fast distance, no vertex outside the list can enter the top k.
-   A query that is not certified (rare: 0 of 3,576 Nordland queries with ``k`` 10, 0 of 1,500
+3. the answer is *certified*: the matrix product's error and the recomputation's are bounded
+   (:func:`distance_error_bound`, :data:`PAIR_RELATIVE_ERROR`), so if the k-th recomputed
+   distance is below what any vertex outside the candidate list could measure, given the
+   list's worst fast distance, no such vertex can enter the top k.
+   A query that is not certified (rare: of Nordland's 2 x 3,576 queries, 4 with ``k`` 10 and 2
    with ``k`` 64 and its margin of 16) is searched again for :data:`RETRY_FACTOR` times as
-   many candidates and certified again; one that still is not is recomputed against every
-   vertex with :func:`pair_distances`.
+   many candidates and certified again (all of those 6); one that still is not is recomputed
+   against every vertex with :func:`pair_distances`.
 
 So the answer is the top ``k`` by :func:`pair_distances` over the whole index, ties broken by
 vertex id: a function of the query and the map only.
@@ -24,7 +26,6 @@ vertex id: a function of the query and the map only.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -37,7 +38,7 @@ else:  # imported on first use: commands that only read LMDB never load it
 
 __all__ = ["BLAS_FROM_QUERIES", "MARGIN", "RETRY_FACTOR", "ExactFlat", "candidate_distances",
            "certified_search", "distance_error_bound", "margin_for", "pair_distances",
-           "row_norm_max"]
+           "pair_error_bound", "row_norm_max"]
 
 #: Extra candidates asked of the fast search beyond ``k``: at least this many, and a quarter of
 #: ``k`` for deep searches (:func:`margin_for`).
@@ -50,25 +51,34 @@ RETRY_FACTOR = 4
 BLAS_FROM_QUERIES = 4
 #: float32 unit round-off.
 _U = 2.0 ** -24
-#: float64 values per chunk of :func:`candidate_distances` (512 KiB: the temporary stays in
-#: the core's cache; 16 MiB chunks took 1.7x as long at dim 1,764).
-_CHUNK_VALUES = 1 << 16
+#: Rows per call of the pass over every row (:func:`certified_search`'s last resort): bounds
+#: the id array it needs, whatever the index's size.
+_ROWS_PER_PASS = 1 << 16
 
 
 def pair_distances(query: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Squared L2 distances from ``query`` (dim,) to each of ``rows`` (n, dim), float32.
 
-    Each value depends on its two vectors only (not on ``n``, nor on the row's position):
-    the differences and squares are taken in float64 and each row summed in the same order.
+    Each value depends on its two vectors only (not on ``n``, on the row's position or on
+    either vector's alignment in memory): FAISS's ``fvec_L2sqr``, float32 differences squared
+    and summed in one fixed vectorised order, within :func:`pair_error_bound` of the exact
+    distance.
 
     Notes
     -----
-    O(n * dim), with an (n, dim) float64 temporary.
+    O(n * dim), in C, no temporary beyond the ``n`` row numbers.
     """
-    diff = rows.astype(np.float64) - query.astype(np.float64)
-    np.square(diff, out=diff)
-    out: np.ndarray = diff.sum(axis=1).astype(np.float32)
+    rows = np.ascontiguousarray(rows, dtype=np.float32)
+    out: np.ndarray = candidate_distances(np.asarray(query)[None, :], rows,
+                                          np.arange(len(rows), dtype=np.int64)[None, :])[0]
     return out
+
+
+def pair_error_bound(dim: int) -> float:
+    """A bound on ``|pair - exact| / exact`` for :func:`pair_distances` (``exact`` the real
+    squared distance): ``dim`` float32 differences, squares and additions of non-negative
+    terms in any order err by at most ``(dim + 3) u (1 + 1%)`` of the sum."""
+    return (dim + 3) * _U * 1.01
 
 
 def margin_for(k: int) -> int:
@@ -167,9 +177,13 @@ def _certified(queries: np.ndarray, norm_max: float, kth: np.ndarray, worst_fast
     """Per query: whether no row outside its candidate list can beat its ``kth`` recomputed
     distance, given the list's ``worst_fast`` distance (:func:`distance_error_bound`)."""
     qnorms = np.sqrt(np.einsum("ij,ij->i", queries, queries, dtype=np.float64))
-    bound = (queries.shape[1] + 3) * _U * 1.01 * (qnorms + norm_max) ** 2
+    dim = queries.shape[1]
+    bound = (dim + 3) * _U * 1.01 * (qnorms + norm_max) ** 2  # distance_error_bound
     worst = worst_fast.astype(np.float64)
-    certified: np.ndarray = kth.astype(np.float64) + bound < worst - _U * np.abs(worst)
+    # an outside row's exact distance is at least its fast one less the bound, and its
+    # recomputed one at least that less the recomputation's relative error
+    floor = (worst - _U * np.abs(worst) - bound) * (1.0 - pair_error_bound(dim))
+    certified: np.ndarray = kth.astype(np.float64) < floor
     return certified
 
 
@@ -197,11 +211,13 @@ def _recheck(fast: Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray]],
 
 
 def _all_distances(query: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """:func:`pair_distances` of ``query`` to every row, in chunks of rows whose float64
-    temporary stays in the cache (O(n * dim))."""
-    rows = max(1, _CHUNK_VALUES // max(1, vectors.shape[1]))
-    return np.concatenate([pair_distances(query, vectors[i : i + rows])
-                           for i in range(0, len(vectors), rows)] or [np.empty(0, np.float32)])
+    """:func:`pair_distances` of ``query`` to every row, :data:`_ROWS_PER_PASS` rows a call
+    (O(n * dim))."""
+    query = np.asarray(query)[None, :]
+    return np.concatenate([
+        candidate_distances(query, vectors, np.arange(i, min(i + _ROWS_PER_PASS, len(vectors)),
+                                                      dtype=np.int64)[None, :])[0]
+        for i in range(0, len(vectors), _ROWS_PER_PASS)] or [np.empty(0, np.float32)])
 
 
 def candidate_distances(queries: np.ndarray, vectors: np.ndarray, cand: np.ndarray
@@ -209,53 +225,34 @@ def candidate_distances(queries: np.ndarray, vectors: np.ndarray, cand: np.ndarr
     """``(nq, m)`` float32: :func:`pair_distances` of each query to its ``m`` candidate rows
     ``vectors[cand[q]]``, bit for bit, all queries at once.
 
+    Raises
+    ------
+    IndexError
+        A candidate that is not a row of ``vectors`` (FAISS would read past them).
+    ValueError
+        Queries not one per candidate list, or not of the rows' dimension.
+
     Notes
     -----
-    O(nq * m * dim), in chunks (of queries, or of one query's candidates) whose float64
-    temporary stays in the cache (:data:`_CHUNK_VALUES`).
+    O(nq * m * dim) in one call of FAISS's ``fvec_L2sqr_by_idx`` (over the queries on
+    FAISS's threads), reading the rows where they are: no gathered copy, no temporary.
     """
-    nq, m = cand.shape
-    dim = vectors.shape[1]
-    out = np.empty((nq, m), np.float32)
-    buf, rows32 = _scratch()
-    if m * dim <= _CHUNK_VALUES:  # several queries a chunk
-        step = max(1, _CHUNK_VALUES // max(1, m * dim))
-        for a in range(0, nq, step):
-            b = min(nq, a + step)
-            gathered = rows32[: (b - a) * m * dim].reshape((b - a) * m, dim)
-            np.take(vectors, cand[a:b].reshape(-1), axis=0, out=gathered)
-            diff = buf[: (b - a) * m * dim].reshape(b - a, m, dim)
-            diff[...] = gathered.reshape(b - a, m, dim)  # float32 -> float64 is exact
-            diff -= queries[a:b, None, :].astype(np.float64)
-            np.square(diff, out=diff)
-            out[a:b] = diff.sum(axis=2)  # each row summed as pair_distances sums it
+    ids = np.ascontiguousarray(cand, dtype=np.int64)
+    out = np.empty(ids.shape, np.float32)
+    if not out.size:
         return out
-    per = max(1, _CHUNK_VALUES // dim)  # a query's candidates in blocks of rows
-    for q in range(nq):
-        query = queries[q].astype(np.float64)
-        for a in range(0, m, per):
-            ids = cand[q, a : a + per]
-            block = rows32[: len(ids) * dim].reshape(len(ids), dim)
-            np.take(vectors, ids, axis=0, out=block)
-            rows64 = buf[: len(ids) * dim].reshape(len(ids), dim)
-            rows64[...] = block
-            rows64 -= query
-            np.square(rows64, out=rows64)
-            out[q, a : a + per] = rows64.sum(axis=1)
+    if int(ids.min()) < 0 or int(ids.max()) >= len(vectors):
+        raise IndexError(f"candidate rows outside 0..{len(vectors) - 1}")
+    queries = np.ascontiguousarray(queries, dtype=np.float32)
+    vectors = np.ascontiguousarray(vectors, dtype=np.float32)  # the index's rows: no copy
+    if queries.shape != (ids.shape[0], vectors.shape[1]):
+        raise ValueError(f"queries of shape {queries.shape} for {ids.shape[0]} candidate lists "
+                         f"of rows of dim {vectors.shape[1]}")
+    by_idx = faiss.fvec_L2sqr_by_idx  # type: ignore[attr-defined]  # missing from FAISS's stub
+    by_idx(faiss.swig_ptr(out), faiss.swig_ptr(queries),
+           faiss.swig_ptr(vectors), faiss.swig_ptr(ids), vectors.shape[1], ids.shape[0],
+           ids.shape[1])
     return out
-
-
-_LOCAL = threading.local()
-
-
-def _scratch() -> tuple[np.ndarray, np.ndarray]:
-    """This thread's buffers of :data:`_CHUNK_VALUES` values, float64 and float32 (allocated
-    once: fresh temporaries of this size can cost page faults on every chunk)."""
-    bufs: tuple[np.ndarray, np.ndarray] | None = getattr(_LOCAL, "bufs", None)
-    if bufs is None or bufs[0].size != _CHUNK_VALUES:
-        bufs = _LOCAL.bufs = (np.empty(_CHUNK_VALUES, np.float64),
-                              np.empty(_CHUNK_VALUES, np.float32))
-    return bufs
 
 
 class ExactFlat:
