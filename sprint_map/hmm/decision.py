@@ -18,7 +18,7 @@ mass is below ``min_confidence`` or when the sink ("off the map") holds at least
 from __future__ import annotations
 
 import math
-from collections.abc import Container
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 
 import numpy as np
@@ -288,9 +288,9 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
     for vid, sl, dist in zip(hit_ids, slots, hit_dists, strict=True):
         if sl >= 0 and any(a <= sl < b for a, b in inner):
             best_in = min(best_in, dist)
-        elif (sl < 0 or not any(a <= sl < b for a, b in outer)) and (
-                rivals is None or vid in rivals):
-            best_out = min(best_out, dist)
+        elif dist < best_out and (sl < 0 or not any(a <= sl < b for a, b in outer)) and (
+                rivals is None or vid in rivals):  # (a rival's test only where it would count)
+            best_out = dist
     if math.isinf(best_out):
         return 0.0
     if math.isinf(best_in):
@@ -316,7 +316,8 @@ def _runs_sum(x: np.ndarray, runs: list[tuple[int, int]]) -> float:
 
 def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], sink: float,
            radius: int, hops: int, min_confidence: float, n_active_components: int,
-           n_active_vertices: int, prefer_seq: int | None = None) -> Decision:
+           n_active_vertices: int, prefer_seq: int | None = None,
+           contrast_of: Callable[[BeliefView, int], float] | None = None) -> Decision:
     """Score candidates by place mass and apply the novelty rules.
 
     Parameters
@@ -336,6 +337,9 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
         most probable vertex in the place, so that consecutive answers stay on one drive
         where several drives, joined by edges, show the place. The place and its mass do not
         change.
+    contrast_of : callable, optional
+        ``contrast_of(view, slot)``: the ``contrast`` of a match at ``slot`` of ``view``
+        (called for matches only; NaN without it).
 
     Notes
     -----
@@ -364,8 +368,9 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
     if mass < min_confidence or sink >= mass:
         return Decision(None, None, None, mass, prob, sink, n_active_components,
                         n_active_vertices, vid)
+    contrast = math.nan if contrast_of is None else contrast_of(view, slot)
     return Decision(vid, int(view.graph.seq_ids[s]), image, mass, prob, sink,
-                    n_active_components, n_active_vertices, vid)
+                    n_active_components, n_active_vertices, vid, contrast)
 
 
 def _preferred(view: BeliefView, runs: list[tuple[int, int]], seq_id: int, slot: int,

@@ -141,7 +141,7 @@ class FixedLagSmoother:
         self.filter.update_observed(vids, lik, sink_lik)  # a bad hit raises before any change
         self.pushed += 1
         parts, sink = self.filter.live_belief()
-        frame = FrameBelief(parts, sink, vids, [float(d) for d in vdists], lik, sink_lik)
+        frame = FrameBelief(parts, sink, vids, vdists, lik, sink_lik)  # (Python floats)
         self._frames.append(frame)
         self._nearest.append(nearest_hits(frame, self.config.k))
         if len(self._frames) >= 2:

@@ -223,7 +223,10 @@ class ObservationModel:
                 self._scale + self._ema * (gap - self._scale))
         scale = self._scale_now()
         margin = self._margin
-        lik = [math.exp(min((d_far - d) / scale + margin, _CLIP)) for d in ds]
+        if (d_far - d_near) / scale + margin <= _CLIP:  # the largest exponent: no clip needed
+            lik = [math.exp((d_far - d) / scale + margin) for d in ds]
+        else:
+            lik = [math.exp(min((d_far - d) / scale + margin, _CLIP)) for d in ds]
         return vids, ds, lik, self._sink_lik(d_near, d_far, scale), scale
 
     def _weighted(self, hit_ids: np.ndarray, hit_dists: np.ndarray,

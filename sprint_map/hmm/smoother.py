@@ -32,10 +32,10 @@ plus its hits; decisions are made frame by frame during the backward pass.
 
 from __future__ import annotations
 
-import math
 from bisect import bisect_left
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -282,21 +282,36 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
     all the parts together. Nothing is sized by the map.
     """
     eps, nu = config.restart_prob, config.new_place_prob
-    op = now.pulls if now.pulls is not None else backward_operator(now, nxt)
-    if keep:
-        now.pulls = op
+    op = now.pulls
+    if op is None:
+        op = backward_operator(now, nxt)
+        if keep:
+            now.pulls = op
     # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into op).
-    hit_m = 0.0
-    for pos, lik in nxt.hits_end_to_end():
-        hit_m += float(np.dot(lik, beta[pos]))
     m_sink = beta_sink * nxt.sink_lik
     n_hits = len(nxt.hit_ids)
-    const = (eps * hit_m / n_hits + nu * m_sink) if n_hits else (eps + nu) * m_sink
+    if n_hits:
+        hit_m = 0.0
+        for pos, lik in nxt.hits_end_to_end():
+            hit_m += float(np.dot(lik, beta[pos]))
+        const = eps * hit_m / n_hits + nu * m_sink
+    else:
+        const = (eps + nu) * m_sink
     top = beta_sink = (1.0 - eps - nu) * m_sink + const
-    new = op.apply(beta, m_sink)
+    # op.apply(beta, m_sink), inline: this runs L times a frame
+    new: np.ndarray
+    if op.rows.size:  # (float64: bincount with weights)
+        new = cast(np.ndarray, np.bincount(op.rows, weights=op.weights * beta[op.cols],
+                                           minlength=op.n))
+        if op.spills:
+            new += op.sink * m_sink
+    else:
+        new = op.sink * m_sink
     new += const
     if new.size:
-        top = max(top, float(new.max()))
+        peak = new.max()
+        if peak > top:
+            top = float(peak)
     # Rescale (gamma is normalised anyway): keep beta near 1.
     if top > 0.0:
         inv = 1.0 / top
@@ -416,27 +431,17 @@ def decide_posterior(config: HMMConfig, parts: Parts, sink: float, scratch: Deci
         views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
     candidates = top_candidates(views, config.decision_candidates)
     n_vertices = sum(len(slots) for _, slots, _ in parts)
+
+    def contrast_of(view: BeliefView, slot: int) -> float:
+        ids, dists = nearest[t]
+        return place_contrast(view, slot, ids, dists, config.place_radius, config.place_hops,
+                              config.contrast_reach, ConfirmedRivals(t, nearest))
+
     decision = decide(views, candidates, sink, config.place_radius, config.place_hops,
-                      config.min_confidence, len(parts), n_vertices, prefer)
-    if decision.vertex_id is not None:
-        decision = replace(decision, contrast=_contrast(config, views, decision.vertex_id, t,
-                                                        nearest))
+                      config.min_confidence, len(parts), n_vertices, prefer, contrast_of)
     for (_, slots, _), view in zip(parts, views, strict=True):
         view.x[slots] = 0.0
     return decision
-
-
-def _contrast(config: HMMConfig, views: list[BeliefView], vertex_id: int, t: int,
-              nearest: list[tuple[list[int], list[float]]]) -> float:
-    ids, dists = nearest[t]
-    for view in views:
-        s = int(view.graph.seq_index(np.array([vertex_id]))[0])
-        if s >= 0:
-            slot = int(view.slot_first[s]) + vertex_id - int(view.graph.seq_first[s])
-            return place_contrast(view, slot, ids, dists, config.place_radius,
-                                  config.place_hops, config.contrast_reach,
-                                  ConfirmedRivals(t, nearest))
-    return math.nan  # not reached: the decided vertex lies in one of the views
 
 
 class ConfirmedRivals:
