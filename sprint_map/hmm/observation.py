@@ -198,6 +198,11 @@ class ObservationModel:
                     return [v], [d], [self._one_hit], self._sink_const, self._scale_now()
                 scale = self._scale_now()
                 return [v], [d], [self._one_hit], self._sink_lik(d, d, scale), scale
+        if (len(id_list) > 8 and min(id_list) >= 0 and min(d_list) >= 0.0
+                and math.isfinite(sum(d_list)) and len(set(id_list)) == len(id_list)):
+            # distinct valid hits (what a search returns): the loop below would keep them all
+            # (a NaN or an infinity makes the sum non-finite: the loop then raises)
+            return self._liks(id_list, d_list)
         best: dict[int, float] = {}
         for v, d in zip(id_list, d_list, strict=True):
             if v < 0:
@@ -213,8 +218,12 @@ class ObservationModel:
                 best[v] = d
         if not best:
             return [], [], [], 1.0, math.nan
-        vids = list(best)
-        ds = list(best.values())
+        return self._liks(list(best), list(best.values()))
+
+    def _liks(self, vids: list[int], ds: list[float]
+              ) -> tuple[list[int], list[float], list[float], float, float]:
+        """:meth:`evaluate`'s answer for distinct valid hits ``vids`` at distances ``ds``
+        (finite, >= 0): the likelihood ratios, after the distance scale's update."""
         d_far = max(ds)
         d_near = min(ds)
         if self._fixed is None and len(ds) > 1:

@@ -258,6 +258,7 @@ class ForwardBackward:
 
 
 _EMPTY_SLOTS = np.zeros(0, dtype=np.int64)
+_MAX = np.maximum.reduce
 _EMPTY_VALS = np.zeros(0)
 
 
@@ -309,7 +310,7 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
         new = op.sink * m_sink
     new += const
     if new.size:
-        peak = new.max()
+        peak = _MAX(new)  # (new.max() without its Python wrapper)
         if peak > top:
             top = float(peak)
     # Rescale (gamma is normalised anyway): keep beta near 1.

@@ -367,9 +367,13 @@ class ComponentTransition:
         np.minimum(pos, m_slots.size - 1, out=pos)
         found = m_slots[pos] == tgt
         found &= ~past
-        at, step = found.nonzero()
+        # the entries in row-major order, through flat indices (cheaper than 2-d ones)
+        flat = found.reshape(-1).nonzero()[0]
+        at = flat // len(kernel)
+        step = flat - at * len(kernel)
         weights = kernel[step] if factor is None else kernel[step] * factor[at]
-        return PullOperator(n, at if row is None else row[at], pos[at, step], weights, sink)
+        return PullOperator(n, at if row is None else row[at], pos.reshape(-1)[flat], weights,
+                            sink)
 
 
 class PullOperator:
