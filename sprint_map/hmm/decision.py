@@ -332,14 +332,10 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
     n_active_components, n_active_vertices : int
         Reported as is.
     prefer_seq : int, optional
-        A sequence id to report the place by when the place holds vertices of it (the
-        sequence the neighbouring frame was matched to): the answer is then that sequence's
-        most probable vertex in the place, so that consecutive answers stay on one drive
-        where several drives, joined by edges, show the place. The place and its mass do not
-        change.
+        A sequence id to report the place by where the place holds it (that sequence's most
+        probable vertex in the place); the place and its mass do not change.
     contrast_of : callable, optional
-        ``contrast_of(view, slot)``: the ``contrast`` of a match at ``slot`` of ``view``
-        (called for matches only; NaN without it).
+        ``contrast_of(view, slot)``: a match's ``contrast`` (NaN without it).
 
     Notes
     -----
