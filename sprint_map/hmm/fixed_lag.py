@@ -156,10 +156,10 @@ class FixedLagSmoother:
     def _answer_oldest(self) -> Decision:
         frames = self._frames
         beta = np.ones(frames[-1].starts()[-1])
-        beta_sink = 1.0
+        beta_sink = bound = 1.0
         for i in range(len(frames) - 2, -1, -1):
-            beta, beta_sink = backward_step(self.config, frames[i], frames[i + 1], beta,
-                                            beta_sink, keep=True)
+            beta, beta_sink, bound = backward_step(self.config, frames[i], frames[i + 1], beta,
+                                                   beta_sink, keep=True, bound=bound)
         parts, sink = gamma_of(frames[0], beta, beta_sink)
         nearest = list(self._nearest)
         decision = decide_posterior(self.config, parts, sink, self._scratch, self._prefer,
@@ -211,9 +211,10 @@ class FixedLagSmoother:
         beta = np.ones(frames[-1].starts()[-1])
         beta_sink = 1.0
         yield gamma_of(frames[-1], beta, beta_sink)
+        bound = 1.0
         for i in range(len(frames) - 2, -1, -1):
-            beta, beta_sink = backward_step(self.config, frames[i], frames[i + 1], beta,
-                                            beta_sink, keep=True)
+            beta, beta_sink, bound = backward_step(self.config, frames[i], frames[i + 1], beta,
+                                                   beta_sink, keep=True, bound=bound)
             yield gamma_of(frames[i], beta, beta_sink)
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:

@@ -35,20 +35,20 @@ from __future__ import annotations
 from bisect import bisect_left
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import cast
 
 import numpy as np
 
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_candidates
-from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, GraphSource
+from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
 __all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts",
-           "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator",
+           "RESCALE_ABOVE", "RESCALE_BELOW", "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT",
+           "RIVAL_SLACK", "backward_operator",
            "backward_step", "decide_posterior", "gamma_of", "nearest_hits", "pull_operators",
            "smooth"]
 
@@ -103,6 +103,16 @@ class FrameBelief:
     #: Per part holding hits: their positions in the values laid end to end, and their
     #: likelihood ratios; made on first use by :meth:`hits_end_to_end`.
     hit_positions: list[tuple[np.ndarray, np.ndarray]] | None = None
+    #: The largest likelihood ratio of a slot of the frame; made on first use by
+    #: :meth:`lik_max`.
+    lik_top: float | None = None
+
+    def lik_max(self) -> float:
+        """The largest likelihood ratio of a slot of this frame: its largest hit's, or 1 (every
+        other slot's) if that is larger (cached)."""
+        if self.lik_top is None:
+            self.lik_top = max(1.0, max(self.hit_lik, default=1.0))
+        return self.lik_top
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -251,9 +261,10 @@ class ForwardBackward:
         beta = np.ones(last.starts()[-1])
         beta_sink = 1.0
         yield gamma_of(last, beta, beta_sink)
+        bound = 1.0
         for t in range(len(frames) - 2, -1, -1):
-            beta, beta_sink = backward_step(self.config, frames[t], frames[t + 1], beta,
-                                            beta_sink)
+            beta, beta_sink, bound = backward_step(self.config, frames[t], frames[t + 1], beta,
+                                                   beta_sink, bound=bound)
             yield gamma_of(frames[t], beta, beta_sink)
 
 
@@ -266,11 +277,17 @@ Parts = list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
 
 
 def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: np.ndarray,
-                  beta_sink: float, *, keep: bool = False) -> tuple[np.ndarray, float]:
+                  beta_sink: float, *, keep: bool = False, bound: float | None = None
+                  ) -> tuple[np.ndarray, float, float]:
     """One step of the backward recursion: ``beta_t`` on the parts of frame ``now`` (laid end
     to end, :meth:`FrameBelief.starts`) from ``beta_{t+1}`` (``beta``, on the parts of ``nxt``
-    laid end to end, and ``beta_sink``), rescaled so that its largest value is 1 (the
-    posterior is normalised anyway).
+    laid end to end, and ``beta_sink``), both up to one positive factor (the posterior is
+    normalised anyway).
+
+    ``bound`` is an upper bound of ``beta`` and ``beta_sink`` (None: their maximum); the
+    step returns ``(beta_t, beta_sink_t, bound_t)``. The factor is left alone while the
+    bound stays below :data:`RESCALE_ABOVE` and every value above ``RESCALE_BELOW`` (all of
+    them are at least the restart term); past either, both are divided by their maximum.
 
     The step is linear in ``beta_{t+1}``: its operator (:func:`backward_operator`) is built from
     the two frames' supports and ``nxt``'s likelihoods; ``keep`` keeps it on ``now`` for the
@@ -278,9 +295,9 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
 
     Notes
     -----
-    Building the operator is O(live W log live) per part (:meth:`ComponentTransition.
-    pull_operator`), what a forward step costs; applying it O(live W), a few numpy calls for
-    all the parts together. Nothing is sized by the map.
+    Building the operator is O(live W + live log live) per part (:meth:`ComponentTransition.
+    pull_operator`), what a forward step costs; applying it O(live W): one correlation over
+    the parts' windows laid end to end. Nothing is sized by the map.
     """
     eps, nu = config.restart_prob, config.new_place_prob
     op = now.pulls
@@ -288,6 +305,8 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
         op = backward_operator(now, nxt)
         if keep:
             now.pulls = op
+    if bound is None:
+        bound = max(float(_MAX(beta)) if beta.size else 0.0, beta_sink)
     # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into op).
     m_sink = beta_sink * nxt.sink_lik
     n_hits = len(nxt.hit_ids)
@@ -298,33 +317,34 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
         const = eps * hit_m / n_hits + nu * m_sink
     else:
         const = (eps + nu) * m_sink
-    top = beta_sink = (1.0 - eps - nu) * m_sink + const
-    # op.apply(beta, m_sink), inline: this runs L times a frame
-    new: np.ndarray
-    if op.rows.size:  # (float64: bincount with weights)
-        new = cast(np.ndarray, np.bincount(op.rows, weights=op.weights * beta[op.cols],
-                                           minlength=op.n))
-        if op.spills:
-            new += op.sink * m_sink
-    else:
-        new = op.sink * m_sink
+    stay = 1.0 - eps - nu
+    beta_sink = stay * m_sink + const
+    new = op.apply(beta, m_sink)
     new += const
-    if new.size:
-        peak = _MAX(new)  # (new.max() without its Python wrapper)
-        if peak > top:
-            top = float(peak)
-    # Rescale (gamma is normalised anyway): keep beta near 1.
-    if top > 0.0:
-        inv = 1.0 / top
-        new *= inv
-        beta_sink *= inv
-    return new, beta_sink
+    # every pulled value is a sum of A(u, j) e(j) m(j) whose weights sum to at most ``stay``
+    bound = _SLACK * stay * max(nxt.lik_max() * bound, m_sink) + const
+    if bound > RESCALE_ABOVE or const < RESCALE_BELOW:
+        top = max(float(_MAX(new)), beta_sink) if new.size else beta_sink
+        if top > 0.0:
+            inv = 1.0 / top
+            new *= inv
+            beta_sink *= inv
+            bound = 1.0
+    return new, beta_sink, bound
+
+
+#: :func:`backward_step` rescales its values once an upper bound of them passes this ...
+RESCALE_ABOVE = 1e100
+#: ... or a lower bound falls below this.
+RESCALE_BELOW = 1e-100
+#: Room for rounding in :func:`backward_step`'s bound.
+_SLACK = 1.0 + 1e-9
 
 
 def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOperator]]:
     """Per part of ``now``: the index of ``nxt``'s part of the same component (-1: none) and
     the operator from it (:meth:`ComponentTransition.pull_operator`), ``nxt``'s likelihood
-    ratios folded into its weights. O(live W log live)."""
+    ratios folded into its targets' weights. O(live W + live log live)."""
     index = {trans.graph.component_id: j for j, (trans, _, _) in enumerate(nxt.parts)}
     layout = nxt.hits_in_parts()
     out = []
@@ -336,10 +356,10 @@ def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOp
         m_slots = nxt.parts[j][1]
         op = trans.pull_operator(slots, m_slots)
         pos, lik = layout[j]
-        if pos.size and op.cols.size:
+        if pos.size and op.m_sel.size:
             e = np.ones(len(m_slots))
             e[pos] = lik
-            op.weights = op.weights * e[op.cols]
+            op.weigh_targets(e)
         out.append((j, op))
     return out
 
@@ -348,19 +368,14 @@ def backward_operator(now: FrameBelief, nxt: FrameBelief) -> PullOperator:
     """The backward step's operator from ``nxt``'s parts laid end to end onto ``now``'s: the
     per-part operators of :func:`pull_operators` as one, each part's rows and columns shifted
     to where its values start (:meth:`FrameBelief.starts`), so that one application covers
-    every part. O(live W log live) to build, plus O(entries) to join the parts."""
+    every part (:meth:`PullOperator.joined`). O(live W + live log live) to build, plus
+    O(live W) to join the parts."""
     ops = pull_operators(now, nxt)
     if len(ops) == 1 and ops[0][0] <= 0:  # one part, and nothing to shift
         return ops[0][1]
-    if not ops:
-        return PullOperator(0, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, _EMPTY_VALS)
     starts, nxt_starts = now.starts(), nxt.starts()
-    return PullOperator(
-        starts[-1],
-        np.concatenate([op.rows + start for (_, op), start in zip(ops, starts, strict=False)]),
-        np.concatenate([op.cols + nxt_starts[max(j, 0)] for j, op in ops]),
-        np.concatenate([op.weights for _, op in ops]),
-        np.concatenate([op.sink for _, op in ops]))
+    return PullOperator.joined([(op, start, nxt_starts[max(j, 0)])
+                                for (j, op), start in zip(ops, starts, strict=False)])
 
 
 def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[Parts, float]:
@@ -402,8 +417,11 @@ def nearest_hits(frame: FrameBelief, k: int) -> tuple[list[int], list[float]]:
     (``ruled_out``: no rivals). O(k log k)."""
     ids, dists = frame.hit_ids, frame.hit_dists
     if len(ids) > k:
-        order = sorted(range(len(ids)), key=dists.__getitem__)[:k]
-        ids, dists = [ids[i] for i in order], [dists[i] for i in order]
+        if all(a <= b for a, b in zip(dists, dists[1:], strict=False)):  # (as searched)
+            ids, dists = ids[:k], dists[:k]
+        else:
+            order = sorted(range(len(ids)), key=dists.__getitem__)[:k]
+            ids, dists = [ids[i] for i in order], [dists[i] for i in order]
     if frame.ruled_out:
         keep = [i for i, v in enumerate(ids) if v not in frame.ruled_out]
         ids, dists = [ids[i] for i in keep], [dists[i] for i in keep]

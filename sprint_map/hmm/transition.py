@@ -322,23 +322,25 @@ class ComponentTransition:
 
 
     def pull_operator(self, slots: np.ndarray, m_slots: np.ndarray) -> PullOperator:
-        """:meth:`pull` from ``slots`` onto ``m_slots`` as a linear operator, built once and
-        applied to many ``m`` (the fixed-lag smoother pulls every pair of frames ``L`` times).
+        """:meth:`pull` from sorted ``slots`` onto ``m_slots`` as a linear operator, built once
+        and applied to many ``m`` (the fixed-lag smoother pulls every pair of frames ``L``
+        times).
 
         ``pull(slots, m_slots, m_vals, m_sink)`` equals ``op.apply(m_vals, m_sink)`` (to
         rounding: the sums are taken in another order).
 
         Notes
         -----
-        Built in O((|slots| + E_out) W log |m_slots|), as one :meth:`pull`; it holds at most
-        ``(|slots| + E_out) W`` weights.
+        Built in O((|slots| + E_out) W + |m_slots| log |slots|), about 30 numpy calls, no
+        search per target: see :class:`PullOperator`.
         """
         slots = np.asarray(slots, dtype=_I64)
         m_slots = np.asarray(m_slots, dtype=_I64)
         n = slots.size
         kernel = self.kernel
-        # row: the source of each origin's window (None: origin i is source i, no edges)
-        origin, row, factor = slots, None, None
+        width = len(kernel)
+        factor = None
+        owner, e_origin, coef = EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS
         if self.has_edges and n:
             factor = self._rinv[slots]
             e_lo = self.edge_src.searchsorted(slots)
@@ -346,63 +348,156 @@ class ComponentTransition:
             n_edges = int(counts.sum())
             if n_edges:
                 eidx = ranges(e_lo, counts, n_edges)
-                origin = np.concatenate((slots, self.edge_dst[eidx]))
-                row = np.concatenate((np.arange(n, dtype=_I64),
-                                      np.repeat(np.arange(n, dtype=_I64), counts)))
-                factor = np.concatenate((factor, self.edge_coef[eidx]))
-        end = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1]
-        tgt = origin[:, None] + np.arange(len(kernel), dtype=_I64)
-        past = tgt >= end[:, None]
-        if past.any():  # mass past a sequence's end goes to the sink
-            spill = np.where(past, kernel, 0.0)
+                e_origin = self.edge_dst[eidx]
+                owner = np.repeat(np.arange(n, dtype=_I64), counts)
+                coef = self.edge_coef[eidx]
+        sink = self._spilled(slots, factor)
+        if e_origin.size:
+            sink += np.bincount(owner, weights=self._spilled(e_origin, coef), minlength=n)
+        origin = slots if not e_origin.size else np.unique(np.concatenate((slots, e_origin)))
+        size, lo, hi, shift, place = _window_layout(origin, width)
+        src_place, e_place = place, EMPTY_IDS
+        if e_origin.size:
+            src_place = place[origin.searchsorted(slots)]
+            e_place = place[origin.searchsorted(e_origin)]
+        m_sel, m_place = EMPTY_IDS, EMPTY_IDS
+        if size and m_slots.size:
+            block = lo.searchsorted(m_slots, "right") - 1
+            np.maximum(block, 0, out=block)
+            m_sel = ((m_slots >= lo[block]) & (m_slots < hi[block])).nonzero()[0]
+            m_place = m_slots[m_sel] + shift[block[m_sel]]
+        return PullOperator(n, size, kernel, m_sel, m_place, src_place, factor, owner, e_place,
+                            coef, sink)
+
+    def _spilled(self, origin: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
+        """Per origin: the share of its window past its sequence's end (to the sink), times
+        ``factor``. O(n), or O(n W) when some origin is that close to an end."""
+        width = len(self.kernel)
+        room = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1] - origin
+        near = (room < width).nonzero()[0]
+        out = np.zeros(origin.size)
+        if near.size:
+            past = np.arange(width, dtype=_I64) >= room[near][:, None]
+            out[near] = np.where(past, self.kernel, 0.0).sum(axis=1)
             if factor is not None:
-                spill *= factor[:, None]
-            per = spill.sum(axis=1)
-            sink = per if row is None else np.bincount(row, weights=per, minlength=n)
-        else:
-            sink = np.zeros(n)
-        if not m_slots.size:
-            return PullOperator(n, EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, sink)
-        pos = m_slots.searchsorted(tgt)
-        np.minimum(pos, m_slots.size - 1, out=pos)
-        found = m_slots[pos] == tgt
-        found &= ~past
-        # the entries in row-major order, through flat indices (cheaper than 2-d ones)
-        flat = found.reshape(-1).nonzero()[0]
-        at = flat // len(kernel)
-        step = flat - at * len(kernel)
-        weights = kernel[step] if factor is None else kernel[step] * factor[at]
-        return PullOperator(n, at if row is None else row[at], pos.reshape(-1)[flat], weights,
-                            sink)
+                out *= factor
+        return out
+
+
+def _window_layout(origin: np.ndarray, width: int
+                   ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A compact layout of the windows ``[o, o + width)`` of sorted ``origin``: origins
+    closer than ``width`` share a block ``[lo, hi)`` (its first origin to its last plus
+    ``width``); a slot ``s`` of block ``b`` sits at ``s + shift[b]``.
+
+    Returns ``(size, lo, hi, shift, place)``, ``place`` the place of each origin. O(n), about
+    12 numpy calls.
+    """
+    n = origin.size
+    if not n:
+        return 0, EMPTY_IDS, EMPTY_IDS, EMPTY_IDS, EMPTY_IDS
+    breaks = ((origin[1:] - origin[:-1]) >= width).nonzero()[0] + 1
+    lo = origin[np.concatenate(([0], breaks))]
+    hi = origin[np.concatenate((breaks - 1, [n - 1]))] + width
+    lens = hi - lo
+    ends = lens.cumsum()
+    shift = ends - lens - lo
+    block = np.zeros(n, dtype=_I64)
+    block[breaks] = 1
+    place = origin + shift[block.cumsum()]
+    return int(ends[-1]), lo, hi, shift, place
 
 
 class PullOperator:
-    """A :meth:`ComponentTransition.pull` fixed in its source and target slots: ``apply(m,
-    m_sink)`` is ``sum_j A(u, j) m(j)`` for every source slot ``u`` (``rows``/``cols``/
-    ``weights``: the entries of ``A`` into the target slots, ``sink``: each source's mass
-    that leaves its sequence). O(entries) per application, three numpy calls."""
+    """A :meth:`ComponentTransition.pull` fixed in its source and target slots.
 
-    __slots__ = ("cols", "n", "rows", "sink", "spills", "weights")
+    ``apply(m, m_sink)`` scatters the targets' values into a compact layout of the sources'
+    windows (``m_place``; those of ``m_sel``, the targets any window reaches, each times
+    ``m_weight`` if set), correlates the layout once with the window ``kernel`` and reads each
+    source's window at ``src_place`` (times ``factor``: ``1 / R_u`` when the component has
+    edges) and each edge's target window at ``e_place`` (times ``e_coef``, added to row
+    ``e_owner``); ``sink``: each source's share that leaves its sequence, times ``m_sink``.
 
-    def __init__(self, n: int, rows: np.ndarray, cols: np.ndarray, weights: np.ndarray,
-                 sink: np.ndarray) -> None:
-        self.n = n
-        self.rows = rows
-        self.cols = cols
-        self.weights = weights
+    Notes
+    -----
+    O(layout size W) per application, about 8 numpy calls; the layout holds at most
+    ``(n + E_out) W`` slots. :meth:`joined` lays several operators end to end.
+    """
+
+    __slots__ = ("_layout", "e_coef", "e_owner", "e_place", "factor", "kernel", "m_place",
+                 "m_sel", "m_weight", "n", "sink", "size", "spills", "src_place")
+
+    def __init__(self, n: int, size: int, kernel: np.ndarray, m_sel: np.ndarray,
+                 m_place: np.ndarray, src_place: np.ndarray, factor: np.ndarray | None,
+                 e_owner: np.ndarray, e_place: np.ndarray, e_coef: np.ndarray,
+                 sink: np.ndarray, m_weight: np.ndarray | None = None) -> None:
+        self.n, self.size, self.kernel = n, size, kernel
+        self.m_sel, self.m_place, self.m_weight = m_sel, m_place, m_weight
+        self.src_place, self.factor = src_place, factor
+        self.e_owner, self.e_place, self.e_coef = e_owner, e_place, e_coef
         self.sink = sink
         #: Whether any source reaches past its sequence's end (else ``sink`` is all 0).
         self.spills = bool(sink.any())
+        #: The layout, made on first use: only ``m_place`` is ever written, the rest stays 0.
+        self._layout: np.ndarray | None = None
+
+    def weigh_targets(self, weight: np.ndarray) -> None:
+        """Multiply each target's value by ``weight`` (one per target slot) before the
+        pull (the smoother folds in the next frame's likelihood ratios)."""
+        w = weight[self.m_sel]
+        self.m_weight = w if self.m_weight is None else self.m_weight * w
 
     def apply(self, m_vals: np.ndarray, m_sink: float) -> np.ndarray:
         """The pulled values of the ``n`` source slots."""
-        if not self.rows.size:
+        if not self.size:
             return self.sink * m_sink
-        out: np.ndarray = np.bincount(self.rows, weights=self.weights * m_vals[self.cols],
-                                      minlength=self.n)
+        z = self._layout
+        if z is None:
+            z = self._layout = np.zeros(self.size)
+        if self.m_sel.size:
+            v = m_vals[self.m_sel]
+            if self.m_weight is not None:
+                v *= self.m_weight
+            z[self.m_place] = v
+        y = correlate(z, self.kernel, "valid")  # y[p] = sum_k kernel[k] z[p + k]
+        out: np.ndarray = y[self.src_place]
+        if self.factor is not None:
+            out *= self.factor
+        if self.e_owner.size:
+            out += np.bincount(self.e_owner, weights=self.e_coef * y[self.e_place],
+                               minlength=self.n)
         if self.spills:
             out += self.sink * m_sink
         return out
+
+    @staticmethod
+    def joined(ops: Sequence[tuple[PullOperator, int, int]]) -> PullOperator:
+        """One operator for several laid end to end: each ``(op, source_start, target_start)``
+        reads the targets from ``target_start`` on and writes the sources from
+        ``source_start`` on (in order, without gaps). All must share one kernel. O(size)."""
+        if not ops:
+            return PullOperator(0, 0, np.ones(1), EMPTY_IDS, EMPTY_IDS, EMPTY_IDS, None,
+                                EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, EMPTY_WEIGHTS)
+        kernel = ops[0][0].kernel
+        if any(op.kernel is not kernel and not np.array_equal(op.kernel, kernel)
+               for op, _, _ in ops):
+            raise ValueError("operators with different windows cannot be joined")
+        at = np.cumsum([0] + [op.size for op, _, _ in ops])
+        weighted = any(op.m_weight is not None for op, _, _ in ops)
+        edged = any(op.factor is not None for op, _, _ in ops)
+        return PullOperator(
+            sum(op.n for op, _, _ in ops), int(at[-1]), kernel,
+            np.concatenate([op.m_sel + t for op, _, t in ops]),
+            np.concatenate([op.m_place + a for (op, _, _), a in zip(ops, at, strict=False)]),
+            np.concatenate([op.src_place + a for (op, _, _), a in zip(ops, at, strict=False)]),
+            np.concatenate([np.ones(op.n) if op.factor is None else op.factor
+                            for op, _, _ in ops]) if edged else None,
+            np.concatenate([op.e_owner + s for op, s, _ in ops]),
+            np.concatenate([op.e_place + a for (op, _, _), a in zip(ops, at, strict=False)]),
+            np.concatenate([op.e_coef for op, _, _ in ops]),
+            np.concatenate([op.sink for op, _, _ in ops]),
+            np.concatenate([np.ones(op.m_sel.size) if op.m_weight is None else op.m_weight
+                            for op, _, _ in ops]) if weighted else None)
 
 
 def full_transition_matrix(graphs: Sequence[ComponentGraph], config: HMMConfig,

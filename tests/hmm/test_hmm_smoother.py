@@ -13,11 +13,14 @@ from test_hmm_equivalence import SETTINGS, configs, dense, frames, maps
 
 from sprint_map.hmm import FullGraphFilter, HMMConfig, MemoryGraphSource, SprintFilter
 from sprint_map.hmm.smoother import (
+    RESCALE_ABOVE,
+    RESCALE_BELOW,
     RIVAL_CONFIRMATIONS,
     RIVAL_SLACK,
     ConfirmedRivals,
     ForwardBackward,
     backward_operator,
+    backward_step,
     pull_operators,
     smooth,
 )
@@ -225,3 +228,46 @@ def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObje
             for j, op in pull_operators(now, nxt)]
     want = np.concatenate(each) if each else np.zeros(0)
     np.testing.assert_array_equal(backward_operator(now, nxt).apply(beta, sink), want)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_the_backward_steps_bound_holds_every_value(data: st.DataObject) -> None:
+    """``backward_step``'s third value bounds every value it returns, sink included, and the
+    values are the normalised recursion's up to one factor."""
+    lengths, edges = data.draw(maps())
+    config = data.draw(configs(prune=0.0))
+    source = MemoryGraphSource(lengths, edges)
+    fb = ForwardBackward(config, source)
+    for ids, dists in frames(data.draw, source.n_vertices, data.draw(st.integers(2, 10))):
+        fb.forward(ids, dists)
+    beta, sink, bound = np.ones(fb.frames[-1].starts()[-1]), 1.0, 1.0
+    for t in range(len(fb.frames) - 2, -1, -1):
+        beta, sink, bound = backward_step(config, fb.frames[t], fb.frames[t + 1], beta, sink,
+                                          bound=bound)
+        assert max(beta.max(initial=0.0), sink) <= bound
+
+
+def test_a_long_pass_with_extreme_likelihoods_stays_in_range() -> None:
+    """Likelihood ratios far from 1 for thousands of frames: the backward values are rescaled
+    before they could overflow or reach subnormal floats, and the smoothed posterior is the
+    same as with a rescale at every step."""
+    source = MemoryGraphSource([3000])
+    config = HMMConfig(dist_scale=0.01)  # hit likelihood ratios near e^90
+    fb = ForwardBackward(config, source)
+    rng = np.random.default_rng(0)
+    for t in range(2500):
+        fb.forward(np.array([t, int(rng.integers(3000))]), np.array([0.0, 0.9]))
+    beta, sink, bound = np.ones(fb.frames[-1].starts()[-1]), 1.0, 1.0
+    ref, ref_sink = beta.copy(), 1.0
+    for t in range(len(fb.frames) - 2, -1, -1):
+        now, nxt = fb.frames[t], fb.frames[t + 1]
+        beta, sink, bound = backward_step(config, now, nxt, beta, sink, bound=bound,
+                                          keep=True)
+        ref, ref_sink, _ = backward_step(config, now, nxt, ref, ref_sink, bound=math.inf)
+        values = np.append(beta, sink)
+        assert np.isfinite(values).all() and values.max() <= RESCALE_ABOVE
+        assert values.max() >= RESCALE_BELOW
+        top = max(ref.max(initial=0.0), ref_sink)
+        np.testing.assert_allclose(values / values.max(), np.append(ref, ref_sink) / top,
+                                   rtol=1e-9, atol=1e-300)
