@@ -374,7 +374,7 @@ def _preferred(view: BeliefView, runs: list[tuple[int, int]], seq_id: int, slot:
     """The most probable slot of sequence ``seq_id`` inside the place ``runs`` (with its
     posterior), or ``(slot, prob)`` unchanged if the place holds no belief on that sequence."""
     graph = view.graph
-    s = int(np.searchsorted(graph.seq_ids, seq_id))
+    s = 0 if len(graph.seq_ids) == 1 else int(np.searchsorted(graph.seq_ids, seq_id))
     if s >= len(graph.seq_ids) or int(graph.seq_ids[s]) != seq_id:
         return slot, prob
     lo = int(view.slot_first[s])

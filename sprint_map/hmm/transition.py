@@ -351,7 +351,7 @@ class ComponentTransition:
                 e_origin = self.edge_dst[eidx]
                 owner = np.repeat(np.arange(n, dtype=_I64), counts)
                 coef = self.edge_coef[eidx]
-        sink = self._spilled(slots, factor)
+        sink = self._spilled(slots, factor, ordered=True)
         if e_origin.size:
             sink += np.bincount(owner, weights=self._spilled(e_origin, coef), minlength=n)
         origin = slots if not e_origin.size else np.unique(np.concatenate((slots, e_origin)))
@@ -369,10 +369,15 @@ class ComponentTransition:
         return PullOperator(n, size, kernel, m_sel, m_place, src_place, factor, owner, e_place,
                             coef, sink)
 
-    def _spilled(self, origin: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
+    def _spilled(self, origin: np.ndarray, factor: np.ndarray | None, *,
+                 ordered: bool = False) -> np.ndarray:
         """Per origin: the share of its window past its sequence's end (to the sink), times
-        ``factor``. O(n), or O(n W) when some origin is that close to an end."""
+        ``factor`` (``ordered``: the origins are sorted). O(n), or O(n W) when some origin is
+        that close to an end."""
         width = len(self.kernel)
+        if len(self.seq_end) == 1 and ordered and (
+                not origin.size or origin[-1] + width <= self.seq_end[0]):
+            return np.zeros(origin.size)  # (one sequence, the last origin not near its end)
         room = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1] - origin
         near = (room < width).nonzero()[0]
         out = np.zeros(origin.size)
