@@ -262,7 +262,7 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
 
     Notes
     -----
-    O(k log S + r + h d log d) for k hits (two :func:`place_runs`).
+    O(k + r + h d log d) for k hits (two :func:`place_runs`).
 
     Examples
     --------
@@ -277,18 +277,13 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
     """
     if not hit_ids:
         return math.inf
-    inner = place_runs(view, slot, radius, hops)
-    outer = place_runs(view, slot, reach, hops) if reach > radius else inner
-    graph = view.graph
-    ids = np.asarray(hit_ids, dtype=np.int64)
-    seq = graph.seq_index(ids)
-    slots = np.where(seq >= 0, view.slot_first[np.maximum(seq, 0)] + ids
-                     - graph.seq_first[np.maximum(seq, 0)], -1).tolist()
+    inner = _vertex_ranges(view, place_runs(view, slot, radius, hops))
+    outer = _vertex_ranges(view, place_runs(view, slot, reach, hops)) if reach > radius else inner
     best_in = best_out = math.inf
-    for vid, sl, dist in zip(hit_ids, slots, hit_dists, strict=True):
-        if sl >= 0 and any(a <= sl < b for a, b in inner):
+    for vid, dist in zip(hit_ids, hit_dists, strict=True):
+        if any(a <= vid < b for a, b in inner):
             best_in = min(best_in, dist)
-        elif dist < best_out and (sl < 0 or not any(a <= sl < b for a, b in outer)) and (
+        elif dist < best_out and not any(a <= vid < b for a, b in outer) and (
                 rivals is None or vid in rivals):  # (a rival's test only where it would count)
             best_out = dist
     if math.isinf(best_out):
@@ -296,6 +291,21 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
     if math.isinf(best_in):
         return math.inf
     return best_in / best_out if best_out > 0 else math.inf
+
+
+def _vertex_ranges(view: BeliefView, runs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Slot runs of a place as global vertex id ranges (a run never crosses a sequence's
+    end: :func:`place_runs`). O(runs log S)."""
+    slot_first, seq_first = view.slot_first, view.graph.seq_first
+    if len(slot_first) == 1:
+        shift = int(seq_first[0]) - int(slot_first[0])
+        return [(a + shift, b + shift) for a, b in runs]
+    out = []
+    for a, b in runs:
+        s = int(np.searchsorted(slot_first, a, side="right")) - 1
+        shift = int(seq_first[s]) - int(slot_first[s])
+        out.append((a + shift, b + shift))
+    return out
 
 
 def _runs_sum(x: np.ndarray, runs: list[tuple[int, int]]) -> float:

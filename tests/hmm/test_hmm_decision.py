@@ -60,3 +60,40 @@ def test_place_contrast_compares_the_place_with_the_rest_of_the_map() -> None:
     # no hit inside the place: it does not stand out at all
     assert place_contrast(view, slot, [90], [0.4], 2, 1, 10) == float("inf")
     assert place_contrast(view, slot, [], [], 2, 1, 10) == float("inf")
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_place_contrast_is_the_ratio_over_the_places_slots(data: st.DataObject) -> None:
+    """The contrast read from the place's runs as vertex id ranges equals the definition: the
+    best hit whose slot lies in the place over the best hit whose slot (if any) lies outside
+    the place widened to ``reach``."""
+    from sprint_map.hmm.decision import place_contrast
+
+    lengths = data.draw(st.lists(st.integers(1, 15), min_size=1, max_size=5))
+    n = sum(lengths)
+    edges = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1),
+                                         st.just(1.0)), max_size=12))
+    source = MemoryGraphSource(lengths, edges)
+    vertex = data.draw(st.integers(0, n - 1))
+    graph = source.load_component(int(source.components_of(np.array([vertex]))[0]))
+    trans = ComponentTransition(graph, HMMConfig())
+    view = BeliefView(graph, trans.slot_first, np.zeros(trans.n_slots))
+    slot = int(trans.slots_of(np.array([vertex]))[0])
+    radius, hops = data.draw(st.integers(0, 3)), data.draw(st.integers(1, 3))
+    reach = data.draw(st.integers(radius, radius + 6))
+    hits = data.draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=8, unique=True))
+    dists = data.draw(st.lists(st.floats(0.01, 5.0), min_size=len(hits), max_size=len(hits)))
+    inner = {v for a, b in place_runs(view, slot, radius, hops) for v in range(a, b)}
+    outer = {v for a, b in place_runs(view, slot, reach, hops) for v in range(a, b)}
+    member = source.components_of(np.array(hits)) == graph.component_id
+    best_in = best_out = float("inf")
+    for h, d, mine in zip(hits, dists, member.tolist(), strict=True):
+        sl = int(trans.slots_of(np.array([h]))[0]) if mine else -1
+        if sl in inner:
+            best_in = min(best_in, d)
+        elif sl not in outer:
+            best_out = min(best_out, d)
+    want = 0.0 if best_out == float("inf") else (
+        float("inf") if best_in == float("inf") else best_in / best_out)
+    assert place_contrast(view, slot, hits, dists, radius, hops, reach) == want
