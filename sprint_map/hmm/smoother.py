@@ -46,9 +46,9 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import ComponentTransition, PullOperator
 
-__all__ = ["ConfirmedRivals", "DecisionScratch", "FrameBelief", "ForwardBackward", "Parts",
-           "RESCALE_ABOVE", "RESCALE_BELOW", "RIVAL_CONFIRMATIONS", "RIVAL_MIN_WEIGHT",
-           "RIVAL_SLACK", "backward_operator",
+__all__ = ["BackwardOperator", "ConfirmedRivals", "DecisionScratch", "FrameBelief",
+           "ForwardBackward", "Parts", "RESCALE_ABOVE", "RESCALE_BELOW", "RIVAL_CONFIRMATIONS",
+           "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator",
            "backward_step", "decide_posterior", "gamma_of", "nearest_hits", "pull_operators",
            "smooth"]
 
@@ -96,13 +96,10 @@ class FrameBelief:
     hit_layout: list[tuple[np.ndarray, np.ndarray]] | None = None
     #: The backward step's operator from the next frame onto this one, when kept
     #: (:func:`backward_step` with ``keep``; :func:`backward_operator`).
-    pulls: PullOperator | None = None
+    pulls: BackwardOperator | None = None
     #: Where each part starts in the frame's values laid end to end (and their total, last);
     #: made on first use by :meth:`starts`.
     part_starts: list[int] | None = None
-    #: Per part holding hits: their positions in the values laid end to end, and their
-    #: likelihood ratios; made on first use by :meth:`hits_end_to_end`.
-    hit_positions: list[tuple[np.ndarray, np.ndarray]] | None = None
     #: The largest likelihood ratio of a slot of the frame; made on first use by
     #: :meth:`lik_max`.
     lik_top: float | None = None
@@ -123,15 +120,6 @@ class FrameBelief:
                 out.append(out[-1] + len(slots))
             self.part_starts = out
         return self.part_starts
-
-    def hits_end_to_end(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """:meth:`hits_in_parts` of the parts that hold hits, positions counted in the parts'
-        values laid end to end (cached)."""
-        if self.hit_positions is None:
-            self.hit_positions = [(pos + start, lik) for (pos, lik), start
-                                  in zip(self.hits_in_parts(), self.starts(), strict=False)
-                                  if pos.size]
-        return self.hit_positions
 
     def hits_in_parts(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Where this frame's hits sit in its parts: per part, the positions (ascending) in
@@ -308,21 +296,18 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
     if bound is None:
         bound = max(float(_MAX(beta)) if beta.size else 0.0, beta_sink)
     # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into op).
-    m_sink = beta_sink * nxt.sink_lik
-    n_hits = len(nxt.hit_ids)
-    if n_hits:
-        hit_m = 0.0
-        for pos, lik in nxt.hits_end_to_end():
-            hit_m += float(np.dot(lik, beta[pos]))
-        const = eps * hit_m / n_hits + nu * m_sink
+    m_sink = beta_sink * op.sink_lik
+    if op.n_hits:
+        hit_m = float(np.dot(op.hit_lik, beta[op.hit_pos])) if op.hit_pos.size else 0.0
+        const = eps * hit_m / op.n_hits + nu * m_sink
     else:
         const = (eps + nu) * m_sink
     stay = 1.0 - eps - nu
     beta_sink = stay * m_sink + const
-    new = op.apply(beta, m_sink)
+    new = op.pull.apply(beta, m_sink)
     new += const
     # every pulled value is a sum of A(u, j) e(j) m(j) whose weights sum to at most ``stay``
-    bound = _SLACK * stay * max(nxt.lik_max() * bound, m_sink) + const
+    bound = _SLACK * stay * max(op.lik_max * bound, m_sink) + const
     if bound > RESCALE_ABOVE or const < RESCALE_BELOW:
         top = max(float(_MAX(new)), beta_sink) if new.size else beta_sink
         if top > 0.0:
@@ -364,18 +349,56 @@ def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOp
     return out
 
 
-def backward_operator(now: FrameBelief, nxt: FrameBelief) -> PullOperator:
-    """The backward step's operator from ``nxt``'s parts laid end to end onto ``now``'s: the
-    per-part operators of :func:`pull_operators` as one, each part's rows and columns shifted
-    to where its values start (:meth:`FrameBelief.starts`), so that one application covers
-    every part (:meth:`PullOperator.joined`). O(live W + live log live) to build, plus
-    O(live W) to join the parts."""
+def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
+    """The backward step's operator from ``nxt`` onto ``now``: the per-part operators of
+    :func:`pull_operators` as one, each part's rows and columns shifted to where its values
+    start (:meth:`FrameBelief.starts`, :meth:`PullOperator.joined`), so that one application
+    covers every part; and ``nxt``'s hits, where its values laid end to end hold them.
+    O(live W + live log live) to build, plus O(live W) to join the parts."""
     ops = pull_operators(now, nxt)
+    nxt_starts = nxt.starts()
     if len(ops) == 1 and ops[0][0] <= 0:  # one part, and nothing to shift
-        return ops[0][1]
-    starts, nxt_starts = now.starts(), nxt.starts()
-    return PullOperator.joined([(op, start, nxt_starts[max(j, 0)])
-                                for (j, op), start in zip(ops, starts, strict=False)])
+        pull = ops[0][1]
+    else:
+        pull = PullOperator.joined([(op, start, nxt_starts[max(j, 0)])
+                                    for (j, op), start in zip(ops, now.starts(), strict=False)])
+    held = [(pos + start, lik) for (pos, lik), start
+            in zip(nxt.hits_in_parts(), nxt_starts, strict=False) if pos.size]
+    if len(held) == 1:
+        hit_pos, hit_lik = held[0]
+    elif held:
+        hit_pos = np.concatenate([pos for pos, _ in held])
+        hit_lik = np.concatenate([lik for _, lik in held])
+    else:
+        hit_pos, hit_lik = _EMPTY_SLOTS, _EMPTY_VALS
+    return BackwardOperator(pull, hit_pos, hit_lik, len(nxt.hit_ids), nxt.lik_max(),
+                            nxt.sink_lik)
+
+
+class BackwardOperator:
+    """What one backward step between two frames reads, built once (:func:`backward_operator`).
+
+    Attributes
+    ----------
+    pull : PullOperator
+        From the next frame's values (laid end to end) onto this frame's, the next frame's
+        likelihood ratios folded in.
+    hit_pos, hit_lik : ndarray
+        The next frame's hits held by its values (positions laid end to end) and their
+        likelihood ratios (the restart term's share of them).
+    n_hits : int
+        The next frame's distinct valid hits, held or not (the restart term's divisor).
+    lik_max, sink_lik : float
+        The next frame's largest likelihood ratio (:meth:`FrameBelief.lik_max`) and its
+        sink's.
+    """
+
+    __slots__ = ("hit_lik", "hit_pos", "lik_max", "n_hits", "pull", "sink_lik")
+
+    def __init__(self, pull: PullOperator, hit_pos: np.ndarray, hit_lik: np.ndarray,
+                 n_hits: int, lik_max: float, sink_lik: float) -> None:
+        self.pull, self.hit_pos, self.hit_lik = pull, hit_pos, hit_lik
+        self.n_hits, self.lik_max, self.sink_lik = n_hits, lik_max, sink_lik
 
 
 def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[Parts, float]:

@@ -227,7 +227,7 @@ def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObje
     each = [op.apply(beta[starts[j]: starts[j + 1]] if j >= 0 else np.zeros(0), sink)
             for j, op in pull_operators(now, nxt)]
     want = np.concatenate(each) if each else np.zeros(0)
-    np.testing.assert_array_equal(backward_operator(now, nxt).apply(beta, sink), want)
+    np.testing.assert_array_equal(backward_operator(now, nxt).pull.apply(beta, sink), want)
 
 
 @SETTINGS
