@@ -100,16 +100,6 @@ class FrameBelief:
     #: Where each part starts in the frame's values laid end to end (and their total, last);
     #: made on first use by :meth:`starts`.
     part_starts: list[int] | None = None
-    #: The largest likelihood ratio of a slot of the frame; made on first use by
-    #: :meth:`lik_max`.
-    lik_top: float | None = None
-
-    def lik_max(self) -> float:
-        """The largest likelihood ratio of a slot of this frame: its largest hit's, or 1 (every
-        other slot's) if that is larger (cached)."""
-        if self.lik_top is None:
-            self.lik_top = max(1.0, max(self.hit_lik, default=1.0))
-        return self.lik_top
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -265,14 +255,14 @@ Parts = list[tuple[ComponentTransition, np.ndarray, np.ndarray]]
 
 
 def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: np.ndarray,
-                  beta_sink: float, *, keep: bool = False, bound: float | None = None
+                  beta_sink: float, *, bound: float, keep: bool = False
                   ) -> tuple[np.ndarray, float, float]:
     """One step of the backward recursion: ``beta_t`` on the parts of frame ``now`` (laid end
     to end, :meth:`FrameBelief.starts`) from ``beta_{t+1}`` (``beta``, on the parts of ``nxt``
     laid end to end, and ``beta_sink``), both up to one positive factor (the posterior is
     normalised anyway).
 
-    ``bound`` is an upper bound of ``beta`` and ``beta_sink`` (None: their maximum); the
+    ``bound`` is an upper bound of ``beta`` and ``beta_sink`` (1 for a pass from ones); the
     step returns ``(beta_t, beta_sink_t, bound_t)``. The factor is left alone while the
     bound stays below :data:`RESCALE_ABOVE` and every value above ``RESCALE_BELOW`` (all of
     them are at least the restart term); past either, both are divided by their maximum.
@@ -293,8 +283,6 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
         op = backward_operator(now, nxt)
         if keep:
             now.pulls = op
-    if bound is None:
-        bound = max(float(_MAX(beta)) if beta.size else 0.0, beta_sink)
     # m_{t+1} = e_{t+1} * beta_{t+1} on the support of alpha_{t+1} (e is folded into op).
     m_sink = beta_sink * op.sink_lik
     if op.n_hits:
@@ -371,8 +359,9 @@ def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
         hit_lik = np.concatenate([lik for _, lik in held])
     else:
         hit_pos, hit_lik = _EMPTY_SLOTS, _EMPTY_VALS
-    return BackwardOperator(pull, hit_pos, hit_lik, len(nxt.hit_ids), nxt.lik_max(),
-                            nxt.sink_lik)
+    # the largest likelihood ratio of a slot of ``nxt``: a hit's, or 1 (every other slot's)
+    return BackwardOperator(pull, hit_pos, hit_lik, len(nxt.hit_ids),
+                            max(1.0, max(nxt.hit_lik, default=1.0)), nxt.sink_lik)
 
 
 class BackwardOperator:
@@ -389,8 +378,8 @@ class BackwardOperator:
     n_hits : int
         The next frame's distinct valid hits, held or not (the restart term's divisor).
     lik_max, sink_lik : float
-        The next frame's largest likelihood ratio (:meth:`FrameBelief.lik_max`) and its
-        sink's.
+        The next frame's largest likelihood ratio of a slot (its largest hit's, at least 1)
+        and its sink's.
     """
 
     __slots__ = ("hit_lik", "hit_pos", "lik_max", "n_hits", "pull", "sink_lik")

@@ -8,20 +8,28 @@ from hypothesis import strategies as st
 
 from sprint_map.hmm import HMMConfig, MemoryGraphSource
 from sprint_map.hmm.decision import BeliefView, place_mass, place_runs, place_runs_np
+from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.hmm.transition import ComponentTransition
+
+
+def component_of_a_vertex(data: st.DataObject, max_seqs: int, max_edges: int
+                          ) -> tuple[MemoryGraphSource, int, ComponentGraph, ComponentTransition]:
+    """A drawn map of up to ``max_seqs`` sequences and ``max_edges`` edges, a drawn vertex,
+    its component's graph and transition."""
+    lengths = data.draw(st.lists(st.integers(1, 15), min_size=1, max_size=max_seqs))
+    n = sum(lengths)
+    edges = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1),
+                                         st.just(1.0)), max_size=max_edges))
+    source = MemoryGraphSource(lengths, edges)
+    vertex = data.draw(st.integers(0, n - 1))
+    graph = source.load_component(int(source.components_of(np.array([vertex]))[0]))
+    return source, vertex, graph, ComponentTransition(graph, HMMConfig())
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.data())
 def test_small_and_large_place_paths_give_the_same_runs(data: st.DataObject) -> None:
-    lengths = data.draw(st.lists(st.integers(1, 15), min_size=1, max_size=6))
-    n = sum(lengths)
-    edges = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1),
-                                         st.just(1.0)), max_size=25))
-    source = MemoryGraphSource(lengths, edges)
-    vertex = data.draw(st.integers(0, n - 1))
-    graph = source.load_component(int(source.components_of(np.array([vertex]))[0]))
-    trans = ComponentTransition(graph, HMMConfig())
+    source, vertex, graph, trans = component_of_a_vertex(data, 6, 25)
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
     x = np.zeros(trans.n_slots)
     x[trans.vertex_slots()] = rng.random(graph.n_vertices)
@@ -70,14 +78,8 @@ def test_place_contrast_is_the_ratio_over_the_places_slots(data: st.DataObject) 
     the place widened to ``reach``."""
     from sprint_map.hmm.decision import place_contrast
 
-    lengths = data.draw(st.lists(st.integers(1, 15), min_size=1, max_size=5))
-    n = sum(lengths)
-    edges = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1),
-                                         st.just(1.0)), max_size=12))
-    source = MemoryGraphSource(lengths, edges)
-    vertex = data.draw(st.integers(0, n - 1))
-    graph = source.load_component(int(source.components_of(np.array([vertex]))[0]))
-    trans = ComponentTransition(graph, HMMConfig())
+    source, vertex, graph, trans = component_of_a_vertex(data, 5, 12)
+    n = source.n_vertices
     view = BeliefView(graph, trans.slot_first, np.zeros(trans.n_slots))
     slot = int(trans.slots_of(np.array([vertex]))[0])
     radius, hops = data.draw(st.integers(0, 3)), data.draw(st.integers(1, 3))

@@ -26,6 +26,17 @@ from sprint_map.hmm.smoother import (
 )
 
 
+def forwarded(data: st.DataObject, max_frames: int) -> tuple[HMMConfig, ForwardBackward]:
+    """A drawn map and unpruned config, and 2 .. ``max_frames`` drawn frames filtered."""
+    lengths, edges = data.draw(maps())
+    config = data.draw(configs(prune=0.0))
+    source = MemoryGraphSource(lengths, edges)
+    fb = ForwardBackward(config, source)
+    for ids, dists in frames(data.draw, source.n_vertices, data.draw(st.integers(2, max_frames))):
+        fb.forward(ids, dists)
+    return config, fb
+
+
 def sparse_posteriors(fb: ForwardBackward, n: int) -> list[tuple[np.ndarray, float]]:
     out = []
     for parts, sink in fb.posteriors():
@@ -213,12 +224,7 @@ def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObje
     """One application of :func:`backward_operator` over the parts laid end to end equals,
     float for float, each part's own operator (:func:`pull_operators`) applied to its
     component's part of the next frame (the sink's share alone where it has none)."""
-    lengths, edges = data.draw(maps())
-    config = data.draw(configs(prune=0.0))
-    source = MemoryGraphSource(lengths, edges)
-    fb = ForwardBackward(config, source)
-    for ids, dists in frames(data.draw, source.n_vertices, data.draw(st.integers(2, 6))):
-        fb.forward(ids, dists)
+    _, fb = forwarded(data, 6)
     now, nxt = fb.frames[-2], fb.frames[-1]
     beta = np.array(data.draw(st.lists(st.floats(0, 5), min_size=nxt.starts()[-1],
                                        max_size=nxt.starts()[-1])))
@@ -235,17 +241,18 @@ def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObje
 def test_the_backward_steps_bound_holds_every_value(data: st.DataObject) -> None:
     """``backward_step``'s third value bounds every value it returns, sink included, and the
     values are the normalised recursion's up to one factor."""
-    lengths, edges = data.draw(maps())
-    config = data.draw(configs(prune=0.0))
-    source = MemoryGraphSource(lengths, edges)
-    fb = ForwardBackward(config, source)
-    for ids, dists in frames(data.draw, source.n_vertices, data.draw(st.integers(2, 10))):
-        fb.forward(ids, dists)
+    config, fb = forwarded(data, 10)
     beta, sink, bound = np.ones(fb.frames[-1].starts()[-1]), 1.0, 1.0
+    ref, ref_sink = beta.copy(), 1.0
     for t in range(len(fb.frames) - 2, -1, -1):
-        beta, sink, bound = backward_step(config, fb.frames[t], fb.frames[t + 1], beta, sink,
-                                          bound=bound)
+        now, nxt = fb.frames[t], fb.frames[t + 1]
+        beta, sink, bound = backward_step(config, now, nxt, beta, sink, bound=bound)
         assert max(beta.max(initial=0.0), sink) <= bound
+        ref, ref_sink, _ = backward_step(config, now, nxt, ref, ref_sink, bound=math.inf)
+        top = max(beta.max(initial=0.0), sink)
+        if top > 0.0:
+            np.testing.assert_allclose(np.append(beta, sink) / top, np.append(ref, ref_sink),
+                                       rtol=1e-9, atol=1e-300)
 
 
 def test_a_long_pass_with_extreme_likelihoods_stays_in_range() -> None:
