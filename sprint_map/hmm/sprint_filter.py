@@ -370,15 +370,11 @@ class SprintFilter:
         self._finish(sink * sink_lik)
         self.frames += 1
 
-    def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
-        """(component, slot) of every hit, activating the components not yet active."""
-        locate = self._active.locate
-        found = [locate(v) for v in vids]
-        if None not in found:
-            return found  # type: ignore[return-value]
+    def _activate(self, missing: np.ndarray) -> list[int]:
+        """Activate the components of the ``missing`` vertices, in the order they first appear
+        there; the ids activated (none if it raises)."""
         active = self._active
-        missing = [v for v, f in zip(vids, found, strict=True) if f is None]
-        comp_ids = np.asarray(self.source.components_of(np.asarray(missing, dtype=np.int64)))
+        comp_ids = np.asarray(self.source.components_of(missing))
         if comp_ids.shape != (len(missing),):
             raise ValueError("graph source returned a wrong number of component ids")
         added: list[int] = []
@@ -387,6 +383,22 @@ class SprintFilter:
                 if cid not in active:
                     active.add(self._transition(int(cid)))
                     added.append(int(cid))
+        except BaseException:
+            for cid in added:
+                active.remove(cid)
+            raise
+        return added
+
+    def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
+        """(component, slot) of every hit, activating the components not yet active."""
+        locate = self._active.locate
+        found = [locate(v) for v in vids]
+        if None not in found:
+            return found  # type: ignore[return-value]
+        active = self._active
+        missing = [v for v, f in zip(vids, found, strict=True) if f is None]
+        added = self._activate(np.asarray(missing, dtype=np.int64))
+        try:
             out: list[tuple[ActiveComponent, int]] = []
             for v, f in zip(vids, found, strict=True):
                 if f is None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from sprint_map.errors import MapCorruptError
 from sprint_map.hmm.graph import ComponentGraph
-from sprint_map.storage.keys import read_u32, u64
+from sprint_map.storage.keys import read_u32, read_u64, u64
 from sprint_map.storage.records import SequenceRecord
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
@@ -50,6 +50,8 @@ class MapGraphSource:
         self._snapshot: MapSnapshot | None = None
         #: Version (:attr:`MapSnapshot.version`) of the map the caller's state reflects.
         self._seen: int | None = None
+        #: The sequences ``components_of`` has read, for the version they were read at.
+        self._known: KnownSequences | None = None
 
     # --- the pinned snapshot ----------------------------------------------------------------
     @contextmanager
@@ -124,22 +126,38 @@ class MapGraphSource:
     # --- GraphSource ------------------------------------------------------------------------
     def components_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Component id (union-find root sequence) of each global vertex id."""
+        ids = np.asarray(vertex_ids, dtype=np.int64).ravel()
+        snap = self._snapshot
+        if snap is None:
+            return self._components_read(ids, None)
+        known = self._known
+        if known is None or known.version != snap.version:
+            known = self._known = KnownSequences(snap.version)
+        out, missing = known.lookup(ids)
+        if missing.any():
+            out[missing] = self._components_read(ids[missing], known)
+        return out
+
+    def _components_read(self, ids: np.ndarray, known: KnownSequences | None) -> np.ndarray:
+        """:meth:`components_of` from LMDB (each sequence met recorded in ``known``)."""
         store = self.store
-        out = np.empty(len(vertex_ids), dtype=np.int64)
+        out = np.empty(len(ids), dtype=np.int64)
         with self._txn() as txn:
             cursor = txn.cursor(db=store.env.db("vrange"))
             roots: dict[int, tuple[int, int]] = {}  # seq -> (root, first vertex)
-            for i, vid in enumerate(np.asarray(vertex_ids, dtype=np.int64).tolist()):
+            for i, vid in enumerate(ids.tolist()):
                 if vid < 0 or not cursor.set_range(u64(vid)):
                     raise ValueError(f"vertex {vid} is not in the map")
                 seq = read_u32(cursor.value())
-                known = roots.get(seq)
-                if known is None:
-                    known = roots[seq] = (store.uf.find(txn, seq),
+                found = roots.get(seq)
+                if found is None:
+                    found = roots[seq] = (store.uf.find(txn, seq),
                                           store.sequence(seq, txn).first_vertex)
-                if vid < known[1]:  # the floor seek passed a removed range: never a hit
+                    if known is not None:
+                        known.learn(found[1], read_u64(cursor.key()), found[0])
+                if vid < found[1]:  # the floor seek passed a removed range: never a hit
                     raise ValueError(f"vertex {vid} belonged to a removed sequence")
-                out[i] = known[0]
+                out[i] = found[0]
         return out
 
     def load_component(self, component_id: int) -> ComponentGraph:
@@ -186,3 +204,41 @@ def _edges_inside(component_id: int, seqs: list[SequenceRecord], src: list[int],
         raise MapCorruptError(f"edge {src[bad]} -> {dst[bad]} of component {component_id} "
                               "leaves it: the map's edge records are corrupt (see "
                               "`sprint-map check`)")
+
+
+class KnownSequences:
+    """The vertex ranges and components of the sequences read at one map version.
+
+    A sequence's vertices are one range ``first .. last`` and ranges never overlap, so a vertex
+    inside a known range belongs to that sequence exactly as the LMDB floor seek would say; at
+    another version nothing known holds (a merge changes roots, a removal ranges).
+
+    Notes
+    -----
+    :meth:`lookup` is O(n log s) for n vertices and s known sequences, a few numpy calls;
+    :meth:`learn` is O(1) and the next lookup re-sorts, O(s log s).
+    """
+
+    def __init__(self, version: int) -> None:
+        self.version = version
+        self._rows: list[tuple[int, int, int]] = []  # (first, last, root)
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def learn(self, first: int, last: int, root: int) -> None:
+        """Record that vertices ``first .. last`` are one sequence of component ``root``."""
+        self._rows.append((first, last, root))
+        self._arrays = None
+
+    def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Component of each of ``ids`` (int64) where a known range holds it, and the mask of
+        those no known range holds (their entries are undefined)."""
+        if self._arrays is None:
+            rows = np.array(sorted(self._rows), dtype=np.int64).reshape(-1, 3)
+            self._arrays = (rows[:, 0].copy(), rows[:, 1].copy(), rows[:, 2].copy())
+        firsts, lasts, roots = self._arrays
+        at = firsts.searchsorted(ids, "right") - 1
+        safe = np.maximum(at, 0)
+        missing: np.ndarray = (at < 0) | (ids > lasts[safe]) if len(firsts) else \
+            np.ones(len(ids), dtype=bool)
+        out = roots[safe] if len(firsts) else np.empty(len(ids), dtype=np.int64)
+        return out, missing

@@ -8,6 +8,7 @@ real-process version, readers beside a writer that merges and removes, is
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from sprint_map.config import MapConfig
 from sprint_map.localize.map_graph import MapGraphSource
@@ -86,3 +87,29 @@ def test_visible_is_what_the_pinned_snapshot_holds(tmp_path, rng):
             store.add_sequence(_rows(rng, 10), name="c")
             assert source.visible(ids).tolist() == [True, True, False, False]
         assert source.visible(ids).tolist() == [False, True, True, False]
+
+
+def test_pinned_component_look_ups_follow_each_snapshot(tmp_path, rng):
+    """Inside a pin the sequences already met answer from memory: the same components as a
+    fresh LMDB read, in any order and repeated, and never those of an earlier snapshot after a
+    merge or a removal."""
+    with MapStore.create(tmp_path / "m", MapConfig(dim=DIM)) as store:
+        for name, n in (("a", 10), ("b", 7), ("c", 12)):
+            store.add_sequence(_rows(rng, n), name=name)
+        source = MapGraphSource(store)
+        ids = rng.integers(0, 29, 40)
+        with source.pinned():
+            first = source.components_of(ids)
+            again = source.components_of(ids[::-1])
+        assert first.tolist() == source.components_of(ids).tolist()  # (unpinned: LMDB)
+        assert again.tolist() == first[::-1].tolist()
+        store.add_sequence(_rows(rng, 5), name="d",
+                           edges=[EdgeSpec((None, 0), (0, 1)), EdgeSpec((None, 1), (2, 1))])
+        with source.pinned():
+            assert source.components_of(np.array([5, 12, 20, 30])).tolist() == [0, 1, 0, 0]
+            assert source.components_of(np.array([20, 5])).tolist() == [0, 0]
+        store.remove_sequences([1])
+        with source.pinned():
+            assert source.components_of(np.array([5, 20])).tolist() == [0, 0]
+            with pytest.raises(ValueError, match="removed"):
+                source.components_of(np.array([12]))
