@@ -44,12 +44,12 @@ from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
-from sprint_map.hmm.transition import ComponentTransition, PullOperator
+from sprint_map.hmm.transition import ComponentTransition, PullOperator, parts_pull_operator
 
 __all__ = ["BackwardOperator", "ConfirmedRivals", "DecisionScratch", "FrameBelief",
            "ForwardBackward", "Parts", "RESCALE_ABOVE", "RESCALE_BELOW", "RIVAL_CONFIRMATIONS",
            "RIVAL_MIN_WEIGHT", "RIVAL_SLACK", "backward_operator",
-           "backward_step", "decide_posterior", "gamma_of", "nearest_hits", "pull_operators",
+           "backward_step", "decide_posterior", "gamma_of", "nearest_hits",
            "smooth"]
 
 #: A frame's hit elsewhere in the map counts as a rival of its decided place (contrast) only if
@@ -314,44 +314,16 @@ RESCALE_BELOW = 1e-100
 _SLACK = 1.0 + 1e-9
 
 
-def pull_operators(now: FrameBelief, nxt: FrameBelief) -> list[tuple[int, PullOperator]]:
-    """Per part of ``now``: the index of ``nxt``'s part of the same component (-1: none) and
-    the operator from it (:meth:`ComponentTransition.pull_operator`), ``nxt``'s likelihood
-    ratios folded into its targets' weights. O(live W + live log live)."""
-    index = {trans.graph.component_id: j for j, (trans, _, _) in enumerate(nxt.parts)}
-    layout = nxt.hits_in_parts()
-    out = []
-    for trans, slots, _ in now.parts:
-        j = index.get(trans.graph.component_id, -1)
-        if j < 0:
-            out.append((j, trans.pull_operator(slots, _EMPTY_SLOTS)))
-            continue
-        m_slots = nxt.parts[j][1]
-        op = trans.pull_operator(slots, m_slots)
-        pos, lik = layout[j]
-        if pos.size and op.m_sel.size:
-            e = np.ones(len(m_slots))
-            e[pos] = lik
-            op.weigh_targets(e)
-        out.append((j, op))
-    return out
-
-
 def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
-    """The backward step's operator from ``nxt`` onto ``now``: the per-part operators of
-    :func:`pull_operators` as one, each part's rows and columns shifted to where its values
-    start (:meth:`FrameBelief.starts`, :meth:`PullOperator.joined`), so that one application
-    covers every part; and ``nxt``'s hits, where its values laid end to end hold them.
-    O(live W + live log live) to build, plus O(live W) to join the parts."""
-    ops = pull_operators(now, nxt)
-    nxt_starts = nxt.starts()
-    if len(ops) == 1 and ops[0][0] <= 0:  # one part, and nothing to shift
-        pull = ops[0][1]
-    else:
-        pull = PullOperator.joined([(op, start, nxt_starts[max(j, 0)])
-                                    for (j, op), start in zip(ops, now.starts(), strict=False)])
+    """The backward step's operator from ``nxt`` onto ``now``: the pull of every part at once
+    (:func:`~sprint_map.hmm.transition.parts_pull_operator`, each part's rows and columns
+    where its values start, :meth:`FrameBelief.starts`), ``nxt``'s likelihood ratios folded
+    into its targets; and ``nxt``'s hits, where its values laid end to end hold them.
+    O(live W + live log live)."""
+    pull = parts_pull_operator([(trans, slots) for trans, slots, _ in now.parts],
+                               [(trans, slots) for trans, slots, _ in nxt.parts])
     held = [(pos + start, lik) for (pos, lik), start
-            in zip(nxt.hits_in_parts(), nxt_starts, strict=False) if pos.size]
+            in zip(nxt.hits_in_parts(), nxt.starts(), strict=False) if pos.size]
     if len(held) == 1:
         hit_pos, hit_lik = held[0]
     elif held:
@@ -359,6 +331,10 @@ def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
         hit_lik = np.concatenate([lik for _, lik in held])
     else:
         hit_pos, hit_lik = _EMPTY_SLOTS, _EMPTY_VALS
+    if hit_pos.size and pull.m_sel.size:
+        e = np.ones(nxt.starts()[-1])
+        e[hit_pos] = hit_lik
+        pull.weigh_targets(e)
     # the largest likelihood ratio of a slot of ``nxt``: a hit's, or 1 (every other slot's)
     return BackwardOperator(pull, hit_pos, hit_lik, len(nxt.hit_ids),
                             max(1.0, max(nxt.hit_lik, default=1.0)), nxt.sink_lik)

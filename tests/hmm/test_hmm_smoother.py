@@ -21,7 +21,6 @@ from sprint_map.hmm.smoother import (
     ForwardBackward,
     backward_operator,
     backward_step,
-    pull_operators,
     smooth,
 )
 
@@ -222,16 +221,30 @@ def test_confirmed_rivals_are_the_hits_two_of_the_four_frames_around_confirm(
 @given(data=st.data())
 def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObject) -> None:
     """One application of :func:`backward_operator` over the parts laid end to end equals,
-    float for float, each part's own operator (:func:`pull_operators`) applied to its
-    component's part of the next frame (the sink's share alone where it has none)."""
+    float for float, each part's own operator (:meth:`ComponentTransition.pull_operator`,
+    the next frame's likelihood ratios folded in) applied to its component's part of the next
+    frame (the sink's share alone where it has none)."""
     _, fb = forwarded(data, 6)
     now, nxt = fb.frames[-2], fb.frames[-1]
     beta = np.array(data.draw(st.lists(st.floats(0, 5), min_size=nxt.starts()[-1],
                                        max_size=nxt.starts()[-1])))
     sink = data.draw(st.floats(0, 5))
     starts = nxt.starts()
-    each = [op.apply(beta[starts[j]: starts[j + 1]] if j >= 0 else np.zeros(0), sink)
-            for j, op in pull_operators(now, nxt)]
+    index = {trans.graph.component_id: j for j, (trans, _, _) in enumerate(nxt.parts)}
+    each = []
+    for trans, slots, _ in now.parts:
+        j = index.get(trans.graph.component_id, -1)
+        if j < 0:
+            each.append(trans.pull_operator(slots, np.zeros(0, np.int64)).apply(np.zeros(0),
+                                                                                sink))
+            continue
+        op = trans.pull_operator(slots, nxt.parts[j][1])
+        pos, lik = nxt.hits_in_parts()[j]
+        if pos.size and op.m_sel.size:
+            e = np.ones(len(nxt.parts[j][1]))
+            e[pos] = lik
+            op.weigh_targets(e)
+        each.append(op.apply(beta[starts[j]: starts[j + 1]], sink))
     want = np.concatenate(each) if each else np.zeros(0)
     np.testing.assert_array_equal(backward_operator(now, nxt).pull.apply(beta, sink), want)
 
