@@ -391,26 +391,29 @@ class SprintFilter:
 
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
         """(component, slot) of every hit, activating the components not yet active."""
-        locate = self._active.locate
-        found = [locate(v) for v in vids]
+        active = self._active
+        if len(vids) >= MANY_HITS:
+            def locate_all(ids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
+                return active.locate_each(np.asarray(ids, dtype=np.int64))
+        else:
+            def locate_all(ids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
+                return [active.locate(v) for v in ids]
+        found = locate_all(vids)
         if None not in found:
             return found  # type: ignore[return-value]
-        active = self._active
-        missing = [v for v, f in zip(vids, found, strict=True) if f is None]
+        at = [i for i, f in enumerate(found) if f is None]
+        missing = [vids[i] for i in at]
         added = self._activate(np.asarray(missing, dtype=np.int64))
         try:
-            out: list[tuple[ActiveComponent, int]] = []
-            for v, f in zip(vids, found, strict=True):
+            for i, v, f in zip(at, missing, locate_all(missing), strict=True):
                 if f is None:
-                    f = locate(v)
-                    if f is None:
-                        raise ValueError(f"vertex {v} is not in the component the source named")
-                out.append(f)
+                    raise ValueError(f"vertex {v} is not in the component the source named")
+                found[i] = f
         except BaseException:
             for cid in added:  # a failed frame leaves the active set as it was
                 active.remove(cid)
             raise
-        return out
+        return found  # type: ignore[return-value]
 
     def transition(self, component_id: int) -> ComponentTransition:
         """The transition of a component, as the filter propagates it (through the cache; its

@@ -117,7 +117,7 @@ def test_many_hits_injected_at_once_give_the_same_floats(data: st.DataObject) ->
 @settings(max_examples=100, deadline=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(data=st.data())
-def test_locate_many_agrees_with_locate(data: st.DataObject) -> None:
+def test_locate_many_and_each_agree_with_locate(data: st.DataObject) -> None:
     lengths, edges = data.draw(maps())
     f = SprintFilter(HMMConfig(), MemoryGraphSource(lengths, edges))
     n = sum(lengths)
@@ -127,6 +127,7 @@ def test_locate_many_agrees_with_locate(data: st.DataObject) -> None:
     ids = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=12, unique=True)),
                    dtype=np.int64)
     one = [active.locate(int(v)) for v in ids]
+    assert active.locate_each(ids) == one
     many = active.locate_many(ids)
     if any(found is None for found in one):
         assert many is None
