@@ -91,9 +91,8 @@ class FrameBelief:
     hit_lik: list[float]
     sink_lik: float
     ruled_out: frozenset[int] = frozenset()
-    #: Per part: the positions (ascending) of its slots that hold a hit, and their likelihood
-    #: ratios; made on first use by :func:`backward_step` (None until then).
-    hit_layout: list[tuple[np.ndarray, np.ndarray]] | None = None
+    #: :meth:`held_hits`, made on first use (None until then).
+    hit_layout: tuple[np.ndarray, np.ndarray] | None = None
     #: The backward step's operator from the next frame onto this one, when kept
     #: (:func:`backward_step` with ``keep``; :func:`backward_operator`).
     pulls: BackwardOperator | None = None
@@ -111,26 +110,51 @@ class FrameBelief:
             self.part_starts = out
         return self.part_starts
 
-    def hits_in_parts(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Where this frame's hits sit in its parts: per part, the positions (ascending) in
-        its ``slots`` whose vertex is a hit, and their likelihood ratios (cached; O(live log k)
-        once)."""
+    def held_hits(self) -> tuple[np.ndarray, np.ndarray]:
+        """The hits this frame's parts hold: their positions in the parts' slots laid end to
+        end (ascending) and their likelihood ratios (cached; O(hits log live + parts) once,
+        plus O(hits log S) for a part of S > 1 sequences)."""
         if self.hit_layout is None:
-            layout = []
-            if self.hit_ids:
-                order = np.argsort(np.asarray(self.hit_ids, dtype=np.int64), kind="stable")
-                ids = np.asarray(self.hit_ids, dtype=np.int64)[order]
-                liks = np.asarray(self.hit_lik, dtype=np.float64)[order]
-            for trans, slots, _ in self.parts:
-                if not self.hit_ids or not slots.size:
-                    layout.append((_EMPTY_SLOTS, _EMPTY_VALS))
-                    continue
-                vids = trans.vertex_of_slots(slots)
-                at = np.minimum(ids.searchsorted(vids), len(ids) - 1)
-                pos = (ids[at] == vids).nonzero()[0]
-                layout.append((pos, liks[at[pos]]))
-            self.hit_layout = layout
+            self.hit_layout = _held_hits(self.parts, self.hit_ids, self.hit_lik)
         return self.hit_layout
+
+
+def _held_hits(parts: Parts, hit_ids: list[int], hit_lik: list[float]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`FrameBelief.held_hits`: each part's slots offset into one slot space (a part
+    after the slots of those before it), every hit's slot found there, then its position."""
+    if not hit_ids or not parts:
+        return _EMPTY_SLOTS, _EMPTY_VALS
+    ids = np.asarray(hit_ids, dtype=np.int64)
+    where = np.full(ids.size, -1, dtype=np.int64)  # each hit's slot in the one space
+    offset = 0
+    spaced: list[np.ndarray] = []
+    lone: list[tuple[int, int, int]] = []  # one-sequence parts: (first vertex, end, slot 0)
+    for trans, slots, _ in parts:
+        spaced.append(slots + offset if offset else slots)
+        if len(trans.ranges) == 1:
+            first, length, slot = trans.ranges[0]
+            lone.append((first, first + length, slot + offset))
+        else:
+            graph = trans.graph
+            seq = graph.seq_index(ids)
+            at = (seq >= 0).nonzero()[0]
+            where[at] = trans.slot_first[seq[at]] + ids[at] - graph.seq_first[seq[at]] + offset
+        offset += trans.n_slots
+    if lone:
+        firsts, ends, slot0 = np.array(sorted(lone), dtype=np.int64).T
+        r = np.maximum(firsts.searchsorted(ids, "right") - 1, 0)
+        inside = ((ids >= firsts[r]) & (ids < ends[r])).nonzero()[0]
+        where[inside] = ids[inside] - firsts[r[inside]] + slot0[r[inside]]
+    live = np.concatenate(spaced) if len(spaced) > 1 else spaced[0]
+    hit = (where >= 0).nonzero()[0]
+    if not live.size or not hit.size:
+        return _EMPTY_SLOTS, _EMPTY_VALS
+    pos = np.minimum(live.searchsorted(where[hit]), live.size - 1)
+    held = live[pos] == where[hit]
+    pos, hit = pos[held], hit[held]
+    order = np.argsort(pos)
+    return pos[order], np.asarray(hit_lik, dtype=np.float64)[hit[order]]
 
 
 class ForwardBackward:
@@ -322,15 +346,7 @@ def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
     O(live W + live log live)."""
     pull = parts_pull_operator([(trans, slots) for trans, slots, _ in now.parts],
                                [(trans, slots) for trans, slots, _ in nxt.parts])
-    held = [(pos + start, lik) for (pos, lik), start
-            in zip(nxt.hits_in_parts(), nxt.starts(), strict=False) if pos.size]
-    if len(held) == 1:
-        hit_pos, hit_lik = held[0]
-    elif held:
-        hit_pos = np.concatenate([pos for pos, _ in held])
-        hit_lik = np.concatenate([lik for _, lik in held])
-    else:
-        hit_pos, hit_lik = _EMPTY_SLOTS, _EMPTY_VALS
+    hit_pos, hit_lik = nxt.held_hits()
     if hit_pos.size and pull.m_sel.size:
         e = np.ones(nxt.starts()[-1])
         e[hit_pos] = hit_lik

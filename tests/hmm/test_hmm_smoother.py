@@ -238,15 +238,29 @@ def test_the_backward_operator_is_every_parts_operator_at_once(data: st.DataObje
             each.append(trans.pull_operator(slots, np.zeros(0, np.int64)).apply(np.zeros(0),
                                                                                 sink))
             continue
-        op = trans.pull_operator(slots, nxt.parts[j][1])
-        pos, lik = nxt.hits_in_parts()[j]
-        if pos.size and op.m_sel.size:
-            e = np.ones(len(nxt.parts[j][1]))
-            e[pos] = lik
+        m_trans, m_slots, _ = nxt.parts[j]
+        op = trans.pull_operator(slots, m_slots)
+        lik = dict(zip(nxt.hit_ids, nxt.hit_lik, strict=True))
+        e = np.array([lik.get(v, 1.0) for v in m_trans.vertex_of_slots(m_slots).tolist()])
+        if (e != 1.0).any() and op.m_sel.size:
             op.weigh_targets(e)
         each.append(op.apply(beta[starts[j]: starts[j + 1]], sink))
     want = np.concatenate(each) if each else np.zeros(0)
     np.testing.assert_array_equal(backward_operator(now, nxt).pull.apply(beta, sink), want)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_held_hits_are_the_slots_whose_vertex_is_a_hit(data: st.DataObject) -> None:
+    """:meth:`FrameBelief.held_hits`: every position of the parts laid end to end whose
+    vertex is one of the frame's hits, ascending, with that hit's likelihood ratio."""
+    _, fb = forwarded(data, 6)
+    for frame in fb.frames:
+        lik = dict(zip(frame.hit_ids, frame.hit_lik, strict=True))
+        vids = [v for trans, slots, _ in frame.parts for v in trans.vertex_of_slots(slots).tolist()]
+        pos, got = frame.held_hits()
+        assert pos.tolist() == [p for p, v in enumerate(vids) if v in lik]
+        assert got.tolist() == [lik[vids[p]] for p in pos.tolist()]
 
 
 @SETTINGS
