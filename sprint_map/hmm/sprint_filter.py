@@ -29,8 +29,10 @@ O(n_c + E_c log E_c) set-up.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Iterable, ValuesView
+from operator import attrgetter
 
 import numpy as np
 
@@ -43,7 +45,7 @@ from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.support import TRIM_EVERY, runs
 from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, ComponentTransition
 
-__all__ = ["MANY_HITS", "RESCALE_AT", "SprintFilter", "TRANSITION_MEMO", "inject_many"]
+__all__ = ["BEAM_AHEAD", "MANY_HITS", "RESCALE_AT", "SprintFilter", "TRANSITION_MEMO", "inject_many"]
 
 #: Lazy normalisation: the raw belief is rescaled in place when its normaliser leaves
 #: [1 / RESCALE_AT, RESCALE_AT] (a frame's likelihood ratios are at most e**200 ~ 1e87, so raw
@@ -56,6 +58,22 @@ TRANSITION_MEMO = 32
 #: (:func:`inject_many`; the deep searches of the lag and the smoothing pass); fewer, hit by
 #: hit in Python (cheaper for a handful). The same floats either way.
 MANY_HITS = 16
+#: A component met by a frame's hits is not activated when the beam
+#: (``max_active_components``) would drop it at the end of that frame anyway: only its mass
+#: counts in the frame's sums. The same floats either way (tests turn it off to compare).
+BEAM_AHEAD = True
+
+
+class _Beamed:
+    """A component the beam drops in the frame that meets it: only its mass."""
+
+    __slots__ = ("mass",)
+
+    def __init__(self, mass: float) -> None:
+        self.mass = mass
+
+
+_mass = attrgetter("mass")
 
 
 class SprintFilter:
@@ -322,9 +340,13 @@ class SprintFilter:
     def _update_any(self, vids: list[int], liks: list[float], sink_lik: float) -> None:
         """:meth:`update` for any frame: the general path (the one-hit path is inline there)."""
         n_hits = len(vids)
-        # Locate (and activate) before touching the belief: a bad hit leaves the state intact.
+        # Locate (and load what to activate) before touching the belief: a bad hit leaves the
+        # state intact.
         groups = self._active.locate_many(np.asarray(vids)) if n_hits >= MANY_HITS else None
-        located = self._locate(vids) if n_hits and groups is None else []
+        located: list[tuple[ActiveComponent, int] | None] = []
+        fresh: list[tuple[ComponentTransition, list[int], list[int]]] = []
+        if n_hits and groups is None:
+            located, fresh = self._locate_known(vids)
         comps = self._active.comps
         n_prop = 0
         if self._started:
@@ -357,7 +379,10 @@ class SprintFilter:
         if groups is not None:
             inject_many(groups, np.asarray(liks, dtype=np.float64), inject)
         else:
-            for (comp, slot), lik in zip(located, liks, strict=True):
+            for found, lik in zip(located, liks, strict=True):
+                if found is None:
+                    continue  # (a hit of a component activated below)
+                comp, slot = found
                 x = comp.x
                 old = x.item(slot)
                 new = (old + inject) * lik
@@ -367,8 +392,88 @@ class SprintFilter:
                 # restart mass).
                 if comp.n_windows != 1 or not comp.a <= slot < comp.b:
                     comp.pending.append(slot)
-        self._finish(sink * sink_lik)
+        entries = self._activate_fresh(fresh, liks, inject) if fresh else None
+        self._finish(sink * sink_lik, entries)
         self.frames += 1
+
+    def _locate_known(self, vids: list[int]) -> tuple[
+            list[tuple[ActiveComponent, int] | None],
+            list[tuple[ComponentTransition, list[int], list[int]]]]:
+        """(component, slot) of every hit an active component holds (None for the others),
+        and the components of the others to activate: their transitions (loaded now), the
+        positions of their hits (in hit order) and the slots of those hits, in the order
+        :meth:`_locate` activates them. Raises before anything changes for a hit the source
+        does not know or does not place where it says."""
+        found = self._locate_all(vids)
+        if None not in found:
+            return found, []
+        active = self._active
+        at = [i for i, f in enumerate(found) if f is None]
+        comp_ids = np.asarray(self.source.components_of(np.asarray([vids[i] for i in at],
+                                                                   dtype=np.int64)))
+        if comp_ids.shape != (len(at),):
+            raise ValueError("graph source returned a wrong number of component ids")
+        hits: dict[int, list[int]] = {}
+        for i, cid in zip(at, comp_ids.tolist(), strict=True):
+            if cid in active:
+                raise ValueError(f"vertex {vids[i]} is not in the component the source named")
+            hits.setdefault(cid, []).append(i)
+        fresh = []
+        for cid, mine in hits.items():
+            trans = self._transition(int(cid))
+            ids = [vids[i] for i in mine]
+            if len(trans.ranges) == 1:
+                first, length, _ = trans.ranges[0]
+                if not all(first <= v < first + length for v in ids):
+                    raise ValueError(f"a vertex of {ids} is not in the component the source "
+                                     "named")
+                slots = [v - first for v in ids]
+            else:
+                try:
+                    slots = trans.slots_of(np.asarray(ids, dtype=np.int64)).tolist()
+                except ValueError:
+                    raise ValueError(f"a vertex of {ids} is not in the component the source "
+                                     "named") from None
+            fresh.append((trans, mine, slots))
+        return found, fresh
+
+    def _activate_fresh(self, fresh: list[tuple[ComponentTransition, list[int], list[int]]],
+                        liks: list[float], inject: float) -> list[ActiveComponent | _Beamed] | None:
+        """Activate the components of :meth:`_locate_known` and inject their hits, as if they
+        had been active with no belief, except those the beam would drop at the end of this
+        step anyway (at least ``max_active_components`` others hold more mass): only their
+        masses are kept (``_Beamed``). Returns the step's components and those masses in
+        the order :meth:`_finish` sums them, or None when none was left out."""
+        masses = []
+        for _, mine, _ in fresh:
+            mass = 0.0  # (a fresh component's hit becomes (0 + inject) * lik; in hit order)
+            for i in mine:
+                mass += inject * liks[i]
+            masses.append(mass)
+        cap = self._max_active
+        comps = self._active.comps
+        if cap and BEAM_AHEAD and len(comps) + len(fresh) > cap:
+            ranked = sorted([c.mass for c in comps.values()] + masses)
+            drop = [len(ranked) - bisect_right(ranked, m) >= cap for m in masses]
+        else:
+            drop = [False] * len(fresh)
+        entries: list[ActiveComponent | _Beamed] | None = list(comps.values()) if any(drop) \
+            else None
+        for (trans, mine, slots), mass, dropped in zip(fresh, masses, drop, strict=True):
+            if dropped:
+                entries.append(_Beamed(mass))  # type: ignore[union-attr]
+                continue
+            comp = self._active.add(trans)
+            x = comp.x
+            for slot, i in zip(slots, mine, strict=True):  # (the loop of _update_any)
+                old = x.item(slot)
+                new = (old + inject) * liks[i]
+                x[slot] = new
+                comp.mass += new - old
+                comp.pending.append(slot)  # (it has no window yet)
+            if entries is not None:
+                entries.append(comp)
+        return entries
 
     def _activate(self, missing: np.ndarray) -> list[int]:
         """Activate the components of the ``missing`` vertices, in the order they first appear
@@ -389,15 +494,17 @@ class SprintFilter:
             raise
         return added
 
+    def _locate_all(self, vids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
+        """:meth:`ActiveSet.locate` of each hit (in one search for many)."""
+        active = self._active
+        if len(vids) >= MANY_HITS:
+            return active.locate_each(np.asarray(vids, dtype=np.int64))
+        return [active.locate(v) for v in vids]
+
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
         """(component, slot) of every hit, activating the components not yet active."""
         active = self._active
-        if len(vids) >= MANY_HITS:
-            def locate_all(ids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
-                return active.locate_each(np.asarray(ids, dtype=np.int64))
-        else:
-            def locate_all(ids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
-                return [active.locate(v) for v in ids]
+        locate_all = self._locate_all
         found = locate_all(vids)
         if None not in found:
             return found  # type: ignore[return-value]
@@ -433,7 +540,8 @@ class SprintFilter:
             memo.popitem(last=False)
         return trans
 
-    def _finish(self, sink: float) -> None:
+    def _finish(self, sink: float, entries: list[ActiveComponent | _Beamed] | None = None
+                ) -> None:
         """Prune components, trim windows, normalise (raw belief in, lazy normaliser out).
 
         Components below ``prune_threshold`` of the total are dropped first; then (every
@@ -443,9 +551,12 @@ class SprintFilter:
         """
         active = self._active
         comps = active.comps
+        # (the step's components in the order they were activated, those left out included)
+        ring: list[ActiveComponent | _Beamed] | ValuesView[ActiveComponent] = \
+            comps.values() if entries is None else entries
         total = sink
         low = math.inf
-        for comp in comps.values():
+        for comp in ring:
             mass = comp.mass
             total += mass
             if mass < low:
@@ -459,19 +570,23 @@ class SprintFilter:
         pruned = 0.0
         if low < self._prune * total:
             limit = self._prune * total
-            for cid in [cid for cid, comp in comps.items() if comp.mass < limit]:
-                pruned += comps[cid].mass
-                active.remove(cid)
-            total = sink + sum(c.mass for c in comps.values())
+            for comp in [c for c in ring if c.mass < limit]:
+                pruned += comp.mass
+                if isinstance(comp, ActiveComponent):
+                    active.remove(comp.component_id)
+            if entries is not None:
+                ring = [c for c in entries if not c.mass < limit]
+            total = sink + sum(c.mass for c in ring)
         cap = self._max_active
-        if cap and len(comps) > cap:
+        if cap and len(ring) > cap:
             # A beam over components: only the ``cap`` most massive stay active, so a frame
             # costs O(cap) components whatever the number of drives whose hits it meets (many
             # unmerged drives of the same streets would otherwise each keep a window alive).
-            order = sorted(comps, key=lambda c: comps[c].mass, reverse=True)
-            for cid in order[cap:]:
-                pruned += comps[cid].mass
-                active.remove(cid)
+            order = sorted(ring, key=_mass, reverse=True)
+            for comp in order[cap:]:
+                pruned += comp.mass
+                if isinstance(comp, ActiveComponent):
+                    active.remove(comp.component_id)
             total = sink + sum(c.mass for c in comps.values())
         # Trimming is relative to the belief left after pruning (sink included). Several
         # windows are trimmed every frame (merging new slots alone saves nothing measurable,

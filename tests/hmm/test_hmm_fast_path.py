@@ -3,12 +3,15 @@ path's array injection of many hits against its hit-by-hit loop, float for float
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from sprint_map.hmm import HMMConfig, MemoryGraphSource, SprintFilter, sprint_filter
+from sprint_map.hmm.active_set import ActiveSet
 from tests.hmm.test_hmm_equivalence import configs, maps
 
 
@@ -139,3 +142,56 @@ def test_locate_many_and_each_agree_with_locate(data: st.DataObject) -> None:
         for slot, i in zip(slots.tolist(), at.tolist(), strict=True):
             got[i] = (comp, slot)
     assert got == dict(enumerate(one))
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+def test_components_the_beam_drops_at_once_are_never_activated_same_floats(
+        data: st.DataObject) -> None:
+    """A frame's hits in components the beam drops at its end anyway leave only their mass
+    (:data:`sprint_filter.BEAM_AHEAD`): the same state, float for float, as activating them,
+    whether the hits are located one by one or in one search."""
+    lengths, edges = data.draw(maps())
+    prune = data.draw(st.sampled_from([0.0, 1e-4, 0.05]))
+    config = dataclasses.replace(
+        data.draw(configs(prune, data.draw(st.sampled_from([0.0, 1e-9, 1e-3])))),
+        max_active_components=data.draw(st.integers(0, 4)))
+    source = MemoryGraphSource(lengths, edges)
+    ahead, every = SprintFilter(config, source), SprintFilter(config, source)
+    many = data.draw(st.sampled_from([1, 10**9]))
+    for ids, dists in data.draw(deep_drives(sum(lengths))):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(sprint_filter, "MANY_HITS", many)
+            ahead.update(ids, dists)
+            patch.setattr(sprint_filter, "BEAM_AHEAD", False)
+            every.update(ids, dists)
+        assert state(ahead) == state(every)
+
+
+def test_the_beam_leaves_components_out_on_deep_frames(monkeypatch) -> None:
+    """Hits spread over twelve one-drive components with a beam of 2: most of the components
+    a frame meets are never activated, and the belief is the same as activating them."""
+    config = HMMConfig(max_active_components=2)
+    ahead = SprintFilter(config, MemoryGraphSource([30] * 12))
+    every = SprintFilter(config, MemoryGraphSource([30] * 12))
+    added = {id(ahead): 0, id(every): 0}
+    real_add = ActiveSet.add
+
+    def add(self, trans):
+        added[id(ahead) if self is ahead._active else id(every)] += 1  # noqa: SLF001
+        return real_add(self, trans)
+
+    monkeypatch.setattr(ActiveSet, "add", add)
+    rng = np.random.default_rng(3)
+    for t in range(20):
+        ids = np.unique(np.concatenate(([t], rng.integers(0, 360, 30))))
+        dists = rng.uniform(0.0, 2.0, ids.size)
+        dists[ids == t] = 0.0
+        ahead.update(ids, dists)
+        monkeypatch.setattr(sprint_filter, "BEAM_AHEAD", False)
+        every.update(ids, dists)
+        monkeypatch.setattr(sprint_filter, "BEAM_AHEAD", True)
+        assert state(ahead) == state(every)
+    assert added[id(every)] > 100  # (each frame meets nearly all twelve)
+    assert added[id(ahead)] < added[id(every)] / 3
