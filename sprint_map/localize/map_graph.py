@@ -36,7 +36,9 @@ class MapGraphSource:
     Notes
     -----
     ``components_of`` costs one LMDB cursor seek per vertex and one union-find walk and one
-    sequence read per distinct sequence: O(k log n_sequences) per frame for k hits. Removed
+    sequence read per distinct sequence: O(k log n_sequences) per frame for k hits. Inside
+    :meth:`pinned` the sequences already read at that map version answer from memory
+    (:class:`KnownSequences`), so a drive pays the LMDB reads once per sequence it meets. Removed
     sequences are invisible: their records, edges and component memberships are gone, and the
     store's search never returns their vertices. ``load_component`` costs
     O(S log n + E_c) for a component of S sequences and E_c edges.
