@@ -35,7 +35,7 @@ import scipy.sparse as sp
 
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
-from sprint_map.hmm.support import merge, merge_gap, ranges
+from sprint_map.hmm.support import insert_sorted, merge, merge_gap, ranges
 
 __all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator", "correlate",
            "full_transition_matrix", "parts_pull_operator", "window_kernel"]
@@ -429,7 +429,7 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
                      + base.get(trans.graph.component_id, -trans.n_slots - width)
                      for trans, m_slots in targets]) if targets else EMPTY_IDS
     slots_all = _concat(src)
-    origin = slots_all if not e_origins else np.unique(np.concatenate(src + e_origins))
+    origin = slots_all if not e_origins else insert_sorted(slots_all, _concat(e_origins))
     size, lo, hi, shift, place = _window_layout(origin, width)
     src_place, e_place = place, EMPTY_IDS
     if e_origins:
