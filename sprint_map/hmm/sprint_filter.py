@@ -457,11 +457,10 @@ class SprintFilter:
             drop = [len(ranked) - bisect_right(ranked, m) >= cap for m in masses]
         else:
             drop = [False] * len(fresh)
-        entries: list[ActiveComponent | _Beamed] | None = list(comps.values()) if any(drop) \
-            else None
+        entries: list[ActiveComponent | _Beamed] = list(comps.values())
         for (trans, mine, slots), mass, dropped in zip(fresh, masses, drop, strict=True):
             if dropped:
-                entries.append(_Beamed(mass))  # type: ignore[union-attr]
+                entries.append(_Beamed(mass))
                 continue
             comp = self._active.add(trans)
             x = comp.x
@@ -471,9 +470,8 @@ class SprintFilter:
                 x[slot] = new
                 comp.mass += new - old
                 comp.pending.append(slot)  # (it has no window yet)
-            if entries is not None:
-                entries.append(comp)
-        return entries
+            entries.append(comp)
+        return entries if any(drop) else None
 
     def _activate(self, missing: np.ndarray) -> list[int]:
         """Activate the components of the ``missing`` vertices, in the order they first appear
@@ -547,7 +545,9 @@ class SprintFilter:
         Components below ``prune_threshold`` of the total are dropped first; then (every
         ``TRIM_EVERY`` frames) slots below ``support_threshold`` of what is left are trimmed
         from the windows. The normaliser ``z`` becomes one over what remains. Both dropped
-        masses are recorded as shares of the step's total.
+        masses are recorded as shares of the step's total. ``entries``: the step's components
+        in activation order with the masses of those never activated in their places
+        (:meth:`_activate_fresh`), which the beam drops; None: the active ones.
         """
         active = self._active
         comps = active.comps
