@@ -136,10 +136,8 @@ def _held_hits(parts: Parts, hit_ids: list[int], hit_lik: list[float]
             first, length, slot = trans.ranges[0]
             lone.append((first, first + length, slot + offset))
         else:
-            graph = trans.graph
-            seq = graph.seq_index(ids)
-            at = (seq >= 0).nonzero()[0]
-            where[at] = trans.slot_first[seq[at]] + ids[at] - graph.seq_first[seq[at]] + offset
+            at, held = trans.held_slots(ids)
+            where[at] = held + offset
         offset += trans.n_slots
     if lone:
         firsts, ends, slot0 = np.array(sorted(lone), dtype=np.int64).T
@@ -297,9 +295,10 @@ def backward_step(config: HMMConfig, now: FrameBelief, nxt: FrameBelief, beta: n
 
     Notes
     -----
-    Building the operator is O(live W + live log live) per part (:meth:`ComponentTransition.
-    pull_operator`), what a forward step costs; applying it O(live W): one correlation over
-    the parts' windows laid end to end. Nothing is sized by the map.
+    Building the operator is O(live W + live log live) for all the parts at once
+    (:func:`~sprint_map.hmm.transition.parts_pull_operator`), what a forward step costs;
+    applying it O(live W): one correlation over the parts' windows laid end to end. Nothing
+    is sized by the map.
     """
     eps, nu = config.restart_prob, config.new_place_prob
     op = now.pulls

@@ -404,10 +404,11 @@ class SprintFilter:
         positions of their hits (in hit order) and the slots of those hits, in the order
         :meth:`_locate` activates them. Raises before anything changes for a hit the source
         does not know or does not place where it says."""
-        found = self._locate_all(vids)
+        active = self._active
+        found = (active.locate_each(np.asarray(vids, dtype=np.int64)) if len(vids) >= MANY_HITS
+                 else [active.locate(v) for v in vids])
         if None not in found:
             return found, []
-        active = self._active
         at = [i for i, f in enumerate(found) if f is None]
         comp_ids = np.asarray(self.source.components_of(np.asarray([vids[i] for i in at],
                                                                    dtype=np.int64)))
@@ -429,11 +430,11 @@ class SprintFilter:
                                      "named")
                 slots = [v - first for v in ids]
             else:
-                try:
-                    slots = trans.slots_of(np.asarray(ids, dtype=np.int64)).tolist()
-                except ValueError:
+                held, found_slots = trans.held_slots(np.asarray(ids, dtype=np.int64))
+                if held.size != len(ids):
                     raise ValueError(f"a vertex of {ids} is not in the component the source "
-                                     "named") from None
+                                     "named")
+                slots = found_slots.tolist()
             fresh.append((trans, mine, slots))
         return found, fresh
 
@@ -492,25 +493,19 @@ class SprintFilter:
             raise
         return added
 
-    def _locate_all(self, vids: list[int]) -> list[tuple[ActiveComponent, int] | None]:
-        """:meth:`ActiveSet.locate` of each hit (in one search for many)."""
-        active = self._active
-        if len(vids) >= MANY_HITS:
-            return active.locate_each(np.asarray(vids, dtype=np.int64))
-        return [active.locate(v) for v in vids]
-
     def _locate(self, vids: list[int]) -> list[tuple[ActiveComponent, int]]:
-        """(component, slot) of every hit, activating the components not yet active."""
+        """(component, slot) of every hit, activating the components not yet active (the
+        one-hit path of :meth:`update`; the general path is :meth:`_locate_known`)."""
         active = self._active
-        locate_all = self._locate_all
-        found = locate_all(vids)
+        found = [active.locate(v) for v in vids]
         if None not in found:
             return found  # type: ignore[return-value]
         at = [i for i, f in enumerate(found) if f is None]
         missing = [vids[i] for i in at]
         added = self._activate(np.asarray(missing, dtype=np.int64))
         try:
-            for i, v, f in zip(at, missing, locate_all(missing), strict=True):
+            for i, v in zip(at, missing, strict=True):
+                f = active.locate(v)
                 if f is None:
                     raise ValueError(f"vertex {v} is not in the component the source named")
                 found[i] = f

@@ -169,12 +169,20 @@ class ComponentTransition:
 
     def slots_of(self, vertex_ids: np.ndarray) -> np.ndarray:
         """Belief slot of each global vertex id of this component (O(m log S))."""
+        at, slots = self.held_slots(vertex_ids)
+        if at.size != np.size(vertex_ids):
+            raise ValueError(f"vertex ids not in component {self.graph.component_id}")
+        return slots
+
+    def held_slots(self, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The positions in ``vertex_ids`` of those this component holds, and their belief
+        slots (O(m log S))."""
         vids = np.asarray(vertex_ids, dtype=_I64)
         seq = self.graph.seq_index(vids)
-        if seq.size and seq.min() < 0:
-            raise ValueError(f"vertex ids not in component {self.graph.component_id}")
-        out: np.ndarray = self.slot_first[seq] + (vids - self.graph.seq_first[seq])
-        return out
+        at = (seq >= 0).nonzero()[0]
+        seq = seq[at]
+        slots: np.ndarray = self.slot_first[seq] + (vids[at] - self.graph.seq_first[seq])
+        return at, slots
 
     def vertex_slots(self) -> np.ndarray:
         """Slots of all vertices, in compact local order (O(n_vertices))."""
@@ -429,12 +437,13 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
                      + base.get(trans.graph.component_id, -trans.n_slots - width)
                      for trans, m_slots in targets]) if targets else EMPTY_IDS
     slots_all = _concat(src)
-    origin = slots_all if not e_origins else insert_sorted(slots_all, _concat(e_origins))
+    e_all = _concat(e_origins) if e_origins else EMPTY_IDS
+    origin = slots_all if not e_all.size else insert_sorted(slots_all, e_all)
     size, lo, hi, shift, place = _window_layout(origin, width)
     src_place, e_place = place, EMPTY_IDS
-    if e_origins:
+    if e_all.size:
         src_place = place[origin.searchsorted(slots_all)]
-        e_place = place[origin.searchsorted(np.concatenate(e_origins))]
+        e_place = place[origin.searchsorted(e_all)]
     m_sel, m_place = EMPTY_IDS, EMPTY_IDS
     if size and m_all.size:
         block = lo.searchsorted(m_all, "right") - 1

@@ -238,9 +238,9 @@ class KnownSequences:
             rows = np.array(sorted(self._rows), dtype=np.int64).reshape(-1, 3)
             self._arrays = (rows[:, 0].copy(), rows[:, 1].copy(), rows[:, 2].copy())
         firsts, lasts, roots = self._arrays
+        if not firsts.size:
+            return np.empty(len(ids), dtype=np.int64), np.ones(len(ids), dtype=bool)
         at = firsts.searchsorted(ids, "right") - 1
         safe = np.maximum(at, 0)
-        missing: np.ndarray = (at < 0) | (ids > lasts[safe]) if len(firsts) else \
-            np.ones(len(ids), dtype=bool)
-        out = roots[safe] if len(firsts) else np.empty(len(ids), dtype=np.int64)
-        return out, missing
+        missing: np.ndarray = (at < 0) | (ids > lasts[safe])
+        return roots[safe], missing
