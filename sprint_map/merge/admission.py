@@ -10,7 +10,9 @@ when
    from the frame to the nearest of the decided vertex and its neighbours (``±2`` images) is at
    most ``max_step_ratio`` times the drive's own median squared distance between consecutive
    frames (how much the view changes from one frame to the next: a scale of "alike" that each
-   drive brings, whatever the descriptor).
+   drive brings, whatever the descriptor); or a view joined to those by an edge is a copy of
+   the frame itself, closer than :data:`COPY_STEPS` of those steps (the drive ingested again,
+   its place decided on an older drive's views).
 
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
 localise confidently, and a known place seen under an appearance the map does not hold (merged
@@ -50,11 +52,15 @@ import numpy as np
 from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
 
-__all__ = ["ADMISSION_MODES", "Admission", "AdmissionPlan", "drive_step", "place_distances",
-           "plan_admission", "runs", "smooth_stored", "stored_frames"]
+__all__ = ["ADMISSION_MODES", "COPY_STEPS", "Admission", "AdmissionPlan", "drive_step",
+           "place_distances", "plan_admission", "runs", "smooth_stored", "stored_frames"]
 
 #: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
 ADMISSION_MODES = ("all", "novel")
+
+#: A view of the map closer to a frame than this many of its drive's (squared) steps is a stored
+#: copy of the frame.
+COPY_STEPS = 0.1
 
 
 @dataclass(frozen=True)
@@ -209,25 +215,42 @@ def drive_step(rows: np.ndarray) -> float:
 
 def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged: np.ndarray,
                     read: Callable[[int, int, int], np.ndarray], lengths: Callable[[int], int],
-                    radius: int = 2) -> np.ndarray:
+                    radius: int = 2,
+                    linked: Callable[[int, int, int], Sequence[tuple[int, int]]] | None = None,
+                    copy_limit: float = 0.0) -> np.ndarray:
     """Each merged frame's squared distance to the nearest view of its place: the decided
-    image and up to ``radius`` images either side on its sequence (inf for the other frames).
-    ``read(seq_id, start, stop)`` gives stored rows, ``lengths(seq_id)`` a sequence's length
-    (0 for one no longer in the map).
+    image and up to ``radius`` images either side on its sequence, or, closer than
+    ``copy_limit``, a copy of the frame among the images around those that ``linked`` joins
+    to them by an edge (inf for the other frames). ``read(seq_id, start, stop)`` gives stored
+    rows, ``lengths(seq_id)`` a sequence's length (0 for one no longer in the map),
+    ``linked(seq_id, start, stop)`` the ``(seq_id, image_id)`` joined by an edge to images
+    ``start .. stop - 1``.
 
     Notes
     -----
-    O(m * (2 radius + 1) * dim) for m merged frames, plus the reads.
+    O(m * (1 + e) * (2 radius + 1) * dim) for m merged frames with e linked images each, plus
+    the reads.
     """
     out = np.full(len(decisions), np.inf)
+
+    def nearest(i: int, seq_id: int, image_id: int) -> float:
+        lo, hi = max(0, image_id - radius), min(lengths(seq_id), image_id + radius + 1)
+        if hi <= lo:  # a sequence removed since the drive was localised
+            return math.inf
+        views = np.asarray(read(seq_id, lo, hi), dtype=np.float32) - rows[i]
+        return float(np.einsum("ij,ij->i", views, views).min())
+
     for i, d in enumerate(decisions):
         if not merged[i] or d.seq_id is None or d.image_id is None:
             continue
-        lo, hi = max(0, d.image_id - radius), min(lengths(d.seq_id), d.image_id + radius + 1)
-        if hi <= lo:  # a sequence removed since the drive was localised
+        out[i] = nearest(i, d.seq_id, d.image_id)
+        if linked is None or out[i] <= copy_limit or math.isinf(out[i]):
             continue
-        views = np.asarray(read(d.seq_id, lo, hi), dtype=np.float32) - rows[i]
-        out[i] = float(np.einsum("ij,ij->i", views, views).min())
+        for seq_id, image_id in linked(d.seq_id, max(0, d.image_id - radius),
+                                       d.image_id + radius + 1):
+            if (near := nearest(i, seq_id, image_id)) <= copy_limit:
+                out[i] = near
+                break
     return out
 
 

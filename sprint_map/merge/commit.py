@@ -27,6 +27,7 @@ are truncated away and nothing is half-visible.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -36,6 +37,7 @@ import numpy as np
 
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.merge.admission import (
+    COPY_STEPS,
     Admission,
     AdmissionPlan,
     drive_step,
@@ -206,8 +208,10 @@ class DriveWriter:
 
     def _place_distances(self, rows: np.ndarray, decisions: Sequence[FrameDecision],
                          merged: np.ndarray) -> tuple[np.ndarray, float]:
-        """Each merged frame's squared distance to its place's stored views, and the drive's
-        step (:func:`sprint_map.merge.admission.place_distances`). O(m * dim) reads."""
+        """Each merged frame's squared distance to its place's stored views (or to a copy of
+        the frame one edge away), and the drive's step
+        (:func:`sprint_map.merge.admission.place_distances`). O(m * dim) reads, and one edge
+        range read per merged frame not within a copy's distance of its decided place."""
         store = self._writer.store
         total = store.counter("next_vertex_id")
         lengths: dict[int, tuple[int, int]] = {}
@@ -225,8 +229,18 @@ class DriveWriter:
             first = span(seq_id)[0]
             return store.shards.rows(first + start, first + stop, total)
 
-        return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1]),
-                drive_step(rows))
+        def linked(seq_id: int, start: int, stop: int) -> list[tuple[int, int]]:
+            first, length = span(seq_id)
+            ends = {e.dst for e in store.edges_from(first + start, first + min(stop, length) - 1)}
+            try:
+                return store.locate(sorted(ends))
+            except UnknownSequenceError:  # an end removed meanwhile: no copy looked for
+                return []
+
+        step = drive_step(rows)
+        copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
+        return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
+                                linked=linked, copy_limit=copy_limit), step)
 
     def commit(
         self,

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Container, Sequence
+from collections.abc import Callable, Container, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, Self
 
@@ -105,6 +105,12 @@ class WritableMap(Protocol):
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
 
     def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord: ...
+
+    def locate(self, vertex_ids: Iterable[int], txn: lmdb.Transaction | None = None
+               ) -> list[tuple[int, int]]: ...
+
+    def edges_from(self, first: int, last: int, txn: lmdb.Transaction | None = None
+                   ) -> list[EdgeRecord]: ...
 
     def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None: ...
 

@@ -151,6 +151,29 @@ def test_drive_step_and_place_distances():
     assert np.isinf(gone).all()
 
 
+def test_a_copy_of_the_frame_one_edge_from_its_place_counts_as_its_place():
+    rows = np.array([[0.0, 0.0], [4.0, 0.0]], dtype=np.float32)
+    stored = {0: np.array([[3.0, 3.0], [3.0, 4.0], [3.0, 5.0]], dtype=np.float32),
+              1: np.array([[0.01, 0.0], [9.0, 9.0]], dtype=np.float32),
+              2: np.array([[4.0, 0.5]], dtype=np.float32)}
+    edges = {(0, 1): [(1, 0), (2, 0)]}  # image 1 of sequence 0 is joined to those
+
+    def linked(seq, a, b):
+        return [end for i in range(a, b) for end in edges.get((seq, i), [])]
+
+    ds = [matched(0, 1), matched(1, 1)]
+
+    def distances(limit):
+        return place_distances(rows, ds, np.ones(2, dtype=bool), lambda s, a, b: stored[s][a:b],
+                               lambda s: len(stored[s]), radius=0, linked=linked,
+                               copy_limit=limit).tolist()
+
+    # frame 0 has a copy one edge away (1e-4 <= 0.01); frame 1's linked views are no copies
+    # (0.25 is the nearer one): its place is the decided image alone
+    assert distances(0.01) == [pytest.approx(1e-4), 17.0]
+    assert distances(0.0) == [25.0, 17.0]  # no copy looked for
+
+
 @pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_step_ratio": -1.0},
                                  {"max_step_ratio": math.inf}, {"min_run": 0},
                                  {"min_run": 2.5}, {"min_skip": 0}, {"margin": -1}])
@@ -210,6 +233,26 @@ def test_a_drive_already_in_the_map_stores_nothing_and_counts_its_sightings(nove
     novel_map.ingest(rows, name="again-2")
     assert novel_map.store.sighting(0, 150).count == 2
     assert novel_map.stats()["sequences"] == 1 and novel_map.check().ok
+
+
+@pytest.mark.parametrize("dusk", ["first half", "second half"])
+def test_a_drive_stored_in_part_and_ingested_again_stores_nothing(tmp_path, dusk):
+    # Half of the drive is the mapped road at dusk (stored, merged to the road), the other half
+    # the road as the map saw it (left out). Ingested again, every frame has a copy in the map:
+    # in the drive's own stored half, or in the road.
+    rng = np.random.default_rng(0)
+    road = traverse(rng, road_places(rng, 400, DIM, corr=0.9), 0, 300, 0.3, speed=(1, 1))[0]
+    drive = unit(road + 0.01 * rng.standard_normal(road.shape))
+    dark = slice(0, 150) if dusk == "first half" else slice(150, 300)
+    drive[dark] = unit(drive[dark] + 0.8 * unit(rng.standard_normal(DIM)))
+    with SprintMap.create(tmp_path / "m.map", MapConfig(dim=DIM).replace(
+            admission={"mode": "novel"})) as m:
+        m.ingest(road, name="road")
+        first = m.ingest(drive, name="drive")
+        assert 150 <= first.frames_stored <= 170  # the dusk half and its margin
+        again = m.ingest(unit(drive + 0.01 * rng.standard_normal(drive.shape)), name="again")
+        assert again.frames_stored <= 3 and int(np.sum(again.merged)) >= 290
+        assert m.check().ok
 
 
 def test_a_detour_is_stored_stitched_and_found_by_the_next_drive(novel_map, world):
