@@ -14,6 +14,10 @@ when
    the frame itself, closer than :data:`COPY_STEPS` of those steps (the drive ingested again,
    its place decided on an older drive's views).
 
+A frame matched to a place around which (within one edge) the map holds a copy of the frame
+itself is redundant even if the rule did not merge it: storing it again adds nothing the map
+lacks (it records no sighting: its place is not certified).
+
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
 localise confidently, and a known place seen under an appearance the map does not hold (merged
 thanks to the sequence, but its views look unlike the frame). So a new condition is stored
@@ -131,14 +135,16 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
                   admission: Admission, closeness: np.ndarray | None) -> np.ndarray:
     """Which frames ``admission`` stores (bool per frame; see the module docstring):
     ``closeness`` is each frame's distance to its place in the drive's steps (NaN or inf where
-    unknown: stored). O(n)."""
+    unknown: stored; at most :data:`COPY_STEPS`: a copy of the frame, redundant merged or
+    not). O(n)."""
     n = len(decisions)
     if admission.mode == "all" or n == 0 or closeness is None:
         return np.ones(n, dtype=bool)
     matched = np.array([d.seq_id is not None for d in decisions], dtype=bool)
     with np.errstate(invalid="ignore"):
         alike = np.asarray(closeness, dtype=float) <= admission.max_step_ratio
-    return smooth_stored(np.asarray(merged, dtype=bool) & matched & alike, admission)
+        copy = np.asarray(closeness, dtype=float) <= COPY_STEPS
+    return smooth_stored(matched & ((np.asarray(merged, dtype=bool) & alike) | copy), admission)
 
 
 def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
@@ -221,15 +227,16 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
     """Each merged frame's squared distance to the nearest view of its place: the decided
     image and up to ``radius`` images either side on its sequence, or, closer than
     ``copy_limit``, a copy of the frame among the images around those that ``linked`` joins
-    to them by an edge (inf for the other frames). ``read(seq_id, start, stop)`` gives stored
+    to them by an edge; for a frame matched but not merged, the distance to such a copy only
+    (inf for the other frames). ``read(seq_id, start, stop)`` gives stored
     rows, ``lengths(seq_id)`` a sequence's length (0 for one no longer in the map),
     ``linked(seq_id, start, stop)`` the ``(seq_id, image_id)`` joined by an edge to images
     ``start .. stop - 1``.
 
     Notes
     -----
-    O(m * (1 + e) * (2 radius + 1) * dim) for m merged frames with e linked images each, plus
-    the reads.
+    O(m * (1 + e) * (2 radius + 1) * dim) for m merged (with ``copy_limit``: matched) frames
+    with e linked images each, plus the reads.
     """
     out = np.full(len(decisions), np.inf)
 
@@ -241,16 +248,17 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
         return float(np.einsum("ij,ij->i", views, views).min())
 
     for i, d in enumerate(decisions):
-        if not merged[i] or d.seq_id is None or d.image_id is None:
+        if d.seq_id is None or d.image_id is None or not (merged[i] or copy_limit > 0):
             continue
-        out[i] = nearest(i, d.seq_id, d.image_id)
-        if linked is None or out[i] <= copy_limit or math.isinf(out[i]):
-            continue
-        for seq_id, image_id in linked(d.seq_id, max(0, d.image_id - radius),
-                                       d.image_id + radius + 1):
-            if (near := nearest(i, seq_id, image_id)) <= copy_limit:
-                out[i] = near
-                break
+        near = nearest(i, d.seq_id, d.image_id)
+        if linked is not None and copy_limit < near < math.inf:
+            for seq_id, image_id in linked(d.seq_id, max(0, d.image_id - radius),
+                                           d.image_id + radius + 1):
+                if (view := nearest(i, seq_id, image_id)) <= copy_limit:
+                    near = view
+                    break
+        if merged[i] or near <= copy_limit:
+            out[i] = near
     return out
 
 

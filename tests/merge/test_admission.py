@@ -15,6 +15,7 @@ from sprint_map import MapConfig
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.merge.admission import (
+    COPY_STEPS,
     Admission,
     drive_step,
     place_distances,
@@ -133,8 +134,14 @@ def test_a_frame_the_rule_did_not_merge_is_stored():
     ds = [matched(i, i) for i in range(30)]
     merged = np.ones(30, dtype=bool)
     merged[10:20] = False  # the rule refused these: localisation is not sure there
-    assert np.flatnonzero(stored_frames(ds, merged, NOVEL, np.zeros(30))).tolist() == list(
+    alike = np.full(30, 0.5)  # within a step of their place
+    assert np.flatnonzero(stored_frames(ds, merged, NOVEL, alike)).tolist() == list(
         range(10, 20))
+    # unless the map holds a copy of the frame itself: storing it again adds nothing
+    alike[10:20] = COPY_STEPS
+    assert not stored_frames(ds, merged, NOVEL, alike).any()
+    alike[15] = np.inf  # one frame without a copy: a blip shorter than min_run, not stored
+    assert not stored_frames(ds, merged, NOVEL, alike).any()
 
 
 def test_drive_step_and_place_distances():
@@ -163,8 +170,8 @@ def test_a_copy_of_the_frame_one_edge_from_its_place_counts_as_its_place():
 
     ds = [matched(0, 1), matched(1, 1)]
 
-    def distances(limit):
-        return place_distances(rows, ds, np.ones(2, dtype=bool), lambda s, a, b: stored[s][a:b],
+    def distances(limit, merged=(True, True)):
+        return place_distances(rows, ds, np.array(merged), lambda s, a, b: stored[s][a:b],
                                lambda s: len(stored[s]), radius=0, linked=linked,
                                copy_limit=limit).tolist()
 
@@ -172,6 +179,8 @@ def test_a_copy_of_the_frame_one_edge_from_its_place_counts_as_its_place():
     # (0.25 is the nearer one): its place is the decided image alone
     assert distances(0.01) == [pytest.approx(1e-4), 17.0]
     assert distances(0.0) == [25.0, 17.0]  # no copy looked for
+    # not merged: only a copy counts
+    assert distances(0.01, merged=(False, False)) == [pytest.approx(1e-4), math.inf]
 
 
 @pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_step_ratio": -1.0},
