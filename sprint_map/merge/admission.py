@@ -228,10 +228,9 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
     image and up to ``radius`` images either side on its sequence, or, closer than
     ``copy_limit``, a copy of the frame among the images around those that ``linked`` joins
     to them by an edge; for a frame matched but not merged, the distance to such a copy only
-    (inf for the other frames). ``read(seq_id, start, stop)`` gives stored
-    rows, ``lengths(seq_id)`` a sequence's length (0 for one no longer in the map),
-    ``linked(seq_id, start, stop)`` the ``(seq_id, image_id)`` joined by an edge to images
-    ``start .. stop - 1``.
+    (inf for the other frames). ``read(seq_id, start, stop)`` gives stored rows,
+    ``lengths(seq_id)`` a sequence's length (0 for one no longer in the map), ``linked(seq_id,
+    start, stop)`` the ``(seq_id, image_id)`` joined by an edge to images ``start .. stop - 1``.
 
     Notes
     -----

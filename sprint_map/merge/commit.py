@@ -209,38 +209,41 @@ class DriveWriter:
     def _place_distances(self, rows: np.ndarray, decisions: Sequence[FrameDecision],
                          merged: np.ndarray) -> tuple[np.ndarray, float]:
         """Each merged frame's squared distance to its place's stored views (or to a copy of
-        the frame one edge away), and the drive's step
-        (:func:`sprint_map.merge.admission.place_distances`). O(m * dim) reads, and one edge
-        range read per merged frame not within a copy's distance of its decided place."""
+        the frame one edge away; for a frame matched but not merged, to such a copy only), and
+        the drive's step (:func:`sprint_map.merge.admission.place_distances`), read in one LMDB
+        transaction. O(m * dim) row reads, and one edge range read per matched frame that is
+        no copy of its decided place's views."""
         store = self._writer.store
-        total = store.counter("next_vertex_id")
         lengths: dict[int, tuple[int, int]] = {}
+        with store.env.read() as txn:
+            total = store.counter("next_vertex_id", txn)
 
-        def span(seq_id: int) -> tuple[int, int]:
-            if seq_id not in lengths:
+            def span(seq_id: int) -> tuple[int, int]:
+                if seq_id not in lengths:
+                    try:
+                        rec = store.sequence(seq_id, txn)
+                        lengths[seq_id] = (rec.first_vertex, rec.length)
+                    except UnknownSequenceError:  # removed since the drive was localised
+                        lengths[seq_id] = (0, 0)
+                return lengths[seq_id]
+
+            def read(seq_id: int, start: int, stop: int) -> np.ndarray:
+                first = span(seq_id)[0]
+                return store.shards.rows(first + start, first + stop, total)
+
+            def linked(seq_id: int, start: int, stop: int) -> list[tuple[int, int]]:
+                first, length = span(seq_id)
+                ends = {e.dst for e in store.edges_from(first + start,
+                                                        first + min(stop, length) - 1, txn)}
                 try:
-                    rec = store.sequence(seq_id)
-                    lengths[seq_id] = (rec.first_vertex, rec.length)
-                except UnknownSequenceError:  # removed since the drive was localised
-                    lengths[seq_id] = (0, 0)
-            return lengths[seq_id]
+                    return store.locate(sorted(ends), txn)
+                except UnknownSequenceError:  # an end removed meanwhile: no copy looked for
+                    return []
 
-        def read(seq_id: int, start: int, stop: int) -> np.ndarray:
-            first = span(seq_id)[0]
-            return store.shards.rows(first + start, first + stop, total)
-
-        def linked(seq_id: int, start: int, stop: int) -> list[tuple[int, int]]:
-            first, length = span(seq_id)
-            ends = {e.dst for e in store.edges_from(first + start, first + min(stop, length) - 1)}
-            try:
-                return store.locate(sorted(ends))
-            except UnknownSequenceError:  # an end removed meanwhile: no copy looked for
-                return []
-
-        step = drive_step(rows)
-        copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
-        return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
-                                linked=linked, copy_limit=copy_limit), step)
+            step = drive_step(rows)
+            copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
+            return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
+                                    linked=linked, copy_limit=copy_limit), step)
 
     def commit(
         self,
