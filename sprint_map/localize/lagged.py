@@ -36,7 +36,7 @@ from sprint_map.localize.localizer import (
     LocalizableMap,
     Localizer,
     Timing,
-    nearest_distance,
+    nearest_hit,
     recorded_k,
 )
 from sprint_map.util.arrays import DescriptorsLike
@@ -81,8 +81,8 @@ class LaggedLocalizer:
         self.depth = depth or config.k
         self.smoother = (FixedLagSmoother(config, self.localizer.source, self.localizer.cache,
                                           lag=self.lag) if self.lag else None)
-        #: Best-hit distance of every frame not answered yet, oldest first.
-        self._distances: deque[float] = deque()
+        #: Best hit (distance, vertex id) of every frame not answered yet, oldest first.
+        self._distances: deque[tuple[float, int | None]] = deque()
 
     @property
     def timing(self) -> Timing:
@@ -198,7 +198,7 @@ class LaggedLocalizer:
         loc = self.localizer
         start = time.perf_counter()
         decision = self.smoother.push(ids[:self.depth], dists[:self.depth])
-        self._distances.append(nearest_distance(ids, dists) if len(ids) else math.inf)
+        self._distances.append(nearest_hit(ids, dists) if len(ids) else (math.inf, None))
         answer = (self._answer(self.smoother.answered - 1, decision)
                   if decision is not None else None)
         timing = loc.timing
@@ -212,5 +212,5 @@ class LaggedLocalizer:
         return answer
 
     def _answer(self, frame: int, decision: Decision) -> FrameDecision:
-        """Frame ``frame``'s answer (the oldest waiting: its distance is the first kept)."""
-        return self.localizer.frame_decision(frame, decision, self._distances.popleft())
+        """Frame ``frame``'s answer (the oldest waiting: its best hit is the first kept)."""
+        return self.localizer.frame_decision(frame, decision, *self._distances.popleft())

@@ -32,7 +32,7 @@ from sprint_map.util.arrays import DescriptorsLike, SearchResult
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "LocalizerConfig",
-           "MapView", "Timing", "nearest_distance", "recorded_k"]
+           "MapView", "Timing", "nearest_distance", "nearest_hit", "recorded_k"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
@@ -92,7 +92,8 @@ class FrameDecision:
     ``novel_prob`` is the posterior probability that the frame shows a place the map does not
     hold (the filter's "unmapped place" state; 1 when the map is empty). ``distance`` is the
     frame's best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which
-    the merge rule compares with the drive's accepted matches. ``contrast`` (smoothed matches
+    the merge rule compares with the drive's accepted matches; ``nearest`` is that hit's vertex
+    id (None then), where admission looks for a stored copy of the frame. ``contrast`` (smoothed matches
     only, NaN otherwise) is the best hit inside the decided place over the best hit elsewhere
     in the map (:func:`sprint_map.hmm.decision.place_contrast`): below 1 the place stands out,
     at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
@@ -121,6 +122,7 @@ class FrameDecision:
     confirmed: bool = True
     verified: bool = False
     gnss_dist_m: float = math.nan
+    nearest: int | None = None
 
     @property
     def is_match(self) -> bool:
@@ -251,7 +253,7 @@ class Localizer:
                 fb.forward(ids, dists)
             else:
                 fb.forward(*cue)
-        return [self.frame_decision(i, d, nearest_distance(*hits[i]))
+        return [self.frame_decision(i, d, *nearest_hit(*hits[i]))
                 for i, d in enumerate(fb.decisions())]
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
@@ -364,32 +366,33 @@ class Localizer:
             self.hits.append((np.array(ids, copy=True), np.array(dists, copy=True)))
         frame = self.frames_seen
         self.frames_seen += 1
-        out = self.frame_decision(frame, decision, nearest_distance(ids, dists))
+        out = self.frame_decision(frame, decision, *nearest_hit(ids, dists))
         if self.observer is not None:
             self.observer(out, ids, dists)
         return out
 
-    def frame_decision(self, frame: int, decision: Decision, distance: float
-                        ) -> FrameDecision:
-        out = self._frame_decision(frame, decision, distance)
+    def frame_decision(self, frame: int, decision: Decision, distance: float,
+                       nearest: int | None = None) -> FrameDecision:
+        out = self._frame_decision(frame, decision, distance, nearest)
         if self.gnss is None or out.vertex_id is None:
             return out
         gnss_dist, plausible = self.gnss.distance(frame, out.vertex_id)
         return dataclasses.replace(out, gnss_dist_m=gnss_dist,
                                    confirmed=out.confirmed and plausible)
 
-    def _frame_decision(self, frame: int, decision: Decision, distance: float
-                        ) -> FrameDecision:
+    def _frame_decision(self, frame: int, decision: Decision, distance: float,
+                        nearest: int | None) -> FrameDecision:
         if decision.vertex_id is None or decision.seq_id is None or decision.image_id is None:
             best = None
             if decision.candidate_id is not None:
                 best = self.source.locate([decision.candidate_id])[0]
             return FrameDecision(frame, None, None, float(decision.prob), None, best,
-                                 float(decision.sink_prob), distance)
+                                 float(decision.sink_prob), distance, nearest=nearest)
         return FrameDecision(frame, int(decision.seq_id), int(decision.image_id),
                              float(decision.prob), int(decision.vertex_id),
                              (int(decision.seq_id), int(decision.image_id)),
-                             float(decision.sink_prob), distance, float(decision.contrast))
+                             float(decision.sink_prob), distance, float(decision.contrast),
+                             nearest=nearest)
 
     def _no_map_decision(self) -> FrameDecision:
         self.timing.retrieval_ms.append(0.0)
@@ -411,6 +414,17 @@ def recorded_k(config: HMMConfig) -> int:
 
 def nearest_distance(ids: np.ndarray, dists: np.ndarray) -> float:
     """A frame's best-hit distance (squared L2; inf without a valid hit)."""
-    d = np.asarray(dists, dtype=np.float64).ravel()[np.asarray(ids).ravel() >= 0]
-    return float(d.min()) if d.size else math.inf
+    return nearest_hit(ids, dists)[0]
+
+
+def nearest_hit(ids: np.ndarray, dists: np.ndarray) -> tuple[float, int | None]:
+    """A frame's best hit: its distance (squared L2) and vertex id (inf, None without a
+    valid hit). O(k)."""
+    ids = np.asarray(ids).ravel()
+    valid = ids >= 0
+    if not valid.any():
+        return math.inf, None
+    d = np.asarray(dists, dtype=np.float64).ravel()
+    best = int(np.flatnonzero(valid)[np.argmin(d[valid])])
+    return float(d[best]), int(ids[best])
 

@@ -14,9 +14,13 @@ when
    the frame itself, closer than :data:`COPY_STEPS` of those steps (the drive ingested again,
    its place decided on an older drive's views).
 
-A frame matched to a place around which (within one edge) the map holds a copy of the frame
-itself is redundant even if the rule did not merge it: storing it again adds nothing the map
-lacks (it records no sighting: its place is not certified).
+A frame of which the map holds a copy (closer than :data:`COPY_STEPS` steps) is redundant even
+if the rule did not merge it, matched or not: a view within one edge of its decided place, or
+its best retrieval hit anywhere in the map. Storing it again adds nothing the map lacks (it
+records no sighting: its place is not certified). Copies on both sides of a stretch shorter
+than ``min_skip + 2 * margin`` frames make the stretch redundant too: the drive is a stored one
+driven again, and the stretch is what that drive left out (a redundant stretch of at least
+``min_skip`` frames, less the margins), which its run may now be too short to merge.
 
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
 localise confidently, and a known place seen under an appearance the map does not hold (merged
@@ -135,8 +139,9 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
                   admission: Admission, closeness: np.ndarray | None) -> np.ndarray:
     """Which frames ``admission`` stores (bool per frame; see the module docstring):
     ``closeness`` is each frame's distance to its place in the drive's steps (NaN or inf where
-    unknown: stored; at most :data:`COPY_STEPS`: a copy of the frame, redundant merged or
-    not). O(n)."""
+    unknown: stored; at most :data:`COPY_STEPS`: a copy of the frame, redundant whether
+    matched and merged or not; so is a stretch shorter than ``min_skip + 2 * margin`` frames
+    between copies). O(n)."""
     n = len(decisions)
     if admission.mode == "all" or n == 0 or closeness is None:
         return np.ones(n, dtype=bool)
@@ -144,7 +149,12 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     with np.errstate(invalid="ignore"):
         alike = np.asarray(closeness, dtype=float) <= admission.max_step_ratio
         copy = np.asarray(closeness, dtype=float) <= COPY_STEPS
-    return smooth_stored(matched & ((np.asarray(merged, dtype=bool) & alike) | copy), admission)
+    redundant = (matched & np.asarray(merged, dtype=bool) & alike) | copy
+    between = admission.min_skip + 2 * admission.margin
+    for a, b in runs(~copy):
+        if a > 0 and b < n and b - a < between:
+            redundant[a:b] = True  # what a drive stored on both sides left out
+    return smooth_stored(redundant, admission)
 
 
 def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
@@ -223,11 +233,12 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
                     read: Callable[[int, int, int], np.ndarray], lengths: Callable[[int], int],
                     radius: int = 2,
                     linked: Callable[[int, int, int], Sequence[tuple[int, int]]] | None = None,
-                    copy_limit: float = 0.0) -> np.ndarray:
+                    copy_limit: float = 0.0, copies: np.ndarray | None = None) -> np.ndarray:
     """Each merged frame's squared distance to the nearest view of its place: the decided
     image and up to ``radius`` images either side on its sequence, or, closer than
-    ``copy_limit``, a copy of the frame among the images around those that ``linked`` joins
-    to them by an edge; for a frame matched but not merged, the distance to such a copy only
+    ``copy_limit``, a copy of the frame: among the images around those that ``linked`` joins
+    to them by an edge, or anywhere in the map, its best retrieval hit at distance
+    ``copies[i]`` (inf where unknown); for any other frame, the distance to such a copy only
     (inf for the other frames). ``read(seq_id, start, stop)`` gives stored rows,
     ``lengths(seq_id)`` a sequence's length (0 for one no longer in the map), ``linked(seq_id,
     start, stop)`` the ``(seq_id, image_id)`` joined by an edge to images ``start .. stop - 1``.
@@ -238,6 +249,8 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
     with e linked images each, plus the reads.
     """
     out = np.full(len(decisions), np.inf)
+    hit = (np.full(len(decisions), np.inf) if copies is None
+           else np.where(np.asarray(copies, dtype=float) <= copy_limit, copies, np.inf))
 
     def nearest(i: int, seq_id: int, image_id: int) -> float:
         lo, hi = max(0, image_id - radius), min(lengths(seq_id), image_id + radius + 1)
@@ -247,17 +260,20 @@ def place_distances(rows: np.ndarray, decisions: Sequence[MergeDecision], merged
         return float(np.einsum("ij,ij->i", views, views).min())
 
     for i, d in enumerate(decisions):
+        out[i] = hit[i]
         if d.seq_id is None or d.image_id is None or not (merged[i] or copy_limit > 0):
             continue
+        if not merged[i] and hit[i] < math.inf:
+            continue  # a copy already
         near = nearest(i, d.seq_id, d.image_id)
-        if linked is not None and copy_limit < near < math.inf:
+        if linked is not None and copy_limit < min(near, hit[i]) and near < math.inf:
             for seq_id, image_id in linked(d.seq_id, max(0, d.image_id - radius),
                                            d.image_id + radius + 1):
                 if (view := nearest(i, seq_id, image_id)) <= copy_limit:
                     near = view
                     break
         if merged[i] or near <= copy_limit:
-            out[i] = near
+            out[i] = min(near, hit[i])
     return out
 
 

@@ -209,10 +209,11 @@ class DriveWriter:
     def _place_distances(self, rows: np.ndarray, decisions: Sequence[FrameDecision],
                          merged: np.ndarray) -> tuple[np.ndarray, float]:
         """Each merged frame's squared distance to its place's stored views (or to a copy of
-        the frame one edge away; for a frame matched but not merged, to such a copy only), and
-        the drive's step (:func:`sprint_map.merge.admission.place_distances`), read in one LMDB
-        transaction. O(m * dim) row reads, and one edge range read per matched frame that is
-        no copy of its decided place's views."""
+        the frame one edge away, or to its best retrieval hit if that is a copy; for another
+        frame, to such a copy only), and the drive's step
+        (:func:`sprint_map.merge.admission.place_distances`), read in one LMDB transaction.
+        O(n * dim) row reads, and one edge range read per matched frame that is no copy of its
+        decided place's views."""
         store = self._writer.store
         lengths: dict[int, tuple[int, int]] = {}
         with store.env.read() as txn:
@@ -240,10 +241,22 @@ class DriveWriter:
                 except UnknownSequenceError:  # an end removed meanwhile: no copy looked for
                     return []
 
+            def hit_distance(i: int, vertex: int | None) -> float:
+                if vertex is None or not 0 <= vertex < total:
+                    return math.inf
+                try:
+                    store.locate([vertex], txn)
+                except UnknownSequenceError:  # removed since the drive was localised
+                    return math.inf
+                diff = store.shards.rows(vertex, vertex + 1, total)[0] - rows[i]
+                return float(np.dot(diff, diff))
+
             step = drive_step(rows)
             copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
+            copies = (np.array([hit_distance(i, d.nearest) for i, d in enumerate(decisions)])
+                      if copy_limit > 0 else None)
             return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
-                                    linked=linked, copy_limit=copy_limit), step)
+                                    linked=linked, copy_limit=copy_limit, copies=copies), step)
 
     def commit(
         self,

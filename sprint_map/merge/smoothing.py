@@ -29,7 +29,7 @@ from typing import Protocol
 import numpy as np
 
 from sprint_map.errors import UnknownSequenceError
-from sprint_map.localize.localizer import FrameDecision, Localizer, nearest_distance
+from sprint_map.localize.localizer import FrameDecision, Localizer, nearest_hit
 from sprint_map.merge.rule import CALIBRATE_MIN_FRAMES, MergeRule, select_merges
 from sprint_map.util.arrays import DescriptorsLike
 from sprint_map.util.validation import validate_descriptors
@@ -117,10 +117,14 @@ def smoothed_decisions(localizer: Localizer, smap: MergeableMap,
 
 
 def _with_nearest(decisions: list[FrameDecision], hits: Hits) -> list[FrameDecision]:
-    """``decisions`` with each frame's best-hit distance over all its recorded hits (the pass
-    may have read only the ``k`` nearest, whose best is the same)."""
-    return [d if d.distance == (n := nearest_distance(*h)) else dataclasses.replace(d, distance=n)
-            for d, h in zip(decisions, hits, strict=True)]
+    """``decisions`` with each frame's best hit (distance and vertex) over all its recorded
+    hits (the pass may have read only the ``k`` nearest, whose best is the same)."""
+    out = []
+    for d, h in zip(decisions, hits, strict=True):
+        distance, nearest = nearest_hit(*h)
+        same = d.distance == distance and d.nearest == nearest
+        out.append(d if same else dataclasses.replace(d, distance=distance, nearest=nearest))
+    return out
 
 
 def calibrated_novelty(decisions: list[FrameDecision], localizer: Localizer,

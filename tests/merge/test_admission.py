@@ -96,7 +96,7 @@ def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
 def test_short_runs_are_smoothed(pattern, expected):
     ds = [matched(i, i) if c == "R" else unmatched(i) for i, c in enumerate(pattern)]
     merged = np.array([c == "R" for c in pattern])
-    got = stored_frames(ds, merged, NOVEL, np.zeros(len(pattern)))
+    got = stored_frames(ds, merged, NOVEL, np.where(merged, 0.5, np.inf))
     assert "".join("S" if s else "R" for s in got) == expected
 
 
@@ -105,7 +105,7 @@ def test_the_default_skips_only_stretches_a_merge_run_long():
     merged = np.ones(60, dtype=bool)
 
     def stored(far: list[range]) -> list[int]:
-        closeness = np.zeros(60)
+        closeness = np.full(60, 0.5)  # alike, no copies
         for r in far:
             closeness[r] = 5.0
         return np.flatnonzero(stored_frames(ds, merged, Admission(mode="novel", margin=0),
@@ -121,7 +121,7 @@ def test_the_default_skips_only_stretches_a_merge_run_long():
 
 def test_each_stored_run_takes_a_margin_of_redundant_frames():
     ds = [matched(i, i) for i in range(100)]
-    closeness = np.zeros(100)
+    closeness = np.full(100, 0.5)
     closeness[40:60] = 5.0
     got = stored_frames(ds, np.ones(100, dtype=bool), Admission(mode="novel"), closeness)
     assert np.flatnonzero(got).tolist() == list(range(30, 70))  # the default margin: 10
@@ -142,6 +142,17 @@ def test_a_frame_the_rule_did_not_merge_is_stored():
     assert not stored_frames(ds, merged, NOVEL, alike).any()
     alike[15] = np.inf  # one frame without a copy: a blip shorter than min_run, not stored
     assert not stored_frames(ds, merged, NOVEL, alike).any()
+
+
+def test_a_copy_of_an_unmatched_frame_is_not_stored_again():
+    ds = [matched(i, i) for i in range(30)]
+    ds[10:20] = [unmatched(i) for i in range(10, 20)]  # the filter found no place here
+    merged = np.array([d.is_match for d in ds])
+    closeness = np.where(merged, 0.5, np.inf)
+    assert np.flatnonzero(stored_frames(ds, merged, NOVEL, closeness)).tolist() == list(
+        range(10, 20))  # 10 novel frames: stored
+    closeness[10:20] = COPY_STEPS  # but the map holds a copy of each of them
+    assert not stored_frames(ds, merged, NOVEL, closeness).any()
 
 
 def test_drive_step_and_place_distances():
@@ -170,10 +181,10 @@ def test_a_copy_of_the_frame_one_edge_from_its_place_counts_as_its_place():
 
     ds = [matched(0, 1), matched(1, 1)]
 
-    def distances(limit, merged=(True, True)):
+    def distances(limit, merged=(True, True), copies=None):
         return place_distances(rows, ds, np.array(merged), lambda s, a, b: stored[s][a:b],
                                lambda s: len(stored[s]), radius=0, linked=linked,
-                               copy_limit=limit).tolist()
+                               copy_limit=limit, copies=copies).tolist()
 
     # frame 0 has a copy one edge away (1e-4 <= 0.01); frame 1's linked views are no copies
     # (0.25 is the nearer one): its place is the decided image alone
@@ -181,6 +192,24 @@ def test_a_copy_of_the_frame_one_edge_from_its_place_counts_as_its_place():
     assert distances(0.0) == [25.0, 17.0]  # no copy looked for
     # not merged: only a copy counts
     assert distances(0.01, merged=(False, False)) == [pytest.approx(1e-4), math.inf]
+
+
+@pytest.mark.parametrize("merged", [(True, True), (False, False)])
+def test_a_best_hit_that_is_a_copy_counts_wherever_it_lies(merged):
+    rows = np.array([[0.0, 0.0], [4.0, 0.0], [7.0, 7.0]], dtype=np.float32)
+    stored = {0: np.array([[3.0, 3.0], [3.0, 4.0]], dtype=np.float32)}
+    ds = [matched(0, 1), matched(1, 0), unmatched(2)]
+
+    def distances(copies):
+        return place_distances(rows, ds, np.array([*merged, False]),
+                               lambda s, a, b: stored[s][a:b], lambda s: len(stored[s]),
+                               radius=0, copy_limit=0.01, copies=np.array(copies)).tolist()
+
+    # each frame's best retrieval hit (the distance to its stored row): copies of frames 0 and
+    # 2 (at most copy_limit), frame 2 matched nowhere; frame 1's hit is no copy
+    place = [25.0, 10.0] if merged[0] else [math.inf, math.inf]
+    assert distances([1e-3, 0.5, 2e-3]) == [pytest.approx(1e-3), place[1], pytest.approx(2e-3)]
+    assert distances([math.inf] * 3) == [*place, math.inf]
 
 
 @pytest.mark.parametrize("bad", [{"mode": "some"}, {"max_step_ratio": -1.0},
@@ -262,6 +291,48 @@ def test_a_drive_stored_in_part_and_ingested_again_stores_nothing(tmp_path, dusk
         again = m.ingest(unit(drive + 0.01 * rng.standard_normal(drive.shape)), name="again")
         assert again.frames_stored <= 3 and int(np.sum(again.merged)) >= 290
         assert m.check().ok
+
+
+@pytest.mark.parametrize(("gap", "copies", "stored"), [
+    (21, "both sides", False),  # what the stored drive left out, between its stored frames
+    (21, "both sides, a merged frame alike inside", False),
+    (39, "both sides", False),
+    (40, "both sides", True),  # as long as min_skip and two margins: not left out before
+    (21, "before", True),  # the drive goes on into what the map lacks
+    (21, "after", True),
+])
+def test_a_short_stretch_between_copies_is_what_the_stored_drive_left_out(gap, copies, stored):
+    ds = [matched(i, i) for i in range(140)]
+    merged = np.ones(140, dtype=bool)
+    merged[50:50 + gap] = False  # a run too short to merge, unlike its place's views
+    closeness = np.full(140, 5.0)
+    if copies != "after":
+        closeness[:50] = COPY_STEPS
+    if copies != "before":
+        closeness[50 + gap:] = COPY_STEPS
+    if copies.endswith("inside"):  # redundant, but no copy: the stretch still ends at copies
+        merged[60], closeness[60] = True, 0.5
+    got = stored_frames(ds, merged, Admission(mode="novel"), closeness)
+    assert got[50:50 + gap].all() == stored
+
+
+@pytest.mark.parametrize("hits", ["copies", "none", "removed"])
+def test_frames_whose_best_hit_is_a_copy_are_not_stored_even_unmatched(novel_map, world, hits):
+    # 100 frames of the mapped road again, which the filter matched nowhere; their best
+    # retrieval hits are the road's own views (vertices 0..99): copies of them
+    rng, road, _ = world
+    rows = again(rng, road[:100]) if hits != "none" else unit(
+        road[:100] + 0.5 * rng.standard_normal((100, DIM)))  # far from any view
+    if hits == "removed":
+        novel_map.remove_sequences([0])
+    decisions = [FrameDecision(i, None, None, 0.1, novel_prob=0.9, distance=1e-4, nearest=i)
+                 for i in range(100)]
+    with novel_map.begin_drive("unmatched") as drive:
+        drive.append(rows)
+        done = drive.commit(decisions)
+    stored = 0 if done.plan is None else done.plan.frames_stored
+    assert stored == (0 if hits == "copies" else 100)
+    assert done.sightings == 0 and novel_map.check().ok
 
 
 def test_a_detour_is_stored_stitched_and_found_by_the_next_drive(novel_map, world):
