@@ -203,18 +203,30 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             positions[drive.name] = table
 
     rows = run_arm_on(drives, stored_gt, merge, work, config, learn_every, stored)
-    rows[-1]["reingest_stored"] = reingest_stored(work / "merge-novel.map", drives[-1])
+    path = work / "merge-novel.map"
+    rows[-1]["reingest_stored_earlier"] = {
+        drives[i].name: reingest_stored(path, drives[i], copy=True)
+        for i in sorted({len(drives) // 4, len(drives) // 2, 3 * len(drives) // 4})}
+    rows[-1]["reingest_stored"] = reingest_stored(path, drives[-1])
     return rows
 
 
-def reingest_stored(path: Path, drive: Drive, noise: float = 0.01) -> int:
+def reingest_stored(path: Path, drive: Drive, noise: float = 0.01, copy: bool = False) -> int:
     """Frames stored when ``drive``, already in the map at ``path``, is ingested again with
-    Gaussian noise of ``noise`` times its descriptors' spread."""
+    Gaussian noise of ``noise`` times its descriptors' spread (``copy``: into a copy of the
+    map, deleted after)."""
     rng = np.random.default_rng(0)
     again = drive.rows + rng.normal(0, noise * float(drive.rows.std()), drive.rows.shape)
-    with SprintMap.open(path) as m:
-        return m.ingest(again.astype(np.float32), name=drive.name + "-again",
-                        positions=drive.xy, thumbnails=drive.thumbnails).frames_stored
+    target = path.with_name(path.name + "-again") if copy else path
+    if copy:
+        shutil.copytree(path, target)
+    try:
+        with SprintMap.open(target) as m:
+            return m.ingest(again.astype(np.float32), name=drive.name + "-again",
+                            positions=drive.xy, thumbnails=drive.thumbnails).frames_stored
+    finally:
+        if copy:
+            shutil.rmtree(target)
 
 
 def run_arm_on(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
@@ -421,6 +433,8 @@ def admission_summary(novel: list[dict[str, Any]], everything: list[dict[str, An
         "disk_bytes": novel[-1]["disk_bytes"],
         "disk_bytes_all": everything[-1]["disk_bytes"],
         "reingest_stored_fraction": round(novel[-1]["reingest_stored"] / frames, 4),
+        "reingest_earlier_stored_fraction": round(float(np.mean(
+            list(novel[-1]["reingest_stored_earlier"].values()))) / frames, 4),
         "frame_ms_early": round(float(np.median([r["frame_ms"] for r in early])), 4),
         "frame_ms_last": round(float(np.median([r["frame_ms"] for r in tail])), 4),
     }
@@ -494,7 +508,9 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
               f"drive stored per drive over the last fifth, disk {a['disk_bytes'] / 1e6:.1f} "
               f"MB (keep-everything {a['disk_bytes_all'] / 1e6:.1f} MB), per-frame cost "
               f"{a['frame_ms_early']:.2f} -> {a['frame_ms_last']:.2f} ms; the last drive "
-              f"again stores {100 * a['reingest_stored_fraction']:.1f} %; novel - merge on "
+              f"again stores {100 * a['reingest_stored_fraction']:.1f} %, the drives at a "
+              f"quarter, half and three quarters "
+              f"{100 * a['reingest_earlier_stored_fraction']:.1f} %; novel - merge on "
               f"the later half (points): {d}")
     if s.get("ingest_differs_from_localize"):
         print(f"  WARNING: on {s['ingest_differs_from_localize']:.0f} frames ingest's decision "

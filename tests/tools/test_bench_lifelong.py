@@ -128,6 +128,10 @@ def test_quick_run_with_admission_reports_the_map_size(bench: Any, tmp_path: Pat
     assert size["vertices"] == novel[-1]["map_vertices_after"] <= size["vertices_all"] == 480
     assert size["traversals_worth"] == pytest.approx(size["vertices"] / 60, abs=0.01)
     assert size["reingest_stored_fraction"] <= 0.05  # the last drive again: (almost) nothing
+    earlier = novel[-1]["reingest_stored_earlier"]  # drives 2, 4 and 6 again, each on a copy
+    assert list(earlier) == [merge[i - 1]["name"] for i in (2, 4, 6)]
+    assert size["reingest_earlier_stored_fraction"] == pytest.approx(
+        sum(earlier.values()) / 3 / 60, abs=1e-4)
     assert set(run["summary"]["novel_minus_merge_later_points"]) == {
         "sprint_recall@1", "accepted_recall@1", "merge_precision"}
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
