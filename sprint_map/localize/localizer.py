@@ -93,7 +93,7 @@ class FrameDecision:
     hold (the filter's "unmapped place" state; 1 when the map is empty). ``distance`` is the
     frame's best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which
     the merge rule compares with the drive's accepted matches; ``nearest`` is that hit's vertex
-    id (None then), where admission looks for a stored copy of the frame. ``contrast`` (smoothed matches
+    id (None then), where admission looks for a copy of the frame. ``contrast`` (smoothed matches
     only, NaN otherwise) is the best hit inside the decided place over the best hit elsewhere
     in the map (:func:`sprint_map.hmm.decision.place_contrast`): below 1 the place stands out,
     at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
