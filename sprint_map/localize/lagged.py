@@ -82,7 +82,7 @@ class LaggedLocalizer:
         self.smoother = (FixedLagSmoother(config, self.localizer.source, self.localizer.cache,
                                           lag=self.lag) if self.lag else None)
         #: Best hit (distance, vertex id) of every frame not answered yet, oldest first.
-        self._distances: deque[tuple[float, int | None]] = deque()
+        self._best_hits: deque[tuple[float, int | None]] = deque()
 
     @property
     def timing(self) -> Timing:
@@ -104,7 +104,7 @@ class LaggedLocalizer:
         self.localizer.reset()
         if self.smoother is not None:
             self.smoother.reset()
-        self._distances.clear()
+        self._best_hits.clear()
 
     def invalidate(self, component_ids: Iterable[int] | None = None) -> None:
         """The map changed (a commit): see :meth:`Localizer.invalidate`; the frames waiting
@@ -198,7 +198,7 @@ class LaggedLocalizer:
         loc = self.localizer
         start = time.perf_counter()
         decision = self.smoother.push(ids[:self.depth], dists[:self.depth])
-        self._distances.append(nearest_hit(ids, dists) if len(ids) else (math.inf, None))
+        self._best_hits.append(nearest_hit(ids, dists) if len(ids) else (math.inf, None))
         answer = (self._answer(self.smoother.answered - 1, decision)
                   if decision is not None else None)
         timing = loc.timing
@@ -213,4 +213,4 @@ class LaggedLocalizer:
 
     def _answer(self, frame: int, decision: Decision) -> FrameDecision:
         """Frame ``frame``'s answer (the oldest waiting: its best hit is the first kept)."""
-        return self.localizer.frame_decision(frame, decision, *self._distances.popleft())
+        return self.localizer.frame_decision(frame, decision, *self._best_hits.popleft())

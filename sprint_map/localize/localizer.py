@@ -32,7 +32,7 @@ from sprint_map.util.arrays import DescriptorsLike, SearchResult
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "LocalizerConfig",
-           "MapView", "Timing", "nearest_distance", "nearest_hit", "recorded_k"]
+           "MapView", "Timing", "nearest_hit", "recorded_k"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
@@ -410,11 +410,6 @@ def recorded_k(config: HMMConfig) -> int:
     decisions: ``max(k, smooth_k)`` (``ingest``, ``localize --smooth``; the service keeps ``k``
     per frame and searches the drive ``smooth_k`` deep when it commits)."""
     return max(config.k, config.smooth_k)
-
-
-def nearest_distance(ids: np.ndarray, dists: np.ndarray) -> float:
-    """A frame's best-hit distance (squared L2; inf without a valid hit)."""
-    return nearest_hit(ids, dists)[0]
 
 
 def nearest_hit(ids: np.ndarray, dists: np.ndarray) -> tuple[float, int | None]:

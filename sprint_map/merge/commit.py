@@ -213,7 +213,7 @@ class DriveWriter:
         frame, to such a copy only), and the drive's step
         (:func:`sprint_map.merge.admission.place_distances`), read in one LMDB transaction.
         O(n * dim) row reads, and one edge range read per matched frame that is no copy of its
-        decided place's views."""
+        decided place's views or its best hit."""
         store = self._writer.store
         lengths: dict[int, tuple[int, int]] = {}
         with store.env.read() as txn:
@@ -241,20 +241,21 @@ class DriveWriter:
                 except UnknownSequenceError:  # an end removed meanwhile: no copy looked for
                     return []
 
-            def hit_distance(i: int, vertex: int | None) -> float:
-                if vertex is None or not 0 <= vertex < total:
-                    return math.inf
-                try:
-                    store.locate([vertex], txn)
-                except UnknownSequenceError:  # removed since the drive was localised
-                    return math.inf
-                diff = store.shards.rows(vertex, vertex + 1, total)[0] - rows[i]
-                return float(np.dot(diff, diff))
+            def hit_distances() -> np.ndarray:
+                """Each frame's squared distance to its best hit's stored row (inf without a
+                hit, or where it was removed since the drive was localised)."""
+                ids = np.array([-1 if d.nearest is None else d.nearest for d in decisions],
+                               dtype=np.int64)
+                live = (ids >= 0) & (ids < total)
+                live[live] &= ~store.removed_ranges(txn).contains(ids[live])
+                out = np.full(len(ids), np.inf)
+                diff = store.shards.take(ids[live], total) - rows[live]
+                out[live] = np.einsum("ij,ij->i", diff, diff)
+                return out
 
             step = drive_step(rows)
             copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
-            copies = (np.array([hit_distance(i, d.nearest) for i, d in enumerate(decisions)])
-                      if copy_limit > 0 else None)
+            copies = hit_distances() if copy_limit > 0 else None
             return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
                                     linked=linked, copy_limit=copy_limit, copies=copies), step)
 

@@ -50,6 +50,7 @@ from sprint_map.storage.keys import (
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import AddResult, EdgeRecord, EdgeSpec, SequenceRecord
+from sprint_map.storage.removal import RemovedRanges
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.sightings import record_sightings
 from sprint_map.storage.store_config import StoreConfig
@@ -111,6 +112,8 @@ class WritableMap(Protocol):
 
     def edges_from(self, first: int, last: int, txn: lmdb.Transaction | None = None
                    ) -> list[EdgeRecord]: ...
+
+    def removed_ranges(self, txn: lmdb.Transaction) -> RemovedRanges: ...
 
     def sequence_digest(self, seq_id: int, txn: lmdb.Transaction) -> bytes | None: ...
 
