@@ -167,38 +167,30 @@ class MapGraphSource:
         store = self.store
         with self._txn() as txn:
             seqs = store.component_sequences(component_id, txn)
-            src: list[int] = []
-            dst: list[int] = []
-            weight: list[float] = []
-            for seq in seqs:
-                for edge in store.edges_from(seq.first_vertex, seq.last_vertex, txn):
-                    src.append(edge.src)
-                    dst.append(edge.dst)
-                    weight.append(edge.weight)
-        _edges_inside(component_id, seqs, src, dst)
+            edges = store.edge_table_from(((s.first_vertex, s.last_vertex) for s in seqs), txn)
+        _edges_inside(component_id, seqs, edges.src, edges.dst)
         return ComponentGraph(
             component_id=component_id,
             seq_ids=np.array([s.seq_id for s in seqs], dtype=np.int64),
             seq_first=np.array([s.first_vertex for s in seqs], dtype=np.int64),
             seq_len=np.array([s.length for s in seqs], dtype=np.int64),
-            edge_src=np.array(src, dtype=np.int64),
-            edge_dst=np.array(dst, dtype=np.int64),
-            edge_weight=np.array(weight, dtype=np.float64),
+            edge_src=edges.src,
+            edge_dst=edges.dst,
+            edge_weight=edges.prob,
         )
 
 
-def _edges_inside(component_id: int, seqs: list[SequenceRecord], src: list[int],
-                  dst: list[int]) -> None:
+def _edges_inside(component_id: int, seqs: list[SequenceRecord], src: np.ndarray,
+                  dst: np.ndarray) -> None:
     """Refuse a component whose stored edges leave it (a corrupt edge record: MapCorruptError,
     never a graph built on it). O((E + S) log S)."""
-    if not src or not seqs:
+    if not src.size or not seqs:
         return
     ordered = sorted(seqs, key=lambda s: s.first_vertex)
     firsts = np.array([s.first_vertex for s in ordered], dtype=np.int64)
     lasts = np.array([s.last_vertex for s in ordered], dtype=np.int64)
     top = int(lasts.max())
-    ends = np.array([[min(v, top + 1) for v in src], [min(v, top + 1) for v in dst]],
-                    dtype=np.int64)
+    ends = np.minimum(np.stack([src, dst]), top + 1)
     at = np.maximum(np.searchsorted(firsts, ends, side="right") - 1, 0)
     outside = (ends < firsts[at]) | (ends > lasts[at])
     if outside.any():

@@ -25,10 +25,9 @@ from __future__ import annotations
 import struct
 
 import lmdb
-import numpy as np
 
 from sprint_map.errors import MapCorruptError
-from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, NO_QUERY, read_u32, u32, u64
+from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL, read_u32, u32, u64
 from sprint_map.storage.records import EdgeInfo, EdgeRecord, EdgeTable, UnmergeResult
 from sprint_map.storage.removal import RecordStore, edge_keys, rebuild_components
 from sprint_map.testing.crash import crash_point
@@ -107,34 +106,20 @@ def edges_touching(store: RecordStore, txn: lmdb.Transaction, seq_id: int) -> li
     return out
 
 
-#: An edge key and value as numpy records (big-endian, as stored).
-_KEY_DTYPE = np.dtype([("src", ">u8"), ("dst", ">u8")])
-_VAL_DTYPE = np.dtype([("prob", ">f8"), ("query", ">u4"), ("frame", ">u4"), ("time", ">f8")])
-
-
 def edge_table(store: RecordStore) -> EdgeTable:
     """Every edge of the map as arrays (one read snapshot), for summaries of large maps.
 
     Notes
     -----
     O(E): one cursor pass that joins the raw keys and values and decodes them with numpy
-    (about 40 bytes of memory per edge), instead of a record object per edge.
+    (:meth:`EdgeTable.decode`), instead of a record object per edge.
     """
-    if EDGE_KEY.size != _KEY_DTYPE.itemsize or EDGE_VAL.size != _VAL_DTYPE.itemsize:
-        raise MapCorruptError("edge record layout changed: update provenance.edge_table")
     with store.env.read() as txn:
         keys, values = [], []
         for key, value in txn.cursor(db=store.env.db("edges")):
             keys.append(key)
             values.append(value)
-    if any(len(v) != _VAL_DTYPE.itemsize for v in values):
-        raise MapCorruptError("corrupt edge record: wrong value size")
-    k = np.frombuffer(b"".join(keys), dtype=_KEY_DTYPE)
-    v = np.frombuffer(b"".join(values), dtype=_VAL_DTYPE)
-    query = v["query"].astype(np.int64)
-    query[query == NO_QUERY] = -1
-    return EdgeTable(k["src"].astype(np.int64), k["dst"].astype(np.int64),
-                     v["prob"].astype(np.float64), query)
+    return EdgeTable.decode(keys, values)
 
 
 def list_edges(store: RecordStore, seq: int | None = None, added_by: int | None = None

@@ -18,6 +18,7 @@ from sprint_map.errors import MapCorruptError, UnknownSequenceError
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
+    Raw,
     decode_json,
     decode_vertex,
     read_u32,
@@ -26,7 +27,7 @@ from sprint_map.storage.keys import (
     u64,
 )
 from sprint_map.storage.lmdb_env import LmdbEnv
-from sprint_map.storage.records import ComponentInfo, EdgeRecord, SequenceRecord
+from sprint_map.storage.records import ComponentInfo, EdgeRecord, EdgeTable, SequenceRecord
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.sightings import Sighting, get_sighting
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
@@ -233,6 +234,30 @@ class MapReads:
                     break
                 out.append(EdgeRecord.decode(key, value))
         return out
+
+    def edge_table_from(self, ranges: Iterable[tuple[int, int]], txn: lmdb.Transaction
+                        ) -> EdgeTable:
+        """Edges whose source vertex lies in one of the ``(first, last)`` ranges, as arrays
+        (:meth:`edges_from` without a record object per edge), range by range.
+
+        Notes
+        -----
+        O(R log E + E_r) for R ranges and the E_r edges returned: one cursor seek per range,
+        then raw keys and values joined and decoded with numpy.
+        """
+        keys: list[Raw] = []
+        values: list[Raw] = []
+        cursor = txn.cursor(db=self.env.db("edges"))
+        for first, last in ranges:
+            if not cursor.set_range(EDGE_KEY.pack(first, 0)):
+                continue
+            stop = u64(last)  # big-endian: byte order is numeric order
+            for key, value in cursor.iternext():
+                if bytes(key[:8]) > stop:
+                    break
+                keys.append(key)
+                values.append(value)
+        return EdgeTable.decode(keys, values)
 
     def edges(self) -> list[EdgeRecord]:
         """Every edge. O(E): for export and checks, not for queries."""

@@ -18,6 +18,7 @@ contract of the CLI command that prints it). The public ones are re-exported by
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -324,3 +325,27 @@ class EdgeTable:
 
     def __len__(self) -> int:
         return len(self.src)
+
+    @classmethod
+    def decode(cls, keys: Sequence[Raw], values: Sequence[Raw]) -> EdgeTable:
+        """The edges of raw LMDB ``keys`` and ``values`` (as a cursor gives them), decoded with
+        numpy, not a record object per edge; MapCorruptError for a record of the wrong size.
+
+        Notes
+        -----
+        O(E), about 40 bytes per edge: a few C-level passes over the joined bytes.
+        """
+        if set(map(len, keys)) - {EDGE_KEY.size} or set(map(len, values)) - {EDGE_VAL.size}:
+            raise MapCorruptError("corrupt edge record: wrong key or value size")
+        k = np.frombuffer(b"".join(keys), dtype=_EDGE_KEY_DTYPE)
+        v = np.frombuffer(b"".join(values), dtype=_EDGE_VAL_DTYPE)
+        query = v["query"].astype(np.int64)
+        query[query == NO_QUERY] = -1
+        return cls(k["src"].astype(np.int64), k["dst"].astype(np.int64),
+                   v["prob"].astype(np.float64), query)
+
+
+#: An edge key and value as numpy records (big-endian, as stored: EDGE_KEY, EDGE_VAL).
+_EDGE_KEY_DTYPE = np.dtype([("src", ">u8"), ("dst", ">u8")])
+_EDGE_VAL_DTYPE = np.dtype([("prob", ">f8"), ("query", ">u4"), ("frame", ">u4"), ("time", ">f8")])
+assert _EDGE_KEY_DTYPE.itemsize == EDGE_KEY.size and _EDGE_VAL_DTYPE.itemsize == EDGE_VAL.size

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from sprint_map.config import MapConfig, StoreOptions
+from sprint_map.errors import MapCorruptError
 from sprint_map.storage.check import check_map
 from sprint_map.storage.index.map_index import index_files
-from sprint_map.storage.records import EdgeSpec
+from sprint_map.storage.keys import EDGE_KEY, EDGE_VAL
+from sprint_map.storage.records import EdgeSpec, EdgeTable
 from sprint_map.storage.store import INDEX_DIR, SHARDS_DIR, MapStore
 
 # Lengths around shard_rows=16: single frames, exact fills, spans over two and three shards.
@@ -93,7 +95,28 @@ def test_edges_keep_provenance_and_repeats_keep_the_newest(tmp_path, rng):
         assert (edges[(0, 3)].weight, edges[(0, 3)].query_seq, edges[(0, 3)].frame) == (
             0.75, 1, None)
         assert [e.dst for e in store.edges_from(3, 5)] == [2]
+        with store.env.read() as txn:
+            for ranges in ([(3, 5)], [(0, 0), (6, 7)], [(0, 9)], [(1, 2), (8, 9)], []):
+                table = store.edge_table_from(ranges, txn)
+                records = [e for a, b in ranges for e in store.edges_from(a, b, txn)]
+                assert list(zip(table.src.tolist(), table.dst.tolist(), table.prob.tolist(),
+                                table.added_by.tolist(), strict=True)) == [
+                    (e.src, e.dst, e.weight, -1 if e.query_seq is None else e.query_seq)
+                    for e in records]
         assert store.stats()["edges"] == 3
+
+
+@pytest.mark.parametrize("cut", ["key", "value"])
+def test_an_edge_table_refuses_a_record_of_the_wrong_size(cut):
+    key, value = EDGE_KEY.pack(3, 4), EDGE_VAL.pack(0.5, 1, 2, 0.0)
+    keys, values = [key, key], [value, value]
+    assert len(EdgeTable.decode(keys, values)) == 2
+    if cut == "key":
+        keys[1] = key[:-1]
+    else:
+        values[1] = value + b"x"
+    with pytest.raises(MapCorruptError, match="corrupt edge record"):
+        EdgeTable.decode(keys, values)
 
 
 @pytest.mark.parametrize("readonly", [True, False], ids=["reader", "writer"])
