@@ -20,7 +20,10 @@ its best retrieval hit anywhere in the map. Storing it again adds nothing the ma
 records no sighting: its place is not certified). Copies on both sides of a stretch shorter
 than ``min_skip + 2 * margin`` frames make the stretch redundant too: the drive is a stored one
 driven again, and the stretch is what that drive left out (a redundant stretch of at least
-``min_skip`` frames, less the margins), which its run may now be too short to merge.
+``min_skip`` frames, less the margins), which its run may now be too short to merge. So is a
+stretch next to copies whose frames each have a view in the map (their best retrieval hit,
+anywhere) as alike as their next frame: at the ends of such a drive, where no copy bounds what
+it left out.
 
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
 localise confidently, and a known place seen under an appearance the map does not hold (merged
@@ -136,12 +139,15 @@ def runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
-                  admission: Admission, closeness: np.ndarray | None) -> np.ndarray:
+                  admission: Admission, closeness: np.ndarray | None,
+                  nearest: np.ndarray | None = None) -> np.ndarray:
     """Which frames ``admission`` stores (bool per frame; see the module docstring):
     ``closeness`` is each frame's distance to its place in the drive's steps (NaN or inf where
     unknown: stored; at most :data:`COPY_STEPS`: a copy of the frame, redundant whether
     matched and merged or not; so is a stretch shorter than ``min_skip + 2 * margin`` frames
-    between copies). O(n)."""
+    between copies), ``nearest`` its distance to its best retrieval hit in those steps (a
+    stretch of frames that many as alike as their next frame, next to a copy, is redundant).
+    O(n)."""
     n = len(decisions)
     if admission.mode == "all" or n == 0 or closeness is None:
         return np.ones(n, dtype=bool)
@@ -149,11 +155,16 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     with np.errstate(invalid="ignore"):
         alike = np.asarray(closeness, dtype=float) <= admission.max_step_ratio
         copy = np.asarray(closeness, dtype=float) <= COPY_STEPS
+        near = (np.zeros(n, dtype=bool) if nearest is None
+                else np.asarray(nearest, dtype=float) <= admission.max_step_ratio)
     redundant = (matched & np.asarray(merged, dtype=bool) & alike) | copy
     between = admission.min_skip + 2 * admission.margin
     for a, b in runs(~copy):
         if a > 0 and b < n and b - a < between:
             redundant[a:b] = True  # what a drive stored on both sides left out
+    for a, b in runs(near & ~copy):
+        if (a > 0 and copy[a - 1]) or (b < n and copy[b]):
+            redundant[a:b] = True  # what a stored drive driven again left out, at its ends
     return smooth_stored(redundant, admission)
 
 
@@ -178,8 +189,8 @@ def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
 
 def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
                    admission: Admission, both_ways: bool,
-                   place_dist: np.ndarray | None = None, step: float = math.inf
-                   ) -> AdmissionPlan:
+                   place_dist: np.ndarray | None = None, step: float = math.inf,
+                   nearest_dist: np.ndarray | None = None) -> AdmissionPlan:
     """What to store of a drive, its edges and its sightings (see the module docstring).
 
     ``decisions`` are the drive's consecutive frames (``frame`` is ``0 .. n-1``), ``merged``
@@ -198,7 +209,9 @@ def plan_admission(decisions: Sequence[MergeDecision], merged: np.ndarray,
     # Without a finite step (a one-frame drive) there is no scale of "alike": store all.
     closeness = (None if place_dist is None or not math.isfinite(step)
                  else place_dist / max(step, 1e-30))
-    stored = stored_frames(decisions, merged, admission, closeness)
+    near = (None if closeness is None or nearest_dist is None
+            else np.asarray(nearest_dist, dtype=float) / max(step, 1e-30))
+    stored = stored_frames(decisions, merged, admission, closeness, near)
     image_of = np.full(n, -1, dtype=np.int64)
     image_of[stored] = np.arange(int(stored.sum()), dtype=np.int64)
     edges: list[EdgeSpec] = []

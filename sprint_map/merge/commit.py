@@ -207,11 +207,12 @@ class DriveWriter:
         self._writer.abort()
 
     def _place_distances(self, rows: np.ndarray, decisions: Sequence[FrameDecision],
-                         merged: np.ndarray) -> tuple[np.ndarray, float]:
+                         merged: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
         """Each merged frame's squared distance to its place's stored views (or to a copy of
         the frame one edge away, or to its best retrieval hit if that is a copy; for another
-        frame, to such a copy only), and the drive's step
-        (:func:`sprint_map.merge.admission.place_distances`), read in one LMDB transaction.
+        frame, to such a copy only), the drive's step
+        (:func:`sprint_map.merge.admission.place_distances`) and each frame's squared distance
+        to its best hit (None without a step), read in one LMDB transaction.
         O(n * dim) row reads, and one edge range read per matched frame that is no copy of its
         decided place's views or its best hit."""
         store = self._writer.store
@@ -257,7 +258,8 @@ class DriveWriter:
             copy_limit = COPY_STEPS * step if math.isfinite(step) else 0.0
             copies = hit_distances() if copy_limit > 0 else None
             return (place_distances(rows, decisions, merged, read, lambda s: span(s)[1],
-                                    linked=linked, copy_limit=copy_limit, copies=copies), step)
+                                    linked=linked, copy_limit=copy_limit, copies=copies), step,
+                    copies)
 
     def commit(
         self,

@@ -316,6 +316,28 @@ def test_a_short_stretch_between_copies_is_what_the_stored_drive_left_out(gap, c
     assert got[50:50 + gap].all() == stored
 
 
+@pytest.mark.parametrize("end", ["start", "end"])
+@pytest.mark.parametrize(("near", "stored"), [
+    (0.5, False),  # as alike as the next frame, next to copies: what the stored drive left out
+    (5.0, True),  # unlike anything the map holds: the drive goes on into what the map lacks
+    (None, True),  # no best hits known: only copies and merged frames are redundant
+])
+def test_an_alike_stretch_next_to_copies_at_a_drive_end_is_not_stored(end, near, stored):
+    ds = [matched(i, i) for i in range(100)]
+    merged = np.ones(100, dtype=bool)
+    gap = slice(0, 25) if end == "start" else slice(75, 100)
+    merged[gap] = False  # a run the rule did not merge
+    closeness = np.full(100, COPY_STEPS)
+    closeness[gap] = 5.0  # nothing alike in its decided place
+    nearest = None if near is None else np.where(closeness <= COPY_STEPS, COPY_STEPS, near)
+    got = plan_admission(ds, merged, Admission(mode="novel"), True, closeness * STEP, STEP,
+                         None if nearest is None else nearest * STEP).stored
+    assert got[gap].all() == stored and got[gap].any() == stored
+    if near is not None and not stored:  # copies on neither side: stored as before
+        assert stored_frames(ds, merged, Admission(mode="novel"), np.full(100, 5.0),
+                             nearest=np.full(100, near)).all()
+
+
 @pytest.mark.parametrize("hits", ["copies", "none", "removed"])
 def test_frames_whose_best_hit_is_a_copy_are_not_stored_even_unmatched(novel_map, world, hits):
     # 100 frames of the mapped road again, which the filter matched nowhere; their best
