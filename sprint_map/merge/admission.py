@@ -22,8 +22,8 @@ than ``min_skip + 2 * margin`` frames make the stretch redundant too: the drive 
 driven again, and the stretch is what that drive left out (a redundant stretch of at least
 ``min_skip`` frames, less the margins), which its run may now be too short to merge. So is a
 stretch next to copies whose frames each have a view in the map (their best retrieval hit,
-anywhere) as alike as their next frame: at the ends of such a drive, where no copy bounds what
-it left out.
+anywhere) as alike as their next frame (but for blips shorter than ``min_run``): at the ends
+of such a drive, where no copy bounds what it left out.
 
 Everything else is stored: unmapped stretches (nothing merged), stretches the map did not
 localise confidently, and a known place seen under an appearance the map does not hold (merged
@@ -146,8 +146,8 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     unknown: stored; at most :data:`COPY_STEPS`: a copy of the frame, redundant whether
     matched and merged or not; so is a stretch shorter than ``min_skip + 2 * margin`` frames
     between copies), ``nearest`` its distance to its best retrieval hit in those steps (a
-    stretch of frames that many as alike as their next frame, next to a copy, is redundant).
-    O(n)."""
+    stretch of frames that many as alike as their next frame, next to a copy, is redundant,
+    across blips shorter than ``min_run`` frames). O(n)."""
     n = len(decisions)
     if admission.mode == "all" or n == 0 or closeness is None:
         return np.ones(n, dtype=bool)
@@ -162,6 +162,9 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     for a, b in runs(~copy):
         if a > 0 and b < n and b - a < between:
             redundant[a:b] = True  # what a drive stored on both sides left out
+    for a, b in runs(~near):
+        if a > 0 and b < n and b - a < admission.min_run:
+            near[a:b] = True  # a blip, as a stored run shorter than min_run would be
     for a, b in runs(near & ~copy):
         if (a > 0 and copy[a - 1]) or (b < n and copy[b]):
             redundant[a:b] = True  # what a stored drive driven again left out, at its ends

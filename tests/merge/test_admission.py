@@ -330,6 +330,8 @@ def test_an_alike_stretch_next_to_copies_at_a_drive_end_is_not_stored(end, near,
     closeness = np.full(100, COPY_STEPS)
     closeness[gap] = 5.0  # nothing alike in its decided place
     nearest = None if near is None else np.where(closeness <= COPY_STEPS, COPY_STEPS, near)
+    if nearest is not None:
+        nearest[gap.start + 12] = 5.0  # one frame unlike: a blip, not a stretch of its own
     got = plan_admission(ds, merged, Admission(mode="novel"), True, closeness * STEP, STEP,
                          None if nearest is None else nearest * STEP).stored
     assert got[gap].all() == stored and got[gap].any() == stored
