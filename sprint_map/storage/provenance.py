@@ -111,15 +111,11 @@ def edge_table(store: RecordStore) -> EdgeTable:
 
     Notes
     -----
-    O(E): one cursor pass that joins the raw keys and values and decodes them with numpy
-    (:meth:`EdgeTable.decode`), instead of a record object per edge.
+    O(E): :meth:`MapReads.edge_table_from <sprint_map.storage.reads.MapReads.edge_table_from>`
+    over every source vertex, one cursor pass decoded with numpy.
     """
     with store.env.read() as txn:
-        keys, values = [], []
-        for key, value in txn.cursor(db=store.env.db("edges")):
-            keys.append(key)
-            values.append(value)
-    return EdgeTable.decode(keys, values)
+        return store.edge_table_from([(0, 2 ** 64 - 1)], txn)
 
 
 def list_edges(store: RecordStore, seq: int | None = None, added_by: int | None = None

@@ -25,7 +25,7 @@ import numpy as np
 from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
-from sprint_map.storage.records import RemoveResult, SequenceRecord
+from sprint_map.storage.records import EdgeTable, RemoveResult, SequenceRecord
 from sprint_map.storage.sightings import delete_sightings
 from sprint_map.storage.thumbnails import delete_thumbnails
 from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
@@ -48,6 +48,9 @@ class RecordStore(Protocol):
     def sequence(self, seq_id: int, txn: lmdb.Transaction | None = None) -> SequenceRecord: ...
 
     def removed_vertices(self, txn: lmdb.Transaction | None = None) -> int: ...
+
+    def edge_table_from(self, ranges: Iterable[tuple[int, int]], txn: lmdb.Transaction
+                        ) -> EdgeTable: ...
 
 
 class RemovedRanges:
