@@ -203,12 +203,19 @@ def run_arm(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
             positions[drive.name] = table
 
     rows = run_arm_on(drives, stored_gt, merge, work, config, learn_every, stored)
-    path = work / "merge-novel.map"
+    path = work / f"{arm_name(merge, learn_every, config)}.map"
     rows[-1]["reingest_stored_earlier"] = {
         drives[i].name: reingest_stored(path, drives[i], copy=True)
         for i in sorted({len(drives) // 4, len(drives) // 2, 3 * len(drives) // 4})}
     rows[-1]["reingest_stored"] = reingest_stored(path, drives[-1])
     return rows
+
+
+def arm_name(merge: bool, learn_every: int, config: MapConfig) -> str:
+    """The name of an arm's map: ``merge`` or ``no-merge``, then ``-learn`` and ``-novel``
+    as it learns and admits."""
+    return (("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
+            + ("-novel" if config.admission.mode != "all" else ""))
 
 
 def reingest_stored(path: Path, drive: Drive, noise: float = 0.01, copy: bool = False) -> int:
@@ -239,8 +246,7 @@ def run_arm_on(drives: list[Drive], gt: GroundTruth, merge: bool, work: Path,
     of the map as it stood before the later half (the *snapshot*), and both maps' answers are
     scored on the frames the snapshot can match (``snapshot_*`` keys of the rows)."""
     rows_out: list[dict[str, Any]] = []
-    name = (("merge" if merge else "no-merge") + ("-learn" if learn_every else "")
-            + ("-novel" if config.admission.mode != "all" else ""))
+    name = arm_name(merge, learn_every, config)
     split = len(drives) // 2  # the first traversal of the later half (as summarise splits)
     path = work / f"{name}.map"
     snapshot: SprintMap | None = None

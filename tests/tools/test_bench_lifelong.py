@@ -136,3 +136,17 @@ def test_quick_run_with_admission_reports_the_map_size(bench: Any, tmp_path: Pat
         "sprint_recall@1", "accepted_recall@1", "merge_precision"}
     assert out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "merge+novel (admission):" in capsys.readouterr().out
+
+
+def test_an_admitted_map_that_learns_is_ingested_again(bench: Any, tmp_path: Path) -> None:
+    """Admission and learning together: the re-ingests find the arm's own map."""
+    from sprint_map.config import MapConfig
+
+    drives, gt, _ = bench.latent_drives(0, 8, 60, bench.LATENT)
+    config = MapConfig(dim=bench.LATENT.dim).replace(admission={"mode": "novel"})
+    rows = bench.run_arm(drives, gt, True, tmp_path, config, learn_every=2)
+    assert bench.arm_name(True, 2, config) == "merge-learn-novel"
+    assert (tmp_path / "merge-learn-novel.map").is_dir()
+    assert 0 <= rows[-1]["reingest_stored"] <= 60
+    assert list(rows[-1]["reingest_stored_earlier"]) == [drives[i].name for i in (2, 4, 6)]
+    assert [r["learned"]["adopted"] for r in rows if "learned" in r] == [False] * 3
