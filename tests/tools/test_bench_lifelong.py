@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from sprint_map.config import MapConfig
 from sprint_map.frontend import GroundTruth, GroundTruthSpec
 from sprint_map.localize.localizer import FrameDecision
 from tools import bench_lifelong
@@ -140,8 +141,6 @@ def test_quick_run_with_admission_reports_the_map_size(bench: Any, tmp_path: Pat
 
 def test_an_admitted_map_that_learns_is_ingested_again(bench: Any, tmp_path: Path) -> None:
     """Admission and learning together: the re-ingests find the arm's own map."""
-    from sprint_map.config import MapConfig
-
     drives, gt, _ = bench.latent_drives(0, 8, 60, bench.LATENT)
     config = MapConfig(dim=bench.LATENT.dim).replace(admission={"mode": "novel"})
     rows = bench.run_arm(drives, gt, True, tmp_path, config, learn_every=2)
