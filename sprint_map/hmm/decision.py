@@ -26,7 +26,7 @@ import numpy as np
 from sprint_map.hmm.graph import ComponentGraph
 
 __all__ = ["BeliefView", "CANDIDATE_FLOOR", "Decision", "decide", "place_contrast", "place_mass",
-           "place_runs", "place_runs_np", "top_candidates"]
+           "place_runs", "place_runs_np", "top_candidates", "top_positions"]
 
 #: Relative belief below which a vertex is not a decision candidate (see top_candidates).
 CANDIDATE_FLOOR = 1e-6
@@ -432,4 +432,29 @@ def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, in
         for slot, p in zip(where, probs, strict=True):
             found.append((p, vi, slot))
     found.sort(key=lambda c: (-c[0], c[1], c[2]))
+    return found[:m]
+
+
+def top_positions(values: np.ndarray, m: int) -> list[tuple[float, int]]:
+    """The ``m`` largest of ``values`` (beliefs laid end to end) as ``(value, position)``,
+    best first, equal values by position: :func:`top_candidates` of one view holding them
+    all, so with the same :data:`CANDIDATE_FLOOR`.
+
+    Notes
+    -----
+    O(n): a max, a comparison and a ``nonzero``, then a partition of the qualifying values
+    only; every value equal to the ``m``-th largest is ranked, so ties never depend on the
+    partition.
+    """
+    if not values.size or m <= 0:
+        return []
+    peak = float(values.max())
+    if peak <= 0.0:
+        return []
+    pos = (values >= peak * CANDIDATE_FLOOR).nonzero()[0]
+    if pos.size > m:
+        sel = values[pos]
+        pos = pos[sel >= np.partition(sel, sel.size - m)[sel.size - m]]
+    found = sorted(zip(values[pos].tolist(), pos.tolist(), strict=True),
+                   key=lambda c: (-c[0], c[1]))
     return found[:m]

@@ -160,10 +160,10 @@ class FixedLagSmoother:
         for i in range(len(frames) - 2, -1, -1):
             beta, beta_sink, bound = backward_step(self.config, frames[i], frames[i + 1], beta,
                                                    beta_sink, keep=True, bound=bound)
-        parts, sink = gamma_of(frames[0], beta, beta_sink)
+        gamma, sink = gamma_of(frames[0], beta, beta_sink)
         nearest = list(self._nearest)
-        decision = decide_posterior(self.config, parts, sink, self._scratch, self._prefer,
-                                    nearest, len(nearest) - len(frames))
+        decision = decide_posterior(self.config, frames[0], gamma, sink, self._scratch,
+                                    self._prefer, nearest, len(nearest) - len(frames))
         if decision.candidate_id is not None and decision.seq_id is not None:
             self._prefer = decision.seq_id
         frames.popleft()
@@ -188,10 +188,10 @@ class FixedLagSmoother:
         offset = len(nearest) - len(frames)
         out: list[Decision] = []
         prefer: int | None = None
-        for i, (parts, sink) in zip(range(len(frames) - 1, -1, -1), self._posteriors(),
+        for i, (gamma, sink) in zip(range(len(frames) - 1, -1, -1), self._posteriors(),
                                     strict=True):
-            decision = decide_posterior(self.config, parts, sink, self._scratch, prefer,
-                                        nearest, offset + i)
+            decision = decide_posterior(self.config, frames[i], gamma, sink, self._scratch,
+                                        prefer, nearest, offset + i)
             if decision.candidate_id is not None and decision.seq_id is not None:
                 prefer = decision.seq_id
             out.append(decision)
@@ -205,8 +205,9 @@ class FixedLagSmoother:
             self._nearest.popleft()
         return out
 
-    def _posteriors(self) -> Iterable[tuple[Parts, float]]:
-        """The smoothed posterior of every waiting frame given all pushed, last first."""
+    def _posteriors(self) -> Iterable[tuple[np.ndarray, float]]:
+        """The smoothed posterior of every waiting frame given all pushed, last first
+        (:func:`gamma_of`)."""
         frames = self._frames
         beta = np.ones(frames[-1].starts()[-1])
         beta_sink = 1.0

@@ -32,7 +32,7 @@ plus its hits; decisions are made frame by frame during the backward pass.
 
 from __future__ import annotations
 
-from bisect import bisect_left
+from bisect import bisect_left, bisect_right
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -40,7 +40,7 @@ import numpy as np
 
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_candidates
+from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_positions
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
@@ -99,6 +99,8 @@ class FrameBelief:
     #: Where each part starts in the frame's values laid end to end (and their total, last);
     #: made on first use by :meth:`starts`.
     part_starts: list[int] | None = None
+    #: The parts' alpha laid end to end; made on first use by :meth:`values`.
+    laid: np.ndarray | None = None
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -109,6 +111,20 @@ class FrameBelief:
                 out.append(out[-1] + len(slots))
             self.part_starts = out
         return self.part_starts
+
+    def values(self) -> np.ndarray:
+        """The parts' alpha laid end to end (cached; O(live) once)."""
+        if self.laid is None:
+            alphas = [alpha for _, _, alpha in self.parts]
+            self.laid = (_EMPTY_VALS if not alphas else alphas[0] if len(alphas) == 1
+                         else np.concatenate(alphas))
+        return self.laid
+
+    def split(self, values: np.ndarray) -> Parts:
+        """``values`` laid end to end over this frame's parts, as parts (views, no copy)."""
+        starts = self.starts()
+        return [(trans, slots, values[starts[i]:starts[i + 1]])
+                for i, (trans, slots, _) in enumerate(self.parts)]
 
     def held_hits(self) -> tuple[np.ndarray, np.ndarray]:
         """The hits this frame's parts hold: their positions in the parts' slots laid end to
@@ -220,9 +236,8 @@ class ForwardBackward:
                                        float]]:
         """The smoothed posterior of every frame: ``(parts, sink)`` like :class:`FrameBelief`
         (``parts``: transition, slots, gamma), in frame order."""
-        out = []
-        for parts, sink in self._backward():
-            out.append((parts, sink))
+        out = [(self.frames[t].split(gamma), sink) for t, (gamma, sink)
+               in zip(range(len(self.frames) - 1, -1, -1), self._backward(), strict=True)]
         out.reverse()
         return out
 
@@ -240,9 +255,10 @@ class ForwardBackward:
         prefer: int | None = None
         # each frame's k nearest hits, read by its own contrast and its neighbours' (O(n k))
         nearest = [nearest_hits(frame, self.config.k) for frame in self.frames]
-        for t, (parts, sink) in zip(range(len(self.frames) - 1, -1, -1), self._backward(),
+        for t, (gamma, sink) in zip(range(len(self.frames) - 1, -1, -1), self._backward(),
                                     strict=True):
-            decision = decide_posterior(self.config, parts, sink, scratch, prefer, nearest, t)
+            decision = decide_posterior(self.config, self.frames[t], gamma, sink, scratch,
+                                        prefer, nearest, t)
             # Report a place by the drive the next frame was reported on, where it can be:
             # consecutive answers then follow one drive (see merge_rule's runs).
             if decision.candidate_id is not None and decision.seq_id is not None:
@@ -251,9 +267,8 @@ class ForwardBackward:
         out.reverse()
         return out
 
-    def _backward(self) -> Iterable[tuple[list[tuple[ComponentTransition, np.ndarray,
-                                                     np.ndarray]], float]]:
-        """Yield the smoothed posterior of each frame, last frame first."""
+    def _backward(self) -> Iterable[tuple[np.ndarray, float]]:
+        """Yield the smoothed posterior of each frame (:func:`gamma_of`), last frame first."""
         frames = self.frames
         if not frames:
             return
@@ -381,20 +396,21 @@ class BackwardOperator:
         self.n_hits, self.lik_max, self.sink_lik = n_hits, lik_max, sink_lik
 
 
-def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[Parts, float]:
-    """The smoothed posterior ``normalise(alpha_t * beta_t)`` of ``frame`` (its parts with
-    gamma in place of alpha, and the sink's) from ``beta_t`` on its parts laid end to end;
-    the filtered one if the model gives the frames zero probability. O(live)."""
+def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[np.ndarray, float]:
+    """The smoothed posterior ``normalise(alpha_t * beta_t)`` of ``frame`` from ``beta_t``:
+    gamma on its parts laid end to end (:meth:`FrameBelief.values`) and the sink's; the
+    filtered one if the model gives the frames zero probability. O(live)."""
     starts = frame.starts()
-    parts = [(trans, slots, alpha * beta[starts[i] : starts[i + 1]])
-             for i, (trans, slots, alpha) in enumerate(frame.parts)]
+    gamma = frame.values() * beta
     sink = frame.sink * beta_sink
-    total = sink + sum(float(g.sum()) for _, _, g in parts)
+    total = sink + sum(float(gamma[starts[i]:starts[i + 1]].sum())
+                       for i in range(len(starts) - 1))
     if not total > 0.0 or not np.isfinite(total):
         # (Only if the model gives the whole drive zero probability: keep the filter's.)
-        return list(frame.parts), frame.sink
+        return frame.values(), frame.sink
     inv = 1.0 / total
-    return [(t, s, g * inv) for t, s, g in parts], sink * inv
+    gamma *= inv
+    return gamma, sink * inv
 
 
 class DecisionScratch:
@@ -431,10 +447,11 @@ def nearest_hits(frame: FrameBelief, k: int) -> tuple[list[int], list[float]]:
     return ids, dists
 
 
-def decide_posterior(config: HMMConfig, parts: Parts, sink: float, scratch: DecisionScratch,
-                     prefer: int | None, nearest: list[tuple[list[int], list[float]]],
-                     t: int) -> Decision:
-    """The decision of frame ``t`` from its smoothed posterior ``(parts, sink)``.
+def decide_posterior(config: HMMConfig, frame: FrameBelief, gamma: np.ndarray, sink: float,
+                     scratch: DecisionScratch, prefer: int | None,
+                     nearest: list[tuple[list[int], list[float]]], t: int) -> Decision:
+    """The decision of frame ``t`` from its smoothed posterior (:func:`gamma_of`: ``gamma``
+    on ``frame``'s parts laid end to end, and ``sink``).
 
     ``prefer`` is a sequence id to report the place by (:func:`decide`'s ``prefer_seq``);
     ``nearest`` holds the ``k`` nearest hits of the frames around ``t`` (``nearest[t]`` is
@@ -443,16 +460,24 @@ def decide_posterior(config: HMMConfig, parts: Parts, sink: float, scratch: Deci
 
     Notes
     -----
-    O(live) to write the posterior into ``scratch`` and find the candidates, plus the place
-    masses of the candidates and the contrast (:func:`place_contrast`).
+    O(live) to find the candidates over all parts at once (:func:`top_positions`: what
+    :func:`~sprint_map.hmm.decision.top_candidates` finds over one view per part), then O(live) to write the parts
+    holding a candidate into ``scratch``, plus the place masses of the candidates and the
+    contrast (:func:`place_contrast`).
     """
+    starts = frame.starts()
+    top = top_positions(gamma, config.decision_candidates)
+    owner = [bisect_right(starts, pos) - 1 for _, pos in top]
+    held = sorted(set(owner))  # the parts holding a candidate, each one view
     views = []
-    for trans, slots, gamma in parts:
+    for i in held:
+        trans, slots, _ = frame.parts[i]
         buf = scratch.vector(trans)
-        buf[slots] = gamma
+        buf[slots] = gamma[starts[i]:starts[i + 1]]
         views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
-    candidates = top_candidates(views, config.decision_candidates)
-    n_vertices = sum(len(slots) for _, slots, _ in parts)
+    view_of = {i: v for v, i in enumerate(held)}
+    candidates = [(p, view_of[i], int(frame.parts[i][1][pos - starts[i]]))
+                  for (p, pos), i in zip(top, owner, strict=True)]
 
     def contrast_of(view: BeliefView, slot: int) -> float:
         ids, dists = nearest[t]
@@ -460,9 +485,9 @@ def decide_posterior(config: HMMConfig, parts: Parts, sink: float, scratch: Deci
                               config.contrast_reach, ConfirmedRivals(t, nearest))
 
     decision = decide(views, candidates, sink, config.place_radius, config.place_hops,
-                      config.min_confidence, len(parts), n_vertices, prefer, contrast_of)
-    for (_, slots, _), view in zip(parts, views, strict=True):
-        view.x[slots] = 0.0
+                      config.min_confidence, len(frame.parts), starts[-1], prefer, contrast_of)
+    for view in views:
+        view.x[view.idx] = 0.0
     return decision
 
 

@@ -1,4 +1,5 @@
-"""Place runs: the small-place path (Python sets) and the large-place path (numpy) agree."""
+"""Place runs: the small-place path (Python sets) and the large-place path (numpy) agree;
+candidates over parts laid end to end rank as over one view per part."""
 
 from __future__ import annotations
 
@@ -7,7 +8,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from sprint_map.hmm import HMMConfig, MemoryGraphSource
-from sprint_map.hmm.decision import BeliefView, place_mass, place_runs, place_runs_np
+from sprint_map.hmm.decision import (
+    CANDIDATE_FLOOR,
+    BeliefView,
+    place_mass,
+    place_runs,
+    place_runs_np,
+    top_candidates,
+    top_positions,
+)
 from sprint_map.hmm.graph import ComponentGraph
 from sprint_map.hmm.transition import ComponentTransition
 
@@ -99,3 +108,27 @@ def test_place_contrast_is_the_ratio_over_the_places_slots(data: st.DataObject) 
     want = 0.0 if best_out == float("inf") else (
         float("inf") if best_in == float("inf") else best_in / best_out)
     assert place_contrast(view, slot, hits, dists, radius, hops, reach) == want
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.lists(st.sampled_from([0.0, 1e-9, 0.1, 0.25, 0.5, 0.7, 1.0]), max_size=12),
+                min_size=1, max_size=5), st.integers(1, 6))
+def test_top_positions_rank_like_top_candidates_over_one_view_per_part(
+        parts: list[list[float]], m: int) -> None:
+    """Ties included: every value equal to the m-th largest is ranked, then by position."""
+    laid = np.array([v for part in parts for v in part])
+    got = top_positions(laid, m)
+    peak = max(laid.tolist(), default=0.0)
+    qualify = [(v, p) for p, v in enumerate(laid.tolist())
+               if peak > 0 and v >= peak * CANDIDATE_FLOOR]
+    assert got == sorted(qualify, key=lambda c: (-c[0], c[1]))[:m]
+    # the same as top_candidates over one view per part where no two values tie
+    distinct = laid + np.arange(laid.size) * 1e-3 * (laid > 0)
+    views: list[BeliefView] = []
+    at = 0
+    graph = MemoryGraphSource([100]).load_component(0)
+    for part in parts:
+        views.append(BeliefView(graph, np.array([0]), distinct, a=at, b=at + len(part)))
+        at += len(part)
+    per_view = top_candidates(views, m)  # slots: positions in ``distinct``
+    assert [(p, slot) for p, _, slot in per_view] == top_positions(distinct, m)
