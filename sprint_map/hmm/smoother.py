@@ -44,7 +44,12 @@ from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.observation import ObservationModel
 from sprint_map.hmm.sprint_filter import SprintFilter
-from sprint_map.hmm.transition import ComponentTransition, PullOperator, parts_pull_operator
+from sprint_map.hmm.transition import (
+    ComponentTransition,
+    PullOperator,
+    parts_pull_operator,
+    slot_space,
+)
 
 __all__ = ["BackwardOperator", "ConfirmedRivals", "DecisionScratch", "FrameBelief",
            "ForwardBackward", "Parts", "RESCALE_ABOVE", "RESCALE_BELOW", "RIVAL_CONFIRMATIONS",
@@ -101,6 +106,9 @@ class FrameBelief:
     part_starts: list[int] | None = None
     #: The parts' alpha laid end to end; made on first use by :meth:`values`.
     laid: np.ndarray | None = None
+    #: The parts' slots in one slot space (:func:`~sprint_map.hmm.transition.slot_space`)
+    #: and their transitions, in order; made on first use by :meth:`space`.
+    spaced: tuple[np.ndarray, list[ComponentTransition]] | None = None
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -126,43 +134,50 @@ class FrameBelief:
         return [(trans, slots, values[starts[i]:starts[i + 1]])
                 for i, (trans, slots, _) in enumerate(self.parts)]
 
+    def space(self) -> tuple[np.ndarray, list[ComponentTransition]]:
+        """The parts' slots laid in one slot space
+        (:func:`~sprint_map.hmm.transition.slot_space`) and the parts' transitions, in order
+        (cached; O(live) once)."""
+        if self.spaced is None:
+            self.spaced = (slot_space([(trans, slots) for trans, slots, _ in self.parts]),
+                           [trans for trans, _, _ in self.parts])
+        return self.spaced
+
     def held_hits(self) -> tuple[np.ndarray, np.ndarray]:
         """The hits this frame's parts hold: their positions in the parts' slots laid end to
         end (ascending) and their likelihood ratios (cached; O(hits log live + parts) once,
         plus O(hits log S) for a part of S > 1 sequences)."""
         if self.hit_layout is None:
-            self.hit_layout = _held_hits(self.parts, self.hit_ids, self.hit_lik)
+            self.hit_layout = _held_hits(self.parts, self.space()[0], self.hit_ids,
+                                         self.hit_lik)
         return self.hit_layout
 
 
-def _held_hits(parts: Parts, hit_ids: list[int], hit_lik: list[float]
+def _held_hits(parts: Parts, live: np.ndarray, hit_ids: list[int], hit_lik: list[float]
                ) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`FrameBelief.held_hits`: each part's slots offset into one slot space (a part
-    after the slots of those before it), every hit's slot found there, then its position."""
-    if not hit_ids or not parts:
+    """:meth:`FrameBelief.held_hits`: every hit's slot found in the parts' one slot space
+    (``live``, :meth:`FrameBelief.space`), then its position there."""
+    if not hit_ids or not parts or not live.size:
         return _EMPTY_SLOTS, _EMPTY_VALS
     ids = np.asarray(hit_ids, dtype=np.int64)
     where = np.full(ids.size, -1, dtype=np.int64)  # each hit's slot in the one space
     offset = 0
-    spaced: list[np.ndarray] = []
     lone: list[tuple[int, int, int]] = []  # one-sequence parts: (first vertex, end, slot 0)
-    for trans, slots, _ in parts:
-        spaced.append(slots + offset if offset else slots)
+    for trans, _, _ in parts:
         if len(trans.ranges) == 1:
             first, length, slot = trans.ranges[0]
             lone.append((first, first + length, slot + offset))
         else:
             at, held = trans.held_slots(ids)
             where[at] = held + offset
-        offset += trans.n_slots
+        offset += trans.n_slots + len(trans.kernel)
     if lone:
         firsts, ends, slot0 = np.array(sorted(lone), dtype=np.int64).T
         r = np.maximum(firsts.searchsorted(ids, "right") - 1, 0)
         inside = ((ids >= firsts[r]) & (ids < ends[r])).nonzero()[0]
         where[inside] = ids[inside] - firsts[r[inside]] + slot0[r[inside]]
-    live = np.concatenate(spaced) if len(spaced) > 1 else spaced[0]
     hit = (where >= 0).nonzero()[0]
-    if not live.size or not hit.size:
+    if not hit.size:
         return _EMPTY_SLOTS, _EMPTY_VALS
     pos = np.minimum(live.searchsorted(where[hit]), live.size - 1)
     held = live[pos] == where[hit]
@@ -358,8 +373,12 @@ def backward_operator(now: FrameBelief, nxt: FrameBelief) -> BackwardOperator:
     where its values start, :meth:`FrameBelief.starts`), ``nxt``'s likelihood ratios folded
     into its targets; and ``nxt``'s hits, where its values laid end to end hold them.
     O(live W + live log live)."""
+    space, comps = now.space()
+    next_space, next_comps = nxt.space()  # (the same transitions, in order: the same space)
     pull = parts_pull_operator([(trans, slots) for trans, slots, _ in now.parts],
-                               [(trans, slots) for trans, slots, _ in nxt.parts])
+                               [(trans, slots) for trans, slots, _ in nxt.parts],
+                               source_space=space,
+                               target_space=next_space if next_comps == comps else None)
     hit_pos, hit_lik = nxt.held_hits()
     if hit_pos.size and pull.m_sel.size:
         e = np.ones(nxt.starts()[-1])

@@ -75,8 +75,10 @@ def window_kernel(config: HMMConfig) -> np.ndarray:
     return _kernels(config)[0].copy()
 
 
-def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray]:
-    """``window_kernel`` and its reverse, read-only, once per config (components share them)."""
+def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``window_kernel``, its reverse and its tails (``tails[r]``: the share of a window past
+    a sequence's end ``r`` slots ahead, ``0 <= r < W``), read-only, once per config
+    (components share them)."""
     # Keyed by the three fields it reads: hashing the whole frozen config costs more than the
     # rest of a component's set-up.
     return _kernels_of(config.window, config.restart_prob, config.new_place_prob)
@@ -84,13 +86,16 @@ def _kernels(config: HMMConfig) -> tuple[np.ndarray, np.ndarray]:
 
 @lru_cache(maxsize=16)
 def _kernels_of(window: tuple[float, ...], restart_prob: float, new_place_prob: float
-                ) -> tuple[np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     w = np.asarray(window, dtype=np.float64)
     kernel = w * ((1.0 - restart_prob - new_place_prob) / w.sum())
     krev = np.ascontiguousarray(kernel[::-1])
-    kernel.setflags(write=False)
-    krev.setflags(write=False)
-    return kernel, krev
+    steps = np.arange(len(kernel), dtype=_I64)
+    # (summed row by row as a row of zeros then the tail, as the sums it stands for)
+    tails = np.where(steps >= steps[:, None], kernel, 0.0).sum(axis=1)
+    for array in (kernel, krev, tails):
+        array.setflags(write=False)
+    return kernel, krev, tails
 
 
 class ComponentTransition:
@@ -117,14 +122,14 @@ class ComponentTransition:
     never O(n_vertices).
     """
 
-    __slots__ = ("_edge_src_list", "_first_list", "_rinv", "edge_coef", "edge_dst", "edge_src",
+    __slots__ = ("_edge_src_list", "_first_list", "_rinv", "_tails", "edge_coef", "edge_dst", "edge_src",
                  "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots", "n_state",
                  "ranges", "seq_end", "slot_first", "spread")
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph
         # Correlating with the reversed kernel is np.convolve without its Python-level checks.
-        self.kernel, self.krev = _kernels(config)
+        self.kernel, self.krev, self._tails = _kernels(config)
         self.spread = len(self.kernel) - 1
         g = self.gutter = self.gap = merge_gap(len(self.kernel))
         n_seq = graph.n_sequences
@@ -361,43 +366,66 @@ class ComponentTransition:
         return factor, owner, self.edge_dst[eidx], self.edge_coef[eidx]
 
     def _spilled(self, origin: np.ndarray, factor: np.ndarray | None, *,
-                 ordered: bool = False) -> np.ndarray:
+                 ordered: bool = False) -> np.ndarray | None:
         """Per origin: the share of its window past its sequence's end (to the sink), times
-        ``factor`` (``ordered``: the origins are sorted). O(n), or O(n W) when some origin is
-        that close to an end."""
+        ``factor`` (``ordered``: the origins are sorted); None when no window reaches an end.
+        O(n); O(1) for sorted origins of one sequence none of which is that close to its end.
+        """
         width = len(self.kernel)
-        if len(self.seq_end) == 1 and ordered and (
-                not origin.size or origin[-1] + width <= self.seq_end[0]):
-            return np.zeros(origin.size)  # (one sequence, the last origin not near its end)
-        room = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1] - origin
+        if not origin.size:
+            return None
+        if len(self.seq_end) == 1 and ordered:
+            end = int(self.seq_end[0])
+            if int(origin[-1]) + width <= end:
+                return None  # (one sequence, the last origin not near its end)
+            room = end - origin
+        else:
+            room = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1] - origin
         near = (room < width).nonzero()[0]
+        if not near.size:
+            return None
         out = np.zeros(origin.size)
-        if near.size:
-            past = np.arange(width, dtype=_I64) >= room[near][:, None]
-            out[near] = np.where(past, self.kernel, 0.0).sum(axis=1)
-            if factor is not None:
-                out *= factor
+        out[near] = self._tails[room[near]]
+        if factor is not None:
+            out *= factor
         return out
 
 
+def slot_space(parts: Sequence[tuple[ComponentTransition, np.ndarray]]) -> np.ndarray:
+    """The sorted slots of ``parts`` (a component's transition and its sorted slots each)
+    laid in one slot space, ascending: each part offset past the slots of the ones before it
+    plus ``W``, so that no window reaches from one part into the next (as
+    :func:`parts_pull_operator` lays its sources). O(live), one numpy call per part."""
+    at = 0
+    out: list[np.ndarray] = []
+    for trans, slots in parts:
+        out.append(slots + at if at else np.asarray(slots, dtype=_I64))
+        at += trans.n_slots + len(trans.kernel)
+    return _concat(out) if out else EMPTY_IDS
+
+
 def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]],
-                        targets: Sequence[tuple[ComponentTransition, np.ndarray]]
-                        ) -> PullOperator:
+                        targets: Sequence[tuple[ComponentTransition, np.ndarray]], *,
+                        source_space: np.ndarray | None = None,
+                        target_space: np.ndarray | None = None) -> PullOperator:
     """One :class:`PullOperator` from the ``targets`` parts laid end to end onto the
     ``sources`` parts laid end to end (a part: a component's transition and sorted slots, one
     part per component on each side): each source part pulls (:meth:`ComponentTransition.pull`)
     from the target part of its component, if any, else only sends its share past its
     sequences' ends to the sink. All must share one window (ValueError otherwise).
 
+    ``source_space``, if the caller keeps it: :func:`slot_space` of the sources;
+    ``target_space``: that of the targets, given only when their components are the sources'
+    in the same order (the targets then lie in the sources' space).
+
     Applied, it gives float for float what each source part's own
     :meth:`ComponentTransition.pull_operator` gives on its target part.
 
     Notes
     -----
-    Every part's slots are offset into one slot space, each component after the room of the
-    ones before it plus ``W``, so that no window reaches into another part: one layout, one
-    search for the targets. O((live + E_out) W + targets log live), about 20 numpy calls
-    plus 3 per part (more for a part with edges or near a sequence's end).
+    All slots lie in one space (:func:`slot_space`): one layout, one search for the targets.
+    O((live + E_out) W + targets log live), about 20 numpy calls plus one per part (more for
+    a part with edges or near a sequence's end).
     """
     if not sources:
         return PullOperator(0, 0, np.ones(1), EMPTY_IDS, EMPTY_IDS, EMPTY_IDS, None,
@@ -407,8 +435,8 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
     base: dict[int, int] = {}  # component -> offset of its slots
     at = n = 0
     src: list[np.ndarray] = []
-    sinks: list[np.ndarray] = []
-    factors: list[np.ndarray | None] = []
+    sinks: list[tuple[int, np.ndarray]] = []  # (first row, shares) of the parts that spill
+    factors: list[tuple[int, np.ndarray]] = []  # (first row, 1 / R_u) of the parts with edges
     owners: list[np.ndarray] = []
     e_origins: list[np.ndarray] = []
     coefs: list[np.ndarray] = []
@@ -420,23 +448,30 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
         factor = None
         if trans.has_edges and slots.size:
             factor, owner, e_origin, coef = trans._edges_leaving(slots)
+            factors.append((n, factor))
         sink = trans._spilled(slots, factor, ordered=True)
         if factor is not None and e_origin.size:
-            sink += np.bincount(owner, weights=trans._spilled(e_origin, coef),
-                                minlength=slots.size)
+            e_sink = trans._spilled(e_origin, coef)
+            if e_sink is not None:
+                e_sink = np.bincount(owner, weights=e_sink, minlength=slots.size)
+                sink = e_sink if sink is None else sink + e_sink
             owners.append(owner + n)
             e_origins.append(e_origin + at)
             coefs.append(coef)
-        src.append(slots + at if at else slots)
-        sinks.append(sink)
-        factors.append(factor)
+        if source_space is None:
+            src.append(slots + at if at else slots)
+        if sink is not None:
+            sinks.append((n, sink))
         n += slots.size
         at += trans.n_slots + width
     # (a target part without a source part is put below every window)
-    m_all = _concat([np.asarray(m_slots, dtype=_I64)
-                     + base.get(trans.graph.component_id, -trans.n_slots - width)
-                     for trans, m_slots in targets]) if targets else EMPTY_IDS
-    slots_all = _concat(src)
+    if target_space is not None:
+        m_all = target_space
+    else:
+        m_all = _concat([np.asarray(m_slots, dtype=_I64)
+                         + base.get(trans.graph.component_id, -trans.n_slots - width)
+                         for trans, m_slots in targets]) if targets else EMPTY_IDS
+    slots_all = source_space if source_space is not None else _concat(src)
     e_all = _concat(e_origins) if e_origins else EMPTY_IDS
     origin = slots_all if not e_all.size else insert_sorted(slots_all, e_all)
     size, lo, hi, shift, place = _window_layout(origin, width)
@@ -450,13 +485,20 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
         np.maximum(block, 0, out=block)
         m_sel = ((m_all >= lo[block]) & (m_all < hi[block])).nonzero()[0]
         m_place = m_all[m_sel] + shift[block[m_sel]]
-    factor_all = None
-    if any(f is not None for f in factors):
-        factor_all = _concat([np.ones(len(s)) if f is None else f
-                              for s, f in zip(src, factors, strict=True)])
-    return PullOperator(n, size, kernel, m_sel, m_place, src_place, factor_all,
+    return PullOperator(n, size, kernel, m_sel, m_place, src_place,
+                        _rows(n, factors, 1.0) if factors else None,
                         _concat(owners) if owners else EMPTY_IDS, e_place,
-                        _concat(coefs) if coefs else EMPTY_WEIGHTS, _concat(sinks))
+                        _concat(coefs) if coefs else EMPTY_WEIGHTS, _rows(n, sinks, 0.0))
+
+
+def _rows(n: int, blocks: list[tuple[int, np.ndarray]], fill: float) -> np.ndarray:
+    """``n`` values, ``fill`` but for the blocks given (each its first row and values)."""
+    if len(blocks) == 1 and blocks[0][1].size == n:
+        return blocks[0][1]
+    out = np.full(n, fill) if fill else np.zeros(n)
+    for first, values in blocks:
+        out[first:first + values.size] = values
+    return out
 
 
 def _concat(arrays: list[np.ndarray]) -> np.ndarray:

@@ -144,9 +144,9 @@ def test_every_push_builds_one_operator_so_the_first_answer_costs_no_more(monkey
     built: list[int] = []
     real = smoother.parts_pull_operator
 
-    def counting(sources, targets):
+    def counting(sources, targets, **spaces):
         built.append(1)
-        return real(sources, targets)
+        return real(sources, targets, **spaces)
 
     monkeypatch.setattr(smoother, "parts_pull_operator", counting)
     fl = FixedLagSmoother(HMMConfig(), MemoryGraphSource([50]), lag=5)
