@@ -140,8 +140,7 @@ class FixedLagSmoother:
                                                             np.asarray(hit_dists))
         self.filter.update_observed(vids, lik, sink_lik)  # a bad hit raises before any change
         self.pushed += 1
-        parts, sink = self.filter.live_belief()
-        frame = FrameBelief(parts, sink, vids, vdists, lik, sink_lik)  # (Python floats)
+        frame = FrameBelief.of_belief(self.filter.laid_belief(), vids, vdists, lik, sink_lik)
         self._frames.append(frame)
         self._nearest.append(nearest_hits(frame, self.config.k))
         if len(self._frames) >= 2:

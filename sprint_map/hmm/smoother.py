@@ -109,6 +109,22 @@ class FrameBelief:
     #: The parts' slots in one slot space (:func:`~sprint_map.hmm.transition.slot_space`)
     #: and their transitions, in order; made on first use by :meth:`space`.
     spaced: tuple[np.ndarray, list[ComponentTransition]] | None = None
+    #: The parts' slots laid end to end, when the frame was made from them (:meth:`of_belief`).
+    laid_slots: np.ndarray | None = None
+
+    @classmethod
+    def of_belief(cls, belief: tuple[list[ComponentTransition], np.ndarray, np.ndarray, list[int],
+                                float],
+             hit_ids: list[int], hit_dists: list[float], hit_lik: list[float], sink_lik: float,
+             ruled_out: frozenset[int] = frozenset()) -> FrameBelief:
+        """A frame from :meth:`SprintFilter.laid_belief
+        <sprint_map.hmm.sprint_filter.SprintFilter.laid_belief>` (its parts views of it:
+        nothing is laid end to end again) and its hits. O(parts)."""
+        transitions, slots, values, starts, sink = belief
+        parts = [(trans, slots[starts[i]:starts[i + 1]], values[starts[i]:starts[i + 1]])
+                 for i, trans in enumerate(transitions)]
+        return cls(parts, sink, hit_ids, hit_dists, hit_lik, sink_lik, ruled_out,
+                   part_starts=starts, laid=values, laid_slots=slots)
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -139,8 +155,19 @@ class FrameBelief:
         (:func:`~sprint_map.hmm.transition.slot_space`) and the parts' transitions, in order
         (cached; O(live) once)."""
         if self.spaced is None:
-            self.spaced = (slot_space([(trans, slots) for trans, slots, _ in self.parts]),
-                           [trans for trans, _, _ in self.parts])
+            transitions = [trans for trans, _, _ in self.parts]
+            if self.laid_slots is None:
+                space = slot_space([(trans, slots) for trans, slots, _ in self.parts])
+            elif not transitions:
+                space = _EMPTY_SLOTS
+            else:
+                bases = [0]
+                for trans in transitions[:-1]:
+                    bases.append(bases[-1] + trans.n_slots + len(trans.kernel))
+                starts = self.starts()
+                counts = [b - a for a, b in zip(starts[:-1], starts[1:], strict=True)]
+                space = self.laid_slots + np.repeat(np.array(bases, dtype=np.int64), counts)
+            self.spaced = (space, transitions)
         return self.spaced
 
     def held_hits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -239,13 +266,13 @@ class ForwardBackward:
         vids, vdists, lik, sink_lik, _ = self._obs.evaluate(ids, np.asarray(hit_dists),
                                                             weights, sink_weight)
         self.filter.update_observed(vids, lik, sink_lik)  # a bad hit raises before any change
-        parts, sink = self.filter.live_belief()
         ruled_out: frozenset[int] = frozenset()
         if weights is not None:
             low = np.asarray(weights).ravel() < RIVAL_MIN_WEIGHT
             ruled_out = frozenset(ids.ravel()[low].tolist())
-        self.frames.append(FrameBelief(parts, sink, vids, [float(d) for d in vdists], lik,
-                                       sink_lik, ruled_out))
+        self.frames.append(FrameBelief.of_belief(self.filter.laid_belief(), vids,
+                                            [float(d) for d in vdists], lik, sink_lik,
+                                            ruled_out))
 
     def posteriors(self) -> list[tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
                                        float]]:

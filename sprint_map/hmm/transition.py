@@ -374,8 +374,8 @@ class ComponentTransition:
         width = len(self.kernel)
         if not origin.size:
             return None
-        if len(self.seq_end) == 1 and ordered:
-            end = int(self.seq_end[0])
+        if ordered and len(self.ranges) == 1:
+            _, end, _ = self.ranges[0]  # (one sequence: its first slot is 0, its end its length)
             if int(origin[-1]) + width <= end:
                 return None  # (one sequence, the last origin not near its end)
             room = end - origin
@@ -547,7 +547,8 @@ class PullOperator:
     """
 
     __slots__ = ("_layout", "e_coef", "e_owner", "e_place", "factor", "kernel", "m_place",
-                 "m_sel", "m_weight", "n", "sink", "size", "spills", "src_place")
+                 "m_sel", "m_weight", "n", "sink", "size", "spill_rows", "spill_shares",
+                 "spills", "src_place")
 
     def __init__(self, n: int, size: int, kernel: np.ndarray, m_sel: np.ndarray,
                  m_place: np.ndarray, src_place: np.ndarray, factor: np.ndarray | None,
@@ -558,8 +559,11 @@ class PullOperator:
         self.src_place, self.factor = src_place, factor
         self.e_owner, self.e_place, self.e_coef = e_owner, e_place, e_coef
         self.sink = sink
+        #: The sources that reach past their sequence's end, and their ``sink`` shares.
+        self.spill_rows = sink.nonzero()[0]
+        self.spill_shares = sink[self.spill_rows]
         #: Whether any source reaches past its sequence's end (else ``sink`` is all 0).
-        self.spills = bool(sink.any())
+        self.spills = bool(self.spill_rows.size)
         #: The layout, made on first use: only ``m_place`` is ever written, the rest stays 0.
         self._layout: np.ndarray | None = None
 
@@ -588,8 +592,8 @@ class PullOperator:
         if self.e_owner.size:
             out += np.bincount(self.e_owner, weights=self.e_coef * y[self.e_place],
                                minlength=self.n)
-        if self.spills:
-            out += self.sink * m_sink
+        if self.spills:  # (the same floats as adding ``sink * m_sink`` to every row)
+            out[self.spill_rows] += self.spill_shares * m_sink
         return out
 
 
