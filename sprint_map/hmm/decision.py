@@ -435,6 +435,10 @@ def top_candidates(views: list[BeliefView], m: int) -> list[tuple[float, int, in
     return found[:m]
 
 
+#: :func:`top_positions` first ranks the values of at least this share of the largest.
+_NEAR_PEAK = 0.01
+
+
 def top_positions(values: np.ndarray, m: int) -> list[tuple[float, int]]:
     """The ``m`` largest of ``values`` (beliefs laid end to end) as ``(value, position)``,
     best first, equal values by position: :func:`top_candidates` of one view holding them
@@ -442,16 +446,19 @@ def top_positions(values: np.ndarray, m: int) -> list[tuple[float, int]]:
 
     Notes
     -----
-    O(n): a max, a comparison and a ``nonzero``, then a partition of the qualifying values
-    only; every value equal to the ``m``-th largest is ranked, so ties never depend on the
-    partition.
+    O(n): a max, a comparison and a ``nonzero``, then a partition of the values of at least
+    :data:`_NEAR_PEAK` times the largest (the ``m`` largest are among them when there are
+    ``m`` of them; else of all qualifying values); every value equal to the ``m``-th largest
+    is ranked, so ties never depend on the partition.
     """
     if not values.size or m <= 0:
         return []
     peak = float(values.max())
     if peak <= 0.0:
         return []
-    pos = (values >= peak * CANDIDATE_FLOOR).nonzero()[0]
+    pos = (values >= peak * _NEAR_PEAK).nonzero()[0]
+    if pos.size < m:
+        pos = (values >= peak * CANDIDATE_FLOOR).nonzero()[0]
     if pos.size > m:
         sel = values[pos]
         pos = pos[sel >= np.partition(sel, sel.size - m)[sel.size - m]]

@@ -327,6 +327,7 @@ class ForwardBackward:
 
 _EMPTY_SLOTS = np.zeros(0, dtype=np.int64)
 _MAX = np.maximum.reduce
+_ADD = np.add.reduce
 _EMPTY_VALS = np.zeros(0)
 
 
@@ -446,11 +447,9 @@ def gamma_of(frame: FrameBelief, beta: np.ndarray, beta_sink: float) -> tuple[np
     """The smoothed posterior ``normalise(alpha_t * beta_t)`` of ``frame`` from ``beta_t``:
     gamma on its parts laid end to end (:meth:`FrameBelief.values`) and the sink's; the
     filtered one if the model gives the frames zero probability. O(live)."""
-    starts = frame.starts()
     gamma = frame.values() * beta
     sink = frame.sink * beta_sink
-    total = sink + sum(float(gamma[starts[i]:starts[i + 1]].sum())
-                       for i in range(len(starts) - 1))
+    total = sink + float(_ADD(gamma))
     if not total > 0.0 or not np.isfinite(total):
         # (Only if the model gives the whole drive zero probability: keep the filter's.)
         return frame.values(), frame.sink

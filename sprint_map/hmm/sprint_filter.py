@@ -369,7 +369,7 @@ class SprintFilter:
         # state intact.
         groups = self._active.locate_many(np.asarray(vids)) if n_hits >= MANY_HITS else None
         located: list[tuple[ActiveComponent, int] | None] = []
-        fresh: list[tuple[ComponentTransition, list[int], list[int]]] = []
+        fresh: list[tuple[ComponentTransition, list[int], list[int] | None]] = []
         if n_hits and groups is None:
             located, fresh = self._locate_known(vids)
         comps = self._active.comps
@@ -417,18 +417,19 @@ class SprintFilter:
                 # restart mass).
                 if comp.n_windows != 1 or not comp.a <= slot < comp.b:
                     comp.pending.append(slot)
-        entries = self._activate_fresh(fresh, liks, inject) if fresh else None
+        entries = self._activate_fresh(fresh, vids, liks, inject) if fresh else None
         self._finish(sink * sink_lik, entries)
         self.frames += 1
 
     def _locate_known(self, vids: list[int]) -> tuple[
             list[tuple[ActiveComponent, int] | None],
-            list[tuple[ComponentTransition, list[int], list[int]]]]:
+            list[tuple[ComponentTransition, list[int], list[int] | None]]]:
         """(component, slot) of every hit an active component holds (None for the others),
         and the components of the others to activate: their transitions (loaded now), the
-        positions of their hits (in hit order) and the slots of those hits, in the order
-        :meth:`_locate` activates them. Raises before anything changes for a hit the source
-        does not know or does not place where it says."""
+        positions of their hits (in hit order) and the slots of those hits (None for a
+        component of one sequence: the hits' offsets in it), in the order :meth:`_locate`
+        activates them. Raises before anything changes for a hit the source does not know or
+        does not place where it says."""
         active = self._active
         found = (active.locate_each(np.asarray(vids, dtype=np.int64)) if len(vids) >= MANY_HITS
                  else [active.locate(v) for v in vids])
@@ -441,19 +442,23 @@ class SprintFilter:
             raise ValueError("graph source returned a wrong number of component ids")
         hits: dict[int, list[int]] = {}
         for i, cid in zip(at, comp_ids.tolist(), strict=True):
-            if cid in active:
-                raise ValueError(f"vertex {vids[i]} is not in the component the source named")
             hits.setdefault(cid, []).append(i)
-        fresh = []
+        for cid, mine in hits.items():  # (in order of first appearance: the first such hit)
+            if cid in active:
+                raise ValueError(f"vertex {vids[mine[0]]} is not in the component the source "
+                                 "named")
+        fresh: list[tuple[ComponentTransition, list[int], list[int] | None]] = []
+        transition = self._transition
         for cid, mine in hits.items():
-            trans = self._transition(int(cid))
+            trans = transition(cid)
             ids = [vids[i] for i in mine]
+            slots: list[int] | None
             if len(trans.ranges) == 1:
                 first, length, _ = trans.ranges[0]
-                if not all(first <= v < first + length for v in ids):
+                if min(ids) < first or max(ids) >= first + length:
                     raise ValueError(f"a vertex of {ids} is not in the component the source "
                                      "named")
-                slots = [v - first for v in ids]
+                slots = None  # (``id - first``, made if the component is activated)
             else:
                 held, found_slots = trans.held_slots(np.asarray(ids, dtype=np.int64))
                 if held.size != len(ids):
@@ -463,8 +468,10 @@ class SprintFilter:
             fresh.append((trans, mine, slots))
         return found, fresh
 
-    def _activate_fresh(self, fresh: list[tuple[ComponentTransition, list[int], list[int]]],
-                        liks: list[float], inject: float) -> list[ActiveComponent | _Beamed] | None:
+    def _activate_fresh(self,
+                        fresh: list[tuple[ComponentTransition, list[int], list[int] | None]],
+                        vids: list[int], liks: list[float], inject: float
+                        ) -> list[ActiveComponent | _Beamed] | None:
         """Activate the components of :meth:`_locate_known` and inject their hits, as if they
         had been active with no belief, except those the beam would drop at the end of this
         step anyway (at least ``max_active_components`` others hold more mass): only their
@@ -490,6 +497,9 @@ class SprintFilter:
                 continue
             comp = self._active.add(trans)
             x = comp.x
+            if slots is None:
+                first = trans.ranges[0][0]
+                slots = [vids[i] - first for i in mine]
             for slot, i in zip(slots, mine, strict=True):  # (the loop of _update_any)
                 old = x.item(slot)
                 new = (old + inject) * liks[i]
