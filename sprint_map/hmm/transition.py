@@ -41,6 +41,7 @@ __all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator", 
            "full_transition_matrix", "parts_pull_operator", "window_kernel"]
 
 _I64 = np.int64
+_FIRST = np.zeros(1, dtype=np.int64)
 
 
 def _compiled_correlate() -> Callable[[np.ndarray, np.ndarray, str], np.ndarray]:
@@ -282,9 +283,16 @@ class ComponentTransition:
                     x[e:h] = 0.0
                 hi = np.minimum(hi, end)
                 mass -= overflow
-        # Grown windows of one sequence may now be closer than the gap: merge them.
-        if lo.size > 1 and bool((lo[1:] < hi[:-1] + self.gap).any()):
-            lo, hi = merge(lo, hi, self.gap)
+        # Grown windows of one sequence may now be closer than the gap: merge them. (They are
+        # still sorted and each ends before the next starts, since they were ``gap`` apart
+        # and grew by ``g <= gap``: a run of close ones spans its first start to its last end,
+        # which is what ``merge`` gives, without its sort.)
+        if lo.size > 1:
+            apart = lo[1:] >= hi[:-1] + self.gap
+            if not apart.all():
+                first = np.concatenate((_FIRST, apart.nonzero()[0] + 1))
+                last = np.concatenate((first[1:] - 1, [lo.size - 1]))
+                lo, hi = lo[first], hi[last]
         return lo, hi, overflow, mass, n_prop
 
 
@@ -366,10 +374,11 @@ class ComponentTransition:
         return factor, owner, self.edge_dst[eidx], self.edge_coef[eidx]
 
     def _spilled(self, origin: np.ndarray, factor: np.ndarray | None, *,
-                 ordered: bool = False) -> np.ndarray | None:
-        """Per origin: the share of its window past its sequence's end (to the sink), times
+                 ordered: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+        """The origins whose window reaches past their sequence's end (positions in
+        ``origin``, ascending) and the share of each window past it (to the sink), times
         ``factor`` (``ordered``: the origins are sorted); None when no window reaches an end.
-        O(n); O(1) for sorted origins of one sequence none of which is that close to its end.
+        O(n); O(log n) for sorted origins of one sequence.
         """
         width = len(self.kernel)
         if not origin.size:
@@ -377,18 +386,19 @@ class ComponentTransition:
         if ordered and len(self.ranges) == 1:
             _, end, _ = self.ranges[0]  # (one sequence: its first slot is 0, its end its length)
             if int(origin[-1]) + width <= end:
-                return None  # (one sequence, the last origin not near its end)
-            room = end - origin
+                return None  # (the last origin not near the end)
+            first = int(origin.searchsorted(end - width + 1))  # (the near ones: a tail)
+            near = np.arange(first, origin.size, dtype=_I64)
+            shares = self._tails[end - origin[first:]]
         else:
             room = self.seq_end[self.slot_first.searchsorted(origin, "right") - 1] - origin
-        near = (room < width).nonzero()[0]
-        if not near.size:
-            return None
-        out = np.zeros(origin.size)
-        out[near] = self._tails[room[near]]
+            near = (room < width).nonzero()[0]
+            if not near.size:
+                return None
+            shares = self._tails[room[near]]
         if factor is not None:
-            out *= factor
-        return out
+            shares *= factor[near]
+        return near, shares
 
 
 def slot_space(parts: Sequence[tuple[ComponentTransition, np.ndarray]]) -> np.ndarray:
@@ -429,13 +439,14 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
     """
     if not sources:
         return PullOperator(0, 0, np.ones(1), EMPTY_IDS, EMPTY_IDS, EMPTY_IDS, None,
-                            EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, EMPTY_WEIGHTS)
+                            EMPTY_IDS, EMPTY_IDS, EMPTY_WEIGHTS, EMPTY_IDS, EMPTY_WEIGHTS)
     kernel = sources[0][0].kernel
     width = len(kernel)
     base: dict[int, int] = {}  # component -> offset of its slots
     at = n = 0
     src: list[np.ndarray] = []
-    sinks: list[tuple[int, np.ndarray]] = []  # (first row, shares) of the parts that spill
+    spill_rows: list[np.ndarray] = []  # the rows that send a share to the sink ...
+    spill_shares: list[np.ndarray] = []  # ... and their shares
     factors: list[tuple[int, np.ndarray]] = []  # (first row, 1 / R_u) of the parts with edges
     owners: list[np.ndarray] = []
     e_origins: list[np.ndarray] = []
@@ -443,25 +454,31 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
     for trans, part in sources:
         if trans.kernel is not kernel and not np.array_equal(trans.kernel, kernel):
             raise ValueError("operators with different windows cannot be joined")
-        slots = np.asarray(part, dtype=_I64)
+        slots = (part if isinstance(part, np.ndarray) and part.dtype == _I64
+                 else np.asarray(part, dtype=_I64))
         base[trans.graph.component_id] = at
         factor = None
         if trans.has_edges and slots.size:
             factor, owner, e_origin, coef = trans._edges_leaving(slots)
             factors.append((n, factor))
-        sink = trans._spilled(slots, factor, ordered=True)
+        spill = trans._spilled(slots, factor, ordered=True)
         if factor is not None and e_origin.size:
-            e_sink = trans._spilled(e_origin, coef)
-            if e_sink is not None:
-                e_sink = np.bincount(owner, weights=e_sink, minlength=slots.size)
-                sink = e_sink if sink is None else sink + e_sink
+            e_spill = trans._spilled(e_origin, coef)
+            if e_spill is not None:  # (each source's own share, then its edges' shares)
+                sink = np.zeros(slots.size)
+                if spill is not None:
+                    sink[spill[0]] = spill[1]
+                sink += np.bincount(owner[e_spill[0]], weights=e_spill[1], minlength=slots.size)
+                rows = sink.nonzero()[0]
+                spill = rows, sink[rows]
             owners.append(owner + n)
             e_origins.append(e_origin + at)
             coefs.append(coef)
         if source_space is None:
             src.append(slots + at if at else slots)
-        if sink is not None:
-            sinks.append((n, sink))
+        if spill is not None:
+            spill_rows.append(spill[0] + n if n else spill[0])
+            spill_shares.append(spill[1])
         n += slots.size
         at += trans.n_slots + width
     # (a target part without a source part is put below every window)
@@ -486,16 +503,18 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
         m_sel = ((m_all >= lo[block]) & (m_all < hi[block])).nonzero()[0]
         m_place = m_all[m_sel] + shift[block[m_sel]]
     return PullOperator(n, size, kernel, m_sel, m_place, src_place,
-                        _rows(n, factors, 1.0) if factors else None,
+                        _factors(n, factors) if factors else None,
                         _concat(owners) if owners else EMPTY_IDS, e_place,
-                        _concat(coefs) if coefs else EMPTY_WEIGHTS, _rows(n, sinks, 0.0))
+                        _concat(coefs) if coefs else EMPTY_WEIGHTS,
+                        _concat(spill_rows) if spill_rows else EMPTY_IDS,
+                        _concat(spill_shares) if spill_shares else EMPTY_WEIGHTS)
 
 
-def _rows(n: int, blocks: list[tuple[int, np.ndarray]], fill: float) -> np.ndarray:
-    """``n`` values, ``fill`` but for the blocks given (each its first row and values)."""
+def _factors(n: int, blocks: list[tuple[int, np.ndarray]]) -> np.ndarray:
+    """``n`` factors, 1 but for the blocks given (each its first row and values)."""
     if len(blocks) == 1 and blocks[0][1].size == n:
         return blocks[0][1]
-    out = np.full(n, fill) if fill else np.zeros(n)
+    out = np.ones(n)
     for first, values in blocks:
         out[first:first + values.size] = values
     return out
@@ -538,7 +557,8 @@ class PullOperator:
     ``m_weight`` if set), correlates the layout once with the window ``kernel`` and reads each
     source's window at ``src_place`` (times ``factor``: ``1 / R_u`` when the component has
     edges) and each edge's target window at ``e_place`` (times ``e_coef``, added to row
-    ``e_owner``); ``sink``: each source's share that leaves its sequence, times ``m_sink``.
+    ``e_owner``); ``spill_shares``: the share of each row of ``spill_rows`` (the sources
+    whose windows reach past their sequence's end) that leaves it, times ``m_sink``.
 
     Notes
     -----
@@ -547,23 +567,21 @@ class PullOperator:
     """
 
     __slots__ = ("_layout", "e_coef", "e_owner", "e_place", "factor", "kernel", "m_place",
-                 "m_sel", "m_weight", "n", "sink", "size", "spill_rows", "spill_shares",
-                 "spills", "src_place")
+                 "m_sel", "m_weight", "n", "size", "spill_rows", "spill_shares", "spills",
+                 "src_place")
 
     def __init__(self, n: int, size: int, kernel: np.ndarray, m_sel: np.ndarray,
                  m_place: np.ndarray, src_place: np.ndarray, factor: np.ndarray | None,
                  e_owner: np.ndarray, e_place: np.ndarray, e_coef: np.ndarray,
-                 sink: np.ndarray, m_weight: np.ndarray | None = None) -> None:
+                 spill_rows: np.ndarray, spill_shares: np.ndarray,
+                 m_weight: np.ndarray | None = None) -> None:
         self.n, self.size, self.kernel = n, size, kernel
         self.m_sel, self.m_place, self.m_weight = m_sel, m_place, m_weight
         self.src_place, self.factor = src_place, factor
         self.e_owner, self.e_place, self.e_coef = e_owner, e_place, e_coef
-        self.sink = sink
-        #: The sources that reach past their sequence's end, and their ``sink`` shares.
-        self.spill_rows = sink.nonzero()[0]
-        self.spill_shares = sink[self.spill_rows]
-        #: Whether any source reaches past its sequence's end (else ``sink`` is all 0).
-        self.spills = bool(self.spill_rows.size)
+        self.spill_rows, self.spill_shares = spill_rows, spill_shares
+        #: Whether any source reaches past its sequence's end.
+        self.spills = bool(spill_rows.size)
         #: The layout, made on first use: only ``m_place`` is ever written, the rest stays 0.
         self._layout: np.ndarray | None = None
 
@@ -576,7 +594,9 @@ class PullOperator:
     def apply(self, m_vals: np.ndarray, m_sink: float) -> np.ndarray:
         """The pulled values of the ``n`` source slots."""
         if not self.size:
-            return self.sink * m_sink
+            spilled = np.zeros(self.n)
+            spilled[self.spill_rows] = self.spill_shares * m_sink
+            return spilled
         z = self._layout
         if z is None:
             z = self._layout = np.zeros(self.size)
@@ -592,7 +612,7 @@ class PullOperator:
         if self.e_owner.size:
             out += np.bincount(self.e_owner, weights=self.e_coef * y[self.e_place],
                                minlength=self.n)
-        if self.spills:  # (the same floats as adding ``sink * m_sink`` to every row)
+        if self.spills:
             out[self.spill_rows] += self.spill_shares * m_sink
         return out
 
