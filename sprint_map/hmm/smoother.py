@@ -113,10 +113,10 @@ class FrameBelief:
     laid_slots: np.ndarray | None = None
 
     @classmethod
-    def of_belief(cls, belief: tuple[list[ComponentTransition], np.ndarray, np.ndarray, list[int],
-                                float],
-             hit_ids: list[int], hit_dists: list[float], hit_lik: list[float], sink_lik: float,
-             ruled_out: frozenset[int] = frozenset()) -> FrameBelief:
+    def of_belief(cls, belief: tuple[list[ComponentTransition], np.ndarray, np.ndarray,
+                                     list[int], float],
+                  hit_ids: list[int], hit_dists: list[float], hit_lik: list[float],
+                  sink_lik: float, ruled_out: frozenset[int] = frozenset()) -> FrameBelief:
         """A frame from :meth:`SprintFilter.laid_belief
         <sprint_map.hmm.sprint_filter.SprintFilter.laid_belief>` (its parts views of it:
         nothing is laid end to end again) and its hits. O(parts)."""
@@ -271,8 +271,8 @@ class ForwardBackward:
             low = np.asarray(weights).ravel() < RIVAL_MIN_WEIGHT
             ruled_out = frozenset(ids.ravel()[low].tolist())
         self.frames.append(FrameBelief.of_belief(self.filter.laid_belief(), vids,
-                                            [float(d) for d in vdists], lik, sink_lik,
-                                            ruled_out))
+                                                 [float(d) for d in vdists], lik, sink_lik,
+                                                 ruled_out))
 
     def posteriors(self) -> list[tuple[list[tuple[ComponentTransition, np.ndarray, np.ndarray]],
                                        float]]:
@@ -506,9 +506,9 @@ def decide_posterior(config: HMMConfig, frame: FrameBelief, gamma: np.ndarray, s
     Notes
     -----
     O(live) to find the candidates over all parts at once (:func:`top_positions`: what
-    :func:`~sprint_map.hmm.decision.top_candidates` finds over one view per part), then O(live) to write the parts
-    holding a candidate into ``scratch``, plus the place masses of the candidates and the
-    contrast (:func:`place_contrast`).
+    :func:`~sprint_map.hmm.decision.top_candidates` finds over one view per part), then
+    O(live) to write the parts holding a candidate into ``scratch``, plus the place masses of
+    the candidates and the contrast (:func:`place_contrast`).
     """
     starts = frame.starts()
     top = top_positions(gamma, config.decision_candidates)

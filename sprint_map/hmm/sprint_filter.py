@@ -233,7 +233,7 @@ class SprintFilter:
                                    list[int], float]:
         """:meth:`live_belief` laid end to end: the active components' transitions, the
         slots holding belief (each component's ascending, one component after another),
-        their posterior, where each component's start (and their total, last), and the
+        their posterior, where each component's slots start (and their total, last), and the
         sink's posterior.
 
         Notes

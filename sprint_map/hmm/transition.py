@@ -123,9 +123,9 @@ class ComponentTransition:
     never O(n_vertices).
     """
 
-    __slots__ = ("_edge_src_list", "_first_list", "_rinv", "_tails", "edge_coef", "edge_dst", "edge_src",
-                 "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots", "n_state",
-                 "ranges", "seq_end", "slot_first", "spread")
+    __slots__ = ("_edge_src_list", "_first_list", "_rinv", "_tails", "edge_coef", "edge_dst",
+                 "edge_src", "gap", "graph", "gutter", "has_edges", "kernel", "krev", "n_slots",
+                 "n_state", "ranges", "seq_end", "slot_first", "spread")
 
     def __init__(self, graph: ComponentGraph, config: HMMConfig) -> None:
         self.graph = graph

@@ -111,8 +111,8 @@ def test_place_contrast_is_the_ratio_over_the_places_slots(data: st.DataObject) 
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.lists(st.sampled_from([0.0, 1e-9, 1e-5, 0.005, 0.1, 0.5, 0.7, 1.0]), max_size=12),
-                min_size=1, max_size=5), st.integers(1, 6))
+@given(st.lists(st.lists(st.sampled_from([0.0, 1e-9, 1e-5, 0.005, 0.1, 0.5, 0.7, 1.0]),
+                         max_size=12), min_size=1, max_size=5), st.integers(1, 6))
 def test_top_positions_rank_like_top_candidates_over_one_view_per_part(
         parts: list[list[float]], m: int) -> None:
     """Ties included: every value equal to the m-th largest is ranked, then by position."""
