@@ -48,6 +48,7 @@ from sprint_map.hmm.transition import (
     ComponentTransition,
     PullOperator,
     parts_pull_operator,
+    slot_bases,
     slot_space,
 )
 
@@ -109,8 +110,6 @@ class FrameBelief:
     #: The parts' slots in one slot space (:func:`~sprint_map.hmm.transition.slot_space`)
     #: and their transitions, in order; made on first use by :meth:`space`.
     spaced: tuple[np.ndarray, list[ComponentTransition]] | None = None
-    #: The parts' slots laid end to end, when the frame was made from them (:meth:`of_belief`).
-    laid_slots: np.ndarray | None = None
 
     @classmethod
     def of_belief(cls, belief: tuple[list[ComponentTransition], np.ndarray, np.ndarray,
@@ -124,7 +123,7 @@ class FrameBelief:
         parts = [(trans, slots[starts[i]:starts[i + 1]], values[starts[i]:starts[i + 1]])
                  for i, trans in enumerate(transitions)]
         return cls(parts, sink, hit_ids, hit_dists, hit_lik, sink_lik, ruled_out,
-                   part_starts=starts, laid=values, laid_slots=slots)
+                   part_starts=starts, laid=values)
 
     def starts(self) -> list[int]:
         """Where each part's values start when the parts are laid end to end, then their
@@ -155,19 +154,8 @@ class FrameBelief:
         (:func:`~sprint_map.hmm.transition.slot_space`) and the parts' transitions, in order
         (cached; O(live) once)."""
         if self.spaced is None:
-            transitions = [trans for trans, _, _ in self.parts]
-            if self.laid_slots is None:
-                space = slot_space([(trans, slots) for trans, slots, _ in self.parts])
-            elif not transitions:
-                space = _EMPTY_SLOTS
-            else:
-                bases = [0]
-                for trans in transitions[:-1]:
-                    bases.append(bases[-1] + trans.n_slots + len(trans.kernel))
-                starts = self.starts()
-                counts = [b - a for a, b in zip(starts[:-1], starts[1:], strict=True)]
-                space = self.laid_slots + np.repeat(np.array(bases, dtype=np.int64), counts)
-            self.spaced = (space, transitions)
+            self.spaced = (slot_space([(trans, slots) for trans, slots, _ in self.parts]),
+                           [trans for trans, _, _ in self.parts])
         return self.spaced
 
     def held_hits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -188,16 +176,15 @@ def _held_hits(parts: Parts, live: np.ndarray, hit_ids: list[int], hit_lik: list
         return _EMPTY_SLOTS, _EMPTY_VALS
     ids = np.asarray(hit_ids, dtype=np.int64)
     where = np.full(ids.size, -1, dtype=np.int64)  # each hit's slot in the one space
-    offset = 0
     lone: list[tuple[int, int, int]] = []  # one-sequence parts: (first vertex, end, slot 0)
-    for trans, _, _ in parts:
+    transitions = [trans for trans, _, _ in parts]
+    for trans, offset in zip(transitions, slot_bases(transitions), strict=True):
         if len(trans.ranges) == 1:
             first, length, slot = trans.ranges[0]
             lone.append((first, first + length, slot + offset))
         else:
             at, held = trans.held_slots(ids)
             where[at] = held + offset
-        offset += trans.n_slots + len(trans.kernel)
     if lone:
         firsts, ends, slot0 = np.array(sorted(lone), dtype=np.int64).T
         r = np.maximum(firsts.searchsorted(ids, "right") - 1, 0)
@@ -513,14 +500,14 @@ def decide_posterior(config: HMMConfig, frame: FrameBelief, gamma: np.ndarray, s
     starts = frame.starts()
     top = top_positions(gamma, config.decision_candidates)
     owner = [bisect_right(starts, pos) - 1 for _, pos in top]
-    held = sorted(set(owner))  # the parts holding a candidate, each one view
+    holding = sorted(set(owner))  # the parts holding a candidate, each one view
     views = []
-    for i in held:
+    for i in holding:
         trans, slots, _ = frame.parts[i]
         buf = scratch.vector(trans)
         buf[slots] = gamma[starts[i]:starts[i + 1]]
         views.append(BeliefView(trans.graph, trans.slot_first, buf, idx=slots))
-    view_of = {i: v for v, i in enumerate(held)}
+    view_of = {i: v for v, i in enumerate(holding)}
     candidates = [(p, view_of[i], int(frame.parts[i][1][pos - starts[i]]))
                   for (p, pos), i in zip(top, owner, strict=True)]
 

@@ -401,17 +401,24 @@ class ComponentTransition:
         return near, shares
 
 
+def slot_bases(transitions: Sequence[ComponentTransition]) -> list[int]:
+    """Where each component's slots start in one slot space: past the slots of the ones
+    before it plus ``W``, so that no window reaches from one into the next. O(components)."""
+    bases = [0]
+    for trans in transitions[:-1]:
+        bases.append(bases[-1] + trans.n_slots + len(trans.kernel))
+    return bases
+
+
 def slot_space(parts: Sequence[tuple[ComponentTransition, np.ndarray]]) -> np.ndarray:
     """The sorted slots of ``parts`` (a component's transition and its sorted slots each)
-    laid in one slot space, ascending: each part offset past the slots of the ones before it
-    plus ``W``, so that no window reaches from one part into the next (as
-    :func:`parts_pull_operator` lays its sources). O(live), one numpy call per part."""
-    at = 0
-    out: list[np.ndarray] = []
-    for trans, slots in parts:
-        out.append(slots + at if at else np.asarray(slots, dtype=_I64))
-        at += trans.n_slots + len(trans.kernel)
-    return _concat(out) if out else EMPTY_IDS
+    laid in one slot space (:func:`slot_bases`), ascending, as :func:`parts_pull_operator`
+    lays its sources. O(live), one numpy call per part."""
+    if not parts:
+        return EMPTY_IDS
+    bases = slot_bases([trans for trans, _ in parts])
+    return _concat([slots + at if at else np.asarray(slots, dtype=_I64)
+                    for (_, slots), at in zip(parts, bases, strict=True)])
 
 
 def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]],
@@ -433,7 +440,7 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
 
     Notes
     -----
-    All slots lie in one space (:func:`slot_space`): one layout, one search for the targets.
+    All slots lie in one space (:func:`slot_bases`): one layout, one search for the targets.
     O((live + E_out) W + targets log live), about 20 numpy calls plus one per part (more for
     a part with edges or near a sequence's end).
     """
@@ -443,7 +450,7 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
     kernel = sources[0][0].kernel
     width = len(kernel)
     base: dict[int, int] = {}  # component -> offset of its slots
-    at = n = 0
+    n = 0
     src: list[np.ndarray] = []
     spill_rows: list[np.ndarray] = []  # the rows that send a share to the sink ...
     spill_shares: list[np.ndarray] = []  # ... and their shares
@@ -451,7 +458,8 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
     owners: list[np.ndarray] = []
     e_origins: list[np.ndarray] = []
     coefs: list[np.ndarray] = []
-    for trans, part in sources:
+    for (trans, part), at in zip(sources, slot_bases([trans for trans, _ in sources]),
+                                 strict=True):
         if trans.kernel is not kernel and not np.array_equal(trans.kernel, kernel):
             raise ValueError("operators with different windows cannot be joined")
         slots = (part if isinstance(part, np.ndarray) and part.dtype == _I64
@@ -480,7 +488,6 @@ def parts_pull_operator(sources: Sequence[tuple[ComponentTransition, np.ndarray]
             spill_rows.append(spill[0] + n if n else spill[0])
             spill_shares.append(spill[1])
         n += slots.size
-        at += trans.n_slots + width
     # (a target part without a source part is put below every window)
     if target_space is not None:
         m_all = target_space
