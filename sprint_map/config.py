@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from sprint_map.frontend.centring import Centring
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.localize.gnss import GnssConfig
@@ -55,6 +56,10 @@ class MapConfig:
         (:mod:`sprint_map.localize.gnss`; a map stored without it takes the defaults).
     admission : Admission
         Which frames are stored: all, or what the map lacks (:mod:`sprint_map.merge.admission`).
+    centring : Centring
+        How descriptors enter the map's space: centred on their drive's running mean (the
+        default), or as given (:mod:`sprint_map.frontend.centring`; a map stored without it
+        was made before centring and keeps ``mode="none"``).
     """
 
     dim: int
@@ -65,6 +70,7 @@ class MapConfig:
     merge: MergeRule = field(default_factory=MergeRule)
     gnss: GnssConfig = field(default_factory=GnssConfig)
     admission: Admission = field(default_factory=Admission)
+    centring: Centring = field(default_factory=Centring)
 
     def __post_init__(self) -> None:
         if not isinstance(self.dim, int) or self.dim < 1:

@@ -26,6 +26,7 @@ from sprint_map.errors import (
     DescriptorShapeError,
     InputError,
 )
+from sprint_map.frontend.centring import DriveCentring, centre_batches
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.map_reading import MapReading
 from sprint_map.merge.commit import DriveWriter, IngestResult
@@ -67,8 +68,12 @@ def stored_config(record: dict[str, Any]) -> MapConfig:
     """The configuration a map stores (its meta record, decoded JSON), or MapCorruptError if
     it is not a valid config (:func:`~sprint_map.storage.store_config.decode_stored_config`).
     The store checks its own fields of it when it opens
-    (:func:`sprint_map.storage.store.decode_config`); this checks the rest. O(fields).
+    (:func:`sprint_map.storage.store.decode_config`); this checks the rest. A record without
+    ``centring`` is a map made before centring: its rows are stored as given, so it reads as
+    ``centring={"mode": "none"}``. O(fields).
     """
+    if isinstance(record, dict) and "centring" not in record:
+        record = {**record, "centring": {"mode": "none"}}
     return decode_stored_config(MapConfig.from_dict, record)
 
 
@@ -182,9 +187,11 @@ class SprintMap(MapReading):
 
         See :meth:`sprint_map.storage.store.MapStore.add_sequence`.
         """
+        centring = self.drive_centring()
+        rows = centring.apply(descriptors)
         return self.store.add_sequence(
-            descriptors, name=name, positions=positions, edges=edges, source=source,
-            thumbnails=thumbnails,
+            rows, name=name, positions=positions, edges=edges, source=source,
+            thumbnails=thumbnails, stats=(centring.stats.frames, centring.stats.mean),
         )
 
     def ingest(
@@ -240,10 +247,10 @@ class SprintMap(MapReading):
             observe(localizer)
         with self.begin_drive(name, source) as drive:
             for batch in batches:
+                rows = drive.append(batch)  # centred: the rows the map stores and searches
                 if localizer is not None:
-                    for _ in localizer.iter_localize(iter([batch])):
+                    for _ in localizer.iter_localize(iter([rows])):
                         pass
-                drive.append(batch)
             if fixes is not None and n is None:  # streamed: the drive's length known now
                 self.gnss_aid(fixes, drive.frames, index=False)
             decisions = (self.smoothed(localizer, thumbnails=thumbnails)
@@ -264,7 +271,14 @@ class SprintMap(MapReading):
         """
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
                            self.config.merge, self.config.merge.both_ways,
-                           self.store.component_of, self.config.admission)
+                           self.store.component_of, self.config.admission,
+                           self.drive_centring())
+
+    def drive_centring(self) -> DriveCentring:
+        """A new drive's centring (:mod:`sprint_map.frontend.centring`, ``config.centring``):
+        every drive's descriptors pass through one, in drive order, before they are searched
+        or stored, so that the map answers by place, not by condition. O(dim)."""
+        return DriveCentring(self.config.centring, self.config.dim)
 
     def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
                        hmm: HMMConfig | None = None) -> PreparedDrive:
@@ -274,7 +288,8 @@ class SprintMap(MapReading):
         :mod:`sprint_map.merge.prepared`."""
         from sprint_map.merge.prepared import prepare_drive
 
-        return prepare_drive(self, batches, merge=merge, hmm=hmm)
+        return prepare_drive(self, centre_batches(self.drive_centring(), batches), merge=merge,
+                             hmm=hmm)
 
     def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[DescriptorsLike],
                         name: str | None = None, positions: np.ndarray | None = None, *,
@@ -292,7 +307,8 @@ class SprintMap(MapReading):
         """
         from sprint_map.merge.prepared import stale_reason
 
-        reason = stale_reason(self, prepared, np.concatenate(list(batches)))
+        reason = stale_reason(self, prepared,
+                              self.drive_centring().apply(np.concatenate(list(batches))))
         if reason is not None:
             return self.ingest(iter(batches), name, positions, merge=prepared.merge, hmm=hmm,
                                source=source), reason
@@ -562,11 +578,9 @@ class SprintMap(MapReading):
             base = hmm or self.config.hmm
             lagged = LaggedLocalizer(self, lag, dataclass_dict.replace(base, **overrides)
                                      if overrides else base)
-            batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
-                else descriptors
-            return lagged.localize(batches), lagged.timing
-        batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
-            else descriptors
+            return lagged.localize(centre_batches(self.drive_centring(), descriptors)), \
+                lagged.timing
+        batches = centre_batches(self.drive_centring(), descriptors)
         if fixes is not None and isinstance(batches, np.ndarray):
             self.gnss_aid(fixes, len(batches), index=False)
         localizer = self.localizer(hmm, record=smooth, fixes=fixes, **overrides)
@@ -592,6 +606,8 @@ class SprintMap(MapReading):
         if not isinstance(localizer, Localizer):
             decisions: list[FrameDecision] = localizer.smoothed(descriptors)
             return decisions
+        if descriptors is not None:  # the drive as described: in the map's space
+            descriptors = self.drive_centring().apply(np.asarray(descriptors))
         return smoothed_decisions(localizer, self, descriptors, thumbnails)
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,

@@ -175,7 +175,9 @@ class MapReading:
         return self.store.stats()
 
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
-        """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``."""
+        """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``.
+        ``queries`` are in the map's space: a drive's descriptors pass through
+        :meth:`~sprint_map.map.SprintMap.drive_centring` first."""
         return self.store.search(queries, k)
 
     def search_within(self, queries: DescriptorsLike, k: int, start: int,

@@ -259,7 +259,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     db_names = list(names.values())
     frames = np.arange(len(rows))
     kmax = max(ks)
-    _, ids = m.search(rows, kmax)
+    _, ids = m.search(m.drive_centring().apply(rows), kmax)  # in the map's space
     located = m.locate(ids[ids >= 0].ravel())
     seq = np.full(ids.shape, -1)
     img = np.full(ids.shape, -1)

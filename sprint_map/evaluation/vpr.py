@@ -81,7 +81,8 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
         m.add_sequence(db.read_all(), name="database",
                        positions=m.metric_positions(db.positions))
         log(f"localising {len(data.queries)} queries")
-        queries = m.open_source(data.queries[0].parent).read_all()
+        # the queries as one drive, in the map's space (SPRINT steps them in this order)
+        queries = m.drive_centring().apply(m.open_source(data.queries[0].parent).read_all())
         _, ids = m.search(queries, min(k, len(data.database)))
         knn = np.full((len(queries), k), -1, dtype=np.int64)
         knn[:, : ids.shape[1]] = ids  # one sequence from vertex 0: vertex id = database index

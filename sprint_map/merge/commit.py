@@ -50,6 +50,7 @@ from sprint_map.storage.sequence_writer import SequenceWriter
 from sprint_map.util.validation import validate_descriptors
 
 if TYPE_CHECKING:  # the decisions' types; ``info`` and ``sequences`` load no HMM
+    from sprint_map.frontend.centring import DriveCentring
     from sprint_map.localize.localizer import FrameDecision, Timing
 
 __all__ = ["DriveCommit", "DriveWriter", "IngestResult", "merge_edges"]
@@ -160,12 +161,17 @@ class DriveWriter:
         The component id of a sequence of the map (for :attr:`DriveCommit.changed`).
     admission : Admission
         Which frames are stored (:mod:`sprint_map.merge.admission`; default every one).
+    centring : DriveCentring, optional
+        The drive's centring (:mod:`sprint_map.frontend.centring`): rows are given as
+        described and stored centred, and its statistics are committed with the sequence.
+        None: rows are stored as given, with no statistics.
     """
 
     def __init__(self, writer: SequenceWriter, rule: MergeRule, both_ways: bool,
-                 component_of: Callable[[int], int], admission: Admission | None = None
-                 ) -> None:
+                 component_of: Callable[[int], int], admission: Admission | None = None,
+                 centring: DriveCentring | None = None) -> None:
         self._writer = writer
+        self.centring = centring
         self._rule = rule
         self._both_ways = both_ways
         self._component_of = component_of
@@ -190,14 +196,18 @@ class DriveWriter:
     def __exit__(self, exc_type: object, *exc: object) -> None:
         self._writer.__exit__(exc_type, *exc)
 
-    def append(self, rows: Any) -> None:
-        """Write a batch of descriptor rows (validated, fsynced, not yet visible). O(n * dim)."""
+    def append(self, rows: Any) -> np.ndarray:
+        """Write a batch of the drive's descriptor rows (validated, then centred, fsynced, not
+        yet visible); returns them as stored: the rows to localise. O(n * dim)."""
+        batch = validate_descriptors(rows, self._writer.store.config.dim, self.frames)
+        if self.centring is not None:
+            batch = self.centring.apply(batch)
         if self._held is None:
-            self._writer.append(rows)
-            return
-        batch = validate_descriptors(rows, self._writer.store.config.dim)
+            self._writer.append(batch)
+            return batch
         self._held.append(batch)
         self._held_frames += len(batch)
+        return batch
 
     def abort(self) -> None:
         """Drop every row appended so far; nothing is committed."""
@@ -293,6 +303,8 @@ class DriveWriter:
             if self.frames:
                 raise ValueError("rows given to commit after rows were appended")
             rows = validate_descriptors(rows, writer.store.config.dim)
+            if self.centring is not None:
+                rows = self.centring.apply(rows)
         admit = self._held is not None and len(decisions) > 0
         plan = None
         if admit:
@@ -333,6 +345,8 @@ class DriveWriter:
             writer.append(rows)
         if exclusive is not None:
             writer.sync()  # the rows' fsync, the slow part, before the gate: not under it
+        if self.centring is not None and self.centring.frames:
+            writer.set_stats(self.centring.stats.frames, self.centring.stats.mean)
         with exclusive() if exclusive is not None else nullcontext():
             added = writer.commit(positions, edges, thumbnails, sightings)
             changed = before | {added.component}

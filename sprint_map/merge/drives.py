@@ -37,6 +37,7 @@ from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import DescriptorsLike
 
 if TYPE_CHECKING:
+    from sprint_map.frontend.centring import DriveCentring
     from sprint_map.localize.localizer import Localizer
     from sprint_map.merge.commit import IngestResult
     from sprint_map.storage.group_writer import GroupWriter
@@ -87,6 +88,8 @@ class IngestingMap(Protocol):
     def group_commit(self) -> AbstractContextManager[None]: ...
 
     def begin_group(self) -> GroupWriter: ...
+
+    def drive_centring(self) -> DriveCentring: ...
 
 
 def ingest_drives(
@@ -159,6 +162,7 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
     O(N * dim) per drive of N frames, plus one fsync per shard file written and one LMDB
     commit for the whole group.
     """
+    from sprint_map.frontend.centring import centre_batches
     from sprint_map.localize.localizer import Timing
     from sprint_map.merge.commit import IngestResult
 
@@ -167,9 +171,11 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
         for i, drive in enumerate(drives):
             if i:
                 crash_point("group.between_drives")
+            centring = smap.drive_centring()
             try:
-                writer.add(drive.descriptors, drive.name, drive.source, drive.positions,
-                           thumbnails=drive.thumbnails)
+                writer.add(centre_batches(centring, drive.descriptors), drive.name,
+                           drive.source, drive.positions, thumbnails=drive.thumbnails,
+                           stats=lambda c=centring: (c.stats.frames, c.stats.mean))
             except Exception as exc:  # the drives before it are still committed
                 failure = exc
                 break

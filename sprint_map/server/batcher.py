@@ -252,7 +252,8 @@ class FrameBatcher:
         out: list[tuple[np.ndarray, np.ndarray]] = [(_NO_IDS, _NO_DISTS)] * len(batch)
         for depth in sorted(set(depths)):
             where = [i for i, d in enumerate(depths) if d == depth]
-            dists, ids = self.map.search(np.stack([batch[i].row for i in where]), depth)
+            dists, ids = self.map.search(  # each frame as its session's map space holds it
+                np.stack([batch[i].session.centred(batch[i].row) for i in where]), depth)
             for j, i in enumerate(where):
                 out[i] = (ids[j], dists[j])
         return out

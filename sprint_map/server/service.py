@@ -230,14 +230,16 @@ class LocalisationService:
             k = self.map.config.hmm.k
             if lag:  # searches max(k, smooth_k) deep and records those hits for the commit
                 lagged = LaggedLocalizer(self.map, lag, cache=self.cache, record=True)
-                return Session(name, lagged.localizer, self.dim, lagged, lagged.depth)
+                return Session(name, lagged.localizer, self.dim, lagged, lagged.depth,
+                               centring=self.map.drive_centring())
             try:
                 localizer = (self.localizers() if self.localizers is not None
                              else Localizer(self.map, cache=self.cache, record=True,
                                             record_k=k))
             except SprintMapError as exc:  # e.g. no replica could take the session
                 raise from_library(exc) from None
-            return Session(name, localizer, self.dim, search_k=k)
+            return Session(name, localizer, self.dim, search_k=k,
+                           centring=self.map.drive_centring())
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)

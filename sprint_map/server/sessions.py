@@ -18,6 +18,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Container, Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from sprint_map.localize.localizer import FrameDecision, Localizer
 from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import ApiError, busy, unknown_session
 from sprint_map.util.arrays import Descriptors
+
+if TYPE_CHECKING:
+    from sprint_map.frontend.centring import DriveCentring
 
 __all__ = ["CLAIMED_NAMES", "CLOSED", "COMMITTING", "OPEN", "Session", "SessionRegistry"]
 
@@ -43,7 +47,10 @@ class Session:
     """
 
     def __init__(self, name: str | None, localizer: Localizer, dim: int,
-                 lagged: LaggedLocalizer | None = None, search_k: int = 0) -> None:
+                 lagged: LaggedLocalizer | None = None, search_k: int = 0,
+                 centring: DriveCentring | None = None) -> None:
+        if centring is None:
+            raise ValueError("a session needs its drive's centring (SprintMap.drive_centring)")
         self.id = uuid.uuid4().hex
         self.name = name
         #: The localizer recording the drive (the commit smooths it): ``lagged.localizer`` for
@@ -57,6 +64,10 @@ class Session:
         #: Answers made by the commit's flush of a lagged session, until a commit succeeds.
         self.flushed: list[FrameDecision] = []
         self.dim = dim
+        #: the drive's centring (:mod:`sprint_map.frontend.centring`): each frame is searched
+        #: centred on the frames kept before it; the rows kept are as posted (the commit's
+        #: writer centres them again, to the very same rows)
+        self.centring = centring
         self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
         self.positions: list[tuple[float, ...]] = []
@@ -101,6 +112,10 @@ class Session:
             raise ApiError(422, "bad_payload", f"the session's earlier frames {given} a "
                            "position: give one for every frame or for none")
 
+    def centred(self, row: Descriptors) -> Descriptors:
+        """The session's next frame ``row`` as the map searches it (nothing changes)."""
+        return self.centring.preview(np.asarray(row).reshape(1, -1))[0]
+
     def step(self, row: Descriptors, position: tuple[float, ...] | None = None,
              hits: tuple[np.ndarray, np.ndarray, float] | None = None
              ) -> FrameDecision | None:
@@ -114,7 +129,9 @@ class Session:
         self.check_position(position)
         self.apply_changes()
         stepper: Localizer | LaggedLocalizer = self.lagged or self.localizer
-        decision = stepper.step(row) if hits is None else stepper.step_hits(*hits)
+        decision = (stepper.step(self.centred(row)) if hits is None
+                    else stepper.step_hits(*hits))
+        self.centring.advance(np.asarray(row).reshape(1, -1))
         self.rows.append(row.reshape(-1))
         if position is not None:
             self.positions.append(position)

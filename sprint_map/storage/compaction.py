@@ -104,7 +104,8 @@ class CompactableMap(Protocol):
 COPY_ROWS = 65536
 BATCH = 65536
 #: Databases copied unchanged: keyed by sequence id, which compaction keeps.
-SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests", "thumbnails", "sightings")
+SEQ_KEYED = ("seq_names", "uf", "members", "comp", "digests", "thumbnails", "sightings",
+             "drive_stats")
 #: Databases whose keys are 1 or 2 big-endian vertex ids, renumbered on the way.
 VERTEX_KEYED = {"vertex_data": 1, "edges": 2, "edges_rev": 2}
 
@@ -428,6 +429,10 @@ def _fill_reduced(store: CompactableMap, env: LmdbEnv, out: lmdb.Transaction,
             ((k, digests.get(int.from_bytes(k, "big"), bytes(v)))
              for k, v in txn.cursor(db=src.db("digests"))
              if int.from_bytes(k, "big") not in gone), append=True)
+        if src.has_db("drive_stats"):  # a summary keeps the drive's statistics as driven
+            out.cursor(db=env.db("drive_stats")).putmulti(
+                ((k, v) for k, v in txn.cursor(db=src.db("drive_stats"))
+                 if int.from_bytes(k, "big") not in gone), append=True)
         if src.has_db("thumbnails"):
             out.cursor(db=env.db("thumbnails")).putmulti(
                 reduced_thumbnails(txn, src.db("thumbnails"), maps.get), append=True)

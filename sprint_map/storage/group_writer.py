@@ -25,7 +25,7 @@ added (``AddResult.already_committed``) and writes nothing, as for a lone sequen
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -86,7 +86,8 @@ class GroupWriter(UncommittedRows):
 
     def add(self, rows: Any | Iterable[Any], name: str | None = None, source: str = "",
             positions: Any = None, edges: Sequence[EdgeSpec] = (),
-            thumbnails: Sequence[bytes] | None = None) -> None:
+            thumbnails: Sequence[bytes] | None = None,
+            stats: Callable[[], tuple[int, np.ndarray]] | None = None) -> None:
         """Write one sequence's rows after the group's, uncommitted, and stage its records.
 
         Parameters
@@ -99,6 +100,9 @@ class GroupWriter(UncommittedRows):
             As for :meth:`sprint_map.storage.store.MapStore.add_sequence`; ``name`` must not be
             another sequence's of the group, and ``edges`` may reach the group's earlier
             sequences. ``thumbnails`` are read after the last batch.
+        stats : callable, optional
+            Called after the last batch: the drive's ``(frames, mean)`` to commit with it
+            (:mod:`sprint_map.storage.drive_stats`).
 
         Raises
         ------
@@ -122,6 +126,8 @@ class GroupWriter(UncommittedRows):
             else:
                 for batch in rows:
                     writer.append(batch)
+            if stats is not None:
+                writer.set_stats(*stats())
             self._added.append(writer.stage(positions, edges, thumbnails))
 
     def commit(self) -> list[AddResult]:

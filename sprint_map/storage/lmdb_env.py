@@ -42,11 +42,12 @@ DB_NAMES = (
     "digests",  # >I seq_id -> 16-byte BLAKE2b of its descriptor rows (absent: older writer)
     "thumbnails",  # >I seq_id >I image_id -> JPEG bytes (only for drives ingested with them)
     "sightings",  # >I seq_id >I image_id -> >Idf count, last seen, distance + last drive name
+    "drive_stats",  # >I seq_id -> >Q frames + dim <f4 mean descriptor (absent: older writer)
 )
 #: Databases a map of an older schema may lack: a writer's open creates them (the migration),
 #: a reader reads such a map as if they were empty.
-OPTIONAL_DBS = frozenset({"removed", "digests", "thumbnails", "sightings"})
-MAX_DBS = 16
+OPTIONAL_DBS = frozenset({"removed", "digests", "thumbnails", "sightings", "drive_stats"})
+MAX_DBS = 24
 
 #: LMDB errors that mean the file's pages are not what LMDB wrote: the corrupt-map error.
 CORRUPT_ERRORS: tuple[type[lmdb.Error], ...] = (

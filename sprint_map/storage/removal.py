@@ -23,6 +23,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError
+from sprint_map.storage.drive_stats import delete_drive_stats
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import EdgeTable, RemoveResult, SequenceRecord
@@ -187,6 +188,7 @@ def remove_sequences(store: RecordStore, seq_ids: Iterable[int]) -> RemoveResult
         for rec in records:
             delete_thumbnails(txn, env, rec.seq_id)
             delete_sightings(txn, env, rec.seq_id)
+            delete_drive_stats(txn, env, rec.seq_id)
             txn.delete(u32(rec.seq_id), db=db("sequences"))
             txn.delete(rec.name.encode(), db=db("seq_names"))
             txn.delete(u64(rec.last_vertex), db=db("vrange"))

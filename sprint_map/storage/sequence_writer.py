@@ -39,6 +39,7 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
+from sprint_map.storage.drive_stats import encode_drive_stats, put_drive_stats
 from sprint_map.storage.keys import (
     DIGEST_BYTES,
     EDGE_KEY,
@@ -159,6 +160,8 @@ class StagedSequence:
     #: ``(seq_id, image_id, distance)`` of the stored vertices the drive saw again
     #: (:mod:`sprint_map.storage.sightings`)
     sightings: tuple[tuple[int, int, float], ...] = ()
+    #: the drive's statistics record (:mod:`sprint_map.storage.drive_stats`), or None
+    stats: bytes | None = None
 
 
 class UncommittedRows(ABC):
@@ -274,6 +277,7 @@ class SequenceWriter(UncommittedRows):
         self.source = source
         self.frames = 0
         self._lengths: dict[int, int] = {}
+        self._stats: bytes | None = None
         self._done = False
         #: (first vertex, length) of the group's sequences staged before this one
         self._pending = {r.seq_id: (r.first_vertex, r.length) for r in follows or ()}
@@ -325,6 +329,12 @@ class SequenceWriter(UncommittedRows):
             self._rollback_after_error()
             raise
 
+    def set_stats(self, frames: int, mean: np.ndarray) -> None:
+        """Record the drive's statistics with the sequence (``frames`` driven, their ``mean``
+        descriptor as given: :mod:`sprint_map.storage.drive_stats`); checked now (InputError),
+        written by the commit's transaction. O(dim)."""
+        self._stats = encode_drive_stats(frames, mean, self.store.config.dim)
+
     def stage(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
               thumbnails: Sequence[bytes] | None = None,
               sightings: Sequence[tuple[int, int, float]] = ()) -> StagedSequence | AddResult:
@@ -363,7 +373,7 @@ class SequenceWriter(UncommittedRows):
             raise
         self._done = True
         return StagedSequence(record, digest, dict(self._lengths), pos, resolved, thumbs,
-                              tuple(sightings))
+                              tuple(sightings), self._stats)
 
     def commit(self, positions: Any = None, edges: Sequence[EdgeSpec] = (),
                thumbnails: Sequence[bytes] | None = None,
@@ -483,6 +493,8 @@ def write_staged(store: WritableMap, txn: lmdb.Transaction, staged: StagedSequen
     :func:`write_sequence` writes. Returns ``(component, edges added)``. Safe to run again in a
     new transaction (``LmdbEnv.write`` retries a full map)."""
     txn.put(u32(staged.record.seq_id), staged.digest, db=store.env.db("digests"))
+    if staged.stats is not None:
+        put_drive_stats(txn, store.env, staged.record.seq_id, staged.stats)
     if staged.thumbnails is not None:
         put_thumbnails(txn, store.env, staged.record.seq_id, staged.thumbnails)
         crash_point("add.thumbnails_written")

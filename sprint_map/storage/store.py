@@ -588,6 +588,7 @@ class MapStore(MapReads):
         edges: Sequence[EdgeSpec] = (),
         source: str = "",
         thumbnails: Sequence[bytes] | None = None,
+        stats: tuple[int, np.ndarray] | None = None,
     ) -> AddResult:
         """Append a sequence, its vertices and edges in one atomic commit.
 
@@ -605,6 +606,9 @@ class MapStore(MapReads):
             Free text recording where the sequence came from.
         thumbnails : sequence of bytes, optional
             One small JPEG per frame, committed with it (:mod:`~sprint_map.storage.thumbnails`).
+        stats : (int, array_like), optional
+            The drive's frames and mean descriptor, committed with it
+            (:mod:`~sprint_map.storage.drive_stats`).
 
         Notes
         -----
@@ -614,6 +618,8 @@ class MapStore(MapReads):
         with SequenceWriter(self, name, source) as writer:
             # Everything is validated before the first row is written.
             writer.prepare(positions, edges, len(rows))
+            if stats is not None:
+                writer.set_stats(*stats)
             writer.append(rows)
             return writer.commit(positions, edges, thumbnails)
 

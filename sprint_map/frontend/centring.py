@@ -1,0 +1,172 @@
+"""Drive centring: what makes a map answer by place, not by condition.
+
+A whole-image descriptor carries the drive's condition (season, light, exposure, the camera's
+noise) as a component shared by all of its frames. Once the map holds that condition anywhere,
+every query under it is pulled there: a winter query goes to winter drives of other places
+before it goes to the summer drive of its own place. Centring removes the shared component:
+each frame's descriptor has its drive's running mean subtracted, and is renormalised.
+
+**The rule** (the same for a drive being stored and a query being answered, so both sides of
+every distance are alike): frame ``t`` of a drive, descriptor ``x_t``, becomes
+
+    c_t = (x_t - m_t) / ||x_t - m_t||,   m_t = (x_0 + ... + x_t) / (t + 2)
+
+``m_t`` is the mean of the frames seen so far with one zero frame as a prior (so the first
+frame is its own direction, not the zero vector); a frame equal to its mean stays the zero
+vector. It is causal: a vehicle's answer for frame ``t`` never waits for later frames, and the
+rows a drive stores are the rows it was localised with. Its state is the running sum and the
+count (O(dim) memory per drive, whatever its length); :class:`CentringStats` is what the map
+stores with each drive (its frames and its mean: the drive's condition).
+
+``mode="none"`` keeps descriptors as they are: a map created before centring existed reads
+its config that way, since its rows were stored uncentred.
+
+Examples
+--------
+>>> import numpy as np
+>>> centring = DriveCentring(Centring(), dim=2)
+>>> rows = centring.apply(np.array([[1.0, 0.0], [0.0, 1.0]], np.float32))
+>>> rows.astype(float).round(3).tolist()
+[[1.0, 0.0], [-0.447, 0.894]]
+>>> centring.stats.frames, centring.stats.mean.tolist()
+(2, [0.5, 0.5])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sprint_map.errors import InputError
+from sprint_map.util.arrays import Descriptors
+from sprint_map.util.validation import validate_descriptors
+
+__all__ = ["CENTRING_MODES", "Centring", "CentringStats", "DriveCentring", "centre_batches"]
+
+#: ``drive``: centre every frame on its drive's running mean (the default); ``none``: as given.
+CENTRING_MODES = ("drive", "none")
+
+# a centred vector shorter than this is left as the zero vector (a frame equal to its mean)
+_ZERO_NORM = 1e-12
+
+
+@dataclass(frozen=True)
+class Centring:
+    """How descriptors enter the map's space (``MapConfig.centring``); see the module
+    docstring. ValueError for an unknown ``mode``.
+
+    Parameters
+    ----------
+    mode : {"drive", "none"}
+        ``drive`` centres each frame on its drive's running mean; ``none`` keeps descriptors
+        as they are (maps made before centring).
+    """
+
+    mode: str = "drive"
+
+    def __post_init__(self) -> None:
+        if self.mode not in CENTRING_MODES:
+            raise ValueError(f"centring mode must be one of {', '.join(CENTRING_MODES)}, "
+                             f"not {self.mode!r}")
+
+    @property
+    def enabled(self) -> bool:
+        return self.mode != "none"
+
+
+@dataclass(frozen=True)
+class CentringStats:
+    """A drive's statistics as the map stores them: its ``frames`` and the ``mean`` of its
+    descriptors as given (float32, ``dim``): the drive's condition."""
+
+    frames: int
+    mean: np.ndarray
+
+
+class DriveCentring:
+    """The running state of one drive's centring: :meth:`apply` each batch in drive order.
+
+    Parameters
+    ----------
+    config : Centring
+        The map's centring.
+    dim : int
+        The map's descriptor dimension.
+
+    Notes
+    -----
+    O(n * dim) per batch of n rows; O(dim) state. Not thread-safe: one drive, one caller.
+    """
+
+    def __init__(self, config: Centring, dim: int) -> None:
+        self.config = config
+        self.dim = dim
+        self._sum = np.zeros(dim, np.float64)
+        self._frames = 0
+
+    @property
+    def frames(self) -> int:
+        """Frames centred so far."""
+        return self._frames
+
+    @property
+    def stats(self) -> CentringStats:
+        """The drive's statistics so far (what its commit stores)."""
+        mean = self._sum / max(self._frames, 1)
+        return CentringStats(self._frames, mean.astype(np.float32))
+
+    def _centre(self, rows: Descriptors) -> tuple[Descriptors, Descriptors, np.ndarray]:
+        """``(validated rows, centred rows, running sum after them)``. The sums are added in
+        frame order one by one, so a drive centred in batches of any size gives the very same
+        rows."""
+        arr = validate_descriptors(rows, self.dim, self._frames)
+        sums = np.cumsum(np.vstack([self._sum[None, :], arr.astype(np.float64)]), axis=0)
+        if not self.config.enabled:
+            return arr, arr, sums[-1]
+        counts = self._frames + 2 + np.arange(len(arr), dtype=np.float64)
+        centred = arr - sums[1:] / counts[:, None]
+        norms = np.linalg.norm(centred, axis=1, keepdims=True)
+        out = np.divide(centred, norms, out=np.zeros_like(centred), where=norms > _ZERO_NORM)
+        return arr, out.astype(np.float32), sums[-1]
+
+    def preview(self, rows: Descriptors) -> Descriptors:
+        """``rows`` (the drive's next frames) as :meth:`apply` would give them, without
+        advancing the state: a caller that may still refuse the frames (the service) calls
+        :meth:`advance` only once they are kept."""
+        return self._centre(rows)[1]
+
+    def advance(self, rows: Descriptors) -> None:
+        """Take ``rows`` (as given to :meth:`preview`) as the drive's next frames."""
+        arr, _, total = self._centre(rows)
+        self._sum = total
+        self._frames += len(arr)
+
+    def apply(self, rows: Descriptors) -> Descriptors:
+        """The drive's next frames, centred (:meth:`preview`, then :meth:`advance`).
+
+        Raises
+        ------
+        DescriptorShapeError, InvalidDescriptorError
+            ``rows`` not ``(n, dim)``, or not finite: checked before anything is computed.
+        """
+        arr, out, total = self._centre(rows)
+        self._sum = total
+        self._frames += len(arr)
+        return out
+
+    def apply_all(self, rows: Descriptors) -> Descriptors:
+        """A whole drive from its first frame (:meth:`apply` on a fresh state); InputError if
+        frames were centred already."""
+        if self._frames:
+            raise InputError("apply_all centres a whole drive: this one has frames already")
+        return self.apply(rows)
+
+
+def centre_batches(centring: DriveCentring, descriptors: Any) -> Any:
+    """A drive's ``descriptors`` (an ``(N, dim)`` array, or an iterable of batches, streamed)
+    centred by ``centring`` in drive order: an array for an array, else a generator."""
+    if isinstance(descriptors, np.ndarray | list):
+        return centring.apply(np.asarray(descriptors))
+    return (centring.apply(batch) for batch in descriptors)
