@@ -12,6 +12,7 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Container, Iterable, Sequence
@@ -26,7 +27,7 @@ from sprint_map.errors import (
     DescriptorShapeError,
     InputError,
 )
-from sprint_map.frontend.centring import DriveCentring, centre_batches
+from sprint_map.frontend.centring import CentringStats, DriveCentring, centre_batches
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.map_reading import MapReading
 from sprint_map.merge.commit import DriveWriter, IngestResult
@@ -92,6 +93,8 @@ class SprintMap(MapReading):
         #: positions read so far (seq_id -> (first vertex, rows)) and the index of a snapshot
         self._placed: dict[int, tuple[int, Float64Array]] = {}
         self._position_index: tuple[tuple[Any, ...], PositionIndex] | None = None
+        #: the pooled condition prior and the map counts it was pooled at
+        self._prior: tuple[tuple[int, int], CentringStats | None] | None = None
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -259,7 +262,8 @@ class SprintMap(MapReading):
         return done.result(decisions, localizer.timing if localizer else Timing(), drive.name)
 
     def begin_drive(self, name: str | None = None, source: str = "",
-                    reserved: Container[str] = ()) -> DriveWriter:
+                    reserved: Container[str] = (), centring: DriveCentring | None = None
+                    ) -> DriveWriter:
         """Start committing a localised drive: append its rows, then
         :meth:`~sprint_map.merge.commit.DriveWriter.commit` it with its decisions (the one commit
         path of ``ingest``, ``merge``, ``commit_prepared`` and the service; see
@@ -267,18 +271,41 @@ class SprintMap(MapReading):
 
         ``name`` is checked now, before any row is written; without one the sequence is named
         ``seq-<id>`` (or ``seq-<id>-2``, ...), avoiding the map's names and ``reserved``. One
-        drive at a time per writer.
+        drive at a time per writer. Rows are appended as described and stored centred by
+        ``centring`` (a fresh one like it: the prior the drive was localised with), by default
+        :meth:`drive_centring`.
         """
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
                            self.config.merge, self.config.merge.both_ways,
                            self.store.component_of, self.config.admission,
-                           self.drive_centring())
+                           centring.fresh() if centring is not None else self.drive_centring())
 
     def drive_centring(self) -> DriveCentring:
         """A new drive's centring (:mod:`sprint_map.frontend.centring`, ``config.centring``):
         every drive's descriptors pass through one, in drive order, before they are searched
-        or stored, so that the map answers by place, not by condition. O(dim)."""
-        return DriveCentring(self.config.centring, self.config.dim)
+        or stored, so that the map answers by place, not by condition. Its prior is the map's
+        mean condition now (:meth:`condition_prior`).
+
+        Notes
+        -----
+        O(dim), or O(sequences * dim) the first time after a commit (the prior is pooled
+        again from the drives' statistics).
+        """
+        return DriveCentring(self.config.centring, self.config.dim, self.condition_prior())
+
+    def condition_prior(self) -> CentringStats | None:
+        """The map's mean condition: the frame-weighted mean of its drives' statistics
+        (:meth:`drive_stats`), or None for a map without any. Cached until the map changes.
+        O(sequences * dim) when pooled."""
+        if not self.config.centring.enabled or not self.config.centring.prior_frames:
+            return None
+        counts = self.store.stats()
+        key = (counts["sequences"], counts["vertices"])
+        if self._prior is None or self._prior[0] != key:
+            pooled = CentringStats.pool(CentringStats(frames, mean)
+                                        for _, frames, mean in self.store.all_drive_stats())
+            self._prior = (key, pooled)
+        return self._prior[1]
 
     def prepare_ingest(self, batches: Iterable[DescriptorsLike], *, merge: bool = True,
                        hmm: HMMConfig | None = None) -> PreparedDrive:
@@ -288,8 +315,9 @@ class SprintMap(MapReading):
         :mod:`sprint_map.merge.prepared`."""
         from sprint_map.merge.prepared import prepare_drive
 
-        return prepare_drive(self, centre_batches(self.drive_centring(), batches), merge=merge,
-                             hmm=hmm)
+        centring = self.drive_centring()
+        prepared = prepare_drive(self, centre_batches(centring, batches), merge=merge, hmm=hmm)
+        return dataclasses.replace(prepared, centring=centring.fresh())
 
     def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[DescriptorsLike],
                         name: str | None = None, positions: np.ndarray | None = None, *,
@@ -307,12 +335,13 @@ class SprintMap(MapReading):
         """
         from sprint_map.merge.prepared import stale_reason
 
+        centring = prepared.centring if prepared.centring is not None else self.drive_centring()
         reason = stale_reason(self, prepared,
-                              self.drive_centring().apply(np.concatenate(list(batches))))
+                              centring.fresh().apply(np.concatenate(list(batches))))
         if reason is not None:
             return self.ingest(iter(batches), name, positions, merge=prepared.merge, hmm=hmm,
                                source=source), reason
-        with self.begin_drive(name, source) as drive:
+        with self.begin_drive(name, source, centring=centring) as drive:
             for batch in batches:
                 drive.append(batch)
             done = drive.commit(prepared.decisions, positions)
@@ -594,7 +623,8 @@ class SprintMap(MapReading):
         return decisions, localizer.timing
 
     def smoothed(self, localizer: Any, descriptors: DescriptorsLike | None = None,
-                 thumbnails: Sequence[bytes] | None = None) -> list[FrameDecision]:
+                 thumbnails: Sequence[bytes] | None = None,
+                 centring: DriveCentring | None = None) -> list[FrameDecision]:
         """The after-drive decisions of the drive ``localizer`` has seen (made with
         ``record=True``), as :func:`sprint_map.merge.smoothing.smoothed_decisions` makes them;
         a proxy of a localiser in another process (the service's Ray replicas) makes them
@@ -607,7 +637,8 @@ class SprintMap(MapReading):
             decisions: list[FrameDecision] = localizer.smoothed(descriptors)
             return decisions
         if descriptors is not None:  # the drive as described: in the map's space
-            descriptors = self.drive_centring().apply(np.asarray(descriptors))
+            fresh = centring.fresh() if centring is not None else self.drive_centring()
+            descriptors = fresh.apply(np.asarray(descriptors))
         return smoothed_decisions(localizer, self, descriptors, thumbnails)
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,

@@ -13,6 +13,7 @@ from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from sprint_map.errors import InputError
+from sprint_map.frontend.centring import CentringStats
 from sprint_map.storage.index.model import cap_threads
 from sprint_map.storage.provenance import edge_table
 from sprint_map.storage.records import ComponentInfo, EdgeTable, SequenceRecord
@@ -96,6 +97,20 @@ class MapReading:
             No such sequence, or no such frame in it.
         """
         return self.store.thumbnail(seq_id, image_id)
+
+    def drive_stats(self, seq: int | str) -> CentringStats | None:
+        """The statistics sequence ``seq`` (id or name) was stored with: its drive's frames and
+        mean descriptor as described, the drive's condition (:mod:`sprint_map.frontend.centring`),
+        or None for a sequence stored before drive statistics existed. O(dim).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence.
+        """
+        seq_id = seq if isinstance(seq, int) else self.sequence_by_name(seq).seq_id
+        got = self.store.drive_stats(seq_id)
+        return None if got is None else CentringStats(*got)
 
     def thumbnail_count(self, seq_id: int) -> int:
         """How many thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count).

@@ -9,11 +9,14 @@ each frame's descriptor has its drive's running mean subtracted, and is renormal
 **The rule** (the same for a drive being stored and a query being answered, so both sides of
 every distance are alike): frame ``t`` of a drive, descriptor ``x_t``, becomes
 
-    c_t = (x_t - m_t) / ||x_t - m_t||,   m_t = (x_0 + ... + x_t) / (t + 2)
+    c_t = (x_t - m_t) / ||x_t - m_t||,   m_t = (w p + x_0 + ... + x_t) / (w + t + 1)
 
-``m_t`` is the mean of the frames seen so far with one zero frame as a prior (so the first
-frame is its own direction, not the zero vector); a frame equal to its mean stays the zero
-vector. It is causal: a vehicle's answer for frame ``t`` never waits for later frames, and the
+``m_t`` is the mean of the frames seen so far and of a prior ``p`` worth ``w`` frames: the
+map's mean condition (the frame-weighted mean of the drives it stores, from their
+statistics) worth ``prior_frames`` frames, so that the first frames of a drive are centred on
+something better than themselves; on an empty map (or with ``prior_frames=0``) one zero
+frame (the first frame is then its own direction, not the zero vector). A frame equal to its
+mean stays the zero vector. It is causal: a vehicle's answer for frame ``t`` never waits for later frames, and the
 rows a drive stores are the rows it was localised with. Its state is the running sum and the
 count (O(dim) memory per drive, whatever its length); :class:`CentringStats` is what the map
 stores with each drive (its frames and its mean: the drive's condition).
@@ -34,6 +37,7 @@ Examples
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,14 +66,19 @@ class Centring:
     mode : {"drive", "none"}
         ``drive`` centres each frame on its drive's running mean; ``none`` keeps descriptors
         as they are (maps made before centring).
+    prior_frames : int
+        How many frames the map's mean condition weighs in a drive's running mean (0: none).
     """
 
     mode: str = "drive"
+    prior_frames: int = 20
 
     def __post_init__(self) -> None:
         if self.mode not in CENTRING_MODES:
             raise ValueError(f"centring mode must be one of {', '.join(CENTRING_MODES)}, "
                              f"not {self.mode!r}")
+        if not isinstance(self.prior_frames, int) or self.prior_frames < 0:
+            raise ValueError("centring prior_frames must be a non-negative integer")
 
     @property
     def enabled(self) -> bool:
@@ -84,6 +93,19 @@ class CentringStats:
     frames: int
     mean: np.ndarray
 
+    @staticmethod
+    def pool(stats: Iterable[CentringStats]) -> CentringStats | None:
+        """The frame-weighted mean of several drives' statistics (None for none). O(n dim)."""
+        total = 0
+        acc: np.ndarray | None = None
+        for s in stats:
+            part = s.mean.astype(np.float64) * s.frames
+            acc = part if acc is None else acc + part
+            total += s.frames
+        if acc is None or not total:
+            return None
+        return CentringStats(total, (acc / total).astype(np.float32))
+
 
 class DriveCentring:
     """The running state of one drive's centring: :meth:`apply` each batch in drive order.
@@ -94,17 +116,32 @@ class DriveCentring:
         The map's centring.
     dim : int
         The map's descriptor dimension.
+    prior : CentringStats, optional
+        The map's mean condition (:meth:`CentringStats.pool` of its drives' statistics).
 
     Notes
     -----
     O(n * dim) per batch of n rows; O(dim) state. Not thread-safe: one drive, one caller.
     """
 
-    def __init__(self, config: Centring, dim: int) -> None:
+    def __init__(self, config: Centring, dim: int, prior: CentringStats | None = None) -> None:
         self.config = config
         self.dim = dim
         self._sum = np.zeros(dim, np.float64)
         self._frames = 0
+        #: the prior it was made with (:meth:`fresh` makes another drive with it)
+        self.prior = prior
+        #: the prior's weight (frames) and sum (a zero frame when there is none)
+        self._w0 = 1.0
+        self._sum0 = np.zeros(dim, np.float64)
+        if prior is not None and prior.frames and config.prior_frames:
+            self._w0 = float(config.prior_frames)
+            self._sum0 = prior.mean.astype(np.float64) * config.prior_frames
+
+    def fresh(self) -> DriveCentring:
+        """A new drive's centring with this one's config and prior: the same frames give the
+        very same rows (a drive centred again at its commit)."""
+        return DriveCentring(self.config, self.dim, self.prior)
 
     @property
     def frames(self) -> int:
@@ -125,8 +162,8 @@ class DriveCentring:
         sums = np.cumsum(np.vstack([self._sum[None, :], arr.astype(np.float64)]), axis=0)
         if not self.config.enabled:
             return arr, arr, sums[-1]
-        counts = self._frames + 2 + np.arange(len(arr), dtype=np.float64)
-        centred = arr - sums[1:] / counts[:, None]
+        counts = self._frames + self._w0 + 1 + np.arange(len(arr), dtype=np.float64)
+        centred = arr - (self._sum0 + sums[1:]) / counts[:, None]
         norms = np.linalg.norm(centred, axis=1, keepdims=True)
         out = np.divide(centred, norms, out=np.zeros_like(centred), where=norms > _ZERO_NORM)
         return arr, out.astype(np.float32), sums[-1]

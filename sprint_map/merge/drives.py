@@ -172,10 +172,14 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
             if i:
                 crash_point("group.between_drives")
             centring = smap.drive_centring()
+
+            def stats(c: DriveCentring = centring) -> tuple[int, np.ndarray]:
+                return c.stats.frames, c.stats.mean
+
             try:
                 writer.add(centre_batches(centring, drive.descriptors), drive.name,
                            drive.source, drive.positions, thumbnails=drive.thumbnails,
-                           stats=lambda c=centring: (c.stats.frames, c.stats.mean))
+                           stats=stats)
             except Exception as exc:  # the drives before it are still committed
                 failure = exc
                 break

@@ -63,6 +63,9 @@ class PreparedDrive:
         The index as the snapshot's reader saw it (its type and sealed count).
     removed : int
         Removed vertices as of the snapshot.
+    centring : DriveCentring or None
+        A fresh copy of the centring the drive was localised with (its prior): its commit
+        stores the rows centred as they were searched.
     """
 
     localised: bool
@@ -74,6 +77,7 @@ class PreparedDrive:
     touched: dict[int, frozenset[int]] = field(default_factory=dict)
     index: str = ""
     removed: int = 0
+    centring: Any = None
 
 
 class PreparableConfig(LocalizerConfig, MergeSettings, Protocol):

@@ -362,7 +362,9 @@ class LocalisationService:
         return CommitJob(session.name, rows, list(session.decisions),
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
-                         smoothed=functools.partial(self.map.smoothed, session.localizer, rows))
+                         smoothed=functools.partial(self.map.smoothed, session.localizer, rows,
+                                                    centring=session.centring),
+                         centring=session.centring)
 
     async def commit(self, session_id: str) -> dict[str, Any]:
         """Commit a session's drive; returns once the commit is durable."""

@@ -114,7 +114,8 @@ class Session:
 
     def centred(self, row: Descriptors) -> Descriptors:
         """The session's next frame ``row`` as the map searches it (nothing changes)."""
-        return self.centring.preview(np.asarray(row).reshape(1, -1))[0]
+        centred: Descriptors = self.centring.preview(np.asarray(row).reshape(1, -1))[0]
+        return centred
 
     def step(self, row: Descriptors, position: tuple[float, ...] | None = None,
              hits: tuple[np.ndarray, np.ndarray, float] | None = None

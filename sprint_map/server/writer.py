@@ -19,7 +19,7 @@ from collections.abc import Callable, Container, Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -51,6 +51,8 @@ class CommitJob:
     source: str = ""
     positions: np.ndarray | None = None  # (frames, 2..4) as ``ingest`` takes them
     smoothed: Callable[[], list[FrameDecision]] | None = None
+    #: the session's centring: the commit stores the rows centred as they were searched
+    centring: Any = None
 
 
 @dataclass(frozen=True)
@@ -181,10 +183,10 @@ class CommitWriter:
         # The map changes only in this thread: the smoothing sees the map the commit extends.
         decisions = job.smoothed() if job.smoothed is not None else job.decisions
         if job.name is not None or self.names is None:
-            begun = smap.begin_drive(job.name, job.source)
+            begun = smap.begin_drive(job.name, job.source, centring=job.centring)
         else:
             begun = self.names.begin_default(
-                lambda taken: smap.begin_drive(None, job.source, taken))
+                lambda taken: smap.begin_drive(None, job.source, taken, job.centring))
         held = 0.0
 
         @contextmanager

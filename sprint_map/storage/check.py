@@ -26,6 +26,7 @@ import networkx as nx
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, StorageIOError
+from sprint_map.storage.drive_stats import check_drive_stats
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index.check import check_segments, has_segments
 from sprint_map.storage.index.map_index import file_problem, index_files, projection_dirs
@@ -69,7 +70,7 @@ MALFORMED = -1
 #: derivable either (the images are not kept), but they are only a view: the repair drops the
 #: ones that break the invariants, and says so.
 REPAIRABLE = frozenset({"lookup", "shard_lengths", "edge_index", "components", "index", "temp",
-                        "removed", "thumbnails", "sightings"})
+                        "removed", "thumbnails", "sightings", "drive_stats"})
 
 
 @dataclass
@@ -215,6 +216,12 @@ def check_map(store: MapStore, *, seed: int = 0,
     _check_components(records, sequence_edges(records, report), report)
     check_thumbnails(store, records, report, thumbnail_decodes)
     check_sightings(store, records, report)
+    with store.env.read() as txn:
+        stats, problems = check_drive_stats(txn, store.env, (s.seq_id for s in records.seqs),
+                                            store.config.dim)
+    for problem in problems:
+        report.violation("drive_stats", problem)
+    report.checked["drive_stats"] = stats
     # Beside a live writer, index files it publishes after our snapshot (its temp file, a file
     # ahead of the snapshot, an older file it removes) are in flight, not faults of the map.
     live = store.readonly and writer_active(store.path)

@@ -15,6 +15,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, UnknownSequenceError
+from sprint_map.storage.drive_stats import get_drive_stats
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
@@ -194,6 +195,29 @@ class MapReads:
         with self.env.read() as txn:
             self.vertex_id(seq_id, image_id, txn)
             return get_sighting(txn, self.env, seq_id, image_id)
+
+    def drive_stats(self, seq_id: int) -> tuple[int, np.ndarray] | None:
+        """Sequence ``seq_id``'s ``(frames, mean)`` (:mod:`sprint_map.storage.drive_stats`), or
+        None if it was written without. O(dim).
+
+        Raises
+        ------
+        UnknownSequenceError
+            No such sequence.
+        """
+        with self.env.read() as txn:
+            self.sequence(seq_id, txn)
+            return get_drive_stats(txn, self.env, seq_id, self.shards.dim)
+
+    def all_drive_stats(self) -> list[tuple[int, int, np.ndarray]]:
+        """``(seq_id, frames, mean)`` of every sequence with statistics. O(sequences * dim)."""
+        from sprint_map.storage.drive_stats import DRIVE_STATS_DB, decode_drive_stats
+
+        if not self.env.has_db(DRIVE_STATS_DB):
+            return []
+        with self.env.read() as txn:
+            return [(read_u32(k), *decode_drive_stats(v, self.shards.dim))
+                    for k, v in txn.cursor(db=self.env.db(DRIVE_STATS_DB))]
 
     def thumbnail_count(self, seq_id: int) -> int:
         """Thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count)."""

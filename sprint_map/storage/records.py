@@ -262,6 +262,8 @@ AREAS = {
                   "has one per frame or none",
     "sightings": "records of places seen again (admission) name frames of live sequences and "
                  "decode",
+    "drive_stats": "drive statistics (frames, mean descriptor) name live sequences, have the "
+                   "map's dimension and are finite",
 }
 
 

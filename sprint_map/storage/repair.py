@@ -34,6 +34,7 @@ from typing import Any
 import lmdb
 
 from sprint_map.storage.check import MapRecords, check_map, check_sequences, sequence_edges
+from sprint_map.storage.drive_stats import drop_broken_stats
 from sprint_map.storage.keys import EDGE_KEY, read_u64, u32, u64
 from sprint_map.storage.records import RepairReport
 from sprint_map.storage.sightings import drop_stray_sightings
@@ -44,7 +45,7 @@ from sprint_map.util.atomic import fsync_file, truncate
 
 #: Areas rebuilt by the LMDB transaction of step 3.
 RECORD_AREAS = ("lookup", "shard_lengths", "edge_index", "components", "removed", "thumbnails",
-                "sightings")
+                "sightings", "drive_stats")
 
 
 def repair_map(path: str | os.PathLike[str], *, seed: int = 0,
@@ -183,6 +184,11 @@ def rebuild_records(store: MapStore, areas: set[str],
         if "sightings" in todo:
             actions.extend(drop_stray_sightings(
                 txn, store.env, {s.seq_id: s.length for s in records.seqs}))
+        if "drive_stats" in todo:
+            dropped = drop_broken_stats(txn, store.env, (s.seq_id for s in records.seqs),
+                                        store.config.dim)
+            actions.append(f"dropped {dropped} broken drive statistics record(s): they exist "
+                           "nowhere else (the drives' centring is unaffected)")
         crash_point("repair.before_commit")
         return actions
 
