@@ -12,7 +12,6 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from collections.abc import Callable, Container, Iterable, Sequence
@@ -27,7 +26,7 @@ from sprint_map.errors import (
     DescriptorShapeError,
     InputError,
 )
-from sprint_map.frontend.centring import CentringStats, DriveCentring, centre_batches
+from sprint_map.frontend.centring import CentringStats, DriveCentring
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.map_reading import MapReading
 from sprint_map.merge.commit import DriveWriter, IngestResult
@@ -248,12 +247,13 @@ class SprintMap(MapReading):
             self.gnss_aid(fixes, n, index=False)  # checked all the same
         if localizer is not None and observe is not None:
             observe(localizer)
-        with self.begin_drive(name, source) as drive:
+        centring = localizer.centring if localizer is not None else None
+        with self.begin_drive(name, source, centring=centring) as drive:
             for batch in batches:
-                rows = drive.append(batch)  # centred: the rows the map stores and searches
-                if localizer is not None:
-                    for _ in localizer.iter_localize(iter([rows])):
+                if localizer is not None:  # it centres the batch as the drive stores it
+                    for _ in localizer.iter_localize(iter([batch])):
                         pass
+                drive.append(batch)
             if fixes is not None and n is None:  # streamed: the drive's length known now
                 self.gnss_aid(fixes, drive.frames, index=False)
             decisions = (self.smoothed(localizer, thumbnails=thumbnails)
@@ -315,9 +315,7 @@ class SprintMap(MapReading):
         :mod:`sprint_map.merge.prepared`."""
         from sprint_map.merge.prepared import prepare_drive
 
-        centring = self.drive_centring()
-        prepared = prepare_drive(self, centre_batches(centring, batches), merge=merge, hmm=hmm)
-        return dataclasses.replace(prepared, centring=centring.fresh())
+        return prepare_drive(self, batches, merge=merge, hmm=hmm)
 
     def commit_prepared(self, prepared: PreparedDrive, batches: Sequence[DescriptorsLike],
                         name: str | None = None, positions: np.ndarray | None = None, *,
@@ -607,9 +605,11 @@ class SprintMap(MapReading):
             base = hmm or self.config.hmm
             lagged = LaggedLocalizer(self, lag, dataclass_dict.replace(base, **overrides)
                                      if overrides else base)
-            return lagged.localize(centre_batches(self.drive_centring(), descriptors)), \
-                lagged.timing
-        batches = centre_batches(self.drive_centring(), descriptors)
+            batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
+                else descriptors
+            return lagged.localize(batches), lagged.timing
+        batches = np.asarray(descriptors) if isinstance(descriptors, np.ndarray | list) \
+            else descriptors
         if fixes is not None and isinstance(batches, np.ndarray):
             self.gnss_aid(fixes, len(batches), index=False)
         localizer = self.localizer(hmm, record=smooth, fixes=fixes, **overrides)
@@ -623,8 +623,7 @@ class SprintMap(MapReading):
         return decisions, localizer.timing
 
     def smoothed(self, localizer: Any, descriptors: DescriptorsLike | None = None,
-                 thumbnails: Sequence[bytes] | None = None,
-                 centring: DriveCentring | None = None) -> list[FrameDecision]:
+                 thumbnails: Sequence[bytes] | None = None) -> list[FrameDecision]:
         """The after-drive decisions of the drive ``localizer`` has seen (made with
         ``record=True``), as :func:`sprint_map.merge.smoothing.smoothed_decisions` makes them;
         a proxy of a localiser in another process (the service's Ray replicas) makes them
@@ -636,9 +635,8 @@ class SprintMap(MapReading):
         if not isinstance(localizer, Localizer):
             decisions: list[FrameDecision] = localizer.smoothed(descriptors)
             return decisions
-        if descriptors is not None:  # the drive as described: in the map's space
-            fresh = centring.fresh() if centring is not None else self.drive_centring()
-            descriptors = fresh.apply(np.asarray(descriptors))
+        if descriptors is not None:  # the drive as described, centred as it was localised
+            descriptors = localizer.centring.fresh().apply(np.asarray(descriptors))
         return smoothed_decisions(localizer, self, descriptors, thumbnails)
 
     def open_source(self, path: str | os.PathLike[str], *, stride: int = 1,

@@ -121,24 +121,35 @@ class LaggedLocalizer:
         if self.smoother is None:
             return self.localizer.step(descriptor)
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1),
-                                   self.localizer.map.config.dim)
+                                   self.localizer.map.config.dim, self.localizer.frames_seen)
+        centring = self.localizer.centring
+        centred = centring.preview(row)
         with self._pinned():
             if self.localizer.is_empty:
-                return self._update(*_NO_HITS, 0.0)
-            start = time.perf_counter()
-            dists, ids = self.localizer.source.search(row, self.depth)
-            return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+                answer = self._update(*_NO_HITS, 0.0)
+            else:
+                start = time.perf_counter()
+                dists, ids = self.localizer.source.search(centred, self.depth)
+                answer = self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+        centring.advance(row)
+        return answer
 
-    def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0
-                  ) -> FrameDecision | None:
+    def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0,
+                  descriptor: DescriptorsLike | None = None) -> FrameDecision | None:
         """:meth:`step` from the frame's hits, searched by the caller with
-        :attr:`depth` neighbours (as :meth:`Localizer.step_hits`)."""
+        :attr:`depth` neighbours for :meth:`Localizer.centred` ``(descriptor)`` (as
+        :meth:`Localizer.step_hits`)."""
         if self.smoother is None:
-            return self.localizer.step_hits(ids, dists, retrieval_ms)
+            return self.localizer.step_hits(ids, dists, retrieval_ms, descriptor)
+        centring = self.localizer.centring
+        if descriptor is None and centring.config.enabled:
+            raise ValueError("step_hits needs the frame's descriptor: the drive is centred")
         with self._pinned():
-            if self.localizer.is_empty:
-                return self._update(*_NO_HITS, retrieval_ms)
-            return self._update(ids, dists, retrieval_ms)
+            answer = (self._update(*_NO_HITS, retrieval_ms) if self.localizer.is_empty
+                      else self._update(ids, dists, retrieval_ms))
+        if descriptor is not None:
+            centring.advance(np.asarray(descriptor).reshape(1, -1))
+        return answer
 
     def flush(self) -> list[FrameDecision]:
         """Answer every frame still waiting (the end of the drive), in frame order."""
@@ -170,7 +181,7 @@ class LaggedLocalizer:
         )
         with self._pinned():
             for batch in batches:
-                rows = validate_descriptors(batch, self.localizer.map.config.dim)
+                rows = self.localizer.centring.apply(batch)  # validated, then centred
                 if self.localizer.is_empty:
                     for _ in range(len(rows)):
                         if (answer := self._update(*_NO_HITS, 0.0)) is not None:

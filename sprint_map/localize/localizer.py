@@ -21,6 +21,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from sprint_map.frontend.centring import DriveCentring
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision
@@ -28,7 +29,7 @@ from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.localize.gnss import GnssAid
-from sprint_map.util.arrays import DescriptorsLike, SearchResult
+from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "LocalizerConfig",
@@ -80,6 +81,8 @@ class LocalizableMap(Protocol):
     def config(self) -> LocalizerConfig: ...
 
     def view(self) -> MapView: ...
+
+    def drive_centring(self) -> DriveCentring: ...
 
 
 @dataclass(frozen=True)
@@ -224,9 +227,19 @@ class Localizer:
         #: :class:`sprint_map.localize.trace.TraceRecorder`, which reads ``filter`` too); None: nothing.
         self.observer: Callable[[FrameDecision, np.ndarray, np.ndarray], None] | None = None
         self.gnss = gnss
+        #: The drive's centring (:mod:`sprint_map.frontend.centring`): every frame given is
+        #: searched centred on the frames before it, in the map's space.
+        self.centring = smap.drive_centring()
+
+    def centred(self, descriptor: DescriptorsLike) -> Descriptors:
+        """The next frame as this localizer searches it (nothing changes): what a caller of
+        :meth:`step_hits` searches."""
+        out: Descriptors = self.centring.preview(np.asarray(descriptor).reshape(1, -1))
+        return out
 
     def reset(self) -> None:
         """Start a new query sequence."""
+        self.centring = self.centring.fresh()
         self.filter.reset()
         self.timing = Timing()
         self.frames_seen = 0
@@ -288,17 +301,23 @@ class Localizer:
             yield changed
 
     def step(self, descriptor: DescriptorsLike) -> FrameDecision:
-        """Localise one frame (a vehicle streaming its images)."""
-        row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim)
+        """Localise one frame (a vehicle streaming its images), given as described: it is
+        centred here (:attr:`centring`); a refused frame changes nothing."""
+        row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim,
+                                   self.frames_seen)
+        centred = self.centring.preview(row)
         with self.pinned():
             if self.is_empty:
-                return self._no_map_decision()
-            start = time.perf_counter()
-            dists, ids = self.source.search(row, self.search_k)
-            return self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+                decision = self._no_map_decision()
+            else:
+                start = time.perf_counter()
+                dists, ids = self.source.search(centred, self.search_k)
+                decision = self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
+        self.centring.advance(row)
+        return decision
 
-    def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0
-                  ) -> FrameDecision:
+    def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0,
+                  descriptor: DescriptorsLike | None = None) -> FrameDecision:
         """Localise one frame from its retrieval hits, searched by the caller (the service
         searches the frames of many sessions in one batch).
 
@@ -306,12 +325,18 @@ class Localizer:
         :func:`sprint_map.util.exact_search.certified_search`), so with the hits of
         ``smap.search(rows, config.k)`` made against the same map state this equals
         :meth:`step` of the row. The caller keeps the map from changing between the search and
-        this call (the service's map gate).
+        this call (the service's map gate). The hits are those of :meth:`centred`
+        ``(descriptor)``, and ``descriptor`` (the frame as described) must be given when the
+        map centres: the drive's centring takes it as its next frame (ValueError without).
         """
+        if descriptor is None and self.centring.config.enabled:
+            raise ValueError("step_hits needs the frame's descriptor: the drive is centred")
         with self.pinned():
-            if self.is_empty:
-                return self._no_map_decision()
-            return self._update(ids, dists, retrieval_ms)
+            decision = (self._no_map_decision() if self.is_empty
+                        else self._update(ids, dists, retrieval_ms))
+        if descriptor is not None:
+            self.centring.advance(np.asarray(descriptor).reshape(1, -1))
+        return decision
 
     def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]
                  ) -> list[FrameDecision]:
@@ -331,7 +356,7 @@ class Localizer:
         )
         with self.pinned():
             for batch in batches:
-                rows = validate_descriptors(batch, self.map.config.dim)
+                rows = self.centring.apply(batch)  # validated, then centred
                 if self.is_empty:
                     for _ in range(len(rows)):
                         yield self._no_map_decision()

@@ -142,7 +142,7 @@ def prepare_drive(smap: PreparableMap, batches: Iterable[DescriptorsLike], *, me
                    for root in np.unique(localizer.source.components_of(hit_ids))}
         state = index_state(smap)
     return PreparedDrive(True, True, vertices, decisions, localizer.timing, kth, touched,
-                         state, removed)
+                         state, removed, localizer.centring.fresh())
 
 
 def stale_reason(smap: PreparableMap, drive: PreparedDrive, rows: DescriptorsLike) -> str | None:

@@ -230,16 +230,14 @@ class LocalisationService:
             k = self.map.config.hmm.k
             if lag:  # searches max(k, smooth_k) deep and records those hits for the commit
                 lagged = LaggedLocalizer(self.map, lag, cache=self.cache, record=True)
-                return Session(name, lagged.localizer, self.dim, lagged, lagged.depth,
-                               centring=self.map.drive_centring())
+                return Session(name, lagged.localizer, self.dim, lagged, lagged.depth)
             try:
                 localizer = (self.localizers() if self.localizers is not None
                              else Localizer(self.map, cache=self.cache, record=True,
                                             record_k=k))
             except SprintMapError as exc:  # e.g. no replica could take the session
                 raise from_library(exc) from None
-            return Session(name, localizer, self.dim, search_k=k,
-                           centring=self.map.drive_centring())
+            return Session(name, localizer, self.dim, search_k=k)
 
     async def discard(self, session_id: str) -> Session:
         session = self.registry.get(session_id)
@@ -362,8 +360,7 @@ class LocalisationService:
         return CommitJob(session.name, rows, list(session.decisions),
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
-                         smoothed=functools.partial(self.map.smoothed, session.localizer, rows,
-                                                    centring=session.centring),
+                         smoothed=functools.partial(self.map.smoothed, session.localizer, rows),
                          centring=session.centring)
 
     async def commit(self, session_id: str) -> dict[str, Any]:

@@ -47,10 +47,7 @@ class Session:
     """
 
     def __init__(self, name: str | None, localizer: Localizer, dim: int,
-                 lagged: LaggedLocalizer | None = None, search_k: int = 0,
-                 centring: DriveCentring | None = None) -> None:
-        if centring is None:
-            raise ValueError("a session needs its drive's centring (SprintMap.drive_centring)")
+                 lagged: LaggedLocalizer | None = None, search_k: int = 0) -> None:
         self.id = uuid.uuid4().hex
         self.name = name
         #: The localizer recording the drive (the commit smooths it): ``lagged.localizer`` for
@@ -64,10 +61,6 @@ class Session:
         #: Answers made by the commit's flush of a lagged session, until a commit succeeds.
         self.flushed: list[FrameDecision] = []
         self.dim = dim
-        #: the drive's centring (:mod:`sprint_map.frontend.centring`): each frame is searched
-        #: centred on the frames kept before it; the rows kept are as posted (the commit's
-        #: writer centres them again, to the very same rows)
-        self.centring = centring
         self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
         self.positions: list[tuple[float, ...]] = []
@@ -112,9 +105,16 @@ class Session:
             raise ApiError(422, "bad_payload", f"the session's earlier frames {given} a "
                            "position: give one for every frame or for none")
 
+    @property
+    def centring(self) -> DriveCentring:
+        """The drive's centring (the localizer's, :mod:`sprint_map.frontend.centring`): each
+        frame is searched centred on the frames kept before it; the rows kept are as posted
+        (the commit's writer centres them again, with the same prior, to the very same rows)."""
+        return self.localizer.centring
+
     def centred(self, row: Descriptors) -> Descriptors:
         """The session's next frame ``row`` as the map searches it (nothing changes)."""
-        centred: Descriptors = self.centring.preview(np.asarray(row).reshape(1, -1))[0]
+        centred: Descriptors = self.localizer.centred(row)[0]
         return centred
 
     def step(self, row: Descriptors, position: tuple[float, ...] | None = None,
@@ -130,9 +130,7 @@ class Session:
         self.check_position(position)
         self.apply_changes()
         stepper: Localizer | LaggedLocalizer = self.lagged or self.localizer
-        decision = (stepper.step(self.centred(row)) if hits is None
-                    else stepper.step_hits(*hits))
-        self.centring.advance(np.asarray(row).reshape(1, -1))
+        decision = stepper.step(row) if hits is None else stepper.step_hits(*hits, row)
         self.rows.append(row.reshape(-1))
         if position is not None:
             self.positions.append(position)

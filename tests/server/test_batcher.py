@@ -108,7 +108,7 @@ def test_a_failed_search_answers_every_frame_of_its_batch(one_drive_map: Path, p
 
     async def body(smap: SprintMap) -> list[Any]:
         batcher = FrameBatcher(smap, MapGate(), k=5, window_s=0.0, max_frames=64)
-        sessions = [Session(None, smap.localizer(), smap.config.dim, centring=smap.drive_centring()) for _ in rows]
+        sessions = [Session(None, smap.localizer(), smap.config.dim) for _ in rows]
         # Queued before the thread starts: the five frames make one batch.
         futures = [batcher.submit(s, r) for s, r in zip(sessions, rows, strict=True)]
         batcher.start()
@@ -136,7 +136,7 @@ def test_a_fleet_split_in_two_groups_is_batched_whole_again(one_drive_map: Path,
 
     async def body(smap: SprintMap) -> list[int]:
         batcher = FrameBatcher(smap, MapGate(), k=5, window_s=0.5, max_frames=64)
-        sessions = [Session(None, smap.localizer(), smap.config.dim, centring=smap.drive_centring()) for _ in range(4)]
+        sessions = [Session(None, smap.localizer(), smap.config.dim) for _ in range(4)]
         sizes: list[int] = []
 
         async def batch_of(frames: list[tuple[Session, np.ndarray]], late: int = 0) -> None:

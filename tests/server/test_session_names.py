@@ -54,15 +54,12 @@ def test_a_default_name_is_claimed_while_its_drive_commits():
     ``seq-5`` (the map may not show it yet); a failed commit gives the name back."""
     import pytest
 
-    from sprint_map.frontend.centring import Centring, DriveCentring
     from sprint_map.server.errors import ApiError
     from sprint_map.server.sessions import Session, SessionRegistry
     from sprint_map.storage.sequence_writer import default_name
 
-    centring = DriveCentring(Centring(), 4)
-
     registry = SessionRegistry(10, 10, 1 << 20)
-    registry.add(Session("seq-5", None, 4, centring=centring))  # type: ignore[arg-type]
+    registry.add(Session("seq-5", None, 4))  # type: ignore[arg-type]
     seen = []
 
     class Begun:  # stands for SequenceWriter(store, None, source, taken)
@@ -73,8 +70,8 @@ def test_a_default_name_is_claimed_while_its_drive_commits():
     assert registry.begin_default(Begun).name == "seq-5-2"
     assert seen == [{"seq-5"}]
     with pytest.raises(ApiError) as refused:
-        registry.add(Session("seq-5-2", None, 4, centring=centring))  # type: ignore[arg-type]
+        registry.add(Session("seq-5-2", None, 4))  # type: ignore[arg-type]
     assert (refused.value.status, refused.value.code) == (409, "duplicate_name")
     assert registry.begin_default(Begun).name == "seq-5-3"  # claimed names are taken too
     registry.release("seq-5-2")  # its commit failed
-    registry.add(Session("seq-5-2", None, 4, centring=centring))  # type: ignore[arg-type]
+    registry.add(Session("seq-5-2", None, 4))  # type: ignore[arg-type]
