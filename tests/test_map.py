@@ -7,6 +7,7 @@ import pytest
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig, MergeRule, StoreOptions
 from sprint_map.errors import MapLockedError, NotAMapError, ReadOnlyMapError
+from sprint_map.frontend.centring import CentringStats, DriveCentring
 from sprint_map.map import SprintMap
 from sprint_map.storage.index.map_index import index_files
 from sprint_map.storage.records import EdgeSpec
@@ -45,7 +46,13 @@ def test_reopened_map_reads_back_what_was_added(map_path, config, drives):
         assert [s.name for s in m.sequences()] == ["mon", "tue", "wed"]
         assert m.sequence(2).source == "cam1"
         for seq_id, drive in enumerate(drives):
-            assert m.descriptors(seq_id).tobytes() == drive.tobytes()
+            # stored centred on the drive's running mean, the earlier drives' mean as its prior
+            prior = CentringStats.pool(m.drive_stats(j) for j in range(seq_id))  # type: ignore[misc]
+            want = DriveCentring(config.centring, DIM, prior).apply(drive)
+            assert m.descriptors(seq_id).tobytes() == want.tobytes()
+            stats = m.drive_stats(seq_id)
+            assert stats is not None and stats.frames == len(drive)
+            np.testing.assert_allclose(stats.mean, drive.mean(0), atol=1e-6)
         np.testing.assert_array_equal(m.positions(0)[:, :2], np.zeros((4, 2)))
         assert m.positions(1) is None
         assert m.stats() == {"sequences": 3, "vertices": 26, "edges": 1, "components": 2}
