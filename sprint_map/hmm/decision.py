@@ -253,16 +253,12 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
     """How much the place of the vertex at ``slot`` stands out among a frame's hits.
 
     The distance of the frame's best hit inside the place (:func:`place_runs` with ``radius``
-    and ``hops``) over that of its best hit elsewhere: outside the place widened to ``reach``
-    images, in any component. Below 1 the place is the closest thing the map holds (Lowe's ratio
-    test, for places); at 1 or more a lookalike is as close. ``hit_ids``/``hit_dists`` are the
-    frame's distinct valid hits; ``rivals``, if given, are the only hits that count as elsewhere
-    (the smoother passes those the neighbouring frames confirm as a route). Returns 0 when
-    nothing was retrieved elsewhere, ``inf`` when no hit fell inside the place, else the ratio.
-
-    Notes
-    -----
-    O(k + r + h d log d) for k hits (two :func:`place_runs`).
+    and ``hops``) over that of its best hit elsewhere (outside the place widened to ``reach``
+    images, in any component): below 1 the place is the closest thing the map holds (Lowe's
+    ratio test, for places). ``hit_ids``/``hit_dists``: the frame's distinct valid hits;
+    ``rivals``, if given: the only hits that count as elsewhere (those the neighbouring frames
+    confirm). Returns 0 when nothing was retrieved elsewhere, ``inf`` when no hit fell inside
+    the place. O(k + r + h d log d) for k hits (two :func:`place_runs`).
 
     Examples
     --------

@@ -203,18 +203,15 @@ def _held_hits(parts: Parts, live: np.ndarray, hit_ids: list[int], hit_lik: list
 class ForwardBackward:
     """Smoothed decisions for a whole query sequence over a :class:`GraphSource`.
 
+    Per frame, :meth:`forward` costs one filter step plus O(live), the backward pass the same
+    (:meth:`ComponentTransition.pull`) plus one decision; nothing is sized by the map.
+
     Parameters
     ----------
     config : HMMConfig
     source : GraphSource
     cache : ComponentCache, optional
         Shared component cache (e.g. the causal localizer's).
-
-    Notes
-    -----
-    :meth:`forward` costs one filter step per frame plus O(live) to keep its belief; the
-    backward pass costs the same per frame (:meth:`ComponentTransition.pull`) plus one
-    decision. Nothing is sized by the map.
 
     Examples
     --------
