@@ -13,6 +13,10 @@ What varies between traversals, and why:
   where no earlier traversal was (``reverse_fraction`` of them on streets driven the other way);
 - the city itself: ``alias_streets`` makes some streets copies of others (false matches);
 - the condition (:mod:`.conditions`): light, weather, traffic;
+- the season (:mod:`.seasons`, optional, ``seasons``): a change of the whole scene (snow on the
+  ground and snowbanks, or foliage) that is the same in every frame of every drive of a season,
+  so it is a shared component of their descriptors; off by default, and then nothing is drawn
+  for it (a world without seasons is bit-identical to one rendered before seasons existed);
 - the driving: speed profile, stops, lane offset, camera height, pitch and a slow yaw wobble, so
   the same place is never seen from exactly the same pose.
 
@@ -51,6 +55,7 @@ from sprint_map.synth.conditions import CONDITIONS, Appearance, Condition
 from sprint_map.synth.layout import CityLayout, Node, build_layout
 from sprint_map.synth.render import Camera, Renderer
 from sprint_map.synth.routes import Drive, Edge, Trajectory, drive, overlap, plan_route
+from sprint_map.synth.seasons import SEASONS, SeasonLook
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Float64Array, Image
 
@@ -119,12 +124,21 @@ class CityConfig:
     #: Target share of frames on streets earlier drives drove only in the other direction (part
     #: of the novel share: the other way, a street looks different and has no match).
     reverse_fraction: float = 0.0
+    #: Season of drive ``i``: ``seasons[i % len(seasons)]`` (names from
+    #: :data:`~sprint_map.synth.seasons.SEASONS`), applied before its condition; ``()``: none.
+    seasons: tuple[str, ...] = ()
+    #: Scales every season's ground, sky and overlay blends (0: no visible season).
+    season_strength: float = 1.0
 
     def __post_init__(self) -> None:
         if len(self.grid) != 2 or min(self.grid) < 2:
             raise ValueError("grid must be two integers >= 2")
         if not self.conditions or any(c not in CONDITIONS for c in self.conditions):
             raise ValueError(f"conditions must be names from {', '.join(CONDITIONS)}")
+        if any(c not in SEASONS for c in self.seasons):
+            raise ValueError(f"seasons must be names from {', '.join(SEASONS)}")
+        if not 0 <= self.season_strength <= 2:
+            raise ValueError("season_strength must be in [0, 2]")
         if self.speed_m <= 0 or self.detail < 0 or not 0 <= self.stop_prob <= 1:
             raise ValueError("speed_m must be > 0, detail >= 0, stop_prob in [0, 1]")
         if self.revisit <= 0:
@@ -144,12 +158,20 @@ class CityConfig:
         return dataclass_dict.from_dict(cls, data)
 
     def to_dict(self) -> dict[str, Any]:
-        """Return a JSON-ready dict."""
-        return dataclass_dict.to_dict(self)
+        """Return a JSON-ready dict (without the season keys when there is no season, so the
+        ``dataset.json`` of a world without seasons is what it was before seasons existed)."""
+        out = dataclass_dict.to_dict(self)
+        if not self.seasons:
+            del out["seasons"], out["season_strength"]
+        return out
 
     def ground_truth_spec(self) -> GroundTruthSpec:
         """The position alignment written to ``dataset.json``."""
         return GroundTruthSpec("position", radius_m=self.radius_m, heading_deg=self.heading_deg)
+
+    def season_of(self, index: int) -> str | None:
+        """The season of drive ``index`` (None without seasons)."""
+        return self.seasons[index % len(self.seasons)] if self.seasons else None
 
 
 @dataclass(frozen=True)
@@ -166,10 +188,12 @@ class TraversalPlan:
     yaw_period_frames: float
     shake: float  # per-frame camera shake: yaw sd in degrees, pitch sd in pixels
     seed: tuple[int, ...]
+    season: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
+            **({"season": self.season} if self.season else {}),
             "condition": self.condition.to_dict(),
             "route": [list(node) for node in self.trajectory.route],
             "camera_height_m": round(self.camera_height_m, 3),
@@ -234,6 +258,9 @@ class _World:
         )
         self.atlas: Atlas = build_atlas(self.layout, rng, detail=config.detail)
         self.camera = Camera(config.width, config.height, config.fov_deg)
+        #: One look per season used (its overlay is drawn once, from the world's seed).
+        self.seasons = {name: SeasonLook(SEASONS[name], seed, config.season_strength)
+                        for name in config.seasons}
         self.plans: list[TraversalPlan] = []
         driven: set[Edge] = set()
         for i in range(n_traversals):
@@ -260,9 +287,10 @@ class _World:
         else:
             route: list[Node] = plan_route(self.layout, length, driven, rng, config.revisit)
             trajectory = drive(self.layout, route, frames, rng, params)
+        season = config.season_of(i)
         return TraversalPlan(
             index=i,
-            name=f"t{i:02d}-{preset}",
+            name=f"t{i:02d}-{preset}" + (f"-{season}" if season else ""),
             condition=condition,
             trajectory=trajectory,
             camera_height_m=float(rng.uniform(1.45, 1.75)),
@@ -271,6 +299,7 @@ class _World:
             yaw_period_frames=float(rng.uniform(30, 90)),
             shake=config.shake,
             seed=(seed, 2, i),
+            season=season,
         )
 
     def _novel_trajectory(
@@ -314,6 +343,7 @@ class _World:
             0, plan.shake, (len(plan.trajectory.xy), 2)
         )
         phase = 2 * np.pi * (plan.index * 0.618)
+        season = self.seasons[plan.season] if plan.season else None
         traj = plan.trajectory
         for k in range(len(traj.xy)):
             yaw = plan.yaw_wobble_deg * np.sin(2 * np.pi * k / plan.yaw_period_frames + phase)
@@ -326,6 +356,8 @@ class _World:
                 pitch_px=plan.pitch_px + shake[k, 1] * self.config.height / 120,
                 sky=plan.condition.sky,
             )
+            if season is not None:
+                view = season.apply(view)
             yield appearance.apply(view, heading)
 
     def traversal(self, plan: TraversalPlan) -> SyntheticTraversal:

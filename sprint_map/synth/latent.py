@@ -28,6 +28,13 @@ The world, and why each part is there:
   per-channel gains ``exp(s g)``, an offset, gains on the style and place parts of the latent,
   and white plus time-correlated noise (traffic, rain passing the camera); each traversal
   jitters its condition a little;
+- **seasons** (optional, ``seasons``; :data:`SEASONS`): a season is a fixed direction per world
+  and season name in descriptor space, shared by every drive of that season; a drive of season
+  ``s`` has ``season_strength`` (jittered per drive) times that direction added to every
+  descriptor before the noise and the normalisation, so the place signal is intact under it
+  but every descriptor of the season leans the same way (what snow does to a global
+  descriptor: a query in winter is pulled towards every winter drive of the map). Off (``()``)
+  by default, and then nothing is drawn for it: the worlds are bit-identical to those without;
 - **drives**: a route over the streets (no U-turns but at dead ends), driven at a per-traversal
   speed with a smooth speed profile, stops and a lateral lane offset, with a per-frame pose jitter
   along the street; each traversal after the first is the candidate route (of
@@ -59,7 +66,7 @@ from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Float64Array
 
 __all__ = ["CONDITIONS", "LATENT_PRESETS", "LatentCondition", "LatentConfig", "LatentTraversal",
-           "LatentWorld", "ROUTE_CANDIDATES", "generate_latent", "make_latent"]
+           "LatentWorld", "ROUTE_CANDIDATES", "SEASONS", "generate_latent", "make_latent"]
 
 #: Candidate routes drawn per traversal when ``novel_fraction`` or ``reverse_fraction`` is set.
 ROUTE_CANDIDATES = 40
@@ -67,6 +74,8 @@ ROUTE_CANDIDATES = 40
 MIN_MATCHED = 0.2
 _HIDDEN = 128  # width of the nonlinear map's hidden layer
 _OFFSET = 0.15  # a condition's shift of every descriptor, per unit of strength
+#: The season names a world may use (``LatentConfig.seasons``); each has its own direction.
+SEASONS = ("summer", "autumn", "winter", "spring")
 
 
 @dataclass(frozen=True)
@@ -129,12 +138,21 @@ class LatentConfig:
     heading_deg: float = 45.0
     novel_fraction: float = 0.0
     reverse_fraction: float = 0.0
+    #: Season of drive ``i``: ``seasons[i % len(seasons)]`` (names from :data:`SEASONS`); ``()``:
+    #: no season (and nothing drawn for it).
+    seasons: tuple[str, ...] = ()
+    #: Length of a season's shift of every descriptor, in units of the place signal's length.
+    season_strength: float = 1.0
 
     def __post_init__(self) -> None:
         if len(self.grid) != 2 or min(self.grid) < 2:
             raise ValueError("grid must be two integers >= 2")
         if not self.conditions or any(c not in CONDITIONS for c in self.conditions):
             raise ValueError(f"conditions must be names from {', '.join(CONDITIONS)}")
+        if any(c not in SEASONS for c in self.seasons):
+            raise ValueError(f"seasons must be names from {', '.join(SEASONS)}")
+        if not 0 <= self.season_strength <= 10:
+            raise ValueError("season_strength must be in [0, 10]")
         if not 0 < self.style_dim < self.latent_dim or self.dim < 2 or self.n_styles < 1:
             raise ValueError("need 0 < style_dim < latent_dim, dim >= 2, n_styles >= 1")
         if self.block_m <= 4 * self.jitter_m or self.jitter_m < 0 or self.corr_m <= 0:
@@ -158,12 +176,20 @@ class LatentConfig:
         return dataclass_dict.from_dict(cls, data)
 
     def to_dict(self) -> dict[str, Any]:
-        """Return a JSON-ready dict."""
-        return dataclass_dict.to_dict(self)
+        """Return a JSON-ready dict (without the season keys when there is no season, so the
+        ``dataset.json`` of a world without seasons is what it was before seasons existed)."""
+        out = dataclass_dict.to_dict(self)
+        if not self.seasons:
+            del out["seasons"], out["season_strength"]
+        return out
 
     def ground_truth_spec(self) -> GroundTruthSpec:
         """The position alignment written to ``dataset.json``."""
         return GroundTruthSpec("position", radius_m=self.radius_m, heading_deg=self.heading_deg)
+
+    def season_of(self, index: int) -> str | None:
+        """The season of drive ``index`` (None without seasons)."""
+        return self.seasons[index % len(self.seasons)] if self.seasons else None
 
 
 #: The demo's latent world (``sprint-map demo --dataset latent``): each traversal after the first
@@ -190,6 +216,8 @@ class LatentTraversal:
         Directed street of each frame (``2 * street + direction``).
     twin : (N,) bool
         Frames on an identical-twin street (either of a pair, either direction).
+    season : str or None
+        The drive's season (``LatentConfig.seasons``), None without seasons.
     """
 
     name: str
@@ -198,6 +226,7 @@ class LatentTraversal:
     positions: Float64Array
     street: np.ndarray
     twin: np.ndarray
+    season: str | None = None
 
 
 @dataclass
@@ -363,6 +392,13 @@ class _Appearance:
             gain = crng.standard_normal(config.dim)
             offset = crng.standard_normal(config.dim)
             self.distortions[name] = (mix, gain, offset)
+        #: Per season, a unit direction of the descriptor space (drawn only when used).
+        self.seasons: dict[str, np.ndarray] = {}
+        for name in config.seasons:
+            if name not in self.seasons:
+                srng = np.random.default_rng([seed, 12, SEASONS.index(name)])
+                direction = srng.standard_normal(config.dim)
+                self.seasons[name] = direction / np.linalg.norm(direction)
 
     def clean(self, latent: np.ndarray, condition: LatentCondition) -> np.ndarray:
         """The place-dependent part of the descriptors of latent rows (centred; before the
@@ -372,9 +408,12 @@ class _Appearance:
         return np.asarray(np.tanh(z @ self.a + self.b) @ self.w - self.center)
 
     def describe(self, latent: np.ndarray, name: str, condition: LatentCondition,
-                 rng: np.random.Generator, frames_per_m: np.ndarray) -> np.ndarray:
+                 rng: np.random.Generator, frames_per_m: np.ndarray,
+                 season: tuple[str, float] | None = None) -> np.ndarray:
         """Descriptors of one traversal's latent rows under ``condition`` (jittered by ``rng``),
-        with white and time-correlated noise; L2-normalised float32."""
+        with white and time-correlated noise; L2-normalised float32. ``season``: its name and
+        this drive's strength; that times the season's direction (scaled to the place signal's
+        length, ``unit * sqrt(dim)``) is added to every row before the noise."""
         mix, gain, offset = self.distortions[name]
         s = condition.strength
         jitter = 1 + 0.15 * rng.standard_normal(3)
@@ -382,6 +421,8 @@ class _Appearance:
         x = x + (s * jitter[0]) * (x @ mix.T)
         x = x * np.exp(0.3 * s * jitter[1] * gain)
         x = x + self.unit * (self.mean + _OFFSET * s * jitter[2] * offset)
+        if season is not None:
+            x = x + (season[1] * self.unit * np.sqrt(self.config.dim)) * self.seasons[season[0]]
         n = len(x)
         scale = self.config.noise * self.unit
         white = rng.standard_normal(x.shape) * condition.noise
@@ -534,14 +575,20 @@ def make_latent(n_traversals: int = 10, frames_per_traversal: int = 300, seed: i
             lo = int(s)
             hi = min(lo + 1, len(seq) - 1)
             latent[k] = seq[lo] * (1 - (s - lo)) + seq[hi] * (s - lo)
+        season = config.season_of(i)
+        # The season's strength is jittered per drive from its own stream, so a world without
+        # seasons draws exactly what it drew before seasons existed.
+        shift = None if season is None else (season, config.season_strength * float(
+            1 + 0.1 * np.random.default_rng([seed, 13, i]).standard_normal()))
         descriptors = look.describe(latent, name, CONDITIONS[name],
-                                    np.random.default_rng([seed, 2, i]), 1.0 / route.step)
+                                    np.random.default_rng([seed, 2, i]), 1.0 / route.step, shift)
         frames = np.arange(len(route.xy), dtype=np.float64)
         world.traversals.append(LatentTraversal(
-            name=f"t{i:02d}-{name}", condition=name, descriptors=descriptors,
+            name=f"t{i:02d}-{name}" + (f"-{season}" if season else ""), condition=name,
+            descriptors=descriptors,
             positions=np.column_stack([frames, route.xy, route.heading_deg]),
             street=route.street.copy(),
-            twin=np.isin(route.street // 2, list(twin_streets))))
+            twin=np.isin(route.street // 2, list(twin_streets)), season=season))
     return world
 
 
