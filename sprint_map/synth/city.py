@@ -128,7 +128,7 @@ class CityConfig:
     #: :data:`~sprint_map.synth.seasons.SEASONS`), applied before its condition; ``()``: none.
     seasons: tuple[str, ...] = ()
     #: Scales every season's ground, sky and overlay blends (0: no visible season).
-    season_strength: float = 1.0
+    season_strength: float = 0.6
 
     def __post_init__(self) -> None:
         if len(self.grid) != 2 or min(self.grid) < 2:

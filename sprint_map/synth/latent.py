@@ -142,7 +142,7 @@ class LatentConfig:
     #: no season (and nothing drawn for it).
     seasons: tuple[str, ...] = ()
     #: Length of a season's shift of every descriptor, in units of the place signal's length.
-    season_strength: float = 1.0
+    season_strength: float = 0.6
 
     def __post_init__(self) -> None:
         if len(self.grid) != 2 or min(self.grid) < 2:

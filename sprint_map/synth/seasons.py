@@ -109,7 +109,8 @@ class SeasonLook:
 def _smooth_curve(rng: np.random.Generator, n: int, knots: int) -> np.ndarray:
     """A smooth random curve of ``n`` samples in about [-1, 1] (cubic through ``knots``)."""
     values = rng.uniform(-1, 1, knots).astype(np.float32)[None, :]
-    return cv2.resize(values, (n, 1), interpolation=cv2.INTER_CUBIC)[0]
+    curve: np.ndarray = cv2.resize(values, (n, 1), interpolation=cv2.INTER_CUBIC)[0]
+    return curve
 
 
 def _snowbanks(h: int, w: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,109 @@
+"""tools/bench_conditions.py: the multi-condition lifelong benchmark, end to end on tiny streams."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from sprint_map.config import MapConfig
+from sprint_map.errors import ConfigError
+from tools import bench_conditions
+
+
+def test_set_changes_flat_and_dotted_keys() -> None:
+    base = MapConfig(dim=8)
+    changed = bench_conditions.apply_sets(base, ["merge_min_run=7", "hmm.k=13",
+                                                 "index_type=flat"])
+    assert changed.merge.min_run == 7 and changed.hmm.k == 13
+    assert changed.store.index_type == "flat"
+    assert dataclasses.replace(changed.hmm, k=base.hmm.k) == base.hmm  # the rest kept
+    with pytest.raises(ConfigError):
+        bench_conditions.apply_sets(base, ["hmm.no_such_field=1"])
+    with pytest.raises(SystemExit):
+        bench_conditions.apply_sets(base, ["no-equals-sign"])
+
+
+def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "conditions.json"
+    assert bench_conditions.main(["--world", "latent", "--seeds", "0", "--drives", "5",
+                                  "--frames", "40", "--arm", "minrun merge_min_run=9",
+                                  "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    [run] = data["seeds"]
+    assert set(run["arms"]) == {"default", "minrun"}
+    assert run["arms"]["minrun"]["map_config"]["merge"]["min_run"] == 9
+    rows = run["arms"]["default"]["rows"]
+    assert [r["drive"] for r in rows] == [1, 2, 3, 4]
+    assert [r["season"] for r in rows] == ["summer", "winter", "winter", "summer"]
+    for r in rows:
+        # The holders are earlier drives with a true match; the alias cost is whole - holders.
+        earlier = [d["name"] for d in rows if d["drive"] < r["drive"]]
+        assert set(r["holders"]) <= {"t00-day-summer", *earlier}
+        for kind in ("causal", "smoothed"):
+            assert r[f"alias_{kind}_points"] == pytest.approx(100 * (
+                r[f"whole_{kind}_sprint_recall@1"] - r[f"holders_{kind}_sprint_recall@1"]),
+                abs=0.02)
+        assert r["whole_frames_with_match"] == r["holders_frames_with_match"]
+        assert 0 <= r["merged_wrong"] <= r["merged"] and r["unmapped_merged"] <= r["unmapped"]
+    # The later half (drives 2..4) is also answered by the map before it.
+    assert ["snapshot_frames_with_match" in r for r in rows] == [False, True, True, True]
+    summary = run["arms"]["default"]["summary"]
+    assert summary["merged"] == sum(r["merged"] for r in rows)
+    assert set(data["mean"]["default"]) == set(bench_conditions.HEADLINE)
+    printed = capsys.readouterr().out
+    assert "alias cost" in printed and "minus default" in printed
+
+
+def fake_nordland(root: Path, frames: int = 60) -> Path:
+    """A frame-aligned summer/winter pair: one random scene per frame, winter brighter with
+    a flat band, 64x32 grey PNGs named as Nordland's."""
+    rng = np.random.default_rng(5)
+    scene = np.cumsum(rng.normal(0, 1, (frames + 8, 32, 64)), axis=0)
+    for season in ("summer", "winter"):
+        (root / season).mkdir(parents=True)
+        for k in range(frames):
+            img = scene[k : k + 8].mean(axis=0)
+            img = (img - img.min()) / (np.ptp(img) + 1e-9) * 200
+            if season == "winter":
+                img[20:] = 235
+            grey = np.repeat(img.astype(np.uint8)[:, :, None], 3, axis=2)
+            cv2.imwrite(str(root / season / f"images-{10 * (k + 1):05d}.png"), grey)
+    return root
+
+
+def test_nordland_cut_is_drives_of_segments_one_season_each(tmp_path: Path) -> None:
+    root = fake_nordland(tmp_path / "nordland")
+    world = bench_conditions.nordland_drives(3, root, frames=60, segments=6, drives=5)
+    assert len(world.drives) == 5
+    for drive, about in zip(world.drives, world.about["drives"], strict=True):
+        first, stop = about["segments"]
+        assert 2 <= stop - first <= 4 and drive.season in ("summer", "winter")
+        lo, hi = about["ride_frames"]
+        assert len(drive.rows) == hi - lo and drive.rows.shape[1] == 1764
+        assert 0.7 <= about["gamma"] <= 1.4 and 2 <= about["noise"] <= 6
+    # Ground truth is the ride's frame index, +/- 1 frame.
+    a, b = world.drives[0], world.drives[1]
+    lo_a, lo_b = (world.about["drives"][k]["ride_frames"][0] for k in (0, 1))
+    frame = max(lo_a, lo_b) - lo_a
+    if frame < len(a.rows) and max(lo_a, lo_b) - lo_b < len(b.rows):
+        assert world.gt.correct(a.name, frame, b.name, max(lo_a, lo_b) - lo_b + 1)
+        assert not world.gt.correct(a.name, frame, b.name, max(lo_a, lo_b) - lo_b + 2)
+
+
+def test_nordland_stream_end_to_end(tmp_path: Path) -> None:
+    root = fake_nordland(tmp_path / "nordland")
+    out = tmp_path / "n.json"
+    assert bench_conditions.main(["--world", "nordland", "--nordland", str(root), "--seeds", "1",
+                                  "--frames", "60", "--segments", "6", "--drives", "4",
+                                  "--json", str(out)]) == 0
+    data: dict[str, Any] = json.loads(out.read_text())
+    rows = data["seeds"][0]["arms"]["default"]["rows"]
+    assert len(rows) == 3
+    assert data["seeds"][0]["world"]["segments"] == 6
