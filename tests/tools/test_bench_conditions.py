@@ -88,13 +88,18 @@ def test_nordland_cut_is_drives_of_segments_one_season_each(tmp_path: Path) -> N
         lo, hi = about["ride_frames"]
         assert len(drive.rows) == hi - lo and drive.rows.shape[1] == 1764
         assert 0.7 <= about["gamma"] <= 1.4 and 2 <= about["noise"] <= 6
-    # Ground truth is the ride's frame index, +/- 1 frame.
-    a, b = world.drives[0], world.drives[1]
-    lo_a, lo_b = (world.about["drives"][k]["ride_frames"][0] for k in (0, 1))
-    frame = max(lo_a, lo_b) - lo_a
-    if frame < len(a.rows) and max(lo_a, lo_b) - lo_b < len(b.rows):
-        assert world.gt.correct(a.name, frame, b.name, max(lo_a, lo_b) - lo_b + 1)
-        assert not world.gt.correct(a.name, frame, b.name, max(lo_a, lo_b) - lo_b + 2)
+    # Ground truth is the ride's frame index, +/- 1 frame, across drives too.
+    a = world.drives[0]
+    assert world.gt.correct(a.name, 0, a.name, 1) and not world.gt.correct(a.name, 0, a.name, 2)
+    spans = [range(*d["ride_frames"]) for d in world.about["drives"]]
+    pairs = [(i, j) for i in range(5) for j in range(i) if set(spans[i]) & set(spans[j])]
+    assert pairs  # seed 3 cuts overlapping drives
+    i, j = pairs[0]
+    ride = max(spans[i][0], spans[j][0])
+    qa, qb = ride - spans[i][0], ride - spans[j][0]
+    name_i, name_j = world.drives[i].name, world.drives[j].name
+    assert world.gt.correct(name_i, qa, name_j, qb) and not world.gt.correct(
+        name_i, qa, name_j, qb + 2)
 
 
 def test_nordland_stream_end_to_end(tmp_path: Path) -> None:
