@@ -12,6 +12,7 @@ import pytest
 
 from sprint_map import MapConfig
 from sprint_map.errors import ConfigError
+from sprint_map.frontend import GroundTruth
 from sprint_map.synth import CityConfig, render_city
 from sprint_map.synth.latent import LATENT_PRESETS, LatentConfig, make_latent
 
@@ -82,7 +83,7 @@ def test_latent_season_is_a_shared_shift_with_the_places_kept() -> None:
         assert float(np.mean(unit @ mean) / np.linalg.norm(mean)) > 0.9
 
 
-def knn_alias(tr: list[tuple[str, np.ndarray, str]], gt) -> tuple[int, float, float]:
+def knn_alias(tr: list[tuple[str, np.ndarray, str]], gt: GroundTruth) -> tuple[int, float, float]:
     """Over the frames whose true matches are only in drives of the other season: exact k-NN@1
     against every earlier drive, and against the other season's (the holders) only."""
     hits = {"whole": 0, "holders": 0}
