@@ -55,7 +55,6 @@ and the snapshot in the later half) and one map copy.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import shlex
 import shutil
@@ -68,132 +67,21 @@ from typing import Any
 import numpy as np
 
 from sprint_map import MapConfig
-from sprint_map.evaluation.runner import evaluate_query
-from sprint_map.frontend import GroundTruth, GroundTruthSpec
+from sprint_map.evaluation.runner import QueryResult, evaluate_query
+from sprint_map.frontend import GroundTruth
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.synth.latent import LatentConfig, make_latent
 from tools.bench_lifelong import score
+from tools.condition_worlds import (
+    Drive,
+    World,
+    city_world,
+    default_nordland,
+    latent_world,
+    nordland_world,
+)
 
 KS = (1, 10)
-#: The seasons in turn over the drives of the generated worlds.
-SEASON_CYCLE = ("summer", "summer", "winter", "winter")
-LATENT = LatentConfig(grid=(5, 5), novel_fraction=0.4, reverse_fraction=0.05,
-                      seasons=SEASON_CYCLE)
-#: The city's conditions (one per drive in turn) under the seasons.
-CITY_CONDITIONS = ("day", "overcast", "dusk", "rain")
-#: The issue's exposure and noise ranges of a Nordland drive.
-GAMMA = (0.7, 1.4)
-NOISE = (2.0, 6.0)
-
-
-@dataclasses.dataclass
-class Drive:
-    """One drive of the stream: its descriptors and what it was driven under."""
-
-    name: str
-    season: str
-    condition: str
-    rows: np.ndarray  # (N, dim) float32
-
-
-@dataclasses.dataclass
-class World:
-    """Drives in stream order, their ground truth, and the map config they fit."""
-
-    name: str
-    drives: list[Drive]
-    gt: GroundTruth
-    config: MapConfig
-    about: dict[str, Any]
-
-
-def latent_world(seed: int, drives: int, frames: int, strength: float | None) -> World:
-    """The latent family with seasons (``strength``: override of ``season_strength``)."""
-    config = LATENT if strength is None else dataclasses.replace(LATENT, season_strength=strength)
-    world = make_latent(drives, frames, seed, config)
-    out = [Drive(t.name, t.season or "-", t.condition, t.descriptors) for t in world.traversals]
-    return World("latent", out, world.ground_truth(), MapConfig(dim=config.dim),
-                 {"config": config.to_dict()})
-
-
-def city_world(seed: int, drives: int, frames: int, strength: float | None) -> World:
-    """The rendered city with seasons, described by HoG (``strength``: of the seasons)."""
-    from sprint_map.synth import CityConfig, iter_city
-
-    config = CityConfig(grid=(4, 4), novel_fraction=0.4, reverse_fraction=0.05,
-                        conditions=CITY_CONDITIONS, seasons=SEASON_CYCLE)
-    if strength is not None:
-        config = dataclasses.replace(config, season_strength=strength)
-    map_config = MapConfig.for_descriptor("hog")
-    spec = map_config.descriptor_spec()
-    assert spec is not None
-    out, positions = [], {}
-    for t in iter_city(drives, frames, seed=seed, config=config, workers=2):
-        out.append(Drive(t.name, t.plan.season or "-", t.condition, spec.describe_batch(t.images)))
-        positions[t.name] = t.positions
-    gt = GroundTruth(config.ground_truth_spec(), positions=positions)
-    return World("city", out, gt, map_config, {"config": config.to_dict()})
-
-
-def nordland_drives(seed: int, root: Path, frames: int, segments: int, drives: int
-                    ) -> World:
-    """The lead's cut of Nordland: the first ``frames`` frames of the ride in ``segments``
-    equal segments; each drive 2-4 consecutive segments of one season, its images under its own
-    gamma and sensor noise, then HoG. Ground truth: the ride's frame index, +/- 1 frame."""
-    import cv2
-
-    map_config = MapConfig.for_descriptor("hog")
-    spec = map_config.descriptor_spec()
-    assert spec is not None
-    files = sorted((root / "summer").glob("*.png"))[:frames]
-    if not files:
-        raise SystemExit(f"{root}: no summer/*.png (Nordland not found; pass --nordland)")
-    images = {}
-    for season in ("summer", "winter"):
-        frames_read = []
-        for f in files:
-            image = cv2.imread(str(root / season / f.name))
-            if image is None:
-                raise SystemExit(f"{root / season / f.name}: cannot read the image")
-            frames_read.append(image)
-        images[season] = np.stack(frames_read)
-    bounds = np.linspace(0, len(files), segments + 1).round().astype(int)
-    rng = np.random.default_rng([seed, 51])
-    out, positions, about = [], {}, []
-    for i in range(drives):
-        length = int(rng.integers(2, 5))
-        first = int(rng.integers(0, segments - length + 1))
-        season = ("summer", "winter")[int(rng.integers(2))]
-        gamma, sigma = float(rng.uniform(*GAMMA)), float(rng.uniform(*NOISE))
-        ride = np.arange(bounds[first], bounds[first + length])
-        levels = 255.0 * (np.arange(256) / 255.0) ** gamma
-        shot = levels[images[season][ride]] + rng.normal(0, sigma, images[season][ride].shape)
-        pictures = np.clip(shot, 0, 255).astype(np.uint8)
-        name = f"d{i:02d}-{season}"
-        out.append(Drive(name, season, f"g{gamma:.2f}/n{sigma:.1f}", spec.describe_batch(pictures)))
-        positions[name] = np.column_stack([np.arange(len(ride)), ride, np.zeros(len(ride))])
-        about.append({"name": name, "season": season, "segments": [first, first + length],
-                      "ride_frames": [int(ride[0]), int(ride[-1]) + 1],
-                      "gamma": round(gamma, 3), "noise": round(sigma, 2)})
-    gt = GroundTruth(GroundTruthSpec("position", radius_m=1.0), positions=positions)
-    return World("nordland", out, gt, map_config,
-                 {"root": str(root), "frames": len(files), "segments": segments, "drives": about})
-
-
-def default_nordland() -> Path | None:
-    """Where the Nordland set is: :func:`~sprint_map.evaluation.demo.find_nordland`'s places
-    (``$SPRINT_MAP_NORDLAND`` first), else ``shared/data/nordland`` beside a parent of this
-    checkout."""
-    from sprint_map.evaluation.demo import find_nordland
-
-    found = find_nordland()
-    if found is not None:
-        return found
-    for parent in Path(__file__).resolve().parents:
-        if (parent / "shared" / "data" / "nordland" / "summer").is_dir():
-            return parent / "shared" / "data" / "nordland"
-    return None
 
 
 def apply_sets(config: MapConfig, sets: list[str]) -> MapConfig:
@@ -226,24 +114,62 @@ def _decisions_score(decisions: list[FrameDecision], drive: Drive, gt: GroundTru
              "accepted", "accepted_correct")}
 
 
-def answer(m: SprintMap, drive: Drive, gt: GroundTruth, prefix: str) -> dict[str, Any]:
-    """The drive answered by ``m``, read-only: k-NN, causal and smoothed, scored over the
-    frames with a true match in ``m``; keys prefixed ``prefix_``."""
-    names = {s.seq_id: s.name for s in m.sequences()}
+def _names(m: SprintMap) -> dict[int, str]:
+    return {s.seq_id: s.name for s in m.sequences()}
+
+
+def causal_answer(m: SprintMap, drive: Drive, gt: GroundTruth
+                  ) -> tuple[QueryResult, list[FrameDecision], dict[int, str]]:
+    """The drive answered by ``m`` by exact k-NN and causally (streamed), read-only."""
     knn, causal = evaluate_query(m, drive.name, drive.rows, gt, KS, None)
-    smoothed, _ = m.localize(drive.rows, smooth=True)
+    return knn, causal, _names(m)
+
+
+def scored(knn: QueryResult, causal: list[FrameDecision], smoothed: list[FrameDecision],
+           drive: Drive, gt: GroundTruth, names: dict[int, str], prefix: str) -> dict[str, Any]:
+    """k-NN, causal and smoothed answers of one map, scored over the frames with a true match
+    in it; keys prefixed ``prefix_``."""
     has = knn.has_match
-    out = {f"{prefix}_frames_with_match": int(has.sum()),
-           **{f"{prefix}_knn_recall@{k}": round(float((knn.knn_correct[:, :k].any(axis=1)
-                                                       & has).sum()) / max(int(has.sum()), 1), 4)
-              for k in KS}}
+    out: dict[str, Any] = {f"{prefix}_frames_with_match": int(has.sum())}
+    for k in KS:
+        hits = knn.knn_correct[:, :k].any(axis=1) & has
+        out[f"{prefix}_knn_recall@{k}"] = round(float(hits.sum()) / max(int(has.sum()), 1), 4)
     out.update(_decisions_score(causal, drive, gt, names, has, f"{prefix}_causal"))
     out.update(_decisions_score(smoothed, drive, gt, names, has, f"{prefix}_smoothed"))
     return out
 
 
-def run_stream(world: World, config: MapConfig, work: Path) -> list[dict[str, Any]]:
-    """Merge the world's drives in turn into a fresh map; one row per drive after the first."""
+def answer(m: SprintMap, drive: Drive, gt: GroundTruth, prefix: str
+           ) -> tuple[dict[str, Any], list[FrameDecision], list[FrameDecision]]:
+    """The drive answered by ``m``, read-only: k-NN, causal, and smoothed as ``localize
+    --smooth`` (what ``ingest`` would merge); the scores and both decision lists."""
+    knn, causal, names = causal_answer(m, drive, gt)
+    smoothed, _ = m.localize(drive.rows, smooth=True)
+    return scored(knn, causal, smoothed, drive, gt, names, prefix), causal, smoothed
+
+
+def on_frames(m: SprintMap, drive: Drive, gt: GroundTruth, decisions: dict[str, list[FrameDecision]],
+              names: dict[int, str], prefix: str) -> dict[str, Any]:
+    """``decisions`` (by kind: causal, smoothed) made against a map of ``names``, scored on the
+    frames ``m`` can match (another map's frames: the same frames answered by two maps)."""
+    has = gt.has_match(drive.name, np.arange(len(drive.rows)), list(_names(m).values()))
+    out: dict[str, Any] = {f"{prefix}_frames_with_match": int(has.sum())}
+    for kind, made in decisions.items():
+        out.update(_decisions_score(made, drive, gt, names, has, f"{prefix}_{kind}"))
+    return out
+
+
+def _copy(m: SprintMap, path: Path, target: Path) -> SprintMap:
+    """Close ``m``, copy its map to ``target`` and reopen it (a map is copied closed)."""
+    m.close()
+    shutil.copytree(path, target)
+    return SprintMap.open(path)
+
+
+def run_stream(world: World, config: MapConfig, work: Path
+               ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Merge the world's drives in turn into a fresh map: one row per drive after the first,
+    and one per probe (held back: answered by the map at the half and at the end)."""
     drives, gt = world.drives, world.gt
     split = len(drives) // 2
     path, snap_path, hold_path = work / "map", work / "snapshot", work / "holders"
@@ -253,10 +179,8 @@ def run_stream(world: World, config: MapConfig, work: Path) -> list[dict[str, An
     try:
         for i, drive in enumerate(drives):
             if i == split:
-                m.close()
-                shutil.copytree(path, snap_path)
+                m = _copy(m, path, snap_path)
                 snapshot = SprintMap.open(snap_path, readonly=True)
-                m = SprintMap.open(path)
             if i == 0:
                 m.ingest(drive.rows, name=drive.name, merge=True)
                 continue
@@ -267,64 +191,82 @@ def run_stream(world: World, config: MapConfig, work: Path) -> list[dict[str, An
             row: dict[str, Any] = {"drive": i, "name": drive.name, "season": drive.season,
                                    "condition": drive.condition, "frames": len(drive.rows),
                                    "holders": holders, "holders_all": holders == earlier}
-            whole = answer(m, drive, gt, "whole")
-            row.update(whole)
-            if holders and not row["holders_all"]:
-                m.close()
-                shutil.copytree(path, hold_path)
+            aliased = bool(holders) and not row["holders_all"]
+            if aliased:  # the map before this drive, less the drives of other places
+                m = _copy(m, path, hold_path)
+            knn, causal, names = causal_answer(m, drive, gt)
+            # The whole map's smoothed answers are ingest's own decisions (those it merges).
+            result = m.ingest(drive.rows, name=drive.name, merge=True)
+            smoothed = result.decisions
+            row.update(scored(knn, causal, smoothed, drive, gt, names, "whole"))
+            if aliased:
                 try:
                     with SprintMap.open(hold_path) as held:
                         held.remove_sequences([n for n in earlier if n not in holders])
-                        row.update(answer(held, drive, gt, "holders"))
+                        row.update(answer(held, drive, gt, "holders")[0])
                 finally:
                     shutil.rmtree(hold_path)
-                m = SprintMap.open(path)
             else:
                 row.update({key.replace("whole_", "holders_", 1): value
-                            for key, value in whole.items()})
+                            for key, value in row.items() if key.startswith("whole_")})
             for kind in ("causal", "smoothed"):
                 row[f"alias_{kind}_points"] = round(100 * (
                     row[f"whole_{kind}_sprint_recall@1"]
                     - row[f"holders_{kind}_sprint_recall@1"]), 2)
-            if snapshot is not None:
-                before = answer(snapshot, drive, gt, "snapshot")
-                snap_names = [s.name for s in snapshot.sequences()]
-                has = gt.has_match(drive.name, frames, snap_names)
-                names = {s.seq_id: s.name for s in m.sequences()}
-                grown, _ = m.localize(drive.rows, smooth=True)
-                row.update(before)
-                row.update(_decisions_score(grown, drive, gt, names, has, "grown_on_snapshot"))
-            names = {s.seq_id: s.name for s in m.sequences()}
-            result = m.ingest(drive.rows, name=drive.name, merge=True)
-            has = gt.has_match(drive.name, frames, earlier)
+            if snapshot is not None:  # the same frames, by the map before the later half
+                row.update(answer(snapshot, drive, gt, "snapshot")[0])
+                row.update(on_frames(snapshot, drive, gt, {"causal": causal,
+                                                           "smoothed": smoothed},
+                                     names, "grown_on_snapshot"))
+            has = knn.has_match
             merged = np.asarray(result.merged, dtype=bool)
             if not len(merged):
                 merged = np.zeros(len(frames), dtype=bool)
             right = np.array([d.seq_id is not None and d.image_id is not None and bool(
                 gt.correct(drive.name, d.frame, names[d.seq_id], d.image_id))
-                for d in result.decisions], dtype=bool)
+                for d in smoothed], dtype=bool)
             row.update(merged=int(merged.sum()), merged_wrong=int((merged & ~(right & has)).sum()),
                        unmapped=int((~has).sum()), unmapped_merged=int((merged & ~has).sum()),
                        edges_added=result.edges_added,
-                       ingest_smoothed_recall_correct=int(
-                           (np.array([d.best is not None and bool(gt.correct(
-                               drive.name, d.frame, names[d.best[0]], d.best[1]))
-                               for d in result.decisions]) & has).sum()),
                        seconds=round(time.perf_counter() - start, 2))
             rows.append(row)
+        probes = run_probes(world, snapshot, m) if snapshot is not None else []
     finally:
         m.close()
         if snapshot is not None:
             snapshot.close()
-    return rows
+    return rows, probes
+
+
+def run_probes(world: World, before: SprintMap, after: SprintMap) -> list[dict[str, Any]]:
+    """Each probe answered by the map at the stream's half (``before``) and at its end
+    (``after``), both scored on the frames ``before`` can match (``after_on_before_*``): what
+    the later half of the stream did to the same held-back frames."""
+    out = []
+    for probe in world.probes:
+        row: dict[str, Any] = {"name": probe.name, "season": probe.season,
+                               "condition": probe.condition, "frames": len(probe.rows)}
+        scores, _, _ = answer(before, probe, world.gt, "before")
+        row.update(scores)
+        scores, causal, smoothed = answer(after, probe, world.gt, "after")
+        row.update(scores)
+        row.update(on_frames(before, probe, world.gt, {"causal": causal, "smoothed": smoothed},
+                             _names(after), "after_on_before"))
+        for kind in ("causal", "smoothed"):
+            row[f"after_minus_before_{kind}_points"] = round(100 * (
+                row[f"after_on_before_{kind}_sprint_recall@1"]
+                - row[f"before_{kind}_sprint_recall@1"]), 2)
+        out.append(row)
+    return out
 
 
 def _ratio(num: float, den: float) -> float | None:
     return round(num / den, 4) if den else None
 
 
-def summarise(rows: list[dict[str, Any]], split: int) -> dict[str, Any]:
-    """Pooled figures of one arm's rows (``split``: first drive of the later half)."""
+def summarise(rows: list[dict[str, Any]], split: int, probes: list[dict[str, Any]]
+              ) -> dict[str, Any]:
+    """Pooled figures of one arm's rows (``split``: first drive of the later half) and probes."""
     def pooled(sel: list[dict[str, Any]], prefix: str, key: str) -> float | None:
         return _ratio(sum(r[f"{prefix}_{key}"] for r in sel),
                       sum(r[f"{prefix.split('_')[0]}_frames_with_match"] for r in sel))
@@ -360,13 +302,22 @@ def summarise(rows: list[dict[str, Any]], split: int) -> dict[str, Any]:
                                     out["unmapped_frames"])
     snap = [r for r in rows if "snapshot_frames_with_match" in r]
     if snap:
-        frames = sum(r["snapshot_frames_with_match"] for r in snap)
-        before = _ratio(sum(r["snapshot_smoothed_sprint_correct"] for r in snap), frames)
-        grown = _ratio(sum(r["grown_on_snapshot_sprint_correct"] for r in snap), frames)
-        out["snapshot"] = {"frames": frames, "before_smoothed_recall@1": before,
-                           "grown_smoothed_recall@1": grown,
-                           "grown_minus_before_points": None if before is None or grown is None
-                           else round(100 * (grown - before), 2)}
+        out["snapshot"] = same_frames(snap, "snapshot", "grown_on_snapshot")
+    if probes:
+        out["probes"] = same_frames(probes, "before", "after_on_before")
+    return out
+
+
+def same_frames(rows: list[dict[str, Any]], first: str, second: str) -> dict[str, Any]:
+    """Pooled recall@1 of the same frames answered by two maps (keys ``first_*`` and
+    ``second_*`` of ``rows``, over ``first``'s frames with a match), causal and smoothed."""
+    frames = sum(r[f"{first}_frames_with_match"] for r in rows)
+    out: dict[str, Any] = {"drives": len(rows), "frames": frames}
+    for kind in ("causal", "smoothed"):
+        one = _ratio(sum(r[f"{first}_{kind}_sprint_correct"] for r in rows), frames)
+        two = _ratio(sum(r[f"{second}_{kind}_sprint_correct"] for r in rows), frames)
+        out[kind] = {"before_recall@1": one, "after_recall@1": two,
+                     "points": None if one is None or two is None else round(100 * (two - one), 2)}
     return out
 
 
@@ -411,19 +362,39 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
     print(f"    merges: precision {_pct(s['merge_precision'])} % ({s['merged_wrong']} wrong of "
           f"{s['merged']}), unmapped frames merged {_pct(s['unmapped_merged'])} % of "
           f"{s['unmapped_frames']}")
-    if "snapshot" in s:
-        snap = s["snapshot"]
-        print(f"    snapshot: later half on the {snap['frames']} frames the map before it can "
-              f"match: before {_pct(snap['before_smoothed_recall@1'])} %, grown "
-              f"{_pct(snap['grown_smoothed_recall@1'])} % "
-              f"({pts(snap['grown_minus_before_points'])} points)")
+    for key, what, before, after in (
+            ("snapshot", "later-half drives", "map before the later half", "grown map"),
+            ("probes", "held-back probes", "map at the half", "map at the end")):
+        if key in s:
+            same = s[key]
+            print(f"    {key}: {same['drives']} {what} on the {same['frames']} frames the "
+                  f"{before} can match, {before} vs {after}: " + "; ".join(
+                      f"{kind} {_pct(same[kind]['before_recall@1'])} -> "
+                      f"{_pct(same[kind]['after_recall@1'])} % "
+                      f"({pts(same[kind]['points'])})" for kind in ("causal", "smoothed")))
+
+
+def print_probes(rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    print(f"  {'probe':>16} {'cond':>11} | {'match@half':>10} {'caus':>5} {'smoo':>5} | "
+          f"{'match@end':>9} {'caus':>5} {'smoo':>5} | {'same frames: caus':>17} {'smoo':>5}")
+    for r in rows:
+        print(f"  {r['name']:>16} {r['condition'][:11]:>11} | {r['before_frames_with_match']:>10} "
+              f"{_pct(r['before_causal_sprint_recall@1'])} "
+              f"{_pct(r['before_smoothed_sprint_recall@1'])} | "
+              f"{r['after_frames_with_match']:>9} {_pct(r['after_causal_sprint_recall@1'])} "
+              f"{_pct(r['after_smoothed_sprint_recall@1'])} | "
+              f"{r['after_minus_before_causal_points']:+17.1f} "
+              f"{r['after_minus_before_smoothed_points']:+5.1f}")
 
 
 HEADLINE = ("alias_causal.points", "alias_smoothed.points", "alias_causal.worst_drive_points",
             "alias_smoothed.worst_drive_points",
             "later_minus_earlier_smoothed_accepted_recall_correct_points",
             "later_minus_earlier_causal_accepted_recall_correct_points",
-            "merge_precision", "unmapped_merged", "snapshot.grown_minus_before_points",
+            "merge_precision", "unmapped_merged", "snapshot.causal.points",
+            "snapshot.smoothed.points", "probes.causal.points", "probes.smoothed.points",
             "earlier.smoothed_accepted_recall_correct", "later.smoothed_accepted_recall_correct")
 
 
@@ -460,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
                              "the ride cut (default all)")
     parser.add_argument("--segments", type=int, default=None,
                         help="nordland: segments of the ride (default 24; quick 8)")
+    parser.add_argument("--probes", type=int, default=None,
+                        help="held-back drives answered at the half and the end, never merged "
+                             "(default: generated worlds 4, one cycle of seasons; nordland 2)")
     parser.add_argument("--season-strength", type=float, default=None,
                         help="generated worlds: the seasons' strength (default the world's)")
     parser.add_argument("--nordland", type=Path, default=None,
@@ -482,8 +456,11 @@ def main(argv: list[str] | None = None) -> int:
     args.drives = args.drives or (14 if nordland else 12)
     args.frames = args.frames or (3576 if nordland else 150)
     args.segments = args.segments or 24
+    args.probes = (2 if nordland else 4) if args.probes is None else args.probes
     if args.drives < 3 or args.frames < 10 or args.segments < 4:
         parser.error("need --drives >= 3, --frames >= 10, --segments >= 4")
+    if args.probes < 0:
+        parser.error("need --probes >= 0")
     arms = [("default", []), *(parse_arm(a) for a in args.arms)]
     started = time.perf_counter()
     results = []
@@ -493,11 +470,13 @@ def main(argv: list[str] | None = None) -> int:
             root = args.nordland or default_nordland()
             if root is None:
                 parser.error("Nordland not found: pass --nordland or set $SPRINT_MAP_NORDLAND")
-            world = nordland_drives(seed, root, args.frames, args.segments, args.drives)
+            world = nordland_world(seed, root, args.frames, args.segments, args.drives,
+                                   args.probes)
         elif args.world == "city":
-            world = city_world(seed, args.drives, args.frames, args.season_strength)
+            world = city_world(seed, args.drives, args.frames, args.season_strength, args.probes)
         else:
-            world = latent_world(seed, args.drives, args.frames, args.season_strength)
+            world = latent_world(seed, args.drives, args.frames, args.season_strength,
+                                 args.probes)
         print(f"{args.world} seed {seed}: {len(world.drives)} drives, "
               f"{sum(len(d.rows) for d in world.drives)} frames, made in "
               f"{time.perf_counter() - t0:.1f} s", flush=True)
@@ -505,12 +484,13 @@ def main(argv: list[str] | None = None) -> int:
         for label, changes in arms:
             config = apply_sets(apply_sets(world.config, args.sets), changes)
             with tempfile.TemporaryDirectory() as tmp:
-                rows = run_stream(world, config, Path(tmp))
+                rows, probes = run_stream(world, config, Path(tmp))
             print_rows(f"{args.world} seed {seed}, arm {label}", rows)
-            summary = summarise(rows, len(world.drives) // 2)
+            print_probes(probes)
+            summary = summarise(rows, len(world.drives) // 2, probes)
             print_summary(label, summary)
             per_arm[label] = {"changes": changes, "map_config": config.to_dict(), "rows": rows,
-                              "summary": summary}
+                              "probes": probes, "summary": summary}
         results.append({"seed": seed, "world": world.about, "arms": per_arm})
     mean = {label: headline([r["arms"][label]["summary"] for r in results]) for label, _ in arms}
     print(f"\nmean of {len(results)} seed(s):")

@@ -13,7 +13,7 @@ import pytest
 
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError
-from tools import bench_conditions
+from tools import bench_conditions, condition_worlds
 
 
 def test_set_changes_flat_and_dotted_keys() -> None:
@@ -33,7 +33,8 @@ def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "conditions.json"
     assert bench_conditions.main(["--world", "latent", "--seeds", "0", "--drives", "5",
-                                  "--frames", "40", "--arm", "minrun merge_min_run=9",
+                                  "--frames", "40", "--probes", "2",
+                                  "--arm", "minrun merge_min_run=9",
                                   "--json", str(out)]) == 0
     data = json.loads(out.read_text())
     [run] = data["seeds"]
@@ -54,8 +55,17 @@ def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
         assert 0 <= r["merged_wrong"] <= r["merged"] and r["unmapped_merged"] <= r["unmapped"]
     # The later half (drives 2..4) is also answered by the map before it.
     assert ["snapshot_frames_with_match" in r for r in rows] == [False, True, True, True]
+    # Held-back probes (the next two drives of the world) are answered at the half and the end,
+    # and scored on the same frames: those the map at the half can match.
+    probes = run["arms"]["default"]["probes"]
+    assert [p["name"] for p in probes] == ["t05-snow-summer", "t06-day-winter"]
+    assert all(p["name"] not in r["holders"] for p in probes for r in rows)
+    for p in probes:
+        assert p["after_on_before_frames_with_match"] == p["before_frames_with_match"]
+        assert p["after_frames_with_match"] >= p["before_frames_with_match"]
     summary = run["arms"]["default"]["summary"]
     assert summary["merged"] == sum(r["merged"] for r in rows)
+    assert summary["probes"]["frames"] == sum(p["before_frames_with_match"] for p in probes)
     assert set(data["mean"]["default"]) == set(bench_conditions.HEADLINE)
     printed = capsys.readouterr().out
     assert "alias cost" in printed and "minus default" in printed
@@ -80,7 +90,7 @@ def fake_nordland(root: Path, frames: int = 60) -> Path:
 
 def test_nordland_cut_is_drives_of_segments_one_season_each(tmp_path: Path) -> None:
     root = fake_nordland(tmp_path / "nordland")
-    world = bench_conditions.nordland_drives(3, root, frames=60, segments=6, drives=5)
+    world = condition_worlds.nordland_world(3, root, frames=60, segments=6, drives=5)
     assert len(world.drives) == 5
     for drive, about in zip(world.drives, world.about["drives"], strict=True):
         first, stop = about["segments"]
@@ -111,4 +121,8 @@ def test_nordland_stream_end_to_end(tmp_path: Path) -> None:
     data: dict[str, Any] = json.loads(out.read_text())
     rows = data["seeds"][0]["arms"]["default"]["rows"]
     assert len(rows) == 3
-    assert data["seeds"][0]["world"]["segments"] == 6
+    world = data["seeds"][0]["world"]
+    assert world["segments"] == 6
+    assert [p["season"] for p in world["probes"]] == ["summer", "winter"]
+    assert [p["name"] for p in data["seeds"][0]["arms"]["default"]["probes"]] == [
+        "p00-summer", "p01-winter"]
