@@ -17,24 +17,26 @@ one map in turn through the public API (``SprintMap.ingest``, merge on, the defa
   *snapshot*), scored on the frames the snapshot can match: ``grown - before`` is what growing
   the map did to the same frames.
 
+Held-back *probe* drives (``--probes``; never merged) are answered by the map at the stream's
+half and at its end, scored on the frames the map at the half can match: the same frames
+answered by two maps, free of what the later drives ask.
+
 Reported per drive: recall@1 (the decision's most probable place is a true match, over the frames
 with one), accepted recall (an accepted decision and right), k-NN@1, the alias costs, the merged
-decisions and how many are wrong, and the frames of unmapped places (no true match) merged.
+decisions and how many are wrong, and the frames of unmapped places (no true match) merged; and
+on the *cross-season* frames (those whose places the map holds only under another season, while
+it holds the drive's own season elsewhere: the issue's case) recall@1 whole vs holders.
 Summary per arm: alias cost pooled over the drives whose holders are not the whole map (and the
-worst drive), accepted recall of the earlier vs the later half of the stream, merge precision,
-the share of unmapped frames merged, snapshot ``grown - before``; the issue's targets are
-``alias >= -2`` points, later >= earlier, merge precision >= 99 %, unmapped merged <= 1 %.
+worst drive) and over the cross-season frames, accepted recall of the earlier vs the later half
+of the stream, merge precision, the share of unmapped frames merged, snapshot and probes
+``after - before``; the issue's targets are ``alias >= -2`` points, later >= earlier, merge
+precision >= 99 %, unmapped merged <= 1 %.
 
-Worlds (``--world``):
-
-- ``latent``: :mod:`sprint_map.synth.latent` with seasons (summer, summer, winter, winter in turn)
-  and its six conditions; 40 % of each drive's frames on streets no earlier drive saw;
-- ``city``: :mod:`sprint_map.synth.city`, rendered images described by HoG, with seasons
-  (:mod:`sprint_map.synth.seasons`: snow and snowbanks, or foliage) over its conditions;
-- ``nordland``: the real ride (``--nordland``, summer + winter, 3,576 frame-aligned frames each,
-  true match within +/- 1 frame) cut into ``--segments`` segments; each drive is 2-4 consecutive
-  segments of one season (drawn from the seed), with its own exposure (gamma U(0.7, 1.4)) and
-  sensor noise (sigma U(2, 6) grey levels) applied to the images before HoG.
+Worlds (``--world``, built by :mod:`tools.condition_worlds`): ``latent`` and ``city`` (the two
+generated families with seasons, :mod:`sprint_map.synth.latent` and
+:mod:`sprint_map.synth.seasons`) and ``nordland`` (the real ride cut into ``--segments``
+segments; drives of 2-4 consecutive segments, one season each, each with its own exposure and
+sensor noise before HoG; true match within +/- 1 frame).
 
 Levers: ``--set KEY=VALUE`` changes the map config of every arm (``MapConfig.replace``: flat keys
 such as ``merge_min_run=8`` or ``index_type=flat``; ``part.field=VALUE`` for a field of a part,
@@ -48,8 +50,10 @@ each arm minus ``default``.
     python tools/bench_conditions.py --world latent --arm 'minrun merge_min_run=8'
 
 ``--quick``: latent and city 8 drives x 80 frames; Nordland the first 1,200 frames of the ride
-in 8 segments, 6 drives. Cost per drive: four localisations of it (whole map, holders, ingest,
-and the snapshot in the later half) and one map copy.
+in 12 segments, 8 drives. Cost per drive: up to six localisations of it (k-NN and causal on the
+whole map, ingest, causal and smoothed on the holders and on the snapshot) and one map copy;
+per probe four. The full Nordland cut (14 drives, ~6,400 frames) takes ~8 min on a loaded 2-core
+machine.
 """
 
 from __future__ import annotations
@@ -61,6 +65,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -159,6 +164,20 @@ def on_frames(m: SprintMap, drive: Drive, gt: GroundTruth, decisions: dict[str, 
     return out
 
 
+def cross_season(drive: Drive, earlier: list[Drive], gt: GroundTruth) -> np.ndarray:
+    """Per frame of ``drive``: it has a true match among the ``earlier`` drives of another
+    season, none among those of its own, and some earlier drive is of its own season (so the
+    map holds that season elsewhere)."""
+    frames = np.arange(len(drive.rows))
+    same = [d.name for d in earlier if d.season == drive.season]
+    other = [d.name for d in earlier if d.season != drive.season]
+    if not same or not other:
+        return np.zeros(len(frames), dtype=bool)
+    cross: np.ndarray = gt.has_match(drive.name, frames, other) & ~gt.has_match(
+        drive.name, frames, same)
+    return cross
+
+
 def _copy(m: SprintMap, path: Path, target: Path) -> SprintMap:
     """Close ``m``, copy its map to ``target`` and reopen it (a map is copied closed)."""
     m.close()
@@ -166,10 +185,12 @@ def _copy(m: SprintMap, path: Path, target: Path) -> SprintMap:
     return SprintMap.open(path)
 
 
-def run_stream(world: World, config: MapConfig, work: Path
+def run_stream(world: World, config: MapConfig, work: Path,
+               on_row: Callable[[dict[str, Any]], None] | None = None
                ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Merge the world's drives in turn into a fresh map: one row per drive after the first,
-    and one per probe (held back: answered by the map at the half and at the end)."""
+    """Merge the world's drives in turn into a fresh map: one row per drive after the first
+    (each also given to ``on_row`` as soon as it is made), and one per probe (held back:
+    answered by the map at the half and at the end)."""
     drives, gt = world.drives, world.gt
     split = len(drives) // 2
     path, snap_path, hold_path = work / "map", work / "snapshot", work / "holders"
@@ -199,16 +220,28 @@ def run_stream(world: World, config: MapConfig, work: Path
             result = m.ingest(drive.rows, name=drive.name, merge=True)
             smoothed = result.decisions
             row.update(scored(knn, causal, smoothed, drive, gt, names, "whole"))
+            held_names, held_causal, held_smoothed = names, causal, smoothed
             if aliased:
                 try:
                     with SprintMap.open(hold_path) as held:
                         held.remove_sequences([n for n in earlier if n not in holders])
-                        row.update(answer(held, drive, gt, "holders")[0])
+                        held_names = _names(held)
+                        scores, held_causal, held_smoothed = answer(held, drive, gt, "holders")
+                        row.update(scores)
                 finally:
                     shutil.rmtree(hold_path)
             else:
                 row.update({key.replace("whole_", "holders_", 1): value
                             for key, value in row.items() if key.startswith("whole_")})
+            # Frames whose places the map holds only under another season while it holds the
+            # drive's own season elsewhere: the issue's case of condition aliasing.
+            cross = cross_season(drive, drives[:i], gt)
+            row["cross_frames"] = int(cross.sum())
+            for prefix, nm, made in (("whole", names, (causal, smoothed)),
+                                     ("holders", held_names, (held_causal, held_smoothed))):
+                for kind, decisions in zip(("causal", "smoothed"), made, strict=True):
+                    row[f"{prefix}_cross_{kind}_sprint_correct"] = score(
+                        decisions, drive.name, gt, nm, cross)["sprint_correct"]
             for kind in ("causal", "smoothed"):
                 row[f"alias_{kind}_points"] = round(100 * (
                     row[f"whole_{kind}_sprint_recall@1"]
@@ -230,6 +263,8 @@ def run_stream(world: World, config: MapConfig, work: Path
                        edges_added=result.edges_added,
                        seconds=round(time.perf_counter() - start, 2))
             rows.append(row)
+            if on_row is not None:
+                on_row(row)
         probes = run_probes(world, snapshot, m) if snapshot is not None else []
     finally:
         m.close()
@@ -280,6 +315,14 @@ def summarise(rows: list[dict[str, Any]], split: int, probes: list[dict[str, Any
             "whole_recall@1": whole, "holders_recall@1": held,
             "points": None if whole is None or held is None else round(100 * (whole - held), 2),
             "worst_drive_points": min((r[f"alias_{kind}_points"] for r in aliased), default=None)}
+    cross = sum(r["cross_frames"] for r in rows)
+    out["cross_season"] = {"frames": cross, "drives": sum(r["cross_frames"] > 0 for r in rows)}
+    for kind in ("causal", "smoothed"):
+        whole = _ratio(sum(r[f"whole_cross_{kind}_sprint_correct"] for r in rows), cross)
+        held = _ratio(sum(r[f"holders_cross_{kind}_sprint_correct"] for r in rows), cross)
+        out["cross_season"][kind] = {
+            "whole_recall@1": whole, "holders_recall@1": held,
+            "points": None if whole is None or held is None else round(100 * (whole - held), 2)}
     for half, sel in (("earlier", [r for r in rows if r["drive"] < split]),
                       ("later", [r for r in rows if r["drive"] >= split])):
         out[half] = {
@@ -325,21 +368,23 @@ def _pct(v: float | None) -> str:
     return "    -" if v is None else f"{100 * v:5.1f}"
 
 
-def print_rows(label: str, rows: list[dict[str, Any]]) -> None:
+def print_header(label: str) -> None:
     print(f"\n{label}")
     print(f"{'drive':>16} {'cond':>11} {'match':>5} {'hold':>5} | {'kNN@1':>5} {'hkNN':>5} | "
           f"{'caus':>5} {'hold':>5} {'alias':>6} | {'smoo':>5} {'hold':>5} {'alias':>6} | "
-          f"{'acc':>5} | {'mrg':>4} {'wrong':>5} {'unmp':>4} {'um-m':>4}")
-    for r in rows:
-        held = "all" if r["holders_all"] else f"{len(r['holders'])}"
-        print(f"{r['name']:>16} {r['condition'][:11]:>11} {r['whole_frames_with_match']:>5} "
-              f"{held:>5} | {_pct(r['whole_knn_recall@1'])} {_pct(r['holders_knn_recall@1'])} | "
-              f"{_pct(r['whole_causal_sprint_recall@1'])} "
-              f"{_pct(r['holders_causal_sprint_recall@1'])} {r['alias_causal_points']:+6.1f} | "
-              f"{_pct(r['whole_smoothed_sprint_recall@1'])} "
-              f"{_pct(r['holders_smoothed_sprint_recall@1'])} {r['alias_smoothed_points']:+6.1f} | "
-              f"{_pct(r['whole_smoothed_accepted_recall@1'])} | {r['merged']:>4} "
-              f"{r['merged_wrong']:>5} {r['unmapped']:>4} {r['unmapped_merged']:>4}", flush=True)
+          f"{'acc':>5} | {'mrg':>4} {'wrong':>5} {'unmp':>4} {'um-m':>4}", flush=True)
+
+
+def print_row(r: dict[str, Any]) -> None:
+    held = "all" if r["holders_all"] else f"{len(r['holders'])}"
+    print(f"{r['name']:>16} {r['condition'][:11]:>11} {r['whole_frames_with_match']:>5} "
+          f"{held:>5} | {_pct(r['whole_knn_recall@1'])} {_pct(r['holders_knn_recall@1'])} | "
+          f"{_pct(r['whole_causal_sprint_recall@1'])} "
+          f"{_pct(r['holders_causal_sprint_recall@1'])} {r['alias_causal_points']:+6.1f} | "
+          f"{_pct(r['whole_smoothed_sprint_recall@1'])} "
+          f"{_pct(r['holders_smoothed_sprint_recall@1'])} {r['alias_smoothed_points']:+6.1f} | "
+          f"{_pct(r['whole_smoothed_accepted_recall@1'])} | {r['merged']:>4} "
+          f"{r['merged_wrong']:>5} {r['unmapped']:>4} {r['unmapped_merged']:>4}", flush=True)
 
 
 def print_summary(label: str, s: dict[str, Any]) -> None:
@@ -352,6 +397,12 @@ def print_summary(label: str, s: dict[str, Any]) -> None:
         print(f"    alias cost {kind:>8} over {s['aliased_drives']} drives: whole "
               f"{_pct(a['whole_recall@1'])} % vs holders {_pct(a['holders_recall@1'])} % = "
               f"{pts(a['points'])} points (worst drive {pts(a['worst_drive_points'])})")
+    c = s["cross_season"]
+    print(f"    cross-season frames ({c['frames']} in {c['drives']} drives: held only under the "
+          "other season, the drive's season held elsewhere): " + "; ".join(
+              f"{kind} whole {_pct(c[kind]['whole_recall@1'])} % vs holders "
+              f"{_pct(c[kind]['holders_recall@1'])} % ({pts(c[kind]['points'])})"
+              for kind in ("causal", "smoothed")))
     e, lat = s["earlier"], s["later"]
     for kind in ("causal", "smoothed"):
         print(f"    {kind:>8}: recall@1 earlier {_pct(e[f'{kind}_sprint_correct'])} % later "
@@ -390,7 +441,8 @@ def print_probes(rows: list[dict[str, Any]]) -> None:
 
 
 HEADLINE = ("alias_causal.points", "alias_smoothed.points", "alias_causal.worst_drive_points",
-            "alias_smoothed.worst_drive_points",
+            "alias_smoothed.worst_drive_points", "cross_season.causal.points",
+            "cross_season.smoothed.points",
             "later_minus_earlier_smoothed_accepted_recall_correct_points",
             "later_minus_earlier_causal_accepted_recall_correct_points",
             "merge_precision", "unmapped_merged", "snapshot.causal.points",
@@ -430,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="latent/city: frames per drive (default 150); nordland: frames of "
                              "the ride cut (default all)")
     parser.add_argument("--segments", type=int, default=None,
-                        help="nordland: segments of the ride (default 24; quick 8)")
+                        help="nordland: segments of the ride (default 24; quick 12)")
     parser.add_argument("--probes", type=int, default=None,
                         help="held-back drives answered at the half and the end, never merged "
                              "(default: generated worlds 4, one cycle of seasons; nordland 2)")
@@ -450,9 +502,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     nordland = args.world == "nordland"
     if args.quick:
-        args.drives = args.drives or (6 if nordland else 8)
+        args.drives = args.drives or 8
         args.frames = args.frames or (1200 if nordland else 80)
-        args.segments = args.segments or 8
+        args.segments = args.segments or 12
     args.drives = args.drives or (14 if nordland else 12)
     args.frames = args.frames or (3576 if nordland else 150)
     args.segments = args.segments or 24
@@ -484,8 +536,8 @@ def main(argv: list[str] | None = None) -> int:
         for label, changes in arms:
             config = apply_sets(apply_sets(world.config, args.sets), changes)
             with tempfile.TemporaryDirectory() as tmp:
-                rows, probes = run_stream(world, config, Path(tmp))
-            print_rows(f"{args.world} seed {seed}, arm {label}", rows)
+                print_header(f"{args.world} seed {seed}, arm {label}")
+                rows, probes = run_stream(world, config, Path(tmp), print_row)
             print_probes(probes)
             summary = summarise(rows, len(world.drives) // 2, probes)
             print_summary(label, summary)

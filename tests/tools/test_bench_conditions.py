@@ -13,7 +13,9 @@ import pytest
 
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError
+from sprint_map.frontend import GroundTruth, GroundTruthSpec
 from tools import bench_conditions, condition_worlds
+from tools.condition_worlds import Drive
 
 
 def test_set_changes_flat_and_dotted_keys() -> None:
@@ -27,6 +29,22 @@ def test_set_changes_flat_and_dotted_keys() -> None:
         bench_conditions.apply_sets(base, ["hmm.no_such_field=1"])
     with pytest.raises(SystemExit):
         bench_conditions.apply_sets(base, ["no-equals-sign"])
+
+
+def test_cross_season_frames_are_held_only_under_the_other_season() -> None:
+    def line(lo: int, n: int) -> np.ndarray:
+        return np.column_stack([np.arange(n), np.arange(lo, lo + n, dtype=float), np.zeros(n)])
+
+    gt = GroundTruth(GroundTruthSpec("position", radius_m=0.5),
+                     positions={"a": line(0, 10), "b": line(10, 10), "q": line(0, 20)})
+    rows = np.zeros((20, 4), dtype=np.float32)
+    a, b = Drive("a", "summer", "-", rows[:10]), Drive("b", "winter", "-", rows[:10])
+    winter, summer = Drive("q", "winter", "-", rows), Drive("q", "summer", "-", rows)
+    cross = bench_conditions.cross_season
+    assert cross(winter, [a, b], gt).tolist() == [True] * 10 + [False] * 10
+    assert cross(summer, [a, b], gt).tolist() == [False] * 10 + [True] * 10
+    # No drive of the query's season in the map: nothing pulls it away, no cross-season frame.
+    assert not cross(winter, [a], gt).any()
 
 
 def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
@@ -53,6 +71,9 @@ def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
                 abs=0.02)
         assert r["whole_frames_with_match"] == r["holders_frames_with_match"]
         assert 0 <= r["merged_wrong"] <= r["merged"] and r["unmapped_merged"] <= r["unmapped"]
+        for prefix in ("whole", "holders"):
+            for kind in ("causal", "smoothed"):
+                assert 0 <= r[f"{prefix}_cross_{kind}_sprint_correct"] <= r["cross_frames"]
     # The later half (drives 2..4) is also answered by the map before it.
     assert ["snapshot_frames_with_match" in r for r in rows] == [False, True, True, True]
     # Held-back probes (the next two drives of the world) are answered at the half and the end,
@@ -64,6 +85,7 @@ def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
         assert p["after_on_before_frames_with_match"] == p["before_frames_with_match"]
         assert p["after_frames_with_match"] >= p["before_frames_with_match"]
     summary = run["arms"]["default"]["summary"]
+    assert summary["cross_season"]["frames"] == sum(r["cross_frames"] for r in rows)
     assert summary["merged"] == sum(r["merged"] for r in rows)
     assert summary["probes"]["frames"] == sum(p["before_frames_with_match"] for p in probes)
     assert set(data["mean"]["default"]) == set(bench_conditions.HEADLINE)
