@@ -42,13 +42,8 @@ from sprint_map.frontend.bags import (
     open_reader,
 )
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.imagefiles import (
-    decode_image,
-    is_video_name,
-    list_images,
-    read_image,
-    read_image_bytes,
-)
+from sprint_map.frontend.image_path import describe_files
+from sprint_map.frontend.imagefiles import is_video_name, list_images
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
 from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
@@ -176,19 +171,15 @@ def _single_threaded_opencv() -> None:
 
 def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
     """Decode and describe a chunk of image files (runs in a worker)."""
-    return spec.describe_batch([read_image(path, grayscale=spec.grayscale) for path in paths])
+    return describe_files(spec, paths)[0]
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
                                ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
-    images, thumbs = [], []
-    for path in paths:
-        data = read_image_bytes(path)
-        image = decode_image(data, str(path), grayscale=spec.grayscale)
-        images.append(image)
-        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1], image.shape[0]))
-    return spec.describe_batch(images), thumbs
+    rows, images, blobs = describe_files(spec, paths)
+    return rows, [thumbnail_of_file(data, str(path), image.shape[1], image.shape[0])
+                  for path, image, data in zip(paths, images, blobs, strict=True)]
 
 
 def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
