@@ -23,7 +23,7 @@ import numpy as np
 
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.decision import Decision
+from sprint_map.hmm.decision import Decision, is_unknown
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
@@ -121,6 +121,22 @@ class FrameDecision:
     @property
     def is_match(self) -> bool:
         return self.seq_id is not None
+
+    def settled(self, min_confidence: float) -> FrameDecision:
+        """This decision under the one rule for what an answer is
+        (:func:`~sprint_map.hmm.decision.is_unknown` of ``prob`` and ``novel_prob``): a match
+        the rule calls unknown becomes "no match" (``best`` keeps the place it named,
+        ``contrast`` goes), everything else is returned as is. A ``verified`` match stays one:
+        the thumbnails' geometry says the map holds the place, and the merge rule merges it.
+        The causal and lagged answers are decided by that rule already; the smoothed ones
+        carry the drive's calibrated ``novel_prob``, which the pass that named the place did
+        not weigh. O(1)."""
+        if (self.seq_id is None or self.verified
+                or not is_unknown(self.prob, self.novel_prob, min_confidence)):
+            return self
+        best = self.best if self.best is not None else (self.seq_id, int(self.image_id or 0))
+        return dataclasses.replace(self, seq_id=None, image_id=None, vertex_id=None, best=best,
+                                   contrast=math.nan)
 
     def to_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,
