@@ -171,15 +171,9 @@ class FixedLagSmoother:
         self.answered += 1
         return decision
 
-    def flush(self) -> list[Decision]:
-        """Answer every waiting frame now, in frame order (the end of a drive): one backward
-        pass from the last frame pushed, each frame reported on the drive of the next, as
-        :meth:`ForwardBackward.decisions` does. The belief is kept: later frames go on.
-
-        Notes
-        -----
-        O(waiting) backward steps and decisions.
-        """
+    def pending(self) -> list[Decision]:
+        """The answers :meth:`flush` would give now, without giving them: nothing changes (a
+        commit that may yet be refused reads them; the drive may go on). O(waiting)."""
         frames = self._frames
         if not frames:
             return []
@@ -195,11 +189,25 @@ class FixedLagSmoother:
                 prefer = decision.seq_id
             out.append(decision)
         out.reverse()
+        return out
+
+    def flush(self) -> list[Decision]:
+        """Answer every waiting frame now, in frame order (the end of a drive): one backward
+        pass from the last frame pushed, each frame reported on the drive of the next, as
+        :meth:`ForwardBackward.decisions` does. The belief is kept: later frames go on.
+
+        Notes
+        -----
+        O(waiting) backward steps and decisions (:meth:`pending`, then consumed).
+        """
+        out = self.pending()
+        if not out:
+            return []
         last = out[-1]
         if last.candidate_id is not None and last.seq_id is not None:
             self._prefer = last.seq_id
         self.answered += len(out)
-        frames.clear()
+        self._frames.clear()
         while len(self._nearest) > 2:
             self._nearest.popleft()
         return out

@@ -354,10 +354,10 @@ class LocalisationService:
         return decision, (timing.retrieval_ms[-1], timing.hmm_ms[-1])
 
     # --- commits ----------------------------------------------------------------------------
-    def _job(self, session: Session) -> CommitJob:
+    def _job(self, session: Session, pending: list[Any] | None = None) -> CommitJob:
         rows = session.descriptors()
         # the vehicles were answered from k hits; the commit searches the drive smooth_k deep
-        return CommitJob(session.name, rows, list(session.decisions),
+        return CommitJob(session.name, rows, [*session.decisions, *(pending or ())],
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
                          smoothed=functools.partial(self.map.smoothed, session.localizer, rows))
@@ -373,9 +373,11 @@ class LocalisationService:
                 raise ApiError(409, "committing", "the session is already being committed")
             if not session.frames:
                 raise ApiError(409, "empty_session", "the session has no frames to commit")
-            flushed = (await anyio.to_thread.run_sync(self._flush, session)
+            # A lagged session's last answers, read without changing it: a refused commit
+            # (503 below, or a failed write) leaves the drive as it was.
+            flushed = (await anyio.to_thread.run_sync(self._pending, session)
                        if session.lagged is not None else None)
-            future = self.writer.submit(self._job(session))
+            future = self.writer.submit(self._job(session, flushed))
             session.state = COMMITTING
             # Settled in the writer thread, before the awaiting request resumes (and even if
             # the client went away): a durable commit closes the session, a failed one reopens.
@@ -399,11 +401,11 @@ class LocalisationService:
                                 for d in flushed]
         return out
 
-    def _flush(self, session: Session) -> list[Any]:
-        """A lagged session's last answers (worker thread, shared gate)."""
+    def _pending(self, session: Session) -> list[Any]:
+        """A lagged session's last answers, unchanged (worker thread, shared gate)."""
         with self.gate.shared():
             try:
-                return session.flush()
+                return session.pending()
             except SprintMapError as exc:
                 raise from_library(exc) from None
 

@@ -54,8 +54,6 @@ class Session:
         self.lag = lagged.lag if lagged is not None else 0
         #: Neighbours a batched search gives this session's frames.
         self.search_k = search_k
-        #: Answers made by the commit's flush of a lagged session, until a commit succeeds.
-        self.flushed: list[FrameDecision] = []
         self.dim = dim
         self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
@@ -122,14 +120,11 @@ class Session:
             self.decisions.append(decision)
         return decision
 
-    def flush(self) -> list[FrameDecision]:
-        """A lagged session's answers of its last frames (the commit's; called under the
-        shared gate): those flushed now, after any flushed by an earlier commit that failed."""
-        if self.lagged is not None:
-            done = self.lagged.flush()
-            self.decisions.extend(done)
-            self.flushed.extend(done)
-        return list(self.flushed)
+    def pending(self) -> list[FrameDecision]:
+        """A lagged session's answers of its last frames, as a commit gives them (called under
+        the shared gate); nothing changes: a refused commit leaves the session as it was, and
+        the next frames and the retried commit answer as ``localize --lag`` would."""
+        return self.lagged.pending() if self.lagged is not None else []
 
     def position_array(self) -> np.ndarray | None:
         """``(frames, 3)`` x, y, heading (NaN if not given), or None without positions."""
