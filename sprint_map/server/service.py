@@ -294,9 +294,8 @@ class LocalisationService:
                 self.registry.reserve_frame(session)
                 try:
                     decision, timing = await self._answer(session, payload, body)
-                except BaseException:
-                    self.registry.release_frame(session)
-                    raise
+                finally:  # kept or not, the registry counts what the session holds now
+                    self.registry.settle(session)
         finally:
             session.waiting -= 1
             self._admitted -= 1

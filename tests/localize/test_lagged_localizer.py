@@ -129,3 +129,26 @@ def test_pending_answers_as_flush_would_and_changes_nothing(road_map, road, rng)
         for r in rows[:20]:
             cut.step(r)
         assert cut.flush() == peeked
+
+
+def test_the_waiting_beliefs_are_counted_as_they_are_held(road_map, road, rng):
+    """``held_bytes`` of the fixed-lag smoother follows the memory its waiting frames take
+    (traced allocations of the steps), and is 0 once they are answered."""
+    import tracemalloc
+
+    rows = noisy(rng, road[:120])
+    with SprintMap.open(road_map, readonly=True) as m:
+        lagged = LaggedLocalizer(m, MAX_LAG)
+        lagged.step(rows[0])  # components loaded, caches warm
+        tracemalloc.start()
+        try:
+            for row in rows[1:]:
+                lagged.step(row)
+            traced = tracemalloc.get_traced_memory()[0]
+        finally:
+            tracemalloc.stop()
+        held = lagged.smoother.held_bytes
+        assert lagged.waiting == len(rows)
+        assert 0.6 * traced <= held <= 1.5 * traced, (held, traced)
+        lagged.flush()
+        assert lagged.smoother.held_bytes == 0

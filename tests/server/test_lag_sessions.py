@@ -125,3 +125,30 @@ def test_a_refused_commit_changes_nothing(one_drive_map, places, rng, batching):
         assert got == [(d.frame, d.seq_id, d.image_id, round(d.prob, 6)) for d in offline]
 
     run_service(one_drive_map, body, batch_max_frames=batching)
+
+
+def test_a_lagged_session_counts_its_waiting_beliefs(one_drive_map, places, rng):
+    """``max_buffered_bytes`` counts every buffer a session holds: a lagged session's
+    waiting beliefs too, so such a session is refused (503) where its descriptors alone
+    would fit; a commit frees all it held."""
+    rows = drive(places, rng)[:40]
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        sid = (await client.post("/v1/sessions", json={"lag": 30})).json()["session_id"]
+        await post_all(client, sid, rows[:20], raw=True)
+        session = service.registry.get(sid)
+        held = session.lagged.smoother.held_bytes
+        assert held > 20 * rows.shape[1] * 4  # far more than its descriptors
+        assert service.registry.buffered_bytes == session.nbytes >= 20 * 4 * rows.shape[1] + held
+        service.registry.max_buffered_bytes = session.nbytes + 4 * rows.shape[1] + 1
+        refused = await client.post(f"/v1/sessions/{sid}/frames",
+                                    content=np.asarray(rows[20], "<f4").tobytes(),
+                                    headers={"content-type": "application/octet-stream"})
+        assert refused.status_code == 503, refused.text
+        assert session.frames == 20 and service.registry.buffered_bytes == session.nbytes
+        service.registry.max_buffered_bytes = 2 << 30
+        await post_all(client, sid, rows[20:], raw=True)
+        assert (await client.post(f"/v1/sessions/{sid}/commit")).status_code == 200
+        assert service.registry.buffered_bytes == 0
+
+    run_service(one_drive_map, body)
