@@ -117,11 +117,10 @@ def test_kill_at_each_write_point(three, zygote, point):
     with MapStore.open(path, readonly=True) as store:
         in_flight_committed = store.stats()["sequences"] == 4
     assert in_flight_committed == (point in PRESENT_AFTER)
+    assert report.ok, report.violations  # a leftover temp file is a note: the map is whole
     if point == "index.partial_written":
-        assert report.violations == [
-            "leftover temp file index/flat.000000000160.faiss.partial"]
-    else:
-        assert report.ok, report.violations
+        assert any(n.startswith("leftover temp file index/flat.000000000160.faiss.partial")
+                   for n in report.notes), report.notes
     # Killed after the rows were written but before the commit: 8 rows (of 32 bytes) past the
     # committed end of shard 1, and an uncommitted shard 2.
     rows_written_uncommitted = point in {"add.shards_written", "add.thumbnails_written",
@@ -224,7 +223,7 @@ def test_kill_at_each_repair_point(tmp_path, zygote, point):
     damage_everything_derivable(path)
     with MapStore.open(path, readonly=True) as store:
         assert check_map(store).areas == {"lookup", "shard_lengths", "edge_index", "components",
-                                          "index", "temp"}
+                                          "index"}
 
     assert repair_in_child(zygote, path, tmp_path / "ack1", crash_at=point) is None  # killed
     with MapStore.open(path, readonly=True) as store:  # still a map, the data intact
