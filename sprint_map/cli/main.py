@@ -171,8 +171,12 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
     overrides = hmm_overrides(k, window, hmm_pairs)
     done: list[dict[str, Any]] = []
 
+    bars: list[Any] = []  # each drive's progress display (None without one)
+
     def report(results: list[IngestResult]) -> None:
         for result in results:
+            if len(done) < len(bars) and bars[len(done)] is not None:
+                bars[len(done)].close()  # its smoothing and merge are over
             done.append(result.to_dict())
             if not as_json:
                 click.echo(_ingest_line(done[-1]))
@@ -193,8 +197,10 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
         opened = []
         for source in sources if ray_spec is None else ():  # each opened (and checked) first
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
+            bars.append(stack.enter_context(progress_display(
+                label, quiet, after="smoothing and merging" if not no_merge else "committing")))
             src = m.open_source(source, stride=stride, thumbnails=thumbnails, bag=bag,
-                                progress=stack.enter_context(progress_display(label, quiet)))
+                                progress=bars[-1])
             opened.append((src, drive_positions(src, source, positions, stride)))
         names = (drive_names([Path(s) for s in sources], [src.name for src, _ in opened])
                  if opened and name is None else [name] * len(opened))
@@ -309,7 +315,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
     overrides = hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
-            progress_display("localising", quiet) as progress:
+            progress_display("localising", quiet, after="smoothing" if smooth else None
+                             ) as progress:
         # Outputs are made first: an unwritable path (or one inside the map) is refused early.
         trace_out = outputs.enter_context(Output(trace, "trace", forbidden=[m.path])) \
             if trace else None
