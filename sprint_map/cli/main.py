@@ -230,7 +230,7 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             except (SprintMapError, OSError) as exc:
                 m.warnings.append(f"the drive is committed, but its trace was not written: "
                                   f"{exc}")
-    for warning in m.warnings:
+    for warning in [w for src, _ in opened for w in src.warnings] + m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
         click.echo(json.dumps(done[0] if len(sources) == 1 else done, indent=2))
@@ -340,6 +340,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         if json_out is not None:
             json_out.stream.write(json.dumps(data, indent=1).encode())
             json_out.commit()
+    for warning in src.warnings:
+        click.echo(f"Warning: {warning}", err=True)
     matched = sum(d.is_match for d in decisions)
     emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")

@@ -111,6 +111,9 @@ class FrameSource(ABC):
         self.thumbnails: list[bytes] | None = [] if options.thumbnails else None
         #: Positions the source itself carries (a bag's GNSS), else None.
         self.positions: Positions | None = None
+        #: What a reader should know about the frames read so far (complete once
+        #: :meth:`iter_batches` has ended): e.g. images of several sizes in one drive.
+        self.warnings: list[str] = []
 
     @property
     @abstractmethod
@@ -169,17 +172,21 @@ def _single_threaded_opencv() -> None:
     cv2.setNumThreads(1)
 
 
-def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
-    """Decode and describe a chunk of image files (runs in a worker)."""
-    return describe_files(spec, paths)[0]
+def _describe_files(spec: DescriptorSpec, paths: list[Path]
+                    ) -> tuple[Descriptors, list[bytes], list[tuple[int, int]]]:
+    """Decode and describe a chunk of image files (runs in a worker); no thumbnails; each
+    image's ``(width, height)``."""
+    rows, images, _ = describe_files(spec, paths)
+    return rows, [], [(image.shape[1], image.shape[0]) for image in images]
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
-                               ) -> tuple[Descriptors, list[bytes]]:
+                               ) -> tuple[Descriptors, list[bytes], list[tuple[int, int]]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
     rows, images, blobs = describe_files(spec, paths)
     return rows, [thumbnail_of_file(data, str(path), image.shape[1], image.shape[0])
-                  for path, image, data in zip(paths, images, blobs, strict=True)]
+                  for path, image, data in zip(paths, images, blobs, strict=True)], [
+                      (image.shape[1], image.shape[0]) for image in images]
 
 
 def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
@@ -191,6 +198,16 @@ def _describe_frames_thumbnails(spec: DescriptorSpec, frames: list[Image]
                                 ) -> tuple[Descriptors, list[bytes]]:
     """:func:`_describe_frames` plus each frame's thumbnail."""
     return spec.describe_batch(frames), [make_thumbnail(frame) for frame in frames]
+
+
+def mixed_sizes(path: Path, sizes: dict[tuple[int, int], list[int]]) -> str:
+    """The warning for a drive whose images have several sizes (``(width, height) -> [frames,
+    first frame]``): two cameras in one folder, or a resized stretch; each is described at the
+    descriptor's own size, so nothing fails, but one drive should be one camera."""
+    parts = ", ".join(f"{w}x{h}: {n} frame(s) from frame {first}"
+                      for (w, h), (n, first) in sorted(sizes.items(), key=lambda kv: kv[1][1]))
+    return (f"{path}: images of {len(sizes)} sizes in one drive ({parts}); two cameras in one "
+            "folder? Give each camera its own drive")
 
 
 def _keep_thumbnails(results: Iterator[tuple[Descriptors, list[bytes]]], sink: list[bytes]
@@ -253,16 +270,27 @@ class ImageDirSource(FrameSource):
         size = _chunk_size(len(self.files), self.batch_size, self.workers)
         chunks = [self.files[i : i + size] for i in range(0, len(self.files), size)]
         initializer = _single_threaded_opencv if self.executor == "process" else None
-        results: Iterator[Descriptors]
-        if self.thumbnails is None:
-            results = ordered_map(functools.partial(_describe_files, self.spec), chunks,
-                                  self.workers, self.executor, initializer=initializer)
-        else:
-            self.thumbnails.clear()
-            results = _keep_thumbnails(ordered_map(
-                functools.partial(_describe_files_thumbnails, self.spec), chunks, self.workers,
-                self.executor, initializer=initializer), self.thumbnails)
-        yield from _rebatch(results, self.batch_size)
+        describe = _describe_files if self.thumbnails is None else _describe_files_thumbnails
+        sink: list[bytes] = [] if self.thumbnails is None else self.thumbnails
+        sink.clear()
+        self.warnings.clear()
+        sizes: dict[tuple[int, int], list[int]] = {}  # (width, height) -> [frames, first]
+        results = ordered_map(functools.partial(describe, self.spec), chunks, self.workers,
+                              self.executor, initializer=initializer)
+
+        def kept() -> Iterator[Descriptors]:
+            frame = 0
+            for rows, thumbs, shapes in results:
+                sink.extend(thumbs)
+                for shape in shapes:
+                    seen = sizes.setdefault(shape, [0, frame])
+                    seen[0] += 1
+                    frame += 1
+                yield rows
+
+        yield from _rebatch(kept(), self.batch_size)
+        if len(sizes) > 1:
+            self.warnings.append(mixed_sizes(self.path, sizes))
 
 
 def _cv2() -> Any:
