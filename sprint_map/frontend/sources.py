@@ -51,7 +51,7 @@ from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
-from sprint_map.frontend.vpr import is_vpr_name, vpr_order, vpr_positions
+from sprint_map.frontend.vpr import is_vpr_folder, vpr_order, vpr_positions
 
 __all__ = ["SOURCE_KINDS", "BagSource", "FrameSource", "ImageDirSource", "NpySource",
            "ProgressCallback", "VideoSource", "drive_names", "drive_positions", "open_source",
@@ -253,7 +253,7 @@ class ImageDirSource(FrameSource):
         #: How the files are ordered: natural file-name order, or the timestamps of
         #: VPR-layout names (:mod:`sprint_map.frontend.vpr`), which also give positions.
         self.order = "file name"
-        if all(is_vpr_name(f.name) for f in files):
+        if is_vpr_folder(files):  # the rule VprDataset applies too
             files, self.order = vpr_order(files)
             kept = np.arange(0, len(files), self.stride)
             self.positions = vpr_positions(files).subset(kept)
