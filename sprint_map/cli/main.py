@@ -200,7 +200,9 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                  if opened and name is None else [name] * len(opened))
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
         # An empty --name is refused by the name rules, not replaced by the source's name.
-        placed = [(src, m.metric_positions(table)) for src, table in opened]
+        # one frame (lat/lon or x/y) for every drive and the map, checked before any is stored
+        placed = list(zip([src for src, _ in opened],
+                          m.metric_positions_of([table for _, table in opened]), strict=True))
         drives = [Drive(src.iter_batches(), label, rows, str(source), src.thumbnails,
                         None if rows is None else gnss_fixes(rows))
                   for (src, rows), label, source in zip(placed, names, sources, strict=False)]
