@@ -128,3 +128,13 @@ def test_geojson_gives_latitude_longitude_back_as_given(tmp_path, folder):
         np.testing.assert_allclose((lonlat[:, 0] - rows[:, 1] + 180) % 360 - 180, 0,
                                    atol=1e-9)
         assert (np.abs(lonlat[:, 0]) <= 180).all()
+
+
+def test_ray_ingest_refuses_a_drive_whose_positions_it_would_drop(tmp_path, folder):
+    """The farm stores descriptors only: a drive folder's positions.csv (lat/lon here) would
+    be lost without a word, and its GeoJSON would show nothing."""
+    assert _cli("init", tmp_path / "m").exit_code == 0
+    latlon(folder, "positions.csv")
+    result = _cli("ingest", tmp_path / "m", folder, "--ray", "local")
+    refused(result, "positions.csv) are not carried by --ray")
+    assert state(tmp_path / "m") == (0, None, False)

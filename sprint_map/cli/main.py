@@ -34,7 +34,7 @@ from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import gnss_fixes
-from sprint_map.frontend.sources import drive_names, drive_positions
+from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -50,8 +50,9 @@ from sprint_map.util.output import Output
               default=None, help="Descriptor kind; hog/patchnorm/onnx set the dimension "
               "themselves.")
 @click.option("--model", type=click.Path(dir_okay=False), help="onnx: the ONNX model file "
-              "(one descriptor per image; pip install \"sprint-map[onnx]\"). Its SHA-256 is "
-              "stored: a different file there later is refused.")
+              "(one descriptor per image; pip install \"sprint-map[onnx]\"). The SHA-256 of it "
+              "and of each weights file it loads is stored: a different file there later is "
+              "refused.")
 @click.option("--model-card", type=click.Path(dir_okay=False), help="onnx: JSON card "
               "{input_size, channels, mean, std, normalize} (default: MODEL's .card.json "
               "beside it, else its fixed input size, RGB, ImageNet mean/std, l2).")
@@ -168,6 +169,11 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                  bag != BagOptions()}
         for option in (option for option, on in given.items() if on):
             raise InputError(f"{option} is not available with --ray")
+        for source in sources:  # the farm stores no positions: never drop them silently
+            own = own_positions(source)
+            if own is not None:
+                raise InputError(f"{source}: its positions ({own}) are not carried by --ray; "
+                                 "ingest it without --ray to keep them")
     overrides = hmm_overrides(k, window, hmm_pairs)
     done: list[dict[str, Any]] = []
 
