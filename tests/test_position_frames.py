@@ -138,3 +138,17 @@ def test_ray_ingest_refuses_a_drive_whose_positions_it_would_drop(tmp_path, fold
     result = _cli("ingest", tmp_path / "m", folder, "--ray", "local")
     refused(result, "positions.csv) are not carried by --ray")
     assert state(tmp_path / "m") == (0, None, False)
+
+
+def test_a_data_set_of_both_frames_is_refused(tmp_path):
+    from sprint_map.frontend.dataset import Dataset
+
+    for name, write in (("a", latlon), ("b", planar)):
+        folder = tmp_path / "set" / name
+        folder.mkdir(parents=True)
+        np.save(folder / "descriptors.npy", np.eye(6, 8, dtype=np.float32))
+        write(folder, "positions.csv")
+    data = Dataset.open(tmp_path / "set")
+    with pytest.raises(InputError, match="traversal 'a' has latitude/longitude positions and "
+                                         "'b' planar x, y"):
+        data.geo_frame()
