@@ -347,6 +347,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
          + f"  p={d.prob:.3f} novel={d.novel_prob:.3f}" for d in decisions]
         + [f"{matched}/{len(decisions)} frames matched; per frame: retrieval "
            f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
+    for warning in m.warnings:  # on stderr: a --json answer on stdout stays JSON
+        click.echo(f"Warning: {warning}", err=True)
 
 # The other commands register on the same group when their modules are imported.
 from sprint_map.cli.maintenance import (  # noqa: E402

@@ -128,6 +128,9 @@ def test_a_map_made_before_weights_were_recorded_opens_and_warns(tmp_path):
     result = CliRunner().invoke(main, ["ingest", str(tmp_path / "map"), str(folder)])
     assert result.exit_code == 0, result.output
     assert "weights file(s) m.onnx.data are not verified" in result.output
+    located = CliRunner().invoke(main, ["localize", str(tmp_path / "map"), str(folder)])
+    assert located.exit_code == 0, located.output
+    assert "Warning: " in located.output and "m.onnx.data are not verified" in located.output
     with SprintMap.open(tmp_path / "map", readonly=True) as m:
         want = reference_descriptors(model, [cv2.imread(str(p)) for p in
                                              sorted(folder.glob("*.png"))])
