@@ -61,9 +61,13 @@ class DescriptorShapeError(SprintMapError):
 
 
 class InvalidDescriptorError(SprintMapError):
-    """Descriptors contain NaN or Inf."""
+    """Descriptors contain NaN or Inf, or values no descriptor holds (an overflow)."""
 
     exit_code = 9
+    #: Raised by a describer: the refused image's row among those it was given (a frame
+    #: source then names its frame), and the message without the row. None / "" otherwise.
+    row: int | None = None
+    detail: str = ""
 
 
 class DuplicateNameError(SprintMapError):

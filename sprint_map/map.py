@@ -630,6 +630,15 @@ class SprintMap(MapReading):
             raise DescriptorShapeError(
                 f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
             )
+        if spec is not None and spec.kind == "onnx":
+            from sprint_map.frontend.onnx_model import unverified_files
+
+            unverified = unverified_files(spec.params)
+            if unverified and not any("weights file" in w for w in self.warnings):
+                self.warnings.append(
+                    f"the map records the digest of {spec.params['model']} only (made before "
+                    f"weights files were): its weights file(s) {', '.join(unverified)} are "
+                    "not verified")
         return source
 
     # --- reading ----------------------------------------------------------------------------

@@ -34,7 +34,7 @@ from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import gnss_fixes
-from sprint_map.frontend.sources import drive_names, drive_positions
+from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -50,8 +50,9 @@ from sprint_map.util.output import Output
               default=None, help="Descriptor kind; hog/patchnorm/onnx set the dimension "
               "themselves.")
 @click.option("--model", type=click.Path(dir_okay=False), help="onnx: the ONNX model file "
-              "(one descriptor per image; pip install \"sprint-map[onnx]\"). Its SHA-256 is "
-              "stored: a different file there later is refused.")
+              "(one descriptor per image; pip install \"sprint-map[onnx]\"). The SHA-256 of it "
+              "and of each weights file it loads is stored: a different file there later is "
+              "refused.")
 @click.option("--model-card", type=click.Path(dir_okay=False), help="onnx: JSON card "
               "{input_size, channels, mean, std, normalize} (default: MODEL's .card.json "
               "beside it, else its fixed input size, RGB, ImageNet mean/std, l2).")
@@ -168,6 +169,11 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                  bag != BagOptions()}
         for option in (option for option, on in given.items() if on):
             raise InputError(f"{option} is not available with --ray")
+        for source in sources:  # the farm stores no positions: never drop them silently
+            own = own_positions(source)
+            if own is not None:
+                raise InputError(f"{source}: its positions ({own}) are not carried by --ray; "
+                                 "ingest it without --ray to keep them")
     overrides = hmm_overrides(k, window, hmm_pairs)
     done: list[dict[str, Any]] = []
 
@@ -206,7 +212,9 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                  if opened and name is None else [name] * len(opened))
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
         # An empty --name is refused by the name rules, not replaced by the source's name.
-        placed = [(src, m.metric_positions(table)) for src, table in opened]
+        # one frame (lat/lon or x/y) for every drive and the map, checked before any is stored
+        placed = list(zip([src for src, _ in opened],
+                          m.metric_positions_of([table for _, table in opened]), strict=True))
         drives = [Drive(src.iter_batches(), label, rows, str(source), src.thumbnails,
                         None if rows is None else gnss_fixes(rows))
                   for (src, rows), label, source in zip(placed, names, sources, strict=False)]
@@ -348,6 +356,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
          + f"  p={d.prob:.3f} novel={d.novel_prob:.3f}" for d in decisions]
         + [f"{matched}/{len(decisions)} frames matched; per frame: retrieval "
            f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
+    for warning in m.warnings:  # on stderr: a --json answer on stdout stays JSON
+        click.echo(f"Warning: {warning}", err=True)
 
 # The other commands register on the same group when their modules are imported.
 from sprint_map.cli.maintenance import (  # noqa: E402

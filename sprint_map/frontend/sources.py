@@ -47,6 +47,7 @@ from sprint_map.frontend.imagefiles import is_video_name, list_images
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
 from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
+from sprint_map.util.validation import descriptor_problem
 
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
@@ -218,6 +219,24 @@ def _keep_thumbnails(results: Iterator[tuple[Descriptors, list[bytes]]], sink: l
         yield rows
 
 
+def _named_frames(chunks: Iterator[Descriptors], where: Callable[[int], str]
+                  ) -> Iterator[Descriptors]:
+    """``chunks``, a refused one's :class:`InvalidDescriptorError` re-raised naming its frame:
+    ``where(frame)``, the rows of the chunks before it counted."""
+    received = 0
+    while True:
+        try:
+            chunk = next(chunks)
+        except StopIteration:
+            return
+        except InvalidDescriptorError as exc:
+            if exc.row is None:
+                raise
+            raise InvalidDescriptorError(f"{where(received + exc.row)}: {exc.detail}") from None
+        received += len(chunk)
+        yield chunk
+
+
 def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
     if n_frames is None:
         return max(1, min(_MAX_CHUNK, batch_size))
@@ -225,11 +244,16 @@ def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
     return max(1, min(_MAX_CHUNK, batch_size, math.ceil(n_frames / (4 * workers))))
 
 
-def _rebatch(chunks: Iterator[Descriptors], batch_size: int) -> Iterator[Descriptors]:
-    """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer)."""
+def _rebatch(chunks: Iterator[Descriptors], batch_size: int,
+             where: Callable[[int], str]) -> Iterator[Descriptors]:
+    """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer).
+
+    A chunk whose description was refused (:class:`InvalidDescriptorError` with the ``row``
+    of the chunk it names) is reported as the source's frame: ``where(frame)`` and why.
+    """
     buffer: list[Descriptors] = []
     held = 0
-    for chunk in chunks:
+    for chunk in _named_frames(chunks, where):
         buffer.append(chunk)
         held += len(chunk)
         while held >= batch_size:
@@ -288,7 +312,8 @@ class ImageDirSource(FrameSource):
                     frame += 1
                 yield rows
 
-        yield from _rebatch(kept(), self.batch_size)
+        yield from _rebatch(kept(), self.batch_size,
+                            lambda i: f"{self.path}: frame {i} ({self.files[i].name})")
         if len(sizes) > 1:
             self.warnings.append(mixed_sizes(self.path, sizes))
 
@@ -368,7 +393,7 @@ class VideoSource(FrameSource):
                     functools.partial(_describe_frames_thumbnails, self.spec), frames,
                     self.workers, "thread"), self.thumbnails)
             produced = 0
-            for batch in _rebatch(results, self.batch_size):
+            for batch in _rebatch(results, self.batch_size, lambda i: f"{self.path}: frame {i}"):
                 produced += len(batch)
                 yield batch
             if produced == 0:
@@ -417,7 +442,9 @@ class BagSource(FrameSource):
             if self.thumbnails is not None:
                 self.thumbnails.clear()
             sink = self.thumbnails if self.thumbnails is not None else []
-            yield from _rebatch(_keep_thumbnails(results, sink), self.batch_size)
+            yield from _rebatch(_keep_thumbnails(results, sink), self.batch_size,
+                                lambda i: f"{self.path}: frame {i} of "
+                                          f"{self.index.image_topic}")
         finally:
             reader.close()
 
@@ -474,10 +501,12 @@ def _load_npy(path: Path) -> DescriptorsLike:
         raise InputError(f"{path}: no descriptors (shape {array.shape})")
     rows = max(1, (64 << 20) // max(1, array.shape[1] * array.dtype.itemsize))
     for start in range(0, array.shape[0], rows):
-        finite = np.isfinite(array[start : start + rows]).all(axis=1)
-        if not finite.all():
-            row = start + int(np.argmin(finite))
-            raise InvalidDescriptorError(f"{path}: row {row} contains NaN or Inf")
+        problem = descriptor_problem(array[start : start + rows])
+        if problem is not None:
+            row, why = problem
+            kind = ("contains NaN or Inf" if not np.isfinite(array[start + row]).all()
+                    else "is out of range")
+            raise InvalidDescriptorError(f"{path}: row {start + row} {kind} ({why})")
     return array
 
 
