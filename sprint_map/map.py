@@ -57,7 +57,7 @@ if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM
     from sprint_map.hmm.cache import ComponentCache
     from sprint_map.localize.gnss import GnssAid, PositionIndex
     from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
-    from sprint_map.merge.join import JoinResult, LocaliseMany
+    from sprint_map.merge.join import DriveLocalisation, JoinResult, LocaliseMany
     from sprint_map.merge.prepared import PreparedDrive
 
 
@@ -356,6 +356,17 @@ class SprintMap(MapReading):
             return join_maps(self, src, configs, drives=drives, prefix=prefix, merge=merge,
                              require_connected=require_connected, hmm=hmm,
                              localise_many=localise_many, progress=progress)
+
+    def localise_for_join(self, source: str | os.PathLike[str], seq_ids: Sequence[int],
+                          hmm: HMMConfig | None = None) -> list[DriveLocalisation]:
+        """Localise drives ``seq_ids`` of the map at ``source`` against this one (read-only is
+        enough) as :meth:`join` does, without committing: what a farm's task does for a join
+        (:mod:`sprint_map.fleet.join`). Costs what ``ingest``'s localisation costs."""
+        from sprint_map.merge.join import localise_drive
+        from sprint_map.storage.join import open_source_map
+
+        with open_source_map(source, self.store) as src:
+            return [localise_drive(self, src, src.sequence(i), hmm) for i in seq_ids]
 
     def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
         """The map's merge rule over one drive's decisions: which would become edges.

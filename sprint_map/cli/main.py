@@ -341,6 +341,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
            f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
 
 # The other commands register on the same group when their modules are imported.
+from sprint_map.cli.join import join  # noqa: E402
 from sprint_map.cli.maintenance import (  # noqa: E402
     check,
     compact,
@@ -356,4 +357,4 @@ from sprint_map.cli.maintenance import (  # noqa: E402
 from sprint_map.cli.runs import demo, eval_, serve, view  # noqa: E402
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
-           "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
+           "ingest", "init", "join", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
