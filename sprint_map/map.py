@@ -326,7 +326,9 @@ class SprintMap(MapReading):
     def join(self, source: str | os.PathLike[str], *, drives: Sequence[str] | None = None,
              prefix: str = "", merge: bool = True, require_connected: bool = False,
              hmm: HMMConfig | None = None, localise_many: LocaliseMany | None = None,
-             progress: Callable[[int], None] | None = None) -> JoinResult:
+             progress: Callable[[int], None] | None = None,
+             exclusive: Callable[[], AbstractContextManager[Any]] | None = None,
+             on_commit: Callable[[set[int]], None] | None = None) -> JoinResult:
         """Bring drives of the map at ``source`` into this one with everything they carry,
         then localise each against what this map held before and merge its confident
         decisions as ``ingest`` would (``merge=False``: only copy), in one atomic commit.
@@ -337,7 +339,9 @@ class SprintMap(MapReading):
         never written; a writer is kept out of it meanwhile. A drive this map already holds
         (same content digest) is not copied again. ``localise_many``: localise several drives
         elsewhere (a Ray farm, :func:`sprint_map.fleet.farm.farm_localise_join`); ``progress``:
-        rows done since its last call. See :mod:`sprint_map.merge.join`.
+        rows done since its last call; ``exclusive``, ``on_commit``: a service's map gate and
+        component registry around the commit only (its writer thread,
+        :mod:`sprint_map.server.writer`). See :mod:`sprint_map.merge.join`.
 
         Raises
         ------
@@ -355,7 +359,8 @@ class SprintMap(MapReading):
             configs = (self.config.to_dict(), stored_config(src.config_record).to_dict())
             return join_maps(self, src, configs, drives=drives, prefix=prefix, merge=merge,
                              require_connected=require_connected, hmm=hmm,
-                             localise_many=localise_many, progress=progress)
+                             localise_many=localise_many, progress=progress,
+                             exclusive=exclusive, on_commit=on_commit)
 
     def localise_for_join(self, source: str | os.PathLike[str], seq_ids: Sequence[int],
                           hmm: HMMConfig | None = None) -> list[DriveLocalisation]:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -249,11 +250,15 @@ def join_maps(smap: JoiningMap, source: MapStore, configs: tuple[dict[str, Any],
               *, drives: Sequence[str] | None = None,
               prefix: str = "", merge: bool = True, require_connected: bool = False,
               hmm: HMMConfig | None = None, localise_many: LocaliseMany | None = None,
-              progress: Callable[[int], None] | None = None) -> JoinResult:
+              progress: Callable[[int], None] | None = None,
+              exclusive: Callable[[], AbstractContextManager[Any]] | None = None,
+              on_commit: Callable[[set[int]], None] | None = None) -> JoinResult:
     """Join drives of ``source`` (open read-only) into ``smap`` (open for writing): see the
     module docstring. ``configs``: the target's and the source's configs (``to_dict()``). ``localise_many`` localises several drives (a farm; default: one after
     the other here); ``progress`` gets the rows localised or copied since its last call
-    (each imported row twice with ``merge``).
+    (each imported row twice with ``merge``); ``exclusive`` and ``on_commit``: the service's
+    gate and component registry around the commit
+    (:func:`~sprint_map.storage.join.copy_drives`).
 
     Raises
     ------
@@ -300,7 +305,8 @@ def join_maps(smap: JoiningMap, source: MapStore, configs: tuple[dict[str, Any],
                 f"{', ...' if len(alone) > 10 else ''}; nothing was changed")
     began = time.monotonic()
     copied = copy_drives(store, source, plan, {s: r.edges for s, r in found.items()},
-                         progress) if plan.imports else []
+                         progress, exclusive=exclusive, on_commit=on_commit) \
+        if plan.imports else []
     crash_point("join.committed")
     copy_seconds = time.monotonic() - began
     by_source = {c.source.seq_id: c.added for c in copied}

@@ -33,7 +33,7 @@ from __future__ import annotations
 import hashlib
 import os
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -305,13 +305,19 @@ def _carried_edges(source: MapStore, plan: JoinPlan, ids: dict[int, int]
 
 def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
                 cross_edges: dict[int, list[EdgeSpec]],
-                progress: Callable[[int], None] | None = None) -> list[CopiedDrive]:
+                progress: Callable[[int], None] | None = None, *,
+                exclusive: Callable[[], AbstractContextManager[Any]] | None = None,
+                on_commit: Callable[[set[int]], None] | None = None) -> list[CopiedDrive]:
     """Copy the plan's drives (:attr:`JoinPlan.imports`) into ``target`` in one commit.
 
     ``cross_edges``: per source seq_id, the edges the join's merge adds from that drive to the
     target's earlier drives (``src``/``dst`` ``None`` for the drive itself, as for a new
     sequence); they are validated and written with the drive (provenance: the drive).
-    ``progress`` is called with the rows copied since the last call.
+    ``progress`` is called with the rows copied since the last call. ``exclusive``: a context
+    manager factory held around the transaction, the index's catch-up and ``on_commit`` only
+    (the service's map gate; the rows are fsynced before it); ``on_commit``: called inside it
+    with the components the join changed (those its edges reach as they were before, and the
+    imported drives' now), for a cache of components to invalidate.
 
     The rows of each drive are streamed from the source's shards into the target's
     (:data:`COPY_BATCH` at a time) and hashed against the source's digest; then one group
@@ -366,7 +372,18 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
                 txn.put(b"geo_frame", bytes(geo), db=target.env.db("meta"))
             crash_point("join.records_copied")
 
-        results = group.commit(extra)
+        before: set[int] = set()
+        if on_commit is not None:  # only this writer changes the union-find: roots hold
+            reached = {seq for edges in cross_edges.values() for e in edges
+                       for seq, _ in (e.src, e.dst) if seq is not None}
+            reached |= {d.present_as.seq_id for d in plan.drives if d.present_as is not None}
+            before = {target.component_of(seq) for seq in reached}
+        if exclusive is not None:
+            target.shards.sync()  # the rows' fsync, the slow part, before the gate
+        with exclusive() if exclusive is not None else nullcontext():
+            results = group.commit(extra)
+            if on_commit is not None:
+                on_commit(before | {target.component_of(r.sequence.seq_id) for r in results})
     return [CopiedDrive(d.source, r) for d, r in zip(plan.imports, results, strict=True)]
 
 
