@@ -310,21 +310,15 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
                 on_commit: Callable[[set[int]], None] | None = None) -> list[CopiedDrive]:
     """Copy the plan's drives (:attr:`JoinPlan.imports`) into ``target`` in one commit.
 
-    ``cross_edges``: per source seq_id, the edges the join's merge adds from that drive to the
-    target's earlier drives (``src``/``dst`` ``None`` for the drive itself, as for a new
-    sequence); they are validated and written with the drive (provenance: the drive).
-    ``progress`` is called with the rows copied since the last call. ``exclusive``: a context
-    manager factory held around the transaction, the index's catch-up and ``on_commit`` only
-    (the service's map gate; the rows are fsynced before it); ``on_commit``: called inside it
-    with the components the join changed (those its edges reach as they were before, and the
-    imported drives' now), for a cache of components to invalidate.
-
-    The rows of each drive are streamed from the source's shards into the target's
-    (:data:`COPY_BATCH` at a time) and hashed against the source's digest; then one group
-    transaction records every drive (its positions, digest, cross-map edges, union-find), copies
-    its per-drive databases and its carried edges, and adopts the source's geographic frame if
-    the target has none (crash points ``group.rows_written``, ``join.records_copied``,
-    ``group.before_commit``, ``group.committed``).
+    ``cross_edges``: per source seq_id, the edges the join's merge adds from that drive (``None``
+    ends: the drive itself), written with it (provenance: the drive). ``progress``: rows copied
+    since its last call. ``exclusive``: held around the transaction, the index's catch-up and
+    ``on_commit`` only (a service's gate; the rows are fsynced before); ``on_commit``: given the
+    components the join changed. Rows stream from the source's shards (:data:`COPY_BATCH` at a
+    time), hashed against the source's digest; one group transaction records every drive, its
+    per-drive databases and carried edges, and the source's geographic frame if the target has
+    none (crash points ``group.rows_written``, ``join.records_copied``, ``group.before_commit``,
+    ``group.committed``).
 
     Raises
     ------
@@ -335,7 +329,7 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
 
     Notes
     -----
-    O(N * dim) row I/O, O(N) position and per-drive records and O(E log n) edges, in one
+    O(N * dim) row I/O, O(N) position and per-drive records and O(E log n) edges in one
     transaction; memory O(COPY_BATCH * dim + one drive's positions).
     """
     with source.env.read() as stxn:
