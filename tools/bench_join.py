@@ -260,13 +260,12 @@ def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int
     rng = np.random.default_rng(seed)
     config = MapConfig(dim=dim, store=StoreOptions(index_type="flat"))
     for name in ("target", "source"):
-        with SprintMap.create(root / name, config) as m:
-            with m.group_commit():
-                for i, start in enumerate(range(0, vertices, drive_frames)):
-                    n = min(drive_frames, vertices - start)
-                    rows = rng.standard_normal((n, dim)).astype(np.float32)
-                    xy = np.c_[np.arange(n, dtype=float), np.full(n, float(i))]
-                    m.add_sequence(rows, name=f"{name}-{i}", positions=xy)
+        with SprintMap.create(root / name, config) as m, m.group_commit():
+            for i, start in enumerate(range(0, vertices, drive_frames)):
+                n = min(drive_frames, vertices - start)
+                rows = rng.standard_normal((n, dim)).astype(np.float32)
+                xy = np.c_[np.arange(n, dtype=float), np.full(n, float(i))]
+                m.add_sequence(rows, name=f"{name}-{i}", positions=xy)
     proc = subprocess.run([sys.executable, "-c", COPY_CHILD, str(root / "target"),
                            str(root / "source")], capture_output=True, text=True, check=True)
     child = json.loads(proc.stdout)
