@@ -399,8 +399,13 @@ def _copy_db(target: MapStore, txn: lmdb.Transaction, source: MapStore,
                     break
                 yield new + bytes(key[4:]), bytes(value)
 
-        # the new ids are past every id of the target: its keys sort last (appended)
-        txn.cursor(db=db).putmulti(records(), append=True)
+        # the new ids are past every id of the target: its keys sort last (appended); LMDB
+        # skips, without an error, a key that does not sort after the database's last one
+        consumed, added = txn.cursor(db=db).putmulti(records(), append=True)
+        if added != consumed:
+            raise MapCorruptError(f"the target's {name!r} database holds records of sequence "
+                                  f"ids at or past {ids[d.source.seq_id]}, beyond its last "
+                                  "sequence: run `sprint-map check` on the target")
 
 
 def _put_edges(target: MapStore, txn: lmdb.Transaction, source: MapStore, plan: JoinPlan,

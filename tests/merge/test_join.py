@@ -25,6 +25,7 @@ from sprint_map.errors import (
     DuplicateNameError,
     IncompatibleMapError,
     InputError,
+    MapCorruptError,
     MapLockedError,
     StorageIOError,
     UnconnectedJoinError,
@@ -391,3 +392,17 @@ def test_localising_in_other_processes_equals_serial(maps, tmp_path):
     with SprintMap.open(target) as m:
         m.join(source, localise_many=farm)
     assert state(target)["edges"] == state(serial)["edges"]
+
+
+def test_stray_records_past_the_targets_last_drive_refuse_the_join(maps):
+    """LMDB's appending put skips a key that does not sort last without an error: a per-drive
+    record of a sequence id the target has not reached yet (a corrupt target) must fail the
+    join, not lose the imported drive's records."""
+    target, source = maps
+    with SprintMap.open(target) as m:
+        m.store.env.write(lambda txn: txn.put((99).to_bytes(4, "big") + (0).to_bytes(4, "big"),
+                                              b"x", db=m.store.env.db("thumbnails")))
+    before = files(target)
+    with SprintMap.open(target) as m, pytest.raises(MapCorruptError, match="'thumbnails'"):
+        m.join(source, merge=False)
+    assert files(target) == before
