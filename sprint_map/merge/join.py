@@ -31,22 +31,22 @@ import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from sprint_map.errors import IncompatibleMapError, UnconnectedJoinError
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.localize.gnss import GnssAid
-from sprint_map.localize.localizer import SEARCH_BATCH, Localizer
 from sprint_map.merge.commit import merge_edges
 from sprint_map.merge.prepared import PreparableMap
 from sprint_map.merge.rule import select_merges
-from sprint_map.merge.smoothing import smoothed_decisions
 from sprint_map.storage.join import JoinPlan, copy_drives, drive_rows, plan_join
 from sprint_map.storage.records import EdgeSpec, SequenceRecord
 from sprint_map.storage.store import MapStore
 from sprint_map.testing.crash import crash_point
+
+if TYPE_CHECKING:  # a copy (``merge=False``) loads no HMM
+    from sprint_map.localize.gnss import GnssAid
 
 __all__ = ["DriveLocalisation", "JoinResult", "JoinedDrive", "JoiningMap", "check_compatible",
            "connected_drives", "join_maps", "localise_drive"]
@@ -202,6 +202,9 @@ def localise_drive(smap: JoiningMap, source: MapStore, record: SequenceRecord,
     ``ingest``'s cost per frame (one batched k-NN search, one HMM step, the smoothing passes),
     plus reading the drive's rows, positions and thumbnails from the source.
     """
+    from sprint_map.localize.localizer import SEARCH_BATCH, Localizer
+    from sprint_map.merge.smoothing import smoothed_decisions
+
     with source.env.read() as txn:
         total = source.counter("next_vertex_id", txn)
     positions = source.positions(record.seq_id)

@@ -76,6 +76,11 @@ class GroupWriter(UncommittedRows):
         return [s.record for s in self._added if isinstance(s, StagedSequence)]
 
     @property
+    def digests(self) -> list[bytes]:
+        """The content digests of :attr:`staged`'s rows, in order."""
+        return [s.digest for s in self._added if isinstance(s, StagedSequence)]
+
+    @property
     def frames(self) -> int:
         """Rows the group has written (uncommitted)."""
         return sum(r.length for r in self.staged)

@@ -49,7 +49,16 @@ from sprint_map.errors import (
     UnknownSequenceError,
 )
 from sprint_map.storage.generation import current_data
-from sprint_map.storage.keys import DIGEST_BYTES, EDGE_KEY, EDGE_VAL, NO_QUERY, u32, u64
+from sprint_map.storage.keys import (
+    DIGEST_BYTES,
+    EDGE_KEY,
+    EDGE_VAL,
+    NO_QUERY,
+    VERTEX_VAL,
+    VERTEX_VAL_SIGMA,
+    u32,
+    u64,
+)
 from sprint_map.storage.lmdb_env import DB_NAMES, lock_out_writers
 from sprint_map.storage.records import AddResult, EdgeSpec, SequenceRecord
 from sprint_map.storage.store import MapStore
@@ -338,19 +347,16 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
     with target.begin_group() as group:
         for d in plan.imports:
             rec = d.source
-            digest = hashlib.blake2b(digest_size=DIGEST_BYTES)
 
-            def rows(rec: SequenceRecord = rec, digest: hashlib.blake2b = digest
-                     ) -> Iterator[Descriptors]:
+            def rows(rec: SequenceRecord = rec) -> Iterator[Descriptors]:
                 for batch in drive_rows(source, rec, total):
-                    digest.update(batch.astype("<f4", copy=False).data)
                     yield batch
                     if progress is not None:
                         progress(len(batch))
 
-            group.add(rows(), d.name, rec.source, source.positions(rec.seq_id),
-                      cross_edges.get(rec.seq_id, ()))
-            if digest.digest() != d.digest:
+            # positions are copied as records in the transaction (``_copy_positions``)
+            group.add(rows(), d.name, rec.source, None, cross_edges.get(rec.seq_id, ()))
+            if group.digests[-1] != d.digest:
                 raise MapCorruptError(f"the source's drive {rec.name!r} (sequence {rec.seq_id}) "
                                       "has rows that differ from its content digest: run "
                                       "`sprint-map check` on the source")
@@ -359,6 +365,7 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
 
         def extra(txn: lmdb.Transaction) -> None:
             with source.env.read() as src_txn:
+                _copy_positions(target, txn, source, src_txn, plan, staged)
                 for name in plan.databases:
                     _copy_db(target, txn, source, src_txn, name, plan, ids)
             _put_edges(target, txn, source, plan, ids)
@@ -379,6 +386,38 @@ def copy_drives(target: MapStore, source: MapStore, plan: JoinPlan,
             if on_commit is not None:
                 on_commit(before | {target.component_of(r.sequence.seq_id) for r in results})
     return [CopiedDrive(d.source, r) for d, r in zip(plan.imports, results, strict=True)]
+
+
+def _copy_positions(target: MapStore, txn: lmdb.Transaction, source: MapStore,
+                    src_txn: lmdb.Transaction, plan: JoinPlan,
+                    copied: Sequence[SequenceRecord]) -> None:
+    """Copy the imported drives' ``vertex_data`` records (positions and fixes), their keys
+    shifted to the copies' vertex ids and their values as they are (checked: one of the two
+    record widths). O(N) records, keys renumbered with numpy a drive at a time."""
+    db = target.env.db("vertex_data")
+    cursor = src_txn.cursor(db=source.env.db("vertex_data"))
+    for d, rec in zip(plan.imports, copied, strict=True):
+        first, last = d.source.first_vertex, d.source.last_vertex
+        if not cursor.set_range(u64(first)):
+            continue
+        keys, values = [], []
+        for key, value in cursor:
+            if len(key) != 8 or bytes(key) > u64(last):
+                break
+            if len(value) not in (VERTEX_VAL.size, VERTEX_VAL_SIGMA.size):
+                raise MapCorruptError(f"the source's position record of vertex "
+                                      f"{int.from_bytes(key, 'big')} is {len(value)} bytes")
+            keys.append(bytes(key))
+            values.append(bytes(value))
+        if not keys:
+            continue
+        ids = np.frombuffer(b"".join(keys), dtype=">u8").astype(np.int64)
+        new = (ids - first + rec.first_vertex).astype(">u8").tobytes()
+        consumed, added = txn.cursor(db=db).putmulti(
+            ((new[8 * i: 8 * i + 8], v) for i, v in enumerate(values)), append=True)
+        if added != consumed:
+            raise MapCorruptError("the target's positions hold records past its last vertex: "
+                                  "run `sprint-map check` on the target")
 
 
 def _copy_db(target: MapStore, txn: lmdb.Transaction, source: MapStore,
