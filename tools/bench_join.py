@@ -112,9 +112,15 @@ def nordland_world(a: tuple[int, int], b: tuple[int, int], chunk: int) -> World:
     return World(MapConfig.for_descriptor("hog"), van_a, van_b, van_a + van_b, held, 1.0, 180.0)
 
 
+def ingest(m: SprintMap, d: Drive) -> Any:
+    """As ``sprint-map ingest --positions`` does: the positions stored, and used as fixes."""
+    return m.ingest(d.rows, name=d.name, positions=np.c_[d.xy, d.heading],
+                    fixes=np.c_[d.xy, np.full(len(d.xy), np.nan)])
+
+
 def build(path: Path, config: MapConfig, drives: list[Drive]) -> list[Any]:
     with SprintMap.create(path, config) as m:
-        return [m.ingest(d.rows, name=d.name, positions=np.c_[d.xy, d.heading]) for d in drives]
+        return [ingest(m, d) for d in drives]
 
 
 class Places:
@@ -198,7 +204,7 @@ def quality(world: World, root: Path) -> dict[str, Any]:
     started = time.perf_counter()
     with SprintMap.open(ingested) as m:
         for d in world.van_b:
-            m.ingest(d.rows, name=d.name, positions=np.c_[d.xy, d.heading])
+            ingest(m, d)
     ingest_s = time.perf_counter() - started
     scores = {name: score(root / name, world) for name in ("a", "b", "joined", "serial")}
     names_a, names_b = {d.name for d in world.van_a}, {d.name for d in world.van_b}
