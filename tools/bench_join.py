@@ -96,7 +96,9 @@ def nordland_world(a: tuple[int, int], b: tuple[int, int], chunk: int) -> World:
 
     def rows(season: str, lo: int, hi: int) -> np.ndarray:
         files = [NORDLAND / season / f"images-{10 * (i + 1):05d}.png" for i in range(lo, hi)]
-        return spec.describe_batch(cv2.imread(str(f)) for f in files).astype(np.float32)
+        images = [cv2.imread(str(f)) for f in files]
+        assert all(i is not None for i in images), f"unreadable frames of {season}"
+        return spec.describe_batch(i for i in images if i is not None).astype(np.float32)
 
     def drives(season: str, lo: int, hi: int) -> list[Drive]:
         out = []
@@ -137,8 +139,10 @@ class Places:
         self.all = np.concatenate(list(self.by_seq.values()))
         self.tree = cKDTree(self.all[:, :2])
 
-    def at(self, seq: int, image: int) -> np.ndarray:
-        return self.by_seq[seq][image]
+    def at(self, seq: int, image: int | None) -> np.ndarray:
+        assert image is not None
+        row: np.ndarray = self.by_seq[seq][image]
+        return row
 
 
 def same_place(p: np.ndarray, xy: np.ndarray, heading: float, radius: float,
@@ -147,7 +151,7 @@ def same_place(p: np.ndarray, xy: np.ndarray, heading: float, radius: float,
         return False
     if np.isnan(heading) or np.isnan(p[2]):
         return True
-    return abs((p[2] - heading + 180) % 360 - 180) <= max_heading
+    return bool(abs((p[2] - heading + 180) % 360 - 180) <= max_heading)
 
 
 def score(path: Path, world: World) -> dict[str, np.ndarray]:
@@ -210,7 +214,7 @@ def quality(world: World, root: Path) -> dict[str, Any]:
     names_a, names_b = {d.name for d in world.van_a}, {d.name for d in world.van_b}
     report = result.to_dict()
     on_j = scores["joined"]["matchable"]
-    out = {
+    out: dict[str, Any] = {
         "held_frames": int(len(on_j)),
         "recall_at_1": {
             "A_alone_on_A": recall(scores["a"], scores["a"]["matchable"]),
