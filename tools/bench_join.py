@@ -27,7 +27,8 @@ same drives, the same run).
 
 **Copy** (``--copy V``): a source of ``V`` random vertices (drives of ``--drive-frames``) joined
 with ``--no-merge`` into a target of ``V`` vertices, in a child process: vertices/s and the
-child's peak RSS.
+child's peak RSS (``--index-type``: the maps' index; the exact ``flat`` one holds every row in
+memory, so a join's RSS then grows with the maps).
 
     python tools/bench_join.py --world latent --json join-latent.json
     python tools/bench_join.py --world nordland --json join-nordland.json
@@ -265,10 +266,10 @@ print(json.dumps({"seconds": time.perf_counter() - t, "copy_seconds": r["copy_se
 """
 
 
-def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int
-               ) -> dict[str, Any]:
+def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int,
+               index_type: str = "auto") -> dict[str, Any]:
     rng = np.random.default_rng(seed)
-    config = MapConfig(dim=dim, store=StoreOptions(index_type="flat"))
+    config = MapConfig(dim=dim, store=StoreOptions(index_type=index_type))
     for name in ("target", "source"):
         with SprintMap.create(root / name, config) as m, m.group_commit():
             for i, start in enumerate(range(0, vertices, drive_frames)):
@@ -282,6 +283,7 @@ def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int
     with SprintMap.open(root / "target", readonly=True) as m:
         ok = m.check().ok
     return {"vertices": vertices, "dim": dim, "drive_frames": drive_frames,
+            "index_type": index_type,
             "seconds": round(child["seconds"], 3), "copy_seconds": round(child["copy_seconds"], 3),
             "vertices_per_s": round(child["vertices"] / child["copy_seconds"]),
             "peak_rss_mb": round(child["rss_mb"], 1), "check_ok": ok,
@@ -303,6 +305,7 @@ def main() -> None:
     ap.add_argument("--copy", type=int, default=0, metavar="V")
     ap.add_argument("--dim", type=int, default=128)
     ap.add_argument("--drive-frames", type=int, default=10_000)
+    ap.add_argument("--index-type", default="auto", help="--copy: the maps' index_type")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args()
     out: dict[str, Any] = {"command": " ".join(sys.argv)}
@@ -319,7 +322,7 @@ def main() -> None:
         if args.copy:
             (root / "copy").mkdir()
             out["copy"] = copy_bench(args.copy, args.dim, args.drive_frames, root / "copy",
-                                     args.seed)
+                                     args.seed, args.index_type)
     out["peak_rss_mb_parent"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     text = json.dumps(out, indent=2)
     print(text)

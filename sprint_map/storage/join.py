@@ -46,6 +46,7 @@ from sprint_map.errors import (
     InputError,
     MapCorruptError,
     MapLockedError,
+    StorageIOError,
     UnknownSequenceError,
 )
 from sprint_map.storage.generation import current_data
@@ -170,10 +171,48 @@ class CopiedDrive:
 def drive_rows(store: MapStore, record: SequenceRecord, total: int,
                batch: int = COPY_BATCH) -> Iterator[Descriptors]:
     """The rows of sequence ``record`` of ``store`` (holding ``total`` vertices), ``batch`` at a
-    time (read-only memory-mapped views, or copies where a batch spans shards)."""
-    for start in range(0, record.length, batch):
-        a = record.first_vertex + start
-        yield store.shards.rows(a, min(a + batch, record.last_vertex + 1), total)
+    time, read with ``pread`` (no memory map: the pages read do not stay in this process's
+    memory, so a copy of a large map holds one batch at a time).
+
+    Raises
+    ------
+    MapCorruptError
+        A shard shorter than its committed rows (never read past its end).
+    StorageIOError
+        A shard that cannot be read.
+    """
+    shards = store.shards
+    fds: dict[int, int] = {}
+    try:
+        for first in range(record.first_vertex, record.last_vertex + 1, batch):
+            stop = min(first + batch, record.last_vertex + 1)
+            parts = []
+            row = first
+            while row < stop:
+                shard, offset = divmod(row, shards.shard_rows)
+                take = min(stop - row, shards.shard_rows - offset)
+                if shard not in fds:
+                    committed = min(shards.shard_rows, total - shard * shards.shard_rows)
+                    problem = shards.size_problem(shard, committed)
+                    if problem is not None:
+                        raise MapCorruptError(f"{problem}: committed descriptors are lost")
+                    try:
+                        fds[shard] = os.open(shards.path(shard), os.O_RDONLY | os.O_CLOEXEC)
+                    except OSError as exc:
+                        raise StorageIOError(f"cannot read {shards.path(shard)}: {exc}") from exc
+                want = take * shards.row_bytes
+                try:
+                    data = os.pread(fds[shard], want, offset * shards.row_bytes)
+                except OSError as exc:
+                    raise StorageIOError(f"cannot read {shards.path(shard)}: {exc}") from exc
+                if len(data) != want:
+                    raise MapCorruptError(f"{shards.path(shard)} ends inside committed rows")
+                parts.append(np.frombuffer(data, dtype="<f4").reshape(take, shards.dim))
+                row += take
+            yield parts[0] if len(parts) == 1 else np.concatenate(parts)
+    finally:
+        for fd in fds.values():
+            os.close(fd)
 
 
 def _rows_digest(store: MapStore, record: SequenceRecord, total: int) -> bytes:
