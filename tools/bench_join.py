@@ -20,6 +20,7 @@ same drives, the same run).
 
 - ``latent``: the descriptor-level world (:mod:`sprint_map.synth.latent`, preset
   ``latent-lifelong``); traversals alternate between the vans, the last ``--held`` are held back.
+- ``city``: the rendered city (:mod:`sprint_map.synth.city`, HoG, thumbnails), the same split.
 - ``nordland``: a cut of the real ride (HoG, ``/work/shared/data/nordland``): van A drove summer
   frames [a0, a1), van B winter frames [b0, b1) (overlapping, so the maps can merge); held back:
   winter frames over A's area and summer frames over B's, i.e. frames neither map holds.
@@ -31,6 +32,7 @@ child's peak RSS (``--index-type``: the maps' index; the exact ``flat`` one hold
 memory, so a join's RSS then grows with the maps).
 
     python tools/bench_join.py --world latent --json join-latent.json
+    python tools/bench_join.py --world city --json join-city.json
     python tools/bench_join.py --world nordland --json join-nordland.json
     python tools/bench_join.py --copy 200000 --dim 128
 """
@@ -63,6 +65,7 @@ class Drive:
     rows: np.ndarray
     xy: np.ndarray  # (n, 2)
     heading: np.ndarray  # (n,) degrees, NaN: none
+    thumbnails: list[bytes] | None = None
 
 
 @dataclass
@@ -86,6 +89,26 @@ def latent_world(seed: int, traversals: int, frames: int, held: int) -> World:
     mapped, kept = drives[:-held], drives[-held:]
     return World(MapConfig(dim=drives[0].rows.shape[1]), mapped[0::2], mapped[1::2], mapped,
                  kept, config.radius_m, config.heading_deg)
+
+
+def city_world(seed: int, traversals: int, frames: int, held: int) -> World:
+    """The rendered city (HoG of its images, with a thumbnail of each frame: the merge
+    verifies on them, as ``ingest --thumbnails`` does)."""
+    from sprint_map.frontend.thumbnails import make_thumbnail
+    from sprint_map.synth import CityConfig, iter_city
+
+    config = CityConfig()
+    spec = MapConfig.for_descriptor("hog").descriptor_spec()
+    assert spec is not None
+    drives = []
+    for t in iter_city(traversals, frames, seed=seed, config=config):
+        drives.append(Drive(t.name, spec.describe_batch(t.images).astype(np.float32),
+                            t.positions[:, 1:3].copy(), t.positions[:, 3].copy(),
+                            [make_thumbnail(image) for image in t.images]))
+    mapped, kept = drives[:-held], drives[-held:]
+    gt = config.ground_truth_spec()
+    return World(MapConfig.for_descriptor("hog"), mapped[0::2], mapped[1::2], mapped, kept,
+                 gt.radius_m, 180.0 if gt.heading_deg is None else gt.heading_deg)
 
 
 def nordland_world(a: tuple[int, int], b: tuple[int, int], chunk: int) -> World:
@@ -118,7 +141,7 @@ def nordland_world(a: tuple[int, int], b: tuple[int, int], chunk: int) -> World:
 def ingest(m: SprintMap, d: Drive) -> Any:
     """As ``sprint-map ingest --positions`` does: the positions stored, and used as fixes."""
     return m.ingest(d.rows, name=d.name, positions=np.c_[d.xy, d.heading],
-                    fixes=np.c_[d.xy, np.full(len(d.xy), np.nan)])
+                    fixes=np.c_[d.xy, np.full(len(d.xy), np.nan)], thumbnails=d.thumbnails)
 
 
 def build(path: Path, config: MapConfig, drives: list[Drive]) -> list[Any]:
@@ -294,7 +317,7 @@ def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--world", choices=["latent", "nordland"])
+    ap.add_argument("--world", choices=["latent", "city", "nordland"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--traversals", type=int, default=10)
     ap.add_argument("--frames", type=int, default=200)
@@ -314,6 +337,9 @@ def main() -> None:
         if args.world == "latent":
             world = latent_world(args.seed, args.traversals, args.frames, args.held)
             out["latent"] = quality(world, root / "latent")
+        elif args.world == "city":
+            world = city_world(args.seed, args.traversals, args.frames, args.held)
+            out["city"] = quality(world, root / "city")
         elif args.world == "nordland":
             a = tuple(int(x) for x in args.nordland_a.split(","))
             b = tuple(int(x) for x in args.nordland_b.split(","))
