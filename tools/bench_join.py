@@ -245,6 +245,8 @@ def quality(world: World, root: Path) -> dict[str, Any]:
             "joined_on_A": recall(scores["joined"], scores["a"]["matchable"]),
             "B_alone_on_B": recall(scores["b"], scores["b"]["matchable"]),
             "joined_on_B": recall(scores["joined"], scores["b"]["matchable"]),
+            "serial_on_A": recall(scores["serial"], scores["a"]["matchable"]),
+            "serial_on_B": recall(scores["serial"], scores["b"]["matchable"]),
             "joined": recall(scores["joined"], on_j),
             "serial": recall(scores["serial"], on_j),
         },
