@@ -435,6 +435,7 @@ def test_every_error_class_is_exercised():
     tried = {case.error for case in CASES.values()}
     tried |= {ReadOnlyMapError, MapLockedError, StorageIOError}  # below
     tried |= {errors.ReplicaLostError}  # tests/fleet/test_serve_ray.py kills a replica
+    tried |= {errors.IncompatibleMapError, errors.UnconnectedJoinError}  # tests/merge/test_join.py
     untested = {c.__name__ for c in vars(errors).values()
                 if isinstance(c, type) and issubclass(c, SprintMapError)} - {
         c.__name__ for c in tried if c is not None}

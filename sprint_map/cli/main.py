@@ -360,6 +360,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         click.echo(f"Warning: {warning}", err=True)
 
 # The other commands register on the same group when their modules are imported.
+from sprint_map.cli.join import join  # noqa: E402
 from sprint_map.cli.maintenance import (  # noqa: E402
     check,
     compact,
@@ -375,4 +376,4 @@ from sprint_map.cli.maintenance import (  # noqa: E402
 from sprint_map.cli.runs import demo, eval_, serve, view  # noqa: E402
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
-           "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
+           "ingest", "init", "join", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]

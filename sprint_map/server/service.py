@@ -49,7 +49,7 @@ from sprint_map.server.sessions import (
     Session,
     SessionRegistry,
 )
-from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
+from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter, JoinJob
 
 __all__ = ["LocalisationService"]
 
@@ -416,6 +416,19 @@ class LocalisationService:
         else:
             session.state = OPEN
             self.metrics.commits.inc(result="error")
+
+    async def join(self, source: str, options: dict[str, Any]) -> dict[str, Any]:
+        """Join another map's drives into the served map through the writer (in order with
+        the commits; sessions keep streaming meanwhile); returns once durable."""
+        self._refuse_if_closing()
+        future = self.writer.submit(JoinJob(source, options))
+        try:
+            result = await asyncio.wrap_future(future)
+        except SprintMapError as exc:
+            raise from_library(exc) from None
+        self.metrics.edges.inc(result.cross_edges)
+        out: dict[str, Any] = result.to_dict()
+        return out
 
     # --- map --------------------------------------------------------------------------------
     async def map_info(self) -> dict[str, Any]:
