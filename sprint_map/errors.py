@@ -9,10 +9,10 @@ finding violations, 2 for command-line usage errors reported by click).
 from __future__ import annotations
 
 __all__ = ["ConfigError", "DescriptorShapeError", "DuplicateNameError", "EmptySequenceError",
-           "InputError", "InvalidDescriptorError", "ListenError", "MapCorruptError",
+           "IncompatibleMapError", "InputError", "InvalidDescriptorError", "ListenError", "MapCorruptError",
            "MapExistsError", "MapLockedError", "NotAMapError", "ReadOnlyMapError",
            "ReplicaLostError", "SchemaVersionError", "SprintMapError", "StorageIOError",
-           "UnknownSequenceError", "UnsafeServeError"]
+           "UnconnectedJoinError", "UnknownSequenceError", "UnsafeServeError"]
 
 
 class SprintMapError(Exception):
@@ -61,9 +61,13 @@ class DescriptorShapeError(SprintMapError):
 
 
 class InvalidDescriptorError(SprintMapError):
-    """Descriptors contain NaN or Inf."""
+    """Descriptors contain NaN or Inf, or values no descriptor holds (an overflow)."""
 
     exit_code = 9
+    #: Raised by a describer: the refused image's row among those it was given (a frame
+    #: source then names its frame), and the message without the row. None / "" otherwise.
+    row: int | None = None
+    detail: str = ""
 
 
 class DuplicateNameError(SprintMapError):
@@ -125,3 +129,17 @@ class ReplicaLostError(SprintMapError):
     whose sessions end with it; the service answers their requests 503)."""
 
     exit_code = 20
+
+
+class IncompatibleMapError(SprintMapError):
+    """Two maps cannot be joined: their descriptors (kind, dimension, model, parameters) or
+    their coordinate frames differ (``join``; the message names the difference)."""
+
+    exit_code = 21
+
+
+class UnconnectedJoinError(SprintMapError):
+    """``join --require-connected`` refused a join that would leave an imported drive with no
+    path to what the target held (nothing was changed)."""
+
+    exit_code = 22

@@ -58,6 +58,7 @@ if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM
     from sprint_map.hmm.cache import ComponentCache
     from sprint_map.localize.gnss import GnssAid, PositionIndex
     from sprint_map.localize.localizer import FrameDecision, Localizer, MapView, Timing
+    from sprint_map.merge.join import DriveLocalisation, JoinResult, LocaliseMany
     from sprint_map.merge.prepared import PreparedDrive
 
 
@@ -364,6 +365,56 @@ class SprintMap(MapReading):
         """
         return ingest_drives(self, drives, merge=merge, hmm=hmm, group_drives=group_drives,
                              on_committed=on_committed, observe=observe)
+
+    def join(self, source: str | os.PathLike[str], *, drives: Sequence[str] | None = None,
+             prefix: str = "", merge: bool = True, require_connected: bool = False,
+             hmm: HMMConfig | None = None, localise_many: LocaliseMany | None = None,
+             progress: Callable[[int], None] | None = None,
+             exclusive: Callable[[], AbstractContextManager[Any]] | None = None,
+             on_commit: Callable[[set[int]], None] | None = None) -> JoinResult:
+        """Bring drives of the map at ``source`` into this one with everything they carry,
+        then localise each against what this map held before and merge its confident
+        decisions as ``ingest`` would (``merge=False``: only copy), in one atomic commit.
+
+        ``drives``: names of the source's drives (default: all); ``prefix``: prepended to their
+        names (to resolve clashes); ``require_connected``: refuse a join that leaves an
+        imported drive with no path to this map's drives. ``source`` is opened read-only and
+        never written; a writer is kept out of it meanwhile. A drive this map already holds
+        (same content digest) is not copied again. ``localise_many``: localise several drives
+        elsewhere (a Ray farm, :func:`sprint_map.fleet.farm.farm_localise_join`); ``progress``:
+        rows done since its last call; ``exclusive``, ``on_commit``: a service's map gate and
+        component registry around the commit only (its writer thread,
+        :mod:`sprint_map.server.writer`). See :mod:`sprint_map.merge.join`.
+
+        Raises
+        ------
+        InputError
+            ``source`` is this map.
+        MapLockedError
+            A writer is at work on ``source``.
+        IncompatibleMapError, UnknownSequenceError, DuplicateNameError, UnconnectedJoinError
+            Refused before anything is written (both maps unchanged).
+        """
+        from sprint_map.merge.join import join_maps
+        from sprint_map.storage.join import open_source_map
+
+        with open_source_map(source, self.store, stored_config) as src:
+            configs = (self.config.to_dict(), stored_config(src.config_record).to_dict())
+            return join_maps(self, src, configs, drives=drives, prefix=prefix, merge=merge,
+                             require_connected=require_connected, hmm=hmm,
+                             localise_many=localise_many, progress=progress,
+                             exclusive=exclusive, on_commit=on_commit)
+
+    def localise_for_join(self, source: str | os.PathLike[str], seq_ids: Sequence[int],
+                          hmm: HMMConfig | None = None) -> list[DriveLocalisation]:
+        """Localise drives ``seq_ids`` of the map at ``source`` against this one (read-only is
+        enough) as :meth:`join` does, without committing: what a farm's task does for a join
+        (:mod:`sprint_map.fleet.join`). Costs what ``ingest``'s localisation costs."""
+        from sprint_map.merge.join import localise_drive
+        from sprint_map.storage.join import open_source_map
+
+        with open_source_map(source, self.store) as src:
+            return [localise_drive(self, src, src.sequence(i), hmm) for i in seq_ids]
 
     def select_merges(self, decisions: Sequence[FrameDecision]) -> np.ndarray:
         """The map's merge rule over one drive's decisions: which would become edges.
@@ -675,6 +726,15 @@ class SprintMap(MapReading):
             raise DescriptorShapeError(
                 f"{src}: descriptors have {source.dim} dimensions, the map has {self.config.dim}"
             )
+        if spec is not None and spec.kind == "onnx":
+            from sprint_map.frontend.onnx_model import unverified_files
+
+            unverified = unverified_files(spec.params)
+            if unverified and not any("weights file" in w for w in self.warnings):
+                self.warnings.append(
+                    f"the map records the digest of {spec.params['model']} only (made before "
+                    f"weights files were): its weights file(s) {', '.join(unverified)} are "
+                    "not verified")
         return source
 
     # --- reading ----------------------------------------------------------------------------

@@ -3,13 +3,14 @@ vertices, descriptors, positions and thumbnails, components, exports, and k-NN s
 
 A mixin of the facade over its store (:class:`~sprint_map.storage.store.MapStore`); each call
 reads one consistent snapshot. Nothing here changes the map but the geographic frame that
-:meth:`MapReading.metric_positions` sets once, the first time a map is given latitudes.
+:meth:`MapReading.metric_positions` sets once, the first time a map is given latitudes (after
+checking that the map keeps no planar positions: a map keeps one frame).
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
 from sprint_map.errors import InputError
@@ -143,29 +144,80 @@ class MapReading:
         record = self.store.geo_frame()
         return None if record is None else GeoFrame.from_dict(record)
 
+    def position_frame(self) -> GeoFrame | str | None:
+        """The frame of the positions this map keeps: its :class:`GeoFrame` (UTM zone) when
+        it was given latitude/longitude, ``"planar"`` when it holds positions given as
+        ``x, y`` (no geographic frame recorded), None before any position. O(1)."""
+        frame = self.geo_frame()
+        if frame is not None:
+            return frame
+        return "planar" if self.store.has_positions() else None
+
     def metric_positions(self, positions: Positions | None) -> Float64Array | None:
         """Positions as the map stores them (``(n, 5)`` ``x, y, heading, time, sigma_m``):
         latitude/longitude are projected into the map's UTM zone, which the first geographic
         positions a map is given choose (the zone of their first fix) and store, once, in a
-        transaction of their own. Planar positions are taken as they are. O(n).
+        transaction of their own (a read-only map only projects into it). Planar positions
+        are taken as they are. O(n).
 
         Raises
         ------
         InputError
-            Geographic positions without a single fix.
+            Geographic positions without a single fix; positions of the other frame than the
+            map's (:meth:`check_position_frames`).
         """
-        if positions is None:
-            return None
-        if not positions.geographic:
-            return positions.rows()
-        frame = self.geo_frame()
-        if frame is None:
-            fix = positions.first_fix()
-            if fix is None:
-                raise InputError("geographic positions without any fix: nothing to place")
-            frame = GeoFrame.from_dict(self.store.set_geo_frame(
-                GeoFrame.for_fix(*fix).to_dict()))
-        return positions.metric(frame).rows()
+        return self.metric_positions_of([positions])[0]
+
+    def check_position_frames(self, tables: Sequence[Positions | None]) -> None:
+        """Refuse, before anything changes, positions that do not share one frame with each
+        other and with the map (:meth:`position_frame`): latitude/longitude into a map of
+        planar ``x, y`` or the reverse, or both kinds in one call. O(len(tables)).
+
+        Raises
+        ------
+        InputError
+            Naming the frame the map keeps and the one given.
+        """
+        kinds = {"geographic" if t.geographic else "planar" for t in tables if t is not None}
+        if len(kinds) > 1:
+            raise InputError("positions mix latitude/longitude and planar x, y: a map keeps one "
+                             "frame (give all drives lat,lon or all x,y)")
+        if not kinds:
+            return
+        given = kinds.pop()
+        kept = self.position_frame()
+        if kept is None or (given == "planar") == (kept == "planar"):
+            return
+        if given == "planar":
+            assert isinstance(kept, GeoFrame)
+            raise InputError(f"planar x, y positions given to a map of latitude/longitude (kept "
+                             f"in UTM zone {kept.zone}{'S' if kept.south else 'N'}): give "
+                             "lat,lon positions, or use another map")
+        raise InputError("latitude/longitude positions given to a map of planar x, y "
+                         "positions: give x,y positions in the map's frame, or use another map")
+
+    def metric_positions_of(self, tables: Sequence[Positions | None]
+                            ) -> list[Float64Array | None]:
+        """:meth:`metric_positions` of several drives' positions (one ingest), checked
+        together first (:meth:`check_position_frames`): nothing is stored when any is refused.
+        O(total rows)."""
+        self.check_position_frames(tables)
+        out: list[Float64Array | None] = []
+        for positions in tables:
+            if positions is None or not positions.geographic:
+                out.append(None if positions is None else positions.rows())
+                continue
+            frame = self.geo_frame()
+            if frame is None:
+                first = next((t.first_fix() for t in tables
+                              if t is not None and t.first_fix() is not None), None)
+                if first is None:
+                    raise InputError("geographic positions without any fix: nothing to place")
+                frame = GeoFrame.for_fix(*first)
+                if not self.store.readonly:
+                    frame = GeoFrame.from_dict(self.store.set_geo_frame(frame.to_dict()))
+            out.append(positions.metric(frame).rows())
+        return out
 
     def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
         """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the

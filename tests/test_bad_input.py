@@ -99,8 +99,9 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     np.save(root / "good.npy", good)
     np.save(root / "one.npy", good[:1] + 0.01)
     np.save(root / "empty.npy", np.zeros((0, DIM), np.float32))
-    for name, value in (("nan", np.nan), ("inf", np.inf), ("minus_inf", -np.inf)):
-        bad = good.copy()
+    for name, value in (("nan", np.nan), ("inf", np.inf), ("minus_inf", -np.inf),
+                        ("overflow", 1e30), ("beyond_float32", -1e300)):
+        bad = good.astype(np.float64)
         bad[7, 3] = value
         np.save(root / f"{name}.npy", bad)
     np.save(root / "dim.npy", np.zeros((4, DIM + 1), np.float32))
@@ -224,6 +225,11 @@ CASES: dict[str, Case] = {
     "nan": Case("ingest {map} {in}/nan.npy", InvalidDescriptorError, "row 7 contains NaN or Inf"),
     "inf": Case("ingest {map} {in}/inf.npy", InvalidDescriptorError, "row 7 contains NaN or Inf"),
     "minus-inf": Case("ingest {map} {in}/minus_inf.npy", InvalidDescriptorError, "row 7"),
+    # an overflow is no descriptor either (its float32 squared distances would be Inf)
+    "overflow": Case("ingest {map} {in}/overflow.npy", InvalidDescriptorError,
+                     "row 7 is out of range (element 3 is 1e+30, beyond +-1e+15"),
+    "beyond-float32": Case("ingest {map} {in}/beyond_float32.npy", InvalidDescriptorError,
+                           "row 7 is out of range (element 3 is -1e+300"),
     "wrong-dim": Case("ingest {map} {in}/dim.npy", DescriptorShapeError,
                       "descriptors have 17 dimensions, the map has 16"),
     "one-dimensional": Case("ingest {map} {in}/flat.npy", DescriptorShapeError, "2-D"),
@@ -429,6 +435,7 @@ def test_every_error_class_is_exercised():
     tried = {case.error for case in CASES.values()}
     tried |= {ReadOnlyMapError, MapLockedError, StorageIOError}  # below
     tried |= {errors.ReplicaLostError}  # tests/fleet/test_serve_ray.py kills a replica
+    tried |= {errors.IncompatibleMapError, errors.UnconnectedJoinError}  # tests/merge/test_join.py
     untested = {c.__name__ for c in vars(errors).values()
                 if isinstance(c, type) and issubclass(c, SprintMapError)} - {
         c.__name__ for c in tried if c is not None}

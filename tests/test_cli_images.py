@@ -131,3 +131,29 @@ def test_thumbnails_of_descriptors_are_refused(tmp_path, rng):
     result = run("ingest", path, tmp_path / "a.npy", "--thumbnails")
     assert result.exit_code == InputError.exit_code
     assert result.output.startswith("Error: ") and "thumbnails need images or video" in result.output
+
+
+@pytest.mark.parametrize("command", ["ingest", "localize"])
+def test_images_of_several_sizes_in_one_drive_are_warned_about(tmp_path, rng, hog_map, command):
+    """Two cameras in one folder: every frame is described (at the descriptor's size), and the
+    user is told, once, which sizes and from which frame."""
+    folder = tmp_path / "drive"
+    folder.mkdir()
+    for i, image in enumerate(frames(rng, 30)):
+        if i >= 20:  # the second camera: another resolution
+            image = cv2.resize(image, (320, 240))
+        cv2.imwrite(str(folder / f"{i:03d}.png"), image)
+    if command == "localize":
+        assert run("ingest", hog_map, folder, "--name", "first", "-q").exit_code == 0
+    result = CliRunner().invoke(main, [command, str(hog_map), str(folder), "-q"])
+    assert result.exit_code == 0, result.output
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("Warning:")]
+    assert len(warnings) == 1 and "images of 2 sizes in one drive" in warnings[0], warnings
+    assert "160x120: 20 frame(s) from frame 0" in warnings[0]
+    assert "320x240: 10 frame(s) from frame 20" in warnings[0]
+    same = tmp_path / "same"
+    same.mkdir()
+    for i, image in enumerate(frames(rng, 5)):
+        cv2.imwrite(str(same / f"{i:03d}.png"), image)
+    assert "Warning" not in CliRunner().invoke(main, [command, str(hog_map), str(same),
+                                                      "-q"]).stderr

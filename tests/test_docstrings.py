@@ -1,5 +1,5 @@
-"""Docstrings say what, the contract and the cost, in at most 25 lines; the history of why a
-design was chosen lives in ``docs/decisions.md``. Checked over every function and class of the
+"""Docstrings say what, the contract and the cost, in at most 25 lines; why a design was
+chosen is a decision record in ``docs/decisions.md``. Checked over every function and class of the
 package, but for an explicit allow-list that only shrinks."""
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def all_lengths() -> dict[str, int]:
 def test_no_docstring_is_longer_than_25_lines():
     over = {name: lines for name, lines in all_lengths().items()
             if lines > MAX_LINES and name not in ALLOWED}
-    assert not over, f"docstrings over {MAX_LINES} lines (move the history to docs/decisions.md)"\
+    assert not over, f"docstrings over {MAX_LINES} lines (the why belongs in a record of docs/decisions.md)"\
                      f": {over}"
 
 

@@ -30,8 +30,8 @@ def drive(folder, n, seed, header="frame,x,y", rows=None):
 
 def test_each_drive_folder_brings_its_positions_and_name(tmp_path):
     drive(tmp_path / "drives" / "mon", 4, 0, rows=[f"{i},{i * 10},5" for i in range(4)])
-    drive(tmp_path / "drives" / "tue", 3, 1, header="frame,lat,lon,sigma_m",
-          rows=["0,59.9,10.7,2.5", "2,59.9001,10.7,3"])
+    drive(tmp_path / "drives" / "tue", 3, 1, header="frame,x,y,sigma_m",  # one frame: x, y
+          rows=["0,1.5,2,2.5", "2,3,4,3"])
     drive(tmp_path / "drives" / "wed", 2, 2)  # no positions
     assert _cli("init", tmp_path / "m", "--dim", DIM).exit_code == 0
     sources = sorted((tmp_path / "drives").glob("*/descriptors.npy"))
@@ -43,7 +43,8 @@ def test_each_drive_folder_brings_its_positions_and_name(tmp_path):
         tue = m.positions(1)
         assert tue.shape == (3, 5) and np.isnan(tue[1]).all()  # frame 1: no fix
         np.testing.assert_array_equal(tue[[0, 2], 4], [2.5, 3])
-        assert m.geo_frame().zone == 32
+        np.testing.assert_array_equal(tue[[0, 2], :2], [[1.5, 2], [3, 4]])
+        assert m.geo_frame() is None
         assert m.positions(2) is None
 
 

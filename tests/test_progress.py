@@ -171,3 +171,31 @@ def test_importing_the_cli_does_not_import_rich():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "False"
+
+
+def test_the_work_after_the_last_frame_has_a_line_of_its_own():
+    """Once the bar is full, the phase that follows (smoothing, merge, commit) is shown with
+    its elapsed time until the command closes it, or the next drive's bar draws."""
+    stream = _FakeTerminal()
+    first = ProgressBar("ingesting a", stream, after="smoothing and merging")
+    second = ProgressBar("ingesting b", stream, after="smoothing and merging")
+    first(300, 300)
+    assert first.live  # the phase line, after the full bar
+    second(100, 200)  # the next drive: the phase of the first is over
+    assert not first.live and second.live
+    second(200, 200)
+    second.close()
+    assert not second.live
+    text = ANSI.sub("", stream.getvalue())
+    assert re.search(r"ingesting a \S+ 300/300", text)
+    assert re.search(r"smoothing and merging \d:\d\d:\d\d", text), text[-500:]
+    assert text.index("smoothing and merging") < text.index("ingesting b")
+
+
+def test_ingest_on_a_terminal_shows_its_smoothing_and_merge(drive_and_map, tmp_path):
+    map_path, drive = drive_and_map
+    code, out, err = run_cli(["ingest", str(map_path), str(drive)], tmp_path, stderr_tty=True)
+    assert code == 0, err
+    assert f"{FRAMES}/{FRAMES}" in err
+    assert re.search(r"smoothing and merging \d:\d\d:\d\d", err), err[-1000:]
+    assert out.startswith("added sequence 1 (second)")

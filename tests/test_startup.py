@@ -44,7 +44,8 @@ def test_nothing_imports_ray_without_ray_asked_for():
 # --- sprint-map info reads LMDB only --------------------------------------------------------
 
 #: What a command that only reads LMDB must not import.
-HEAVY = ("faiss", "scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "uvicorn")
+HEAVY = ("faiss", "scipy", "cv2", "matplotlib", "networkx", "rich", "fastapi", "uvicorn",
+         "pyproj", "onnx", "onnxruntime")
 
 # Runs the CLI in this process, then lists what it imported (at exit: main() exits).
 CLI_MODULES = ("import atexit, sys\n"

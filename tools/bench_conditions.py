@@ -49,8 +49,8 @@ each arm minus ``default``.
     python tools/bench_conditions.py --world nordland --json nordland-conditions.json
     python tools/bench_conditions.py --world latent --arm 'minrun merge_min_run=8'
 
-``--quick``: latent and city 8 drives x 80 frames; Nordland the first 1,200 frames of the ride
-in 12 segments, 8 drives. Cost per drive: up to six localisations of it (k-NN and causal on the
+``--quick``: latent and city 8 drives x 80 frames (~20-50 s per seed on a loaded 2-core machine);
+Nordland the first 900 frames of the ride in 9 segments, 6 drives (~2 min per seed). Cost per drive: up to six localisations of it (k-NN and causal on the
 whole map, ingest, causal and smoothed on the holders and on the snapshot) and one map copy;
 per probe four. The full Nordland cut (14 drives, ~6,400 frames) takes ~8 min on a loaded 2-core
 machine.
@@ -482,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="latent/city: frames per drive (default 150); nordland: frames of "
                              "the ride cut (default all)")
     parser.add_argument("--segments", type=int, default=None,
-                        help="nordland: segments of the ride (default 24; quick 12)")
+                        help="nordland: segments of the ride (default 24; quick 9)")
     parser.add_argument("--probes", type=int, default=None,
                         help="held-back drives answered at the half and the end, never merged "
                              "(default: generated worlds 4, one cycle of seasons; nordland 2)")
@@ -502,9 +502,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     nordland = args.world == "nordland"
     if args.quick:
-        args.drives = args.drives or 8
-        args.frames = args.frames or (1200 if nordland else 80)
-        args.segments = args.segments or 12
+        args.drives = args.drives or (6 if nordland else 8)
+        args.frames = args.frames or (900 if nordland else 80)
+        args.segments = args.segments or 9
     args.drives = args.drives or (14 if nordland else 12)
     args.frames = args.frames or (3576 if nordland else 150)
     args.segments = args.segments or 24

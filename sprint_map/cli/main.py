@@ -34,7 +34,7 @@ from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.positions import gnss_fixes
-from sprint_map.frontend.sources import drive_names, drive_positions
+from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
@@ -50,8 +50,9 @@ from sprint_map.util.output import Output
               default=None, help="Descriptor kind; hog/patchnorm/onnx set the dimension "
               "themselves.")
 @click.option("--model", type=click.Path(dir_okay=False), help="onnx: the ONNX model file "
-              "(one descriptor per image; pip install \"sprint-map[onnx]\"). Its SHA-256 is "
-              "stored: a different file there later is refused.")
+              "(one descriptor per image; pip install \"sprint-map[onnx]\"). The SHA-256 of it "
+              "and of each weights file it loads is stored: a different file there later is "
+              "refused.")
 @click.option("--model-card", type=click.Path(dir_okay=False), help="onnx: JSON card "
               "{input_size, channels, mean, std, normalize} (default: MODEL's .card.json "
               "beside it, else its fixed input size, RGB, ImageNet mean/std, l2).")
@@ -59,8 +60,11 @@ from sprint_map.util.output import Output
               help="JSON file of further MapConfig fields, e.g. {\"index_type\": \"flat\", "
               "\"hmm\": {\"k\": 20}} (docs/hmm.md, \"HMMConfig\").")
 @click.option("--admission", type=click.Choice(["all", "novel"]), default=None,
-              help="Which frames of an ingested drive the map stores: all (default) or only "
-              "those it does not already hold (novel: a lifelong map that stays bounded).")
+              help="Which frames of an ingested drive the map stores: all (default: recall "
+              "parity) or only those it does not already hold (novel: a lifelong map that "
+              "stays smaller, at a measured cost of 0.7-0.9 points of later recall@1 on the "
+              "hard rendered city, 16-26 % fewer vertices; docs/benchmarks.md, \"Bounded "
+              "map\").")
 def init(map_path: str, dim: int | None, descriptor: str | None, model: str | None,
          model_card: str | None, config_json: str | None, admission: str | None) -> None:
     """Create an empty map in MAP (which must be absent or empty).
@@ -165,11 +169,20 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
                  bag != BagOptions()}
         for option in (option for option, on in given.items() if on):
             raise InputError(f"{option} is not available with --ray")
+        for source in sources:  # the farm stores no positions: never drop them silently
+            own = own_positions(source)
+            if own is not None:
+                raise InputError(f"{source}: its positions ({own}) are not carried by --ray; "
+                                 "ingest it without --ray to keep them")
     overrides = hmm_overrides(k, window, hmm_pairs)
     done: list[dict[str, Any]] = []
 
+    bars: list[Any] = []  # each drive's progress display (None without one)
+
     def report(results: list[IngestResult]) -> None:
         for result in results:
+            if len(done) < len(bars) and bars[len(done)] is not None:
+                bars[len(done)].close()  # its smoothing and merge are over
             done.append(result.to_dict())
             if not as_json:
                 click.echo(_ingest_line(done[-1]))
@@ -190,14 +203,18 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
         opened = []
         for source in sources if ray_spec is None else ():  # each opened (and checked) first
             label = "ingesting" if len(sources) == 1 else f"ingesting {source}"
+            bars.append(stack.enter_context(progress_display(
+                label, quiet, after="smoothing and merging" if not no_merge else "committing")))
             src = m.open_source(source, stride=stride, thumbnails=thumbnails, bag=bag,
-                                progress=stack.enter_context(progress_display(label, quiet)))
+                                progress=bars[-1])
             opened.append((src, drive_positions(src, source, positions, stride)))
         names = (drive_names([Path(s) for s in sources], [src.name for src, _ in opened])
                  if opened and name is None else [name] * len(opened))
         # Streamed: each batch is described, localised and written (uncommitted) in turn.
         # An empty --name is refused by the name rules, not replaced by the source's name.
-        placed = [(src, m.metric_positions(table)) for src, table in opened]
+        # one frame (lat/lon or x/y) for every drive and the map, checked before any is stored
+        placed = list(zip([src for src, _ in opened],
+                          m.metric_positions_of([table for _, table in opened]), strict=True))
         drives = [Drive(src.iter_batches(), label, rows, str(source), src.thumbnails,
                         None if rows is None else gnss_fixes(rows))
                   for (src, rows), label, source in zip(placed, names, sources, strict=False)]
@@ -221,7 +238,7 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
             except (SprintMapError, OSError) as exc:
                 m.warnings.append(f"the drive is committed, but its trace was not written: "
                                   f"{exc}")
-    for warning in m.warnings:
+    for warning in [w for src, _ in opened for w in src.warnings] + m.warnings:
         click.echo(f"Warning: {warning}", err=True)
     if as_json:
         click.echo(json.dumps(done[0] if len(sources) == 1 else done, indent=2))
@@ -306,7 +323,8 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
     overrides = hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
-            progress_display("localising", quiet) as progress:
+            progress_display("localising", quiet, after="smoothing" if smooth else None
+                             ) as progress:
         # Outputs are made first: an unwritable path (or one inside the map) is refused early.
         trace_out = outputs.enter_context(Output(trace, "trace", forbidden=[m.path])) \
             if trace else None
@@ -330,14 +348,19 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
         if json_out is not None:
             json_out.stream.write(json.dumps(data, indent=1).encode())
             json_out.commit()
+    for warning in src.warnings:
+        click.echo(f"Warning: {warning}", err=True)
     matched = sum(d.is_match for d in decisions)
     emit(data, as_json, "\n".join(
         [f"{d.frame:>6}  " + (f"seq {d.seq_id} image {d.image_id}" if d.is_match else "no match")
          + f"  p={d.prob:.3f} novel={d.novel_prob:.3f}" for d in decisions]
         + [f"{matched}/{len(decisions)} frames matched; per frame: retrieval "
            f"{t['retrieval_ms_per_frame']} ms, HMM {t['hmm_ms_per_frame']} ms"]))
+    for warning in m.warnings:  # on stderr: a --json answer on stdout stays JSON
+        click.echo(f"Warning: {warning}", err=True)
 
 # The other commands register on the same group when their modules are imported.
+from sprint_map.cli.join import join  # noqa: E402
 from sprint_map.cli.maintenance import (  # noqa: E402
     check,
     compact,
@@ -353,4 +376,4 @@ from sprint_map.cli.maintenance import (  # noqa: E402
 from sprint_map.cli.runs import demo, eval_, serve, view  # noqa: E402
 
 __all__ = ["check", "compact", "components", "demo", "edges", "eval_", "export", "index", "info",
-           "ingest", "init", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]
+           "ingest", "init", "join", "localize", "main", "remove", "sequences", "serve", "unmerge", "view"]

@@ -5,7 +5,10 @@ draws one `rich <https://rich.readthedocs.io>`_ progress line on ``stream`` (std
 label, bar, frames done of the total, rate in frames/s, elapsed time and ETA. A source of
 unknown length (a video) shows a pulsing bar, the count and the rate, with no ETA. It yields
 ``None`` (no display at all, and rich is not even imported) with ``quiet`` or when ``stream``
-is not a terminal, so piped and scripted runs print nothing but their result.
+is not a terminal, so piped and scripted runs print nothing but their result. With ``after``
+(``"smoothing and merging"``), the work that follows the last frame (the whole-drive smoothing,
+the merge and the commit: seconds on a long drive) gets a line of its own once the bar is full,
+a spinner and the time it has taken, until the command prints its result.
 
 rich is imported on the first display only: ``import sprint_map.cli.main`` stays fast
 (``tests/test_startup.py``).
@@ -49,11 +52,19 @@ class ProgressBar:
         What is being done (``"ingesting"``).
     stream : text stream
         Where the line goes; should be a terminal (see :func:`shows_progress`).
+    after : str, optional
+        The phase that follows the last frame (``"smoothing and merging"``): shown with a
+        spinner and its elapsed time from the bar's end until :meth:`close`, or until the next
+        bar draws.
     """
 
-    def __init__(self, label: str, stream: TextIO) -> None:
+    #: The bar whose ``after`` phase is on screen (one live line at a time).
+    _lingering: ProgressBar | None = None
+
+    def __init__(self, label: str, stream: TextIO, after: str | None = None) -> None:
         self.label = label
         self.stream = stream
+        self.after = after
         self._progress: Progress | None = None
         self._task: TaskID | None = None
         self._ended = False
@@ -62,12 +73,26 @@ class ProgressBar:
         if self._ended:
             return
         if self._progress is None or self._task is None:
+            if ProgressBar._lingering is not None:  # the previous drive's phase is over
+                ProgressBar._lingering.close()
             self._progress = _new_progress(self.stream)
             self._progress.start()
             self._task = self._progress.add_task(self.label, total=total)
         self._progress.update(self._task, completed=done, total=total)
         if total is not None and done >= total:
-            self.close()
+            self.finish()
+
+    def finish(self) -> None:
+        """The last frame is in: end the bar's line, then show the ``after`` phase, if any,
+        until :meth:`close`."""
+        if self._ended:
+            return
+        self.close()
+        if self.after is not None:
+            self._progress = _phase_progress(self.stream)
+            self._progress.start()
+            self._task = self._progress.add_task(self.after, total=None)
+            ProgressBar._lingering = self
 
     @property
     def live(self) -> bool:
@@ -78,14 +103,16 @@ class ProgressBar:
     def close(self) -> None:
         """Draw the final state and end the line (idempotent)."""
         self._ended = True
+        if ProgressBar._lingering is self:
+            ProgressBar._lingering = None
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
 
 
 @contextmanager
-def progress_display(label: str, quiet: bool = False,
-                     stream: TextIO | None = None) -> Iterator[ProgressBar | None]:
+def progress_display(label: str, quiet: bool = False, stream: TextIO | None = None,
+                     after: str | None = None) -> Iterator[ProgressBar | None]:
     """A progress callback for the duration of the ``with`` block, or ``None``.
 
     Parameters
@@ -96,6 +123,8 @@ def progress_display(label: str, quiet: bool = False,
         No display at all (``--quiet``).
     stream : text stream, optional
         Default ``sys.stderr``. Without a terminal there, no display.
+    after : str, optional
+        The phase after the last frame (see :class:`ProgressBar`).
 
     Yields
     ------
@@ -106,7 +135,7 @@ def progress_display(label: str, quiet: bool = False,
     if not shows_progress(out, quiet):
         yield None
         return
-    bar = ProgressBar(label, out)
+    bar = ProgressBar(label, out, after)
     try:
         yield bar
     finally:
@@ -160,3 +189,12 @@ def _new_progress(stream: TextIO) -> Progress:
         redirect_stdout=False,
         redirect_stderr=False,
     )
+
+
+def _phase_progress(stream: TextIO) -> Progress:
+    """A rich line for the work after the last frame: spinner, what it is, time taken."""
+    from rich.console import Console
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    return Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                    console=Console(file=stream), redirect_stdout=False, redirect_stderr=False)

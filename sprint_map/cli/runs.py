@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +81,10 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
       sprint-map eval datasets/pitts30k --layout vpr --model eigenplaces.onnx
       sprint-map eval data/city --learn-every 2000   # with and without learning
     """
+    if radius is not None and not (math.isfinite(radius)
+                                   and (radius > 0 if layout == "vpr" else radius >= 0)):
+        raise InputError(f"--radius must be a finite number of metres "
+                         f"{'above 0' if layout == 'vpr' else '(0 or more)'}, got {radius:g}")
     if layout == "vpr":
         _eval_vpr(dataset, out_dir, descriptor, (model, model_card), radius, map_pairs, k,
                   window, hmm_pairs, quiet)
@@ -136,8 +141,8 @@ def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,
         raise InputError("--model-card needs --model FILE")
     else:
         config = MapConfig.for_descriptor("hog" if descriptor == "auto" else descriptor)
-    if map_pairs:
-        config = dataclass_dict.replace(config, **key_values(map_pairs, "--map-config"))
+    if map_pairs:  # the same keys as the traversal layout's (flat or nested)
+        config = config.replace(**key_values(map_pairs, "--map-config"))
     overrides = hmm_overrides(k, window, hmm_pairs)
     hmm = dataclass_dict.replace(config.hmm, **overrides) if overrides else None
     out = Path(out_dir or f"eval-{data.path.resolve().name}")

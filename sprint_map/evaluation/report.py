@@ -10,7 +10,7 @@ import numpy as np
 
 from sprint_map.util.atomic import publish
 
-__all__ = ["COLUMNS", "markdown_table", "write_report"]
+__all__ = ["COLUMNS", "latency_bins", "latency_figure", "markdown_table", "write_report"]
 
 #: The table's columns: (key of a results row, title). ``edges (wrong)`` joins two keys.
 COLUMNS = (
@@ -161,17 +161,38 @@ def _plots(results: dict[str, Any], paths: dict[str, Path]) -> None:
     if "recall_by_traversal" in paths:
         _recall_by_traversal(results["recall_by_traversal"], paths["recall_by_traversal"], plt)
 
+    fig = latency_figure(results["_latency"], plt)
+    fig.savefig(paths["latency"], dpi=110)
+    plt.close(fig)
+
+
+def latency_bins(series: list[Any], bins: int = 60) -> np.ndarray:
+    """Log-spaced histogram bin edges (ms) spanning the positive values of ``series`` (a
+    little beyond its smallest and largest), so the plot's axis is the data's range, not a
+    fixed 1e-4 to 1e3 ms; a zero (a frame with nothing to search) sits in the first bin.
+    O(values)."""
+    positive = np.concatenate([np.asarray(v, dtype=np.float64).ravel() for v in series]
+                              + [np.empty(0)])
+    positive = positive[np.isfinite(positive) & (positive > 0)]
+    lo, hi = (float(positive.min()), float(positive.max())) if positive.size else (1e-3, 1.0)
+    lo, hi = lo / 1.25, max(hi * 1.25, lo * 10)
+    return np.logspace(np.log10(lo), np.log10(hi), bins)
+
+
+def latency_figure(lat: dict[str, Any], plt: Any) -> Any:
+    """The per-frame latency histogram (retrieval and HMM apart) on a log axis spanning the
+    data (:func:`latency_bins`); returns the matplotlib figure."""
     fig, ax = plt.subplots(figsize=(6, 4))
-    lat = results["_latency"]
-    for key in ("retrieval_ms", "hmm_ms"):
-        values = np.asarray(lat[key]) if lat[key] else np.zeros(1)
-        ax.hist(np.maximum(values, 1e-4), bins=list(np.logspace(-4, 3, 60)), alpha=0.6, label=key)
-    ax.set(xscale="log", xlabel="ms per frame", ylabel="frames",
+    keys = ("retrieval_ms", "hmm_ms")
+    edges = latency_bins([lat[key] for key in keys])
+    for key in keys:
+        values = np.asarray(lat[key], dtype=np.float64) if lat[key] else np.zeros(0)
+        ax.hist(np.clip(values, edges[0], edges[-1]), bins=list(edges), alpha=0.6, label=key)
+    ax.set(xscale="log", xlim=(edges[0], edges[-1]), xlabel="ms per frame", ylabel="frames",
            title="Per-frame latency, retrieval and HMM apart")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(paths["latency"], dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def _recall_by_traversal(rows: list[dict[str, Any]], path: Path, plt: Any) -> None:

@@ -347,7 +347,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         index = {name: i for i, name in enumerate(dataset.names)}
 
         def fixes_of(traversal: Traversal) -> np.ndarray:
-            truth = traversal.positions(options.stride)
+            truth = traversal.positions(options.stride, dataset.geo_frame())
             if truth is None:
                 raise InputError(f"{traversal.folder}: --gnss-sigma simulates fixes from "
                                  "positions, and this traversal has none")
@@ -401,7 +401,7 @@ def _run_protocol(dataset: Dataset, work_dir: Path, config: MapConfig, options: 
 
     def placed(traversal: Traversal) -> tuple[np.ndarray | None, np.ndarray | None]:
         if fixes_of is None:
-            return _xy(traversal.positions(options.stride)), None
+            return _xy(traversal.positions(options.stride, dataset.geo_frame())), None
         fixes = fixes_of(traversal)
         return fixes[:, :2], fixes
 

@@ -18,6 +18,7 @@ plus SPRINT's per-frame step; positives by a KD-tree, O(Q log D).
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from sprint_map import HMMConfig
 from sprint_map.config import MapConfig
+from sprint_map.errors import ConfigError, InputError
 from sprint_map.frontend.vpr import VprDataset
 from sprint_map.map import SprintMap
 from sprint_map.util.atomic import publish_bytes
@@ -66,7 +68,18 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
     """Map the database, answer the queries, write ``out_dir/results.json``; return it.
 
     The map is built in ``out_dir/map-vpr`` (replaced if there). See the module docstring.
+
+    Raises
+    ------
+    ConfigError
+        ``radius_m`` not a positive finite number of metres (before any work).
+    InputError
+        The map's frames not in the data set's order (the one VPR rule,
+        :func:`~sprint_map.frontend.vpr.is_vpr_folder`, makes them so).
     """
+    if (isinstance(radius_m, bool) or not isinstance(radius_m, int | float)
+            or not math.isfinite(radius_m) or radius_m <= 0):
+        raise ConfigError(f"--radius must be a positive number of metres, got {radius_m!r}")
     started = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
     map_dir = out_dir / "map-vpr"
@@ -78,12 +91,18 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
     with SprintMap.create(map_dir, config) as m:
         log(f"mapping {len(data.database)} database images")
         db = m.open_source(data.database[0].parent)
+        query_source = m.open_source(data.queries[0].parent)
+        for source, listed in ((db, data.database), (query_source, data.queries)):
+            if getattr(source, "files", None) != listed:  # vertex id = index in the data set
+                raise InputError(f"{listed[0].parent}: the map's frame order is not the data "
+                                 "set's")
         m.add_sequence(db.read_all(), name="database",
                        positions=m.metric_positions(db.positions))
         log(f"localising {len(data.queries)} queries")
-        # the queries as one drive, in the map's space (SPRINT steps them in this order)
-        queries = m.drive_centring().apply(m.open_source(data.queries[0].parent).read_all())
-        _, ids = m.search(queries, min(k, len(data.database)))
+        queries = query_source.read_all()
+        # k-NN in the map's space: the queries as one drive, centred (SPRINT's localizer
+        # centres them itself as it steps them, in this order)
+        _, ids = m.search(m.drive_centring().apply(queries), min(k, len(data.database)))
         knn = np.full((len(queries), k), -1, dtype=np.int64)
         knn[:, : ids.shape[1]] = ids  # one sequence from vertex 0: vertex id = database index
         localizer = m.localizer(hmm)

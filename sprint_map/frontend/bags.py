@@ -5,8 +5,10 @@ only when a bag is opened. A bag is read in two passes:
 
 1. **Index pass**: the image topic's message times (a ROS 1 bag's index holds them; a ROS 2 bag
    or MCAP is read for them, without decoding an image) and every ``sensor_msgs/NavSatFix`` of
-   the GNSS topic. Each frame's position is the fix interpolated linearly in latitude/longitude
-   at the frame's time, between the two valid fixes around it; a frame before the first or
+   the GNSS topic. Each frame's position is the point of the geodesic between the two valid
+   fixes around it at the fraction of the time between them that the frame's time lies at
+   (:func:`sprint_map.util.geo.geodesic_points`: across the antimeridian and the poles as
+   anywhere else; the accuracy is interpolated linearly); a frame before the first or
    after the last valid fix, or whose neighbouring fixes have an invalid one (``status <
    STATUS_FIX`` or a NaN) between them, has no fix (NaN). The fix's accuracy ``sigma_m`` is
    ``sqrt((var_east + var_north) / 2)`` of its covariance when that is known. The frames kept
@@ -39,7 +41,7 @@ import numpy as np
 from sprint_map.errors import InputError
 from sprint_map.frontend.positions import Positions
 from sprint_map.util.arrays import Descriptors, Image
-from sprint_map.util.geo import GeoFrame
+from sprint_map.util.geo import GeoFrame, geodesic_points
 
 if TYPE_CHECKING:
     from sprint_map.frontend.descriptors import DescriptorSpec
@@ -211,8 +213,7 @@ def interpolate_fixes(frame_ns: np.ndarray, fix_ns: np.ndarray, latlon: np.ndarr
     usable = inside & valid[lo_c] & valid[hi]
     span = (fix_ns[hi] - fix_ns[lo_c]).astype(np.float64)
     w = np.where(span > 0, (frame_ns - fix_ns[lo_c]) / np.where(span > 0, span, 1.0), 0.0)
-    mix = latlon[lo_c] * (1 - w)[:, None] + latlon[hi] * w[:, None]
-    out[usable] = mix[usable]
+    out[usable] = geodesic_points(latlon[lo_c[usable]], latlon[hi[usable]], w[usable])
     s = np.where(np.isnan(sigma[lo_c]) | np.isnan(sigma[hi]), np.nan,
                  sigma[lo_c] * (1 - w) + sigma[hi] * w)
     out_sigma[usable] = s[usable]

@@ -234,15 +234,30 @@ class Dataset:
 
     def geo_frame(self) -> GeoFrame | None:
         """The UTM zone of the first fix of the first traversal whose ``positions.csv`` holds
-        latitude/longitude (all traversals are projected into it), or None. O(CSV rows)."""
+        latitude/longitude (all traversals are projected into it), or None. O(CSV rows).
+
+        Raises
+        ------
+        InputError
+            Some traversals' positions are latitude/longitude and others planar ``x, y``: a
+            data set has one frame (distances across the two would mean nothing).
+        """
         if not hasattr(self, "_geo_frame"):
-            self._geo_frame: GeoFrame | None = None
+            frame: GeoFrame | None = None
+            kinds: dict[bool, str] = {}
             for traversal in self.traversals:
                 table = traversal.position_table()
-                fix = table.first_fix() if table is not None and table.geographic else None
-                if fix is not None:
-                    self._geo_frame = GeoFrame.for_fix(*fix)
-                    break
+                if table is None:
+                    continue
+                kinds.setdefault(table.geographic, traversal.name)
+                fix = table.first_fix() if table.geographic else None
+                if fix is not None and frame is None:
+                    frame = GeoFrame.for_fix(*fix)
+            if len(kinds) > 1:
+                raise InputError(f"{self.path}: traversal {kinds[True]!r} has latitude/longitude "
+                                 f"positions and {kinds[False]!r} planar x, y: a data set keeps "
+                                 "one frame")
+            self._geo_frame = frame
         return self._geo_frame
 
     @property

@@ -21,7 +21,10 @@ Kinds
     brightness change, which is what makes it robust to lighting.
 
 Every descriptor is float32 with unit L2 norm, except that an image with no structure at all (a
-black frame, a flat wall) gives the zero vector rather than NaN.
+black frame, a flat wall) gives the zero vector rather than NaN. The raw vector is checked
+before it is normalised (``check_described``: NaN, Inf or an overflow is an
+:class:`~sprint_map.errors.InvalidDescriptorError` naming the image), so a normalisation never
+turns a broken vector into zeros.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from numpy.typing import NDArray
 
 from sprint_map.errors import ConfigError
 from sprint_map.util.arrays import Descriptors, Float32Array, Image
+from sprint_map.util.validation import check_described
 
 if TYPE_CHECKING:
     import cv2
@@ -163,10 +167,15 @@ class DescriptorSpec:
         if self.kind == ONNX_KIND:
             row: Descriptors = self.describe_batch([image])[0]
             return row
+        return self._describe(image, 0, 1)
+
+    def _describe(self, image: Image, index: int, count: int) -> Descriptors:
+        """HoG or patchnorm of image ``index`` of ``count``: its raw vector checked
+        (:func:`~sprint_map.util.validation.check_described`), then L2-normalised."""
         gray = to_gray(image)
-        if self.kind == "hog":
-            return _hog(gray, self.params)
-        return _patchnorm(gray, self.params)
+        raw = _hog(gray, self.params) if self.kind == "hog" else _patchnorm(gray, self.params)
+        check_described(raw.reshape(1, -1), self.kind, index, count)
+        return _l2_normalise(raw)
 
     def describe_batch(self, images: Iterable[Image]) -> Descriptors:
         """Describe several images (a sequence, or an array stacked along axis 0).
@@ -179,7 +188,8 @@ class DescriptorSpec:
             from sprint_map.frontend.onnx_model import describe_images
 
             return describe_images(self.params, list(images))
-        rows = [self.describe(image) for image in images]
+        images = list(images)
+        rows = [self._describe(image, i, len(images)) for i, image in enumerate(images)]
         if not rows:
             return np.empty((0, self.dim), dtype=np.float32)
         return np.stack(rows)
@@ -301,7 +311,8 @@ def _hog_object(p: dict[str, int]) -> cv2.HOGDescriptor:
     return hog
 
 
-def _hog(gray: Image, p: dict[str, int]) -> Descriptors:
+def _hog(gray: Image, p: dict[str, int]) -> Float32Array:
+    """The raw (not normalised) HoG vector of a gray image."""
     size = p["size"]
     if gray.shape != (size, size):
         import cv2
@@ -309,10 +320,11 @@ def _hog(gray: Image, p: dict[str, int]) -> Descriptors:
         gray = cv2.resize(gray, (size, size), interpolation=cv2.INTER_AREA)
     # compute() needs a contiguous buffer; a channel slice of a BGR array is not one.
     vector = _hog_object(p).compute(np.ascontiguousarray(gray))
-    return _l2_normalise(np.asarray(vector, dtype=np.float32).reshape(-1))
+    return np.asarray(vector, dtype=np.float32).reshape(-1)
 
 
-def _patchnorm(gray: Image, p: dict[str, int]) -> Descriptors:
+def _patchnorm(gray: Image, p: dict[str, int]) -> Float32Array:
+    """The raw (not normalised) patch-normalised thumbnail of a gray image."""
     width, height, patch = p["width"], p["height"], p["patch"]
     if gray.shape != (height, width):
         import cv2
@@ -326,4 +338,4 @@ def _patchnorm(gray: Image, p: dict[str, int]) -> Descriptors:
     # structure to normalise; dividing would amplify rounding noise into a full-scale pattern.
     flat = std < 0.5
     normalised = np.where(flat, 0.0, (blocks - mean) / np.where(flat, 1.0, std))
-    return _l2_normalise(normalised.reshape(-1))
+    return np.asarray(normalised.reshape(-1), dtype=np.float32)

@@ -42,21 +42,17 @@ from sprint_map.frontend.bags import (
     open_reader,
 )
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.imagefiles import (
-    decode_image,
-    is_video_name,
-    list_images,
-    read_image,
-    read_image_bytes,
-)
+from sprint_map.frontend.image_path import describe_files
+from sprint_map.frontend.imagefiles import is_video_name, list_images
 from sprint_map.frontend.parallel import EXECUTORS, default_workers, ordered_map
 from sprint_map.frontend.positions import Positions, read_positions
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, Image
+from sprint_map.util.validation import descriptor_problem
 
 if TYPE_CHECKING:  # OpenCV loads with the first image or video, not for a .npy
     import cv2
 from sprint_map.frontend.thumbnails import make_thumbnail, thumbnail_of_file
-from sprint_map.frontend.vpr import is_vpr_name, vpr_order, vpr_positions
+from sprint_map.frontend.vpr import is_vpr_folder, vpr_order, vpr_positions
 
 __all__ = ["SOURCE_KINDS", "BagSource", "FrameSource", "ImageDirSource", "NpySource",
            "ProgressCallback", "VideoSource", "drive_names", "drive_positions", "open_source",
@@ -116,6 +112,9 @@ class FrameSource(ABC):
         self.thumbnails: list[bytes] | None = [] if options.thumbnails else None
         #: Positions the source itself carries (a bag's GNSS), else None.
         self.positions: Positions | None = None
+        #: What a reader should know about the frames read so far (complete once
+        #: :meth:`iter_batches` has ended): e.g. images of several sizes in one drive.
+        self.warnings: list[str] = []
 
     @property
     @abstractmethod
@@ -174,21 +173,21 @@ def _single_threaded_opencv() -> None:
     cv2.setNumThreads(1)
 
 
-def _describe_files(spec: DescriptorSpec, paths: list[Path]) -> Descriptors:
-    """Decode and describe a chunk of image files (runs in a worker)."""
-    return spec.describe_batch([read_image(path, grayscale=spec.grayscale) for path in paths])
+def _describe_files(spec: DescriptorSpec, paths: list[Path]
+                    ) -> tuple[Descriptors, list[bytes], list[tuple[int, int]]]:
+    """Decode and describe a chunk of image files (runs in a worker); no thumbnails; each
+    image's ``(width, height)``."""
+    rows, images, _ = describe_files(spec, paths)
+    return rows, [], [(image.shape[1], image.shape[0]) for image in images]
 
 
 def _describe_files_thumbnails(spec: DescriptorSpec, paths: list[Path]
-                               ) -> tuple[Descriptors, list[bytes]]:
+                               ) -> tuple[Descriptors, list[bytes], list[tuple[int, int]]]:
     """:func:`_describe_files` plus each file's thumbnail (the same gray decode describes it)."""
-    images, thumbs = [], []
-    for path in paths:
-        data = read_image_bytes(path)
-        image = decode_image(data, str(path), grayscale=spec.grayscale)
-        images.append(image)
-        thumbs.append(thumbnail_of_file(data, str(path), image.shape[1], image.shape[0]))
-    return spec.describe_batch(images), thumbs
+    rows, images, blobs = describe_files(spec, paths)
+    return rows, [thumbnail_of_file(data, str(path), image.shape[1], image.shape[0])
+                  for path, image, data in zip(paths, images, blobs, strict=True)], [
+                      (image.shape[1], image.shape[0]) for image in images]
 
 
 def _describe_frames(spec: DescriptorSpec, frames: list[Image]) -> Descriptors:
@@ -202,12 +201,40 @@ def _describe_frames_thumbnails(spec: DescriptorSpec, frames: list[Image]
     return spec.describe_batch(frames), [make_thumbnail(frame) for frame in frames]
 
 
+def mixed_sizes(path: Path, sizes: dict[tuple[int, int], list[int]]) -> str:
+    """The warning for a drive whose images have several sizes (``(width, height) -> [frames,
+    first frame]``): two cameras in one folder, or a resized stretch; each is described at the
+    descriptor's own size, so nothing fails, but one drive should be one camera."""
+    parts = ", ".join(f"{w}x{h}: {n} frame(s) from frame {first}"
+                      for (w, h), (n, first) in sorted(sizes.items(), key=lambda kv: kv[1][1]))
+    return (f"{path}: images of {len(sizes)} sizes in one drive ({parts}); two cameras in one "
+            "folder? Give each camera its own drive")
+
+
 def _keep_thumbnails(results: Iterator[tuple[Descriptors, list[bytes]]], sink: list[bytes]
                      ) -> Iterator[Descriptors]:
     """The descriptor chunks of ``results``, their thumbnails appended to ``sink`` in order."""
     for rows, thumbs in results:
         sink.extend(thumbs)
         yield rows
+
+
+def _named_frames(chunks: Iterator[Descriptors], where: Callable[[int], str]
+                  ) -> Iterator[Descriptors]:
+    """``chunks``, a refused one's :class:`InvalidDescriptorError` re-raised naming its frame:
+    ``where(frame)``, the rows of the chunks before it counted."""
+    received = 0
+    while True:
+        try:
+            chunk = next(chunks)
+        except StopIteration:
+            return
+        except InvalidDescriptorError as exc:
+            if exc.row is None:
+                raise
+            raise InvalidDescriptorError(f"{where(received + exc.row)}: {exc.detail}") from None
+        received += len(chunk)
+        yield chunk
 
 
 def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
@@ -217,11 +244,16 @@ def _chunk_size(n_frames: int | None, batch_size: int, workers: int) -> int:
     return max(1, min(_MAX_CHUNK, batch_size, math.ceil(n_frames / (4 * workers))))
 
 
-def _rebatch(chunks: Iterator[Descriptors], batch_size: int) -> Iterator[Descriptors]:
-    """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer)."""
+def _rebatch(chunks: Iterator[Descriptors], batch_size: int,
+             where: Callable[[int], str]) -> Iterator[Descriptors]:
+    """Regroup arrays of any lengths into batches of exactly ``batch_size`` rows (last: fewer).
+
+    A chunk whose description was refused (:class:`InvalidDescriptorError` with the ``row``
+    of the chunk it names) is reported as the source's frame: ``where(frame)`` and why.
+    """
     buffer: list[Descriptors] = []
     held = 0
-    for chunk in chunks:
+    for chunk in _named_frames(chunks, where):
         buffer.append(chunk)
         held += len(chunk)
         while held >= batch_size:
@@ -245,7 +277,7 @@ class ImageDirSource(FrameSource):
         #: How the files are ordered: natural file-name order, or the timestamps of
         #: VPR-layout names (:mod:`sprint_map.frontend.vpr`), which also give positions.
         self.order = "file name"
-        if all(is_vpr_name(f.name) for f in files):
+        if is_vpr_folder(files):  # the rule VprDataset applies too
             files, self.order = vpr_order(files)
             kept = np.arange(0, len(files), self.stride)
             self.positions = vpr_positions(files).subset(kept)
@@ -262,16 +294,28 @@ class ImageDirSource(FrameSource):
         size = _chunk_size(len(self.files), self.batch_size, self.workers)
         chunks = [self.files[i : i + size] for i in range(0, len(self.files), size)]
         initializer = _single_threaded_opencv if self.executor == "process" else None
-        results: Iterator[Descriptors]
-        if self.thumbnails is None:
-            results = ordered_map(functools.partial(_describe_files, self.spec), chunks,
-                                  self.workers, self.executor, initializer=initializer)
-        else:
-            self.thumbnails.clear()
-            results = _keep_thumbnails(ordered_map(
-                functools.partial(_describe_files_thumbnails, self.spec), chunks, self.workers,
-                self.executor, initializer=initializer), self.thumbnails)
-        yield from _rebatch(results, self.batch_size)
+        describe = _describe_files if self.thumbnails is None else _describe_files_thumbnails
+        sink: list[bytes] = [] if self.thumbnails is None else self.thumbnails
+        sink.clear()
+        self.warnings.clear()
+        sizes: dict[tuple[int, int], list[int]] = {}  # (width, height) -> [frames, first]
+        results = ordered_map(functools.partial(describe, self.spec), chunks, self.workers,
+                              self.executor, initializer=initializer)
+
+        def kept() -> Iterator[Descriptors]:
+            frame = 0
+            for rows, thumbs, shapes in results:
+                sink.extend(thumbs)
+                for shape in shapes:
+                    seen = sizes.setdefault(shape, [0, frame])
+                    seen[0] += 1
+                    frame += 1
+                yield rows
+
+        yield from _rebatch(kept(), self.batch_size,
+                            lambda i: f"{self.path}: frame {i} ({self.files[i].name})")
+        if len(sizes) > 1:
+            self.warnings.append(mixed_sizes(self.path, sizes))
 
 
 def _cv2() -> Any:
@@ -349,7 +393,7 @@ class VideoSource(FrameSource):
                     functools.partial(_describe_frames_thumbnails, self.spec), frames,
                     self.workers, "thread"), self.thumbnails)
             produced = 0
-            for batch in _rebatch(results, self.batch_size):
+            for batch in _rebatch(results, self.batch_size, lambda i: f"{self.path}: frame {i}"):
                 produced += len(batch)
                 yield batch
             if produced == 0:
@@ -398,7 +442,9 @@ class BagSource(FrameSource):
             if self.thumbnails is not None:
                 self.thumbnails.clear()
             sink = self.thumbnails if self.thumbnails is not None else []
-            yield from _rebatch(_keep_thumbnails(results, sink), self.batch_size)
+            yield from _rebatch(_keep_thumbnails(results, sink), self.batch_size,
+                                lambda i: f"{self.path}: frame {i} of "
+                                          f"{self.index.image_topic}")
         finally:
             reader.close()
 
@@ -455,10 +501,12 @@ def _load_npy(path: Path) -> DescriptorsLike:
         raise InputError(f"{path}: no descriptors (shape {array.shape})")
     rows = max(1, (64 << 20) // max(1, array.shape[1] * array.dtype.itemsize))
     for start in range(0, array.shape[0], rows):
-        finite = np.isfinite(array[start : start + rows]).all(axis=1)
-        if not finite.all():
-            row = start + int(np.argmin(finite))
-            raise InvalidDescriptorError(f"{path}: row {row} contains NaN or Inf")
+        problem = descriptor_problem(array[start : start + rows])
+        if problem is not None:
+            row, why = problem
+            kind = ("contains NaN or Inf" if not np.isfinite(array[start + row]).all()
+                    else "is out of range")
+            raise InvalidDescriptorError(f"{path}: row {start + row} {kind} ({why})")
     return array
 
 

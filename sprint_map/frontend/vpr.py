@@ -29,8 +29,8 @@ from sprint_map.frontend.positions import Positions
 from sprint_map.util.arrays import Float64Array
 from sprint_map.util.geo import lonlat_of_utm
 
-__all__ = ["VprDataset", "VprName", "is_vpr_name", "parse_vpr_name", "vpr_order",
-           "vpr_positions"]
+__all__ = ["VprDataset", "VprName", "is_vpr_folder", "is_vpr_name", "parse_vpr_name",
+           "vpr_order", "vpr_positions"]
 
 _NAME_FORMAT = "@UTM_east@UTM_north@zone_number@zone_letter@lat@lon@...@timestamp@..."
 _SOUTH_LETTERS = set("CDEFGHJKLM")
@@ -81,8 +81,18 @@ def parse_vpr_name(path: Path) -> VprName:
 
 
 def is_vpr_name(name: str) -> bool:
-    """Whether ``name`` looks like a VPR-layout name (starts with ``@``, 13+ fields)."""
-    return name.startswith("@") and name.count("@") >= 13
+    """Whether ``name`` has the VPR layout's shape: 14 or more ``@`` fields, the first a prefix
+    or empty (``img059@east@north@...`` as well as ``@east@north@...``); whether its fields
+    hold a place is :func:`parse_vpr_name`'s to say."""
+    return name.count("@") >= 13
+
+
+def is_vpr_folder(files: list[Path]) -> bool:
+    """Whether a folder's images are taken as the VPR layout (every name one,
+    :func:`is_vpr_name`): the one rule that the map builder (``ingest``, ``localize``, an
+    image folder's source) and :class:`VprDataset` (``eval --layout vpr``) both apply, so
+    both order and place the frames alike. O(files)."""
+    return bool(files) and all(is_vpr_name(f.name) for f in files)
 
 
 def vpr_order(files: list[Path]) -> tuple[list[Path], str]:
@@ -139,12 +149,20 @@ class VprDataset:
         else:
             raise InputError(f"{root}: not a VPR-layout data set (no database/ and queries/ "
                              "folders)")
-        database, db_order = vpr_order(list_images(base / "database"))
-        queries, q_order = vpr_order(list_images(base / "queries"))
+        database, db_order = _ordered(list_images(base / "database"))
+        queries, q_order = _ordered(list_images(base / "queries"))
         first = parse_vpr_name(database[0])
         return cls(root, database, queries, db_order, q_order,
                    _utm(database, first.zone, first.south),
                    _utm(queries, first.zone, first.south), first.zone, first.south)
+
+
+def _ordered(files: list[Path]) -> tuple[list[Path], str]:
+    """A folder of the data set in frame order, or InputError if it is not VPR-layout."""
+    if not is_vpr_folder(files):
+        other = next(f for f in files if not is_vpr_name(f.name))
+        raise InputError(f"{other}: not a VPR-layout name ({_NAME_FORMAT})")
+    return vpr_order(files)
 
 
 def _utm(files: list[Path], zone: int, south: bool) -> Float64Array:

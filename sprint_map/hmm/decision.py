@@ -25,8 +25,8 @@ import numpy as np
 
 from sprint_map.hmm.graph import ComponentGraph
 
-__all__ = ["BeliefView", "CANDIDATE_FLOOR", "Decision", "decide", "place_contrast", "place_mass",
-           "place_runs", "place_runs_np", "top_candidates", "top_positions"]
+__all__ = ["BeliefView", "CANDIDATE_FLOOR", "Decision", "decide", "is_unknown", "place_contrast",
+           "place_mass", "place_runs", "place_runs_np", "top_candidates", "top_positions"]
 
 #: Relative belief below which a vertex is not a decision candidate (see top_candidates).
 CANDIDATE_FLOOR = 1e-6
@@ -73,6 +73,19 @@ class Decision:
     def is_match(self) -> bool:
         """Whether the frame was localised."""
         return self.vertex_id is not None
+
+
+def is_unknown(mass: float, sink: float, min_confidence: float) -> bool:
+    """The one rule for "no match": the best place holds less than ``min_confidence`` of the
+    belief, or the unmapped place ("off the map") holds at least as much as it. The causal,
+    lagged and smoothed answers all follow it (a smoothed decision with the drive's calibrated
+    ``novel_prob`` as ``sink``: :meth:`FrameDecision.settled
+    <sprint_map.localize.localizer.FrameDecision.settled>`). O(1).
+
+    >>> is_unknown(0.9, 0.05, 0.2), is_unknown(0.6, 0.96, 0.2), is_unknown(0.1, 0.0, 0.2)
+    (False, True, True)
+    """
+    return mass < min_confidence or sink >= mass
 
 
 @dataclass(slots=True)
@@ -253,16 +266,12 @@ def place_contrast(view: BeliefView, slot: int, hit_ids: list[int], hit_dists: l
     """How much the place of the vertex at ``slot`` stands out among a frame's hits.
 
     The distance of the frame's best hit inside the place (:func:`place_runs` with ``radius``
-    and ``hops``) over that of its best hit elsewhere: outside the place widened to ``reach``
-    images, in any component. Below 1 the place is the closest thing the map holds (Lowe's ratio
-    test, for places); at 1 or more a lookalike is as close. ``hit_ids``/``hit_dists`` are the
-    frame's distinct valid hits; ``rivals``, if given, are the only hits that count as elsewhere
-    (the smoother passes those the neighbouring frames confirm as a route). Returns 0 when
-    nothing was retrieved elsewhere, ``inf`` when no hit fell inside the place, else the ratio.
-
-    Notes
-    -----
-    O(k + r + h d log d) for k hits (two :func:`place_runs`).
+    and ``hops``) over that of its best hit elsewhere (outside the place widened to ``reach``
+    images, in any component): below 1 the place is the closest thing the map holds (Lowe's
+    ratio test, for places). ``hit_ids``/``hit_dists``: the frame's distinct valid hits;
+    ``rivals``, if given: the only hits that count as elsewhere (those the neighbouring frames
+    confirm). Returns 0 when nothing was retrieved elsewhere, ``inf`` when no hit fell inside
+    the place. O(k + r + h d log d) for k hits (two :func:`place_runs`).
 
     Examples
     --------
@@ -371,7 +380,7 @@ def decide(views: list[BeliefView], candidates: list[tuple[float, int, int]], si
     s = int(np.searchsorted(view.slot_first, slot, side="right")) - 1
     image = slot - int(view.slot_first[s])
     vid = int(view.graph.seq_first[s]) + image
-    if mass < min_confidence or sink >= mass:
+    if is_unknown(mass, sink, min_confidence):
         return Decision(None, None, None, mass, prob, sink, n_active_components,
                         n_active_vertices, vid)
     contrast = math.nan if contrast_of is None else contrast_of(view, slot)

@@ -55,9 +55,10 @@ from sprint_map.hmm.sprint_filter import SprintFilter
 
 __all__ = ["MAX_LAG", "FixedLagSmoother", "check_lag"]
 
-#: The largest lag accepted (frames): the per-frame cost grows with the lag (``L`` backward
-#: steps per frame); beyond this, smooth the whole drive instead.
-MAX_LAG = 10_000
+#: The largest lag accepted (frames): each frame costs ``L`` backward steps, and a lagged
+#: drive holds ``L`` frames' beliefs (tens of KB each on a city map: ~24 MB at this bound);
+#: beyond this (100 s at 10 Hz), the commit's whole-drive smoothing is the answer.
+MAX_LAG = 1_000
 
 
 def check_lag(lag: object) -> int:
@@ -112,9 +113,35 @@ class FixedLagSmoother:
         #: The ``k`` nearest hits of the waiting frames and of the (up to) two answered before.
         self._nearest: deque[tuple[list[int], list[float]]] = deque()
         self._prefer: int | None = None
+        #: :meth:`FrameBelief.held_bytes` of each waiting frame (a frame is counted again
+        #: once the next one built its backward operator), and their sum.
+        self._frame_bytes: deque[int] = deque()
+        self._held = 0
         #: Frames pushed, and frames answered (the next answer is for frame ``answered``).
         self.pushed = 0
         self.answered = 0
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes the waiting frames hold (:meth:`FrameBelief.held_bytes`, with their nearest
+        hits): what a lagged session keeps beyond its descriptors, about ``lag`` times a
+        frame's belief. O(1)."""
+        return self._held
+
+    def _count(self, frame: FrameBelief, again: bool = False) -> None:
+        """Count ``frame`` (the newest waiting one) in :attr:`held_bytes`; ``again``: it was
+        counted already and has grown."""
+        size = frame.held_bytes() + 96 * self.config.k  # its k nearest hits, boxed
+        if again:
+            self._held -= self._frame_bytes.pop()
+        self._frame_bytes.append(size)
+        self._held += size
+
+    def _recount(self) -> None:
+        self._frame_bytes = deque()
+        self._held = 0
+        for frame in self._frames:
+            self._count(frame)
 
     @property
     def waiting(self) -> int:
@@ -148,6 +175,8 @@ class FixedLagSmoother:
             # then builds none, the first one (after ``lag`` pushes) included
             before = self._frames[-2]
             before.pulls = backward_operator(before, frame)
+            self._count(before, again=True)
+        self._count(frame)
         if len(self._frames) <= self.lag:
             return None
         return self._answer_oldest()
@@ -166,20 +195,15 @@ class FixedLagSmoother:
         if decision.candidate_id is not None and decision.seq_id is not None:
             self._prefer = decision.seq_id
         frames.popleft()
+        self._held -= self._frame_bytes.popleft()
         while len(self._nearest) > len(frames) + 2:
             self._nearest.popleft()
         self.answered += 1
         return decision
 
-    def flush(self) -> list[Decision]:
-        """Answer every waiting frame now, in frame order (the end of a drive): one backward
-        pass from the last frame pushed, each frame reported on the drive of the next, as
-        :meth:`ForwardBackward.decisions` does. The belief is kept: later frames go on.
-
-        Notes
-        -----
-        O(waiting) backward steps and decisions.
-        """
+    def pending(self) -> list[Decision]:
+        """The answers :meth:`flush` would give now, without giving them: nothing changes (a
+        commit that may yet be refused reads them; the drive may go on). O(waiting)."""
         frames = self._frames
         if not frames:
             return []
@@ -195,11 +219,27 @@ class FixedLagSmoother:
                 prefer = decision.seq_id
             out.append(decision)
         out.reverse()
+        return out
+
+    def flush(self) -> list[Decision]:
+        """Answer every waiting frame now, in frame order (the end of a drive): one backward
+        pass from the last frame pushed, each frame reported on the drive of the next, as
+        :meth:`ForwardBackward.decisions` does. The belief is kept: later frames go on.
+
+        Notes
+        -----
+        O(waiting) backward steps and decisions (:meth:`pending`, then consumed).
+        """
+        out = self.pending()
+        if not out:
+            return []
         last = out[-1]
         if last.candidate_id is not None and last.seq_id is not None:
             self._prefer = last.seq_id
         self.answered += len(out)
-        frames.clear()
+        self._frames.clear()
+        self._frame_bytes.clear()
+        self._held = 0
         while len(self._nearest) > 2:
             self._nearest.popleft()
         return out
@@ -235,6 +275,7 @@ class FixedLagSmoother:
         except ValueError:
             self.filter.reset()
         self._frames = deque(self._remapped(frame) for frame in self._frames)
+        self._recount()
 
     def _remapped(self, frame: FrameBelief) -> FrameBelief:
         """``frame`` with its parts on the source's current components."""

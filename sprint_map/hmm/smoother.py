@@ -32,6 +32,7 @@ plus its hits; decisions are made frame by frame during the backward pass.
 
 from __future__ import annotations
 
+import sys
 from bisect import bisect_left, bisect_right
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -135,6 +136,36 @@ class FrameBelief:
             self.part_starts = out
         return self.part_starts
 
+    def held_bytes(self) -> int:
+        """Bytes this frame holds of its own: its arrays (each buffer once, a view counted by
+        the array it views), its hit lists and its backward operator; not the components'
+        transitions, which the cache holds for every frame. O(parts + hits)."""
+        seen: set[int] = set()
+        total = 0
+        todo: list[object] = [self.parts, self.hit_ids, self.hit_dists, self.hit_lik,
+                              self.hit_layout, self.pulls, self.part_starts, self.laid,
+                              None if self.spaced is None else self.spaced[0]]
+        while todo:
+            obj = todo.pop()
+            if obj is None or isinstance(obj, ComponentTransition | float | int | bool):
+                continue
+            if isinstance(obj, np.ndarray):
+                while isinstance(obj.base, np.ndarray):
+                    obj = obj.base
+                if id(obj) not in seen:
+                    seen.add(id(obj))
+                    total += obj.nbytes + 112  # the array object itself
+            elif isinstance(obj, list | tuple):
+                total += sys.getsizeof(obj)
+                if obj and isinstance(obj[0], float | int):
+                    total += 32 * len(obj)  # boxed numbers
+                else:
+                    todo.extend(obj)
+            elif hasattr(obj, "__slots__"):  # the backward operator and its pull
+                total += sys.getsizeof(obj)
+                todo.extend(getattr(obj, name, None) for name in type(obj).__slots__)
+        return total
+
     def values(self) -> np.ndarray:
         """The parts' alpha laid end to end (cached; O(live) once)."""
         if self.laid is None:
@@ -203,18 +234,15 @@ def _held_hits(parts: Parts, live: np.ndarray, hit_ids: list[int], hit_lik: list
 class ForwardBackward:
     """Smoothed decisions for a whole query sequence over a :class:`GraphSource`.
 
+    Per frame, :meth:`forward` costs one filter step plus O(live), the backward pass the same
+    (:meth:`ComponentTransition.pull`) plus one decision; nothing is sized by the map.
+
     Parameters
     ----------
     config : HMMConfig
     source : GraphSource
     cache : ComponentCache, optional
         Shared component cache (e.g. the causal localizer's).
-
-    Notes
-    -----
-    :meth:`forward` costs one filter step per frame plus O(live) to keep its belief; the
-    backward pass costs the same per frame (:meth:`ComponentTransition.pull`) plus one
-    decision. Nothing is sized by the map.
 
     Examples
     --------

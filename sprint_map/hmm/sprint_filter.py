@@ -258,7 +258,8 @@ class SprintFilter:
     # ------------------------------------------------------------------ per frame
     def step(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
              weights: np.ndarray | None = None, sink_weight: float = 1.0) -> Decision:
-        """Filter one query frame and decide where it is.
+        """Filter one query frame and decide where it is: :meth:`update` then :meth:`decide`
+        (the class notes give the cost).
 
         Parameters
         ----------
@@ -278,10 +279,6 @@ class SprintFilter:
         ------
         ValueError
             On malformed hits or a hit the graph source does not know.
-
-        Notes
-        -----
-        :meth:`update` then :meth:`decide`; see the class notes for the cost.
         """
         self.update(hit_ids, hit_dists, weights, sink_weight)
         return self.decide()

@@ -163,6 +163,18 @@ class LaggedLocalizer:
         self.timing.smooth_ms += (time.perf_counter() - start) * 1e3
         return out
 
+    def pending(self) -> list[FrameDecision]:
+        """The answers :meth:`flush` would give now, in frame order, without giving them:
+        nothing changes, so a commit that is refused leaves the drive as it was and the next
+        frames are answered as if it had never been tried. O(waiting) backward steps."""
+        if self.smoother is None or not self.smoother.waiting:
+            return []
+        first = self.smoother.answered
+        with self.localizer.pinned():
+            decisions = self.smoother.pending()
+        return [self.localizer.frame_decision(first + i, d, *best)
+                for i, (d, best) in enumerate(zip(decisions, self._best_hits, strict=True))]
+
     def localize(self, descriptors: DescriptorsLike | Iterable[DescriptorsLike]
                  ) -> list[FrameDecision]:
         """Every frame's answer, in frame order (the last ``lag`` flushed at the end)."""

@@ -24,7 +24,7 @@ import numpy as np
 from sprint_map.frontend.centring import DriveCentring
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.hmm.decision import Decision
+from sprint_map.hmm.decision import Decision, is_unknown
 from sprint_map.hmm.graph import GraphSource
 from sprint_map.hmm.smoother import ForwardBackward
 from sprint_map.hmm.sprint_filter import SprintFilter
@@ -90,27 +90,21 @@ class FrameDecision:
     """The answer for one query frame; ``seq_id``/``image_id`` are None for "no match".
 
     ``prob`` is the posterior mass of the decided place (the vertex, its temporal neighbours and
-    the vertices joined to them by edges); for "no match" it is that of the best candidate,
-    which ``best`` still names (``(seq_id, image_id)``, None when the map is empty).
-    ``novel_prob`` is the posterior probability that the frame shows a place the map does not
-    hold (the filter's "unmapped place" state; 1 when the map is empty). ``distance`` is the
-    frame's best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which
-    the merge rule compares with the drive's accepted matches; ``nearest`` is that hit's vertex
-    id (None then), where admission looks for a copy of the frame. ``contrast`` (smoothed matches
-    only, NaN otherwise) is the best hit inside the decided place over the best hit elsewhere
-    in the map (:func:`sprint_map.hmm.decision.place_contrast`): below 1 the place stands out,
-    at 1 or more a lookalike is as close; the merge rule reads it along runs. ``confirmed``
-    is False for a smoothed decision the merge rule may not merge: one of the deeper pass of
-    a drive searched with ``smooth_k`` neighbours where the ``k``-neighbour model's decision
-    was not accepted (:meth:`Localizer.smoothed`), or one on a run that claims a revisit the
-    drive's own thumbnails deny, outside its verified stretches
-    (:meth:`sprint_map.merge.verification.RunVerifier.contradicted`), or one whose place lies
-    beyond the gate of the frame's GNSS fix (:mod:`sprint_map.localize.gnss`). ``gnss_dist_m``
-    is the distance (metres) from the frame's fix to the decided place's mapped position (NaN
-    without a fix, a decided place or its position). ``verified`` is True for a smoothed
-    decision on a run that geometric verification on the thumbnails confirmed
-    (:mod:`sprint_map.merge.verification`): the merge rule merges it even if a lookalike test
-    refused it.
+    the vertices joined to them by edges); for "no match" that of the best candidate, which
+    ``best`` still names (``(seq_id, image_id)``, None when the map is empty). ``novel_prob``:
+    the posterior of the "unmapped place" state (1 when the map is empty). ``distance``: the
+    best retrieval hit's squared-L2 distance (inf when nothing was retrieved), which the merge
+    rule compares with the drive's accepted matches; ``nearest``: that hit's vertex id (None
+    then), where admission looks for a copy of the frame. ``contrast`` (smoothed matches only,
+    else NaN): the best hit inside the decided place over the best elsewhere
+    (:func:`sprint_map.hmm.decision.place_contrast`), below 1 when the place stands out.
+    ``confirmed`` is False for a smoothed decision the merge rule may not merge: from the deep
+    pass over ``smooth_k`` hits where the ``k``-hit decision was not accepted
+    (:meth:`Localizer.smoothed`), on a run claiming a revisit the drive's own thumbnails deny
+    (:meth:`sprint_map.merge.verification.RunVerifier.contradicted`), or beyond the gate of the
+    frame's GNSS fix (:mod:`sprint_map.localize.gnss`). ``gnss_dist_m``: metres from the fix to
+    the decided place's mapped position (NaN without either). ``verified``: True on a run that
+    geometric verification on the thumbnails confirmed, merged even if a lookalike test refused it.
     """
 
     frame: int
@@ -130,6 +124,22 @@ class FrameDecision:
     @property
     def is_match(self) -> bool:
         return self.seq_id is not None
+
+    def settled(self, min_confidence: float) -> FrameDecision:
+        """This decision under the one rule for what an answer is
+        (:func:`~sprint_map.hmm.decision.is_unknown` of ``prob`` and ``novel_prob``): a match
+        the rule calls unknown becomes "no match" (``best`` keeps the place it named,
+        ``contrast`` goes), everything else is returned as is. A ``verified`` match stays one:
+        the thumbnails' geometry says the map holds the place, and the merge rule merges it.
+        The causal and lagged answers are decided by that rule already; the smoothed ones
+        carry the drive's calibrated ``novel_prob``, which the pass that named the place did
+        not weigh. O(1)."""
+        if (self.seq_id is None or self.verified
+                or not is_unknown(self.prob, self.novel_prob, min_confidence)):
+            return self
+        best = self.best if self.best is not None else (self.seq_id, int(self.image_id or 0))
+        return dataclasses.replace(self, seq_id=None, image_id=None, vertex_id=None, best=best,
+                                   contrast=math.nan)
 
     def to_dict(self) -> dict[str, Any]:
         return {"frame": self.frame, "seq_id": self.seq_id, "image_id": self.image_id,

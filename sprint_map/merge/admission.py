@@ -79,7 +79,8 @@ class Admission:
     """Which frames a map stores (``MapConfig.admission``); see the module docstring.
     ValueError for a value out of range."""
 
-    #: ``"all"`` or ``"novel"``.
+    #: ``"all"`` (the default, recall parity) or ``"novel"`` (a smaller map for ~1 point of
+    #: recall: ``docs/benchmarks.md``, "Bounded map").
     mode: str = "all"
     #: A merged frame this close to its place, in the drive's steps, is redundant (``novel``).
     max_step_ratio: float = 1.0

@@ -2,7 +2,7 @@
 
 Once a drive has been seen whole, its recorded retrieval hits are decided again from the
 smoothed posterior (:meth:`Localizer.smooth_pass <sprint_map.localize.localizer.Localizer.smooth_pass>`),
-in up to four steps (``docs/hmm.md``, "Decision: place mass and novelty"):
+in up to six steps (``docs/hmm.md``, "Decision: place mass and novelty"):
 
 1. the **smoothed pass** over each frame's ``k`` nearest hits;
 2. the **calibrated unmapped place**: the drive's consistent matches give its match distances,
@@ -13,7 +13,11 @@ in up to four steps (``docs/hmm.md``, "Decision: place mass and novelty"):
    accept take its place, marked ``confirmed=False`` (answered, never merged);
 5. with GNSS fixes, decisions whose fix-to-place offset breaks their run's
    (:meth:`GnssAid.off_track <sprint_map.localize.gnss.GnssAid.off_track>`) are marked
-   ``confirmed=False``.
+   ``confirmed=False``;
+6. every decision is **settled** by the one rule for what an answer is
+   (:meth:`FrameDecision.settled <sprint_map.localize.localizer.FrameDecision.settled>`): a
+   match whose calibrated ``novel_prob`` is at least its ``prob`` (or whose ``prob`` is below
+   ``min_confidence``) answers "no match", as the causal filter answers such a frame.
 
 :func:`smoothed_decisions` is the one entry: ``ingest``, ``localize --smooth``, ``eval``, the
 service's commit and the ingest farm all call it.
@@ -112,6 +116,9 @@ def smoothed_decisions(localizer: Localizer, smap: MergeableMap,
                 np.array([-1 if d.vertex_id is None else d.vertex_id for d in out]))
             out = [dataclasses.replace(d, confirmed=False) if x else d
                    for d, x in zip(out, stuck.tolist(), strict=True)]
+        # One rule for what an answer is: a frame the calibrated unmapped place claims is
+        # "no match", as the causal filter would answer it (never merged either way).
+        out = [d.settled(cfg.min_confidence) for d in out]
     localizer.timing.smooth_ms = (time.perf_counter() - start) * 1e3
     return out
 

@@ -14,8 +14,8 @@ Verification is **positive evidence only**: a run with many inliers is merged al
 lookalike test refused it; a run with few is left to the merge rule as before, never
 refused for it. Few inliers are weak evidence of a different place (other light, another
 lane, a low resolution: the corridor's true pairs score 22 on thumbnails, near chance), many
-are strong evidence of the same one (``docs/decisions.md``, "What merges: the merge rule
-(issue 13)"). A copied street (the same facades elsewhere) verifies
+are strong evidence of the same one (``docs/decisions.md``, "Geometric verification as
+positive evidence only"). A copied street (the same facades elsewhere) verifies
 as well as the right one; the rule's other tests still stand against it.
 
 A run is verified stretch by stretch, on samples every :data:`SAMPLE_EVERY` frames. A sample
@@ -229,7 +229,7 @@ class RunVerifier:
         of one map sequence say the drive passed that place twice. The drive's own frames at
         :data:`REVISIT_SAMPLES` images both runs share are then matched with each other: the
         same camera under the same light, so a true second pass shares many inliers with the
-        first (``docs/decisions.md``, "What merges: the merge rule (issue 13)": medians of 67-171
+        first (``docs/decisions.md``, "Revisits checked, teleports refused": medians of 67-171
         where the revisits were true, 17-19 where they were not). If their median is below ``min_inliers``, the drive drove two
         different places that both look like the map's, and at most one of the runs is right:
         each run of such a pair keeps only its stretches verified on the map's thumbnails

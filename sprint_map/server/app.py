@@ -47,6 +47,17 @@ class SessionCreate(BaseModel):
                                  "the frame it answers; the commit answers the last ones.")
 
 
+class JoinRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    source: str = Field(description="Path of the map to join, on the server's file system "
+                                    "(opened read-only).")
+    drives: list[str] | None = Field(None, description="Only these drives (default: all).")
+    prefix: str = Field("", description="Prepended to every imported drive's name.")
+    merge: bool = Field(True, description="Localise and merge the drives (false: only copy).")
+    require_connected: bool = Field(False, description="Refuse a join that leaves an imported "
+                                                       "drive unconnected.")
+
+
 class SessionCreated(BaseModel):
     session_id: str
 
@@ -354,6 +365,11 @@ def create_app(service: LocalisationService, token: str | None = None,
     async def discard(session_id: str) -> dict[str, Any]:
         session = await service.discard(session_id)
         return {"session_id": session.id, "frames": session.frames, "discarded": True}
+
+    @app.post("/v1/joins", responses=_ERRORS, dependencies=guard,
+              summary="Join another map's drives (through the writer; answered once durable)")
+    async def join(body: JoinRequest) -> dict[str, Any]:
+        return await service.join(body.source, body.model_dump(exclude={"source"}))
 
     @app.get("/v1/map", responses=_ERRORS, dependencies=guard,
              summary="The map's summary (the fields of sprint-map info --json)")

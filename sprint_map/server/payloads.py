@@ -15,7 +15,7 @@ import numpy as np
 
 from sprint_map.errors import SprintMapError
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.imagefiles import decode_image
+from sprint_map.frontend.image_path import describe_encoded
 from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.util.arrays import Descriptors, DescriptorsLike
@@ -93,7 +93,9 @@ def descriptor_from_raw(body: bytes, dim: int) -> Descriptors:
 
 def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int,
                           max_pixels: int = MAX_IMAGE_PIXELS) -> Descriptors:
-    """Decode image bytes and describe them as the map's own images are described.
+    """Decode image bytes and describe them as the map's own images are described: through the
+    one image path (:func:`~sprint_map.frontend.image_path.describe_encoded`), so a colour
+    model's map decodes a posted frame in colour, as ``ingest`` does.
 
     An image whose header declares more than ``max_pixels`` pixels is refused (422
     ``bad_image``) before it is decoded.
@@ -103,8 +105,7 @@ def descriptor_from_image(body: bytes, spec: DescriptorSpec | None, dim: int,
                        f"this map holds precomputed descriptors (dim {dim}): send "
                        'application/json {"descriptor": [...]}, not an image')
     try:
-        image = decode_image(body, "image", max_pixels=max_pixels)
-        row = spec.describe(image).reshape(1, -1)
+        row = describe_encoded(spec, [(body, "image")], max_pixels)[0]
     except SprintMapError as exc:
         raise ApiError(422, "bad_image", str(exc)) from None
     except (ValueError, MemoryError) as exc:  # e.g. an image too large to decode

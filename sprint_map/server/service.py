@@ -49,7 +49,7 @@ from sprint_map.server.sessions import (
     Session,
     SessionRegistry,
 )
-from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter
+from sprint_map.server.writer import CommitJob, CommitOutcome, CommitWriter, JoinJob
 
 __all__ = ["LocalisationService"]
 
@@ -294,9 +294,8 @@ class LocalisationService:
                 self.registry.reserve_frame(session)
                 try:
                     decision, timing = await self._answer(session, payload, body)
-                except BaseException:
-                    self.registry.release_frame(session)
-                    raise
+                finally:  # kept or not, the registry counts what the session holds now
+                    self.registry.settle(session)
         finally:
             session.waiting -= 1
             self._admitted -= 1
@@ -354,10 +353,10 @@ class LocalisationService:
         return decision, (timing.retrieval_ms[-1], timing.hmm_ms[-1])
 
     # --- commits ----------------------------------------------------------------------------
-    def _job(self, session: Session) -> CommitJob:
+    def _job(self, session: Session, pending: list[Any] | None = None) -> CommitJob:
         rows = session.descriptors()
         # the vehicles were answered from k hits; the commit searches the drive smooth_k deep
-        return CommitJob(session.name, rows, list(session.decisions),
+        return CommitJob(session.name, rows, [*session.decisions, *(pending or ())],
                          source=f"sprint-map serve session {session.id}",
                          positions=session.position_array(),
                          smoothed=functools.partial(self.map.smoothed, session.localizer, rows),
@@ -374,9 +373,11 @@ class LocalisationService:
                 raise ApiError(409, "committing", "the session is already being committed")
             if not session.frames:
                 raise ApiError(409, "empty_session", "the session has no frames to commit")
-            flushed = (await anyio.to_thread.run_sync(self._flush, session)
+            # A lagged session's last answers, read without changing it: a refused commit
+            # (503 below, or a failed write) leaves the drive as it was.
+            flushed = (await anyio.to_thread.run_sync(self._pending, session)
                        if session.lagged is not None else None)
-            future = self.writer.submit(self._job(session))
+            future = self.writer.submit(self._job(session, flushed))
             session.state = COMMITTING
             # Settled in the writer thread, before the awaiting request resumes (and even if
             # the client went away): a durable commit closes the session, a failed one reopens.
@@ -400,11 +401,11 @@ class LocalisationService:
                                 for d in flushed]
         return out
 
-    def _flush(self, session: Session) -> list[Any]:
-        """A lagged session's last answers (worker thread, shared gate)."""
+    def _pending(self, session: Session) -> list[Any]:
+        """A lagged session's last answers, unchanged (worker thread, shared gate)."""
         with self.gate.shared():
             try:
-                return session.flush()
+                return session.pending()
             except SprintMapError as exc:
                 raise from_library(exc) from None
 
@@ -416,6 +417,19 @@ class LocalisationService:
         else:
             session.state = OPEN
             self.metrics.commits.inc(result="error")
+
+    async def join(self, source: str, options: dict[str, Any]) -> dict[str, Any]:
+        """Join another map's drives into the served map through the writer (in order with
+        the commits; sessions keep streaming meanwhile); returns once durable."""
+        self._refuse_if_closing()
+        future = self.writer.submit(JoinJob(source, options))
+        try:
+            result = await asyncio.wrap_future(future)
+        except SprintMapError as exc:
+            raise from_library(exc) from None
+        self.metrics.edges.inc(result.cross_edges)
+        out: dict[str, Any] = result.to_dict()
+        return out
 
     # --- map --------------------------------------------------------------------------------
     async def map_info(self) -> dict[str, Any]:

@@ -58,9 +58,11 @@ class Session:
         self.lag = lagged.lag if lagged is not None else 0
         #: Neighbours a batched search gives this session's frames.
         self.search_k = search_k
-        #: Answers made by the commit's flush of a lagged session, until a commit succeeds.
-        self.flushed: list[FrameDecision] = []
         self.dim = dim
+        #: Bytes of the hits recorded for the commit (one entry per frame).
+        self.hit_bytes = 0
+        #: Bytes the registry counts for this session (:meth:`SessionRegistry.settle`).
+        self.counted = 0
         self.rows: list[Descriptors] = []
         #: Per-frame ``(x, y[, heading])``: given for every frame of a session or for none.
         self.positions: list[tuple[float, ...]] = []
@@ -80,8 +82,23 @@ class Session:
 
     @property
     def nbytes(self) -> int:
-        """Descriptor bytes this session holds."""
-        return self.frames * self.dim * 4
+        """Bytes this session holds: its descriptors, the hits recorded for its commit and,
+        with a lag, the beliefs of the frames waiting for an answer
+        (:attr:`FixedLagSmoother.held_bytes <sprint_map.hmm.fixed_lag.FixedLagSmoother.
+        held_bytes>`). O(1)."""
+        smoother = self.lagged.smoother if self.lagged is not None else None
+        return (self.frames * self.dim * 4 + self.hit_bytes
+                + (smoother.held_bytes if smoother is not None else 0))
+
+    @property
+    def frame_cost(self) -> int:
+        """What one more frame is expected to add to :attr:`nbytes`: its descriptor and, once
+        a frame was kept, the mean of what the others added beyond theirs (a lagged session's
+        waiting beliefs grow until ``lag`` frames wait). O(1)."""
+        row = self.dim * 4
+        if not self.frames:
+            return row
+        return max(row, -(-self.nbytes // self.frames))
 
     def touch(self) -> None:
         self.last_active = time.monotonic()
@@ -130,7 +147,10 @@ class Session:
         self.check_position(position)
         self.apply_changes()
         stepper: Localizer | LaggedLocalizer = self.lagged or self.localizer
+        recorded = len(self.localizer.hits)
         decision = stepper.step(row) if hits is None else stepper.step_hits(*hits, row)
+        for ids, dists in self.localizer.hits[recorded:]:
+            self.hit_bytes += ids.nbytes + dists.nbytes + 2 * 112
         self.rows.append(row.reshape(-1))
         if position is not None:
             self.positions.append(position)
@@ -138,14 +158,11 @@ class Session:
             self.decisions.append(decision)
         return decision
 
-    def flush(self) -> list[FrameDecision]:
-        """A lagged session's answers of its last frames (the commit's; called under the
-        shared gate): those flushed now, after any flushed by an earlier commit that failed."""
-        if self.lagged is not None:
-            done = self.lagged.flush()
-            self.decisions.extend(done)
-            self.flushed.extend(done)
-        return list(self.flushed)
+    def pending(self) -> list[FrameDecision]:
+        """A lagged session's answers of its last frames, as a commit gives them (called under
+        the shared gate); nothing changes: a refused commit leaves the session as it was, and
+        the next frames and the retried commit answer as ``localize --lag`` would."""
+        return self.lagged.pending() if self.lagged is not None else []
 
     def position_array(self) -> np.ndarray | None:
         """``(frames, 3)`` x, y, heading (NaN if not given), or None without positions."""
@@ -188,7 +205,8 @@ class SessionRegistry:
 
     @property
     def buffered_bytes(self) -> int:
-        """Descriptor bytes held by all open sessions."""
+        """Bytes held by all open sessions (:attr:`Session.nbytes`, as last settled, and the
+        frames admitted since)."""
         return self._buffered
 
     def add(self, session: Session) -> None:
@@ -240,23 +258,29 @@ class SessionRegistry:
         if session.frames >= self.max_frames:
             raise ApiError(409, "frame_limit", f"session has reached its limit of "
                            f"{self.max_frames} frames; commit it or discard it")
-        row_bytes = session.dim * 4
+        cost = session.frame_cost
         with self._lock:
-            if self._buffered + row_bytes > self.max_buffered_bytes:
+            if self._buffered + cost > self.max_buffered_bytes:
                 raise busy(f"the server holds {self._buffered} bytes of uncommitted frames "
-                           f"(limit {self.max_buffered_bytes}); retry later")
-            self._buffered += row_bytes
+                           f"and their state (limit {self.max_buffered_bytes}); retry later")
+            self._buffered += cost
+            session.counted += cost
 
-    def release_frame(self, session: Session) -> None:
-        """Undo :meth:`reserve_frame` for a frame that was not kept."""
+    def settle(self, session: Session) -> None:
+        """Count what ``session`` holds now (after a frame, kept or not): the estimate
+        :meth:`reserve_frame` admitted is replaced by :attr:`Session.nbytes`."""
         with self._lock:
-            self._buffered -= session.dim * 4
+            if session.id in self._sessions:
+                held = session.nbytes
+                self._buffered += held - session.counted
+                session.counted = held
 
     def remove(self, session: Session) -> None:
         """Close ``session`` and free what it held (idempotent)."""
         with self._lock:
             if self._sessions.pop(session.id, None) is not None:
-                self._buffered -= session.nbytes
+                self._buffered -= session.counted
+                session.counted = 0
             session.state = CLOSED
 
     def notify_changed(self, component_ids: set[int]) -> None:

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Container, Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -31,7 +31,7 @@ from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
 from sprint_map.util.arrays import Descriptors
 
-__all__ = ["CommitJob", "CommitOutcome", "CommitWriter", "NameClaims"]
+__all__ = ["CommitJob", "CommitOutcome", "CommitWriter", "JoinJob", "NameClaims"]
 
 log = logging.getLogger("sprint_map.server")
 
@@ -53,6 +53,15 @@ class CommitJob:
     smoothed: Callable[[], list[FrameDecision]] | None = None
     #: the session's centring: the commit stores the rows centred as they were searched
     centring: Any = None
+
+
+@dataclass(frozen=True)
+class JoinJob:
+    """A join of another map's drives (:meth:`SprintMap.join <sprint_map.map.SprintMap.join>`)
+    run by the writer: localised in its thread beside the frames, committed under the gate."""
+
+    source: str
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -112,8 +121,8 @@ class CommitWriter:
         self.gate = gate
         self.on_commit = on_commit
         self.names = names
-        self._queue: queue.Queue[tuple[CommitJob, Future[CommitOutcome]] | None] = queue.Queue(
-            maxsize=queue_size)
+        self._queue: queue.Queue[tuple[CommitJob | JoinJob, Future[Any]] | None] = \
+            queue.Queue(maxsize=queue_size)
         self._thread = threading.Thread(target=self._run, name="sprint-map-writer", daemon=True)
         self._accepting = True
 
@@ -129,15 +138,16 @@ class CommitWriter:
     def start(self) -> None:
         self._thread.start()
 
-    def submit(self, job: CommitJob) -> Future[CommitOutcome]:
-        """Queue ``job``; the future resolves once the commit is durable (or failed).
+    def submit(self, job: CommitJob | JoinJob) -> Future[Any]:
+        """Queue ``job``; the future resolves once the commit is durable (or failed): with a
+        :class:`CommitOutcome` for a drive, the ``JoinResult`` for a join.
 
         Raises
         ------
         ApiError
             503 if the queue is full or the writer is stopping.
         """
-        future: Future[CommitOutcome] = Future()
+        future: Future[Any] = Future()
         if not self._accepting:
             raise busy("the server is shutting down")
         try:
@@ -163,7 +173,8 @@ class CommitWriter:
             if not future.set_running_or_notify_cancel():
                 continue
             try:
-                future.set_result(self.commit(job))
+                future.set_result(self.join(job) if isinstance(job, JoinJob)
+                                  else self.commit(job))
             except BaseException as exc:  # the caller gets every failure, the thread goes on
                 future.set_exception(exc)
             self._retrain_index()
@@ -176,6 +187,13 @@ class CommitWriter:
                 log.info("index trained again beside the sessions")
         except Exception:  # the commits are durable; the old index goes on answering
             log.exception("index retraining failed; the previous index is kept")
+
+    def join(self, job: JoinJob) -> Any:
+        """Join another map's drives (in the writer thread): its localisation reads the map
+        beside the frames (only this thread changes it); the gate is held exclusively around
+        its one transaction, the index's catch-up and the registry's update only."""
+        return self.smap.join(job.source, exclusive=self.gate.exclusive,
+                              on_commit=self.on_commit, **job.options)
 
     def commit(self, job: CommitJob) -> CommitOutcome:
         """Commit one drive (in the writer thread; also usable directly when no thread runs)."""

@@ -237,16 +237,28 @@ def check_map(store: MapStore, *, seed: int = 0,
         report.notes.append(f"{name} is not the live generation (a reader may still have it "
                             "open, or a compaction was interrupted): removed by the next "
                             "writer's open")
+    check_partials(store, live, report)
+    return report
+
+
+def check_partials(store: MapStore, live: bool, report: CheckReport) -> None:
+    """Leftover ``*.partial`` files (area ``temp``): a regular file is the temp file of an
+    interrupted atomic publication (a kill between its write and its rename: the map is whole,
+    no reader ever opens it, the next writer's open removes it), so a note; anything else of
+    that name (a directory, a link, a device) no writer made and the next writer's open cannot
+    remove: a violation. O(entries of the map's directories)."""
     for entry in partial_files(store):
         message = f"leftover temp file {entry.relative_to(store.path)}"
-        if live and INDEX_DIR in (entry.parent.name, entry.parent.parent.name):
+        if entry.is_symlink() or not entry.is_file():
+            report.violation("temp", f"{message} is not a regular file (no writer leaves one)")
+        elif live and INDEX_DIR in (entry.parent.name, entry.parent.parent.name):
             report.notes.append(f"{message} (being written by the live writer)")
         elif entry.name == f"{CURRENT_NAME}{PARTIAL_SUFFIX}":  # never read: harmless
             report.notes.append(f"{message} (a compaction killed before its switch; removed "
                                 "by the next writer's open)")
         else:
-            report.violation("temp", message)
-    return report
+            report.notes.append(f"{message} (an interrupted write, never read; removed by "
+                                "the next writer's open)")
 
 
 def check_sequences(store: MapStore) -> CheckReport:

@@ -76,6 +76,11 @@ class GroupWriter(UncommittedRows):
         return [s.record for s in self._added if isinstance(s, StagedSequence)]
 
     @property
+    def digests(self) -> list[bytes]:
+        """The content digests of :attr:`staged`'s rows, in order."""
+        return [s.digest for s in self._added if isinstance(s, StagedSequence)]
+
+    @property
     def frames(self) -> int:
         """Rows the group has written (uncommitted)."""
         return sum(r.length for r in self.staged)
@@ -130,10 +135,12 @@ class GroupWriter(UncommittedRows):
                 writer.set_stats(*stats())
             self._added.append(writer.stage(positions, edges, thumbnails))
 
-    def commit(self) -> list[AddResult]:
+    def commit(self, extra: Callable[[Any], None] | None = None) -> list[AddResult]:
         """Make the group's rows durable (one fsync per shard file written), then record every
         sequence of the group in one LMDB transaction: the commit point. Returns one result per
-        sequence added, in order.
+        sequence added, in order. ``extra``, if given, writes more records into the same
+        transaction after the sequences' (a join's copied records, :mod:`sprint_map.storage.
+        join`); like the body it may be run again in a new transaction (a full map grows).
 
         Raises
         ------
@@ -158,6 +165,8 @@ class GroupWriter(UncommittedRows):
 
                 def body(txn: Any) -> list[tuple[int, int]]:
                     out = [write_staged(self.store, txn, s) for s in staged]
+                    if extra is not None:
+                        extra(txn)
                     crash_point("group.before_commit")
                     return out
 

@@ -159,6 +159,12 @@ class MapReads:
                 out[vids - seq.first_vertex] = [decode_vertex(v) for v in values]
         return out
 
+    def has_positions(self) -> bool:
+        """Whether any vertex (of a live or a removed sequence, until ``compact``) has a
+        position. O(1)."""
+        with self.env.read() as txn:
+            return bool(txn.cursor(db=self.env.db("vertex_data")).first())
+
     def geo_frame(self) -> dict[str, Any] | None:
         """The geographic frame record the map keeps its latitude/longitude positions in
         (a JSON object; its meaning is the caller's), or None. O(1)."""

@@ -11,7 +11,7 @@ import os
 import signal
 
 __all__ = ["ADD_POINTS", "SIGHTING_POINTS", "COMPACT_POINTS", "CRASH_ENV", "CRASH_POINTS", "GROUP_POINTS",
-           "INDEX_POINTS", "LEARN_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
+           "INDEX_POINTS", "JOIN_POINTS", "LEARN_POINTS", "RECOVER_POINTS", "REMOVE_POINTS", "REPAIR_POINTS", "SEGMENT_POINTS",
            "SUMMARIZE_POINTS", "UNMERGE_POINTS", "crash_point"]
 
 CRASH_ENV = "SPRINT_MAP_CRASH_AT"
@@ -35,6 +35,13 @@ GROUP_POINTS = (
     "group.rows_written",  # every row of the group written and fsynced, no transaction yet
     "group.before_commit",  # inside the group's one LMDB transaction, every drive written
     "group.committed",  # the group's transaction committed, the index not yet caught up
+)
+#: ``join``: drives of another map copied in (``storage/join.py``, ``merge/join.py``); the
+#: copy is one group commit, so the group's last three points fire inside a join too.
+JOIN_POINTS = (
+    "join.localised",  # every imported drive localised against the target, nothing written
+    "join.records_copied",  # inside the group's transaction: per-drive records and edges put
+    "join.committed",  # the join committed and its index caught up, not yet reported
 )
 #: Persisting the index (periodically while adding, on flush and close, in repair).
 INDEX_POINTS = (
@@ -97,7 +104,7 @@ LEARN_POINTS = (
 
 #: Every crash point in the write paths.
 CRASH_POINTS = (ADD_POINTS + SIGHTING_POINTS + GROUP_POINTS + INDEX_POINTS + SEGMENT_POINTS + RECOVER_POINTS + REPAIR_POINTS
-                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + SUMMARIZE_POINTS + LEARN_POINTS)
+                + REMOVE_POINTS + UNMERGE_POINTS + COMPACT_POINTS + SUMMARIZE_POINTS + LEARN_POINTS + JOIN_POINTS)
 
 
 def crash_point(name: str) -> None:

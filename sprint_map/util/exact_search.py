@@ -114,7 +114,9 @@ def certified_search(
     k: int,
     margin: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The exact top ``k`` of each query, as described in the module docstring.
+    """The exact top ``k`` of each query, as described in the module docstring. Cost: the fast
+    search, O(nq * (k + margin) * dim) to recompute the candidates, one deeper fast search for
+    the uncertified queries, O(n_total * dim) for each still uncertified.
 
     Parameters
     ----------
@@ -132,12 +134,6 @@ def certified_search(
     -------
     (distances, ids) : (nq, k) float32 and int64 arrays
         -1 padded past the index's size (with the fast search's padding distance).
-
-    Notes
-    -----
-    The fast search, O(nq * (k + margin) * dim) to recompute the candidates (vectorised),
-    one deeper fast search for the queries not certified and O(n_total * dim) for each that
-    still is not.
     """
     total = len(vectors)
     want = min(k + (margin_for(k) if margin is None else margin), total)

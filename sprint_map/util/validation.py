@@ -20,12 +20,62 @@ from sprint_map.errors import (
 )
 from sprint_map.util.arrays import Descriptors, Float64Array
 
-__all__ = ["decode_text", "name_key", "parse_seq_ref", "shown", "validate_descriptors",
-           "validate_name", "validate_positions"]
+__all__ = ["MAX_DESCRIPTOR_VALUE", "check_described", "decode_text", "descriptor_problem", "name_key",
+           "parse_seq_ref", "shown", "validate_descriptors", "validate_name",
+           "validate_positions"]
+
+#: The largest magnitude of a descriptor element. A larger one is an overflow (of a model, of
+#: a file's writer), not a descriptor: below it, the squared distances the index computes in
+#: float32 stay finite for any dimension under 8e7 (``dim * (2e15)^2 < 3.4e38``), so a row
+#: can neither overflow a distance nor be normalised to zero by an infinite norm.
+MAX_DESCRIPTOR_VALUE = 1e15
+
+
+def descriptor_problem(rows: Any) -> tuple[int, str] | None:
+    """The first row of the 2-D ``rows`` that is not a descriptor, and why (``"element 3 is
+    NaN"``): an element NaN, infinite or beyond :data:`MAX_DESCRIPTOR_VALUE`; None when every
+    row is one. Checked on the raw values, before anything normalises them. O(rows * dim).
+    """
+    arr = np.asarray(rows)
+    if arr.dtype.kind == "f" and float(np.finfo(arr.dtype).max) < MAX_DESCRIPTOR_VALUE:
+        arr = arr.astype(np.float32)  # float16: the bound is no float16 (every value is below)
+    with np.errstate(invalid="ignore"):
+        ok = np.abs(arr) <= MAX_DESCRIPTOR_VALUE  # NaN compares False
+    good = ok.all(axis=1)
+    if good.all():
+        return None
+    row = int(np.argmin(good))
+    col = int(np.argmin(ok[row]))
+    value = float(arr[row, col])
+    what = ("NaN" if np.isnan(value) else "infinite" if np.isinf(value)
+            else f"{value:.3g}, beyond +-{MAX_DESCRIPTOR_VALUE:g} (an overflow, not a descriptor)")
+    return row, f"element {col} is {what}"
+
+
+def check_described(rows: Any, who: str, first: int = 0, count: int | None = None) -> None:
+    """Refuse what a describer (``who``: "the model m.onnx", "hog") made of images
+    ``first..``: the raw rows, before any normalisation; ``count`` the images it was given.
+
+    Raises
+    ------
+    InvalidDescriptorError
+        A row :func:`descriptor_problem` refuses; ``row`` and ``detail`` set for the frame
+        source to name the frame.
+    """
+    problem = descriptor_problem(rows)
+    if problem is None:
+        return
+    row, why = problem
+    total = len(rows) if count is None else count
+    exc = InvalidDescriptorError(f"{who} gave no descriptor for image {first + row} of {total} "
+                                 f"({why})")
+    exc.row, exc.detail = first + row, f"{who} gave no descriptor ({why})"
+    raise exc
 
 
 def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> Descriptors:
-    """Return ``descriptors`` as a C-contiguous float32 (N, dim) array or raise a clear error."""
+    """Return ``descriptors`` as a C-contiguous float32 (N, dim) array or raise a clear error
+    (:class:`InvalidDescriptorError` for a row :func:`descriptor_problem` refuses)."""
     arr = np.asarray(descriptors)
     if arr.dtype.kind not in "fiu":
         raise DescriptorShapeError(f"descriptors must be numeric, got dtype {arr.dtype}")
@@ -39,11 +89,11 @@ def validate_descriptors(descriptors: Any, dim: int, first_frame: int = 0) -> De
         raise EmptySequenceError("the sequence has no frames")
     with np.errstate(over="ignore"):  # values beyond float32 become Inf, refused just below
         arr = np.ascontiguousarray(arr, dtype=np.float32)
-    if not np.isfinite(arr).all():
-        bad = int(np.argmax(~np.isfinite(arr).all(axis=1)))
-        raise InvalidDescriptorError(
-            f"descriptor of frame {first_frame + bad} contains NaN or Inf"
-        )
+    problem = descriptor_problem(arr)
+    if problem is not None:
+        bad, why = problem
+        kind = "contains NaN or Inf" if not np.isfinite(arr[bad]).all() else "is out of range"
+        raise InvalidDescriptorError(f"descriptor of frame {first_frame + bad} {kind} ({why})")
     return arr
 
 

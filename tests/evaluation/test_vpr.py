@@ -130,3 +130,48 @@ def test_vpr_with_an_onnx_model(tmp_path):
     out = json.loads((tmp_path / "o" / "results.json").read_text())
     assert (out["descriptor"], out["dim"]) == ("onnx", 32)
     assert 0 < out["methods"]["knn"]["recall@20"] <= 1
+
+
+def test_prefixed_names_are_ordered_and_placed_alike_by_the_map_and_the_data_set(tmp_path):
+    """``img059@...`` names (a prefix before the first ``@``): the map's vertices and the data
+    set take the same frame order (timestamps), so recall is that of the plain names; the
+    order results.json reports is the one SPRINT streamed the queries in."""
+    plain = make_vpr_dataset(tmp_path / "plain", n_places=40, spacing_m=6.0, noise=35.0,
+                             query_every=1)
+    prefixed = make_vpr_dataset(tmp_path / "prefixed", n_places=40, spacing_m=6.0, noise=35.0,
+                                query_every=1, prefix=True)
+    out = {}
+    for name, root in (("plain", plain), ("prefixed", prefixed)):
+        result = _cli("eval", root, "--layout", "vpr", "--out", tmp_path / f"o-{name}", "-q")
+        assert result.exit_code == 0, result.output
+        out[name] = json.loads((tmp_path / f"o-{name}" / "results.json").read_text())
+    assert out["prefixed"]["methods"] == out["plain"]["methods"]
+    assert out["prefixed"]["methods"]["knn"]["recall@1"] > 0.5
+    assert out["prefixed"]["order"] == {"database": "timestamp", "queries": "file name"}
+    # the map builder's own view of the folder: the same order and the names' positions
+    from sprint_map.frontend.sources import open_source
+
+    data = VprDataset.open(prefixed)
+    source = open_source(prefixed / "database", DescriptorSpec("hog"))
+    assert source.files == data.database and source.order == "timestamp"
+    assert source.positions is not None and len(source.positions.xy) == len(data.database)
+
+
+def test_map_config_works_with_the_vpr_layout(tmp_path):
+    root = make_vpr_dataset(tmp_path / "vpr", n_places=12)
+    result = _cli("eval", root, "--layout", "vpr", "--out", tmp_path / "o", "-q",
+                  "--map-config", "index_type=flat", "--map-config", "merge_min_run=5")
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "o" / "results.json").read_text())["database"] == 12
+
+
+@pytest.mark.parametrize("layout", ["vpr", "traversals"])
+@pytest.mark.parametrize("radius", ["-1", "nan", "inf", "-inf"])
+def test_a_radius_that_is_no_distance_is_one_error(tmp_path, layout, radius):
+    root = make_vpr_dataset(tmp_path / "vpr", n_places=6)
+    result = _cli("eval", root, "--layout", layout, "--radius", radius, "--out",
+                  tmp_path / "o", "-q")
+    assert result.exit_code == InputError.exit_code, result.output
+    assert result.output.startswith("Error: --radius must be a finite number of metres")
+    assert result.output.count("\n") == 1
+    assert not (tmp_path / "o").exists()

@@ -178,3 +178,29 @@ def test_describe_is_thread_safe(rng):
     with ThreadPoolExecutor(4) as pool:
         parallel = np.stack(list(pool.map(spec.describe, images)))
     np.testing.assert_array_equal(parallel, serial)
+
+
+@pytest.mark.parametrize("kind", ["hog", "patchnorm"])
+@pytest.mark.parametrize(("value", "why"), [(1e30, "beyond"), (np.inf, "infinite")])
+def test_a_broken_raw_vector_is_refused_before_it_is_normalised(rng, monkeypatch, kind, value,
+                                                                 why):
+    """Whatever breaks the raw vector (a build of OpenCV, a parameter) is an error naming the
+    image, not a row that the normalisation turns to zeros (1e30: its float32 norm is Inf)."""
+    import sprint_map.frontend.descriptors as descriptors
+    from sprint_map.errors import InvalidDescriptorError
+
+    real = getattr(descriptors, f"_{kind}")
+
+    def broken(gray, p):
+        vector = real(gray, p).copy()
+        if gray.mean() > 100:
+            vector[3] = value
+        return vector
+
+    monkeypatch.setattr(descriptors, f"_{kind}", broken)
+    frames = [rng.integers(0, 90, (48, 64), dtype=np.uint8) for _ in range(4)]
+    frames[2] = np.full((48, 64), 200, np.uint8)
+    frames[2][::2] = 255
+    with pytest.raises(InvalidDescriptorError, match=rf"^{kind} gave no descriptor for image 2 "
+                                                     rf"of 4 \(element 3 is .*{why}"):
+        DescriptorSpec(kind).describe_batch(frames)

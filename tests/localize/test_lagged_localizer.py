@@ -112,3 +112,43 @@ def test_a_bad_lag_is_one_input_error(road_map, lag):
 def test_a_lag_cannot_be_combined_with_whole_drive_smoothing(road_map):
     with SprintMap.open(road_map, readonly=True) as m, pytest.raises(InputError, match="lag"):
         m.localize(np.zeros((3, DIM), np.float32), lag=3, smooth=True)
+
+
+def test_pending_answers_as_flush_would_and_changes_nothing(road_map, road, rng):
+    rows = noisy(rng, road[:40])
+    with SprintMap.open(road_map, readonly=True) as m:
+        whole = LaggedLocalizer(m, 6).localize(rows)
+        lagged = LaggedLocalizer(m, 6)
+        first = [d for d in (lagged.step(r) for r in rows[:20]) if d is not None]
+        peeked = lagged.pending()
+        assert [d.frame for d in peeked] == list(range(14, 20))
+        assert lagged.waiting == 6 and lagged.pending() == peeked  # read twice, same
+        rest = [d for d in (lagged.step(r) for r in rows[20:]) if d is not None]
+        assert first + rest + lagged.flush() == whole
+        cut = LaggedLocalizer(m, 6)
+        for r in rows[:20]:
+            cut.step(r)
+        assert cut.flush() == peeked
+
+
+def test_the_waiting_beliefs_are_counted_as_they_are_held(road_map, road, rng):
+    """``held_bytes`` of the fixed-lag smoother follows the memory its waiting frames take
+    (traced allocations of the steps), and is 0 once they are answered."""
+    import tracemalloc
+
+    rows = noisy(rng, road[:120])
+    with SprintMap.open(road_map, readonly=True) as m:
+        lagged = LaggedLocalizer(m, MAX_LAG)
+        lagged.step(rows[0])  # components loaded, caches warm
+        tracemalloc.start()
+        try:
+            for row in rows[1:]:
+                lagged.step(row)
+            traced = tracemalloc.get_traced_memory()[0]
+        finally:
+            tracemalloc.stop()
+        held = lagged.smoother.held_bytes
+        assert lagged.waiting == len(rows)
+        assert 0.6 * traced <= held <= 1.5 * traced, (held, traced)
+        lagged.flush()
+        assert lagged.smoother.held_bytes == 0

@@ -11,6 +11,7 @@ import pytest
 
 from sprint_map.localize.lagged import MAX_LAG
 from sprint_map.map import SprintMap
+from sprint_map.server.errors import busy
 from sprint_map.server.service import LocalisationService
 from tests.helpers.serve import run_service
 from tests.helpers.worlds import drive
@@ -88,5 +89,66 @@ def test_ray_sessions_refuse_a_lag_with_a_clear_error(one_drive_map):
         response = await client.post("/v1/sessions", json={"lag": 3})
         assert response.status_code == 422
         assert response.json()["error"] == "lag_not_supported"
+
+    run_service(one_drive_map, body)
+
+
+@pytest.mark.parametrize("batching", [64, 0], ids=["batched", "one-at-a-time"])
+def test_a_refused_commit_changes_nothing(one_drive_map, places, rng, batching):
+    """A lagged session's commit refused with 503 (the writer's queue full) flushes nothing:
+    the frames posted after it and the retried commit answer exactly as ``localize --lag``."""
+    rows = drive(places, rng)[:60]
+    with SprintMap.open(one_drive_map, readonly=True) as m:
+        offline, _ = m.localize(rows, lag=LAG)
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        sid = (await client.post("/v1/sessions", json={"lag": LAG})).json()["session_id"]
+        answers = await post_all(client, sid, rows[:30], raw=batching > 0)
+        submit = service.writer.submit
+
+        def refuse(job: Any) -> Any:
+            raise busy("1 commits are already waiting; retry later")
+
+        service.writer.submit = refuse  # type: ignore[method-assign]
+        refused = await client.post(f"/v1/sessions/{sid}/commit")
+        assert refused.status_code == 503, refused.text
+        service.writer.submit = submit  # type: ignore[method-assign]
+        session = service.registry.get(sid)
+        assert session.state == "open" and session.frames == 30
+        assert len(session.decisions) == 30 - LAG and session.lagged.waiting == LAG
+        answers += await post_all(client, sid, rows[30:], raw=batching > 0)
+        done = await client.post(f"/v1/sessions/{sid}/commit")
+        assert done.status_code == 200, done.text
+        assert done.json()["frames"] == len(rows)
+        got = [(a["frame"], a["seq_id"], a["image_id"], a["prob"])
+               for a in answers[LAG:] + done.json()["decisions"]]
+        assert got == [(d.frame, d.seq_id, d.image_id, round(d.prob, 6)) for d in offline]
+
+    run_service(one_drive_map, body, batch_max_frames=batching)
+
+
+def test_a_lagged_session_counts_its_waiting_beliefs(one_drive_map, places, rng):
+    """``max_buffered_bytes`` counts every buffer a session holds: a lagged session's
+    waiting beliefs too, so such a session is refused (503) where its descriptors alone
+    would fit; a commit frees all it held."""
+    rows = drive(places, rng)[:40]
+
+    async def body(service: LocalisationService, client: httpx.AsyncClient) -> None:
+        sid = (await client.post("/v1/sessions", json={"lag": 30})).json()["session_id"]
+        await post_all(client, sid, rows[:20], raw=True)
+        session = service.registry.get(sid)
+        held = session.lagged.smoother.held_bytes
+        assert held > 20 * rows.shape[1] * 4  # far more than its descriptors
+        assert service.registry.buffered_bytes == session.nbytes >= 20 * 4 * rows.shape[1] + held
+        service.registry.max_buffered_bytes = session.nbytes + 4 * rows.shape[1] + 1
+        refused = await client.post(f"/v1/sessions/{sid}/frames",
+                                    content=np.asarray(rows[20], "<f4").tobytes(),
+                                    headers={"content-type": "application/octet-stream"})
+        assert refused.status_code == 503, refused.text
+        assert session.frames == 20 and service.registry.buffered_bytes == session.nbytes
+        service.registry.max_buffered_bytes = 2 << 30
+        await post_all(client, sid, rows[20:], raw=True)
+        assert (await client.post(f"/v1/sessions/{sid}/commit")).status_code == 200
+        assert service.registry.buffered_bytes == 0
 
     run_service(one_drive_map, body)

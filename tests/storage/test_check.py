@@ -185,13 +185,13 @@ CORRUPTIONS = [
     index_renamed_ahead,
     index_ahead_after_lmdb_rollback,
     index_wrong_stamp,
-    partial_in(INDEX_DIR),
-    partial_in(SHARDS_DIR),
-    partial_in(""),
 ]
 
+#: Leftovers of interrupted writers: notes, not violations (the map is whole).
+LEFTOVERS = [partial_in(INDEX_DIR), partial_in(SHARDS_DIR), partial_in("")]
+
 #: Corruptions a writable open (recovery, then the index cache logic) must undo.
-REPAIRABLE = [index_renamed_ahead, index_ahead_after_lmdb_rollback, *CORRUPTIONS[-3:]]
+REPAIRABLE = [index_renamed_ahead, index_ahead_after_lmdb_rollback, *LEFTOVERS]
 
 
 def test_healthy_map_passes(base):
@@ -207,6 +207,24 @@ def test_check_catches(base, corrupt):
     report = report_of(base.path)
     assert not report.ok
     assert any(expected in v for v in report.violations), report.violations
+
+
+@pytest.mark.parametrize("leave", LEFTOVERS, ids=lambda f: f.__name__)
+def test_a_leftover_temp_file_is_a_note_cleaned_by_the_next_writer(base, leave):
+    expected = leave(base.path)
+    report = report_of(base.path)
+    assert report.ok, report.violations
+    assert any(expected in n and "removed by the next writer's open" in n
+               for n in report.notes), report.notes
+    MapStore.open(base.path).close()
+    assert not any(expected in n for n in report_of(base.path).notes)
+
+
+def test_a_partial_name_that_is_no_file_is_a_violation(base):
+    (base.path / INDEX_DIR / "flat.000000000099.faiss.partial").mkdir()
+    report = report_of(base.path)
+    assert report.areas == {"temp"}
+    assert "is not a regular file" in report.violations[0]
 
 
 @pytest.mark.parametrize("corrupt", REPAIRABLE, ids=lambda f: f.__name__)

@@ -322,3 +322,28 @@ def test_tail_candidates_are_reranked_without_reading_the_shards(tmp_path, monke
         mapped = projection.apply(np.vstack(world.drives(0)))  # the map's rows, in id order
         want = ((mapped[ids] - projection.apply(QUERIES)[:, None, :]) ** 2).sum(-1)
         assert np.allclose(dists, want, rtol=1e-4, atol=1e-5)
+
+
+def test_a_kill_while_learning_writes_an_index_file_leaves_a_note(tmp_path, states):
+    """Killed at ``index.partial_written`` during ``index --learn``: the ``.partial`` in the
+    projection's folder is the leftover of an interrupted writer, not damage: ``check`` (read
+    only) exits 0 with a note, and the next writer's open removes it."""
+    from click.testing import CliRunner
+
+    from sprint_map.cli.main import main
+
+    base, _, _ = states
+    path = tmp_path / "m"
+    shutil.copytree(base, path)
+    child = run_child(path, "learn", "index.partial_written")
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    leftovers = list((path / "index").rglob("*.partial"))
+    assert leftovers and all(p.parent.name.startswith("p0") for p in leftovers), leftovers
+    result = CliRunner().invoke(main, ["check", str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["ok"] and any("leftover temp file" in n for n in report["notes"]), report
+    with MapStore.open(path):
+        pass
+    assert not list((path / "index").rglob("*.partial"))
+    assert ok(path)

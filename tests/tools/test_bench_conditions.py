@@ -51,13 +51,15 @@ def test_latent_stream_end_to_end_with_an_arm(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "conditions.json"
     assert bench_conditions.main(["--world", "latent", "--seeds", "0", "--drives", "5",
-                                  "--frames", "40", "--probes", "2",
+                                  "--frames", "40", "--probes", "2", "--set", "hmm.k=12",
                                   "--arm", "minrun merge_min_run=9",
                                   "--json", str(out)]) == 0
     data = json.loads(out.read_text())
     [run] = data["seeds"]
     assert set(run["arms"]) == {"default", "minrun"}
     assert run["arms"]["minrun"]["map_config"]["merge"]["min_run"] == 9
+    assert run["arms"]["default"]["map_config"]["merge"]["min_run"] != 9
+    assert {arm["map_config"]["hmm"]["k"] for arm in run["arms"].values()} == {12}  # --set: all
     rows = run["arms"]["default"]["rows"]
     assert [r["drive"] for r in rows] == [1, 2, 3, 4]
     assert [r["season"] for r in rows] == ["summer", "winter", "winter", "summer"]

@@ -55,3 +55,56 @@ def test_frame_of_a_fix_and_its_record():
         GeoFrame(61)
     with pytest.raises(InputError, match="not a geographic frame"):
         GeoFrame.from_dict({"crs": "local"})
+
+
+# --- issue 52: the antimeridian, the poles, far beyond a zone ----------------------------------
+
+def test_the_point_between_fixes_either_side_of_the_antimeridian_lies_between_them():
+    from sprint_map.util.geo import geodesic_distance, geodesic_points
+
+    a, b = [[-16.8, 179.9999]], [[-16.8, -179.9999]]  # Fiji: 21 m apart
+    mid = geodesic_points(a, b, 0.5)
+    assert geodesic_distance(a, b)[0] == pytest.approx(21.3, abs=0.1)
+    assert geodesic_distance(a, mid)[0] == pytest.approx(geodesic_distance(a, b)[0] / 2, abs=1e-6)
+    assert geodesic_distance(mid, b)[0] == pytest.approx(geodesic_distance(a, b)[0] / 2, abs=1e-6)
+    quarter = geodesic_points(a, b, [0.25])
+    assert geodesic_distance(a, quarter)[0] == pytest.approx(5.33, abs=0.01)
+
+
+def test_the_point_between_fixes_either_side_of_a_pole_is_the_pole():
+    from sprint_map.util.geo import geodesic_distance, geodesic_points
+
+    a, b = [[89.99, 0.0]], [[89.99, 180.0]]  # 2.2 km apart, over the pole
+    mid = geodesic_points(a, b, 0.5)
+    assert mid[0, 0] == pytest.approx(90.0, abs=1e-9)
+    assert geodesic_distance(a, b)[0] == pytest.approx(2 * geodesic_distance(a, mid)[0],
+                                                       abs=1e-6)
+
+
+def test_ends_nan_and_fractions_of_the_geodesic():
+    from sprint_map.util.geo import geodesic_points
+
+    a = np.array([[59.9, 10.7], [np.nan, np.nan], [1.0, 2.0]])
+    b = np.array([[60.1, 10.9], [1.0, 2.0], [3.0, 4.0]])
+    out = geodesic_points(a, b, np.array([0.0, 0.5, 1.0]))
+    np.testing.assert_array_equal(out[0], a[0])
+    assert np.isnan(out[1]).all()
+    np.testing.assert_array_equal(out[2], b[2])
+
+
+@pytest.mark.parametrize(("lat", "lon"), [(45.0, 60.0), (-30.0, -150.0), (70.0, 100.0),
+                                          (89.9999, 123.0), (-89.9, -45.0)])
+def test_round_trip_far_beyond_the_zone_and_near_the_poles(lat, lon):
+    """A map's zone is kept for every later drive: one 45 degrees away, beyond the antimeridian
+    or at a pole is still projected to the millimetre (a third-order series is not)."""
+    frame = GeoFrame(33)
+    xy = frame.project([lat], [lon])
+    back = frame.unproject(xy[:, 0], xy[:, 1])[0]
+    assert abs(back[1] - lat) * 111_320 < 1e-3
+    assert abs((back[0] - lon + 180) % 360 - 180) * 111_320 * np.cos(np.radians(lat)) < 1e-3
+
+
+def test_a_step_across_the_antimeridian_is_short_in_the_maps_frame():
+    frame = GeoFrame.for_fix(-16.8, 179.9999)
+    xy = frame.project([-16.8, -16.8], [179.9999, -179.9999])
+    assert np.hypot(*(xy[1] - xy[0])) == pytest.approx(21.3, abs=0.1)
