@@ -37,7 +37,7 @@ Examples
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -156,17 +156,45 @@ class DriveCentring:
 
     def _centre(self, rows: Descriptors) -> tuple[Descriptors, Descriptors, np.ndarray]:
         """``(validated rows, centred rows, running sum after them)``. The sums are added in
-        frame order one by one, so a drive centred in batches of any size gives the very same
+        frame order one by one and every row is centred by the same operations, so a drive
+        centred in batches of any size (one frame, as a vehicle streams) gives the very same
         rows."""
-        arr = validate_descriptors(rows, self.dim, self._frames)
-        sums = np.cumsum(np.vstack([self._sum[None, :], arr.astype(np.float64)]), axis=0)
-        if not self.config.enabled:
-            return arr, arr, sums[-1]
-        counts = self._frames + self._w0 + 1 + np.arange(len(arr), dtype=np.float64)
-        centred = arr - (self._sum0 + sums[1:]) / counts[:, None]
-        norms = np.linalg.norm(centred, axis=1, keepdims=True)
+        if (isinstance(rows, np.ndarray) and rows.dtype == np.float32 and rows.ndim == 2
+                and rows.shape[1] == self.dim and len(rows) and np.isfinite(rows).all()):
+            arr = rows  # valid as it is (the check validate_descriptors would make)
+        else:
+            arr = validate_descriptors(rows, self.dim, self._frames)
+        if len(arr) == 1:  # a streamed frame: the same sums and operations without the scans
+            total = self._sum + arr[0]
+            if not self.config.enabled:
+                return arr, arr, total
+            one = arr[0] - (self._sum0 + total) / (self._frames + self._w0 + 1)
+            norm = np.sqrt(np.add.reduce(one * one))
+            if norm > _ZERO_NORM:
+                return arr, (one / norm).astype(np.float32)[None, :], total
+            return arr, np.zeros((1, self.dim), np.float32), total
+        else:
+            sums = np.cumsum(np.vstack([self._sum[None, :], arr.astype(np.float64)]), axis=0)
+            total = sums[-1]
+            if not self.config.enabled:
+                return arr, arr, total
+            counts = self._frames + self._w0 + 1 + np.arange(len(arr), dtype=np.float64)
+            centred = arr - (self._sum0 + sums[1:]) / counts[:, None]
+        norms = np.sqrt(np.add.reduce(centred * centred, axis=1))[:, None]
         out = np.divide(centred, norms, out=np.zeros_like(centred), where=norms > _ZERO_NORM)
-        return arr, out.astype(np.float32), sums[-1]
+        return arr, out.astype(np.float32), total
+
+    def pending(self, rows: Descriptors) -> tuple[Descriptors, Callable[[], None]]:
+        """``rows`` centred as :meth:`apply` would, and a call that then takes them as the
+        drive's next frames (as :meth:`advance`, without centring them twice): a caller that
+        may still fail between the two (a refused frame changes nothing)."""
+        arr, out, total = self._centre(rows)
+
+        def take() -> None:
+            self._sum = total
+            self._frames += len(arr)
+
+        return out, take
 
     def preview(self, rows: Descriptors) -> Descriptors:
         """``rows`` (the drive's next frames) as :meth:`apply` would give them, without

@@ -122,8 +122,7 @@ class LaggedLocalizer:
             return self.localizer.step(descriptor)
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1),
                                    self.localizer.map.config.dim, self.localizer.frames_seen)
-        centring = self.localizer.centring
-        centred = centring.preview(row)
+        centred, take = self.localizer.centring.pending(row)
         with self._pinned():
             if self.localizer.is_empty:
                 answer = self._update(*_NO_HITS, 0.0)
@@ -131,7 +130,7 @@ class LaggedLocalizer:
                 start = time.perf_counter()
                 dists, ids = self.localizer.source.search(centred, self.depth)
                 answer = self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
-        centring.advance(row)
+        take()
         return answer
 
     def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0,

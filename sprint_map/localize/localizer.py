@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sprint_map.frontend.centring import DriveCentring
+from sprint_map.frontend.centring import Centring, DriveCentring
 from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision, is_unknown
@@ -217,7 +217,8 @@ class Localizer:
 
     def __init__(self, smap: LocalizableMap, hmm: HMMConfig | None = None,
                  cache: ComponentCache | None = None, *, record: bool = False,
-                 record_k: int | None = None, gnss: GnssAid | None = None) -> None:
+                 record_k: int | None = None, gnss: GnssAid | None = None,
+                 in_map_space: bool = False) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
         self.source = smap.view()
@@ -238,8 +239,10 @@ class Localizer:
         self.observer: Callable[[FrameDecision, np.ndarray, np.ndarray], None] | None = None
         self.gnss = gnss
         #: The drive's centring (:mod:`sprint_map.frontend.centring`): every frame given is
-        #: searched centred on the frames before it, in the map's space.
-        self.centring = smap.drive_centring()
+        #: searched centred on the frames before it, in the map's space (``in_map_space``:
+        #: the frames are a stored drive's rows, centred already, searched as they are).
+        self.centring = (DriveCentring(Centring("none"), smap.config.dim) if in_map_space
+                         else smap.drive_centring())
 
     def centred(self, descriptor: DescriptorsLike) -> Descriptors:
         """The next frame as this localizer searches it (nothing changes): what a caller of
@@ -315,7 +318,7 @@ class Localizer:
         centred here (:attr:`centring`); a refused frame changes nothing."""
         row = validate_descriptors(np.asarray(descriptor).reshape(1, -1), self.map.config.dim,
                                    self.frames_seen)
-        centred = self.centring.preview(row)
+        centred, take = self.centring.pending(row)
         with self.pinned():
             if self.is_empty:
                 decision = self._no_map_decision()
@@ -323,7 +326,7 @@ class Localizer:
                 start = time.perf_counter()
                 dists, ids = self.source.search(centred, self.search_k)
                 decision = self._update(ids[0], dists[0], (time.perf_counter() - start) * 1e3)
-        self.centring.advance(row)
+        take()
         return decision
 
     def step_hits(self, ids: np.ndarray, dists: np.ndarray, retrieval_ms: float = 0.0,

@@ -180,6 +180,12 @@ def check_compatible(target: dict[str, Any], source: dict[str, Any],
         elif a != b:
             raise IncompatibleMapError(f"the maps' descriptors differ: {name} is {a!r} in the "
                                        f"target and {b!r} in the source")
+    # the space the rows are stored in (a config stored before centring: as described)
+    spaces = [(c.get("centring") or {"mode": "none"}).get("mode") for c in (target, source)]
+    if spaces[0] != spaces[1]:
+        raise IncompatibleMapError(f"the maps store their rows in different spaces: centring "
+                                   f"is {spaces[0]!r} in the target and {spaces[1]!r} in the "
+                                   "source")
     if target_placed and source_placed and target_frame != source_frame:
         def describe(frame: dict[str, Any] | None) -> str:
             return ("local metric (no geographic frame)" if frame is None
@@ -215,7 +221,9 @@ def localise_drive(smap: JoiningMap, source: MapStore, record: SequenceRecord,
         fixes = wide[:, [0, 1, 4]]
     thumbs = [source.thumbnail(record.seq_id, i) for i in range(record.length)] \
         if source.thumbnail_count(record.seq_id) else None
-    localizer = Localizer(smap, hmm, record=True, gnss=smap.gnss_aid(fixes, record.length))
+    # the source's rows are centred already: searched as they are
+    localizer = Localizer(smap, hmm, record=True, gnss=smap.gnss_aid(fixes, record.length),
+                          in_map_space=True)
     for batch in drive_rows(source, record, total, SEARCH_BATCH):
         for _ in localizer.iter_localize(iter([np.asarray(batch)])):
             pass
