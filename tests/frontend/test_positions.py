@@ -148,14 +148,22 @@ def test_a_line_that_is_not_csv_is_one_error(tmp_path, text):
 
 
 def test_a_positions_file_that_is_not_a_regular_file_is_refused(tmp_path):
+    # in a real process: before, a FIFO blocked for ever and /dev/zero was read for ever
     import os
+    import subprocess
+    import sys
 
-    os.mkfifo(tmp_path / "fifo.csv")  # before: blocked for ever
-    (tmp_path / "zero.csv").symlink_to("/dev/zero")  # before: read for ever
+    os.mkfifo(tmp_path / "fifo.csv")
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    code = ("import sys; from sprint_map.frontend import read_positions\n"
+            "from sprint_map.errors import InputError\n"
+            "try: read_positions(sys.argv[1], 1)\n"
+            "except InputError as exc: print(exc)")
     for name, kind in (("fifo.csv", "a FIFO"), ("zero.csv", "a character device")):
-        with pytest.raises(InputError, match=f"{name}: positions must be a regular file, "
-                                             f"this is {kind}"):
-            read_positions(tmp_path / name, 1)
+        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)],
+                              capture_output=True, text=True, timeout=30)
+        assert done.stdout == (f"{tmp_path / name}: positions must be a regular file, this "
+                               f"is {kind}\n"), done.stderr
 
 
 def test_source_ordinals_pick_their_rows(tmp_path):
