@@ -90,6 +90,11 @@ def _mcap_length_fields(data: bytes) -> list[int]:
     return out
 
 
+def _pick(rng: np.random.Generator, values: tuple[int, ...]) -> int:
+    """One of ``values``, exactly (``rng.choice`` would make them floats)."""
+    return values[int(rng.integers(0, len(values)))]
+
+
 def mutate_bytes(data: bytes, rng: np.random.Generator, mcap: bool) -> bytes:
     """One seeded damage of ``data`` (module notes)."""
     b = bytearray(data)
@@ -110,13 +115,13 @@ def mutate_bytes(data: bytes, rng: np.random.Generator, mcap: bool) -> bytes:
         at = int(rng.integers(0, n))
         b[at:at] = rng.bytes(int(rng.integers(1, 65)))
     elif how == 5 or not (fields := _mcap_length_fields(data)):  # a length anywhere
-        value = int(rng.choice(LENGTHS + (2 * n,))) if rng.random() < 0.9 else n
+        value = _pick(rng, LENGTHS + (2 * n,)) if rng.random() < 0.9 else n
         at = int(rng.integers(0, max(1, n - 8)))
         width = 8 if rng.random() < 0.5 else 4
         b[at:at + width] = (value % 2 ** (8 * width)).to_bytes(width, "little")
     else:  # a record's own length
         at = int(rng.choice(fields))
-        b[at:at + 8] = int(rng.choice(LENGTHS + (2 * n, n))).to_bytes(8, "little")
+        b[at:at + 8] = _pick(rng, LENGTHS + (2 * n, n)).to_bytes(8, "little")
     return bytes(b)
 
 
@@ -143,7 +148,7 @@ def mutate_lines(text: str, rng: np.random.Generator) -> str:
         lines.insert(i, lines[i])
     elif how == 4:  # a far or negative frame
         fields = lines[i].split(",")
-        fields[0] = str(int(rng.choice([10**9, 10**18, -5, 40, 2**63])))
+        fields[0] = str(_pick(rng, (10**9, 10**18, -5, 40, 2**63)))
         lines[i] = ",".join(fields)
     elif how == 5:
         lines.insert(0, "\ufeff" if rng.random() < 0.5 else "# comment\r\n")
