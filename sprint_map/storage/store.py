@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import lmdb
 import numpy as np
@@ -39,7 +39,6 @@ from sprint_map.errors import (
     StorageIOError,
 )
 from sprint_map.storage import learning
-from sprint_map.storage.compaction import compact_map
 from sprint_map.storage.generation import (
     current_data,
     pin_current,
@@ -69,7 +68,6 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
-from sprint_map.storage.reduction import Reduction
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter, record_live_sightings
 from sprint_map.storage.shards import ShardSet
@@ -85,6 +83,9 @@ from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.atomic import fsync_dir, remove_partials
 from sprint_map.util.validation import decode_text, validate_descriptors
+
+if TYPE_CHECKING:  # compaction loads when a map is compacted, not when one is opened
+    from sprint_map.storage.reduction import Reduction
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
@@ -556,11 +557,15 @@ class MapStore(MapReads):
 
     def compact(self) -> CompactReport:
         """Reclaim removed sequences' space: see :func:`compaction.compact_map`."""
+        from sprint_map.storage.compaction import compact_map
+
         return compact_map(self)
 
     def summarize(self, reduction: Reduction) -> CompactReport:
         """Write the map without the vertices ``reduction`` drops, as a new generation selected
         atomically: see :mod:`reduction` and :func:`compaction.compact_map`."""
+        from sprint_map.storage.compaction import compact_map
+
         return compact_map(self, reduction)
 
     def remove_sequences(self, seq_ids: Iterable[int]) -> RemoveResult:
