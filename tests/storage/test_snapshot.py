@@ -2,7 +2,7 @@
 
 In one process (the writer's own reads, as ``ingest`` and the server make them); the
 real-process version, readers beside a writer that merges and removes, is
-``tests/test_concurrency.py::test_localize_survives_merging_ingests_and_removes``.
+``tests/storage/test_concurrency.py::test_localize_survives_merging_ingests_and_removes``.
 """
 
 from __future__ import annotations
