@@ -13,13 +13,12 @@ from click.testing import CliRunner
 
 pytest.importorskip("rosbags")
 
-from bag_helpers import KINDS, drive_spec, write_bag  # noqa: E402
-
 from sprint_map.cli.main import main  # noqa: E402
 from sprint_map.errors import InputError  # noqa: E402
 from sprint_map.frontend.descriptors import DescriptorSpec  # noqa: E402
 from sprint_map.frontend.sources import open_source  # noqa: E402
 from sprint_map.map import SprintMap  # noqa: E402
+from tests.helpers.bags import KINDS, drive_spec, write_bag  # noqa: E402
 
 HOG = DescriptorSpec("hog")
 
