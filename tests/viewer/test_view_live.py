@@ -15,8 +15,8 @@ from fastapi.testclient import TestClient
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.map import SprintMap
 from sprint_map.viewer.app import create_view_app
-from sprint_map.viewer.browser import ViewProcess
 from sprint_map.viewer.summary import MapSummary
+from tests.helpers.browser import ViewProcess
 from tests.helpers.road_map import build_road_map
 
 
