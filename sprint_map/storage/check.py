@@ -26,6 +26,7 @@ import networkx as nx
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, StorageIOError
+from sprint_map.storage.components import MEMBER_KEY
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index.check import check_segments, has_segments
 from sprint_map.storage.index.map_index import file_problem, index_files, projection_dirs
@@ -50,7 +51,6 @@ from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.sightings import scan_sightings
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
-from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
 from sprint_map.util.lazy_faiss import faiss  # imported on first use
 

@@ -15,6 +15,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, UnknownSequenceError
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.keys import (
     EDGE_KEY,
     VERTEX_VAL,
@@ -31,7 +32,6 @@ from sprint_map.storage.records import ComponentInfo, EdgeRecord, EdgeTable, Seq
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.sightings import Sighting, get_sighting
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
-from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.util.arrays import Descriptors, Float64Array
 from sprint_map.util.validation import name_key, shown
 
@@ -44,7 +44,7 @@ class MapReads:
 
     env: LmdbEnv
     shards: ShardSet
-    uf: UnionFindStore
+    uf: ComponentStore
 
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
         if txn is None:

@@ -23,12 +23,12 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError
+from sprint_map.storage.components import MEMBER_KEY, ComponentStore
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import EdgeTable, RemoveResult, SequenceRecord
 from sprint_map.storage.sightings import delete_sightings
 from sprint_map.storage.thumbnails import delete_thumbnails
-from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, SearchResult
 
@@ -41,7 +41,7 @@ class RecordStore(Protocol):
     def env(self) -> LmdbEnv: ...
 
     @property
-    def uf(self) -> UnionFindStore: ...
+    def uf(self) -> ComponentStore: ...
 
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
 

@@ -39,6 +39,7 @@ from sprint_map.errors import (
     StorageIOError,
 )
 from sprint_map.storage import learning
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.generation import (
     current_data,
     pin_current,
@@ -78,7 +79,6 @@ from sprint_map.storage.store_config import (
     StoreConfig,
     decode_stored_config,
 )
-from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.atomic import fsync_dir, remove_partials
@@ -138,7 +138,7 @@ class MapStore(MapReads):
             raw_created = txn.get(b"created", db=meta)
             self.created = 0.0 if raw_created is None else decode_number(raw_created, "created",
                                                                          float)
-        self.uf = UnionFindStore(env)
+        self.uf = ComponentStore(env)
         self.shards = ShardSet(self.data_path / SHARDS_DIR, self.config.dim,
                                self.config.shard_rows)
         self.index = self.new_index(self.data_path / INDEX_DIR, writable=not readonly)
@@ -289,7 +289,7 @@ class MapStore(MapReads):
                 self._lock.release()
             raise
         self.data_path = data
-        self.uf = UnionFindStore(self.env)
+        self.uf = ComponentStore(self.env)
         self.shards = ShardSet(data / SHARDS_DIR, self.config.dim, self.config.shard_rows)
         self.index = index
         self._removed = None
