@@ -31,6 +31,7 @@ from sprint_map.storage.sightings import delete_sightings
 from sprint_map.storage.thumbnails import delete_thumbnails
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, SearchResult
+from sprint_map.util.union_find import UnionFind
 
 
 class RecordStore(Protocol):
@@ -256,27 +257,15 @@ def regroup(store: RecordStore, txn: lmdb.Transaction, seqs: list[SequenceRecord
     """
     ordered = sorted(seqs, key=lambda s: s.first_vertex)
     starts = [s.first_vertex for s in ordered]
-    parent = list(range(len(ordered)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
+    sets = UnionFind(len(ordered))
     for i, seq in enumerate(ordered):
         for _, dst in edge_keys(txn, store.env.db("edges"), seq.first_vertex, seq.last_vertex):
             j = bisect.bisect_right(starts, dst) - 1
             if j < 0 or dst > ordered[j].last_vertex:
                 raise MapCorruptError(f"edge {seq.first_vertex}.. -> {dst} leaves the component "
                                       f"of sequence {seq.seq_id}")
-            a, b = find(i), find(j)
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    groups: dict[int, list[SequenceRecord]] = {}
-    for i, seq in enumerate(ordered):
-        groups.setdefault(find(i), []).append(seq)
-    return list(groups.values())
+            sets.union(i, j)
+    return [[ordered[i] for i in members] for members in sets.groups()]
 
 
 def write_component(txn: lmdb.Transaction, env: LmdbEnv, group: list[SequenceRecord],
