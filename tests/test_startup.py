@@ -131,7 +131,7 @@ def test_faiss_loads_with_the_first_search(small_map):
 
 
 def test_no_module_imports_faiss_at_load():
-    """Every module of the package imports FAISS through ``util.lazy_faiss`` (on first use):
+    """Every module of the package imports FAISS through ``util.lazy`` (on first use):
     importing all of them (those whose optional extra is installed) loads no FAISS."""
     code = ("import importlib, pkgutil, sys, sprint_map\n"
             "for mod in pkgutil.walk_packages(sprint_map.__path__, 'sprint_map.'):\n"

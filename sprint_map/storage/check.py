@@ -52,7 +52,7 @@ from sprint_map.storage.sightings import scan_sightings
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
 from sprint_map.util.atomic import PARTIAL_SUFFIX
-from sprint_map.util.lazy_faiss import faiss  # imported on first use
+from sprint_map.util.lazy import faiss  # imported on first use
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
            "check_map", "check_sequences", "check_shards", "check_sightings", "check_thumbnails", "edge_added_by",
