@@ -60,7 +60,6 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
 from sprint_map.storage.provenance import unmerge_sequence
-from sprint_map.storage.reads import MapReads
 from sprint_map.storage.records import (
     AddResult,
     CompactReport,
@@ -79,6 +78,7 @@ from sprint_map.storage.store_config import (
     StoreConfig,
     decode_stored_config,
 )
+from sprint_map.storage.store_reads import StoreReads
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.atomic import fsync_dir, remove_partials
@@ -93,12 +93,12 @@ INDEX_DIR = "index"
 COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
 
 
-class MapStore(MapReads):
+class MapStore(StoreReads):
     """A map directory opened for reading, or for writing by this process alone.
 
     Use :meth:`create` or :meth:`open`; close with :meth:`close` or a ``with`` block. What it
     reads of the committed map (sequences, vertices, positions, thumbnails, sightings,
-    components, edges) is :class:`~sprint_map.storage.reads.MapReads`'.
+    components, edges) is :class:`~sprint_map.storage.store_reads.StoreReads`'.
 
     Notes
     -----

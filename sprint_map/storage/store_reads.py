@@ -1,4 +1,4 @@
-"""MapReads: what a map store reads of its committed records (the meta counters, sequences,
+"""StoreReads: what a map store reads of its committed records (the meta counters, sequences,
 vertices, positions, the geographic frame, thumbnails, sightings, components and edges).
 
 A mixin of :class:`~sprint_map.storage.store.MapStore` over its LMDB environment, shards and
@@ -35,10 +35,10 @@ from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
 from sprint_map.util.arrays import Descriptors, Float64Array
 from sprint_map.util.validation import name_key, shown
 
-__all__ = ["MapReads"]
+__all__ = ["StoreReads"]
 
 
-class MapReads:
+class StoreReads:
     """Reads of a map's committed records (see the module docstring); the store provides
     ``env``, ``shards`` and ``uf``."""
 
