@@ -287,7 +287,7 @@ def test_damaged_traces_are_refused_or_served_whole(pristine, tmp_path):
     from sprint_map.localize.trace import read_trace
     from sprint_map.map import SprintMap
     from sprint_map.viewer.app import create_view_app
-    from sprint_map.viewer.summary import MapSummary
+    from sprint_map.viewer.overview import MapOverview
 
     source = pristine["flat-compacted"][0]
     drive = source.parent / "drive.npy"
@@ -316,7 +316,7 @@ def test_damaged_traces_are_refused_or_served_whole(pristine, tmp_path):
     failures = []
     refused: set[str] = set()
     with SprintMap.open(source, readonly=True) as m:
-        summary = MapSummary(m)
+        summary = MapOverview(m)
         for name, path in cases:
             try:
                 trace = read_trace(path)
