@@ -64,7 +64,7 @@ from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
 
 __all__ = ["ADMISSION_MODES", "COPY_STEPS", "Admission", "AdmissionPlan", "drive_step",
-           "place_distances", "plan_admission", "runs", "smooth_stored", "stored_frames"]
+           "place_distances", "plan_admission", "runs", "stored_mask", "stored_frames"]
 
 #: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
 ADMISSION_MODES = ("all", "novel")
@@ -169,10 +169,10 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     for a, b in runs(near & ~copy):
         if (a > 0 and copy[a - 1]) or (b < n and copy[b]):
             redundant[a:b] = True  # what a stored drive driven again left out, at its ends
-    return smooth_stored(redundant, admission)
+    return stored_mask(redundant, admission)
 
 
-def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
+def stored_mask(redundant: np.ndarray, admission: Admission) -> np.ndarray:
     """Which frames of a drive (or a stored sequence) are kept, from which are redundant:
     stored runs shorter than ``min_run`` dropped, redundant stretches shorter than
     ``min_skip`` stored through, ``margin`` frames added either side of each stored run (see
