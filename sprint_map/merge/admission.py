@@ -62,6 +62,7 @@ import numpy as np
 
 from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
+from sprint_map.util.dataclass_dict import check_int
 
 __all__ = ["ADMISSION_MODES", "COPY_STEPS", "Admission", "AdmissionPlan", "drive_step",
            "place_distances", "plan_admission", "runs", "stored_mask", "stored_frames"]
@@ -97,12 +98,9 @@ class Admission:
                              f"not {self.mode!r}")
         if not 0 <= self.max_step_ratio < math.inf:
             raise ValueError("admission max_step_ratio must be a finite number >= 0")
-        if not isinstance(self.min_run, int) or self.min_run < 1:
-            raise ValueError("admission min_run must be an integer >= 1")
-        if not isinstance(self.min_skip, int) or self.min_skip < 1:
-            raise ValueError("admission min_skip must be an integer >= 1")
-        if not isinstance(self.margin, int) or self.margin < 0:
-            raise ValueError("admission margin must be an integer >= 0")
+        check_int("admission min_run", self.min_run, 1)
+        check_int("admission min_skip", self.min_skip, 1)
+        check_int("admission margin", self.margin, 0)
 
 
 @dataclass(frozen=True)
