@@ -99,10 +99,12 @@ def test_info_loads_no_standard_module_it_does_not_need(small_map):
     assert not {m.split(".")[0] for m in modules} & set(UNNEEDED_STDLIB)
 
 
-#: The package's own modules ``info`` has no use for: the sources and the trace (ingest and
-#: localize load them), compaction (compact and summarize), the multiprocessing they bring.
+#: The package's own modules ``info`` has no use for: the sources, the trace, the progress bar
+#: and the output files (ingest and localize load them), compaction (compact and summarize),
+#: the multiprocessing they bring.
 UNNEEDED_OWN = ("sprint_map.frontend.sources", "sprint_map.frontend.bags",
                 "sprint_map.frontend.positions", "sprint_map.localize.trace",
+                "sprint_map.cli.progress", "sprint_map.util.output",
                 "sprint_map.storage.compaction", "sprint_map.storage.reduction",
                 "multiprocessing")
 
