@@ -22,7 +22,7 @@ class TestMemoryGraphSource(GraphSourceContract):
         return MemoryGraphSource(lengths, edges), list(range(len(lengths)))
 
 
-class TestMapGraphSource(GraphSourceContract):
+class TestStoredMapView(GraphSourceContract):
     """The LMDB source over a map whose sequences were committed with these edges (each edge
     committed with the later of its two sequences, as a merge does)."""
 
