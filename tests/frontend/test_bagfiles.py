@@ -15,12 +15,11 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from bag_helpers import drive_spec, write_bag  # noqa: E402
-
 from sprint_map.errors import InputError  # noqa: E402
 from sprint_map.frontend.bagfiles import BagReadError  # noqa: E402
 from sprint_map.frontend.descriptors import DescriptorSpec  # noqa: E402
 from sprint_map.frontend.sources import open_source  # noqa: E402
+from tests.helpers.bags import drive_spec, write_bag  # noqa: E402
 
 HOG = DescriptorSpec("hog")
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"

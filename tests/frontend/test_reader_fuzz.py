@@ -1,13 +1,13 @@
 """Seeded fuzz of the readers of outside files: bags (ROS 1, ROS 2 sqlite3 and MCAP, zstd
 compressed), bare MCAP files and positions CSV files (issue 52).
 
-Small pristine inputs (``bag_helpers``: 4 frames, fixes) are damaged by seeded mutations:
+Small pristine inputs (``tests/helpers/bags.py``: 4 frames, fixes) are damaged by seeded mutations:
 bits flipped, a run of bytes overwritten, the file cut short, a span deleted or inserted, and
 a little-endian length written at a random offset or, for MCAP, at a record's own length
 field (``2**64 - 1``, ``2**62``, ``2**32 - 1``, twice the file, ...); positions files also by
 lines (a field of 200,000 characters, ``nan``, ``1e309``, a BOM, a quote, a NUL, a repeated or
 far frame, a line dropped or doubled). Each is read in a forked child of a warmed-up server
-(``reader_fuzz_worker.py``) as ``ingest`` reads it. Promises:
+(``tests/helpers/reader_fuzz_worker.py``) as ``ingest`` reads it. Promises:
 
 - no crash: the read succeeds or fails with the package's own error, never another;
 - no hang: every read ends within :data:`TIMEOUT_S` seconds;
@@ -37,9 +37,9 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from bag_helpers import drive_spec, write_bag  # noqa: E402
+from tests.helpers.bags import drive_spec, write_bag  # noqa: E402
 
-WORKER = Path(__file__).with_name("reader_fuzz_worker.py")
+WORKER = Path(__file__).parents[1] / "helpers" / "reader_fuzz_worker.py"
 CASES = int(os.environ.get("SPRINT_MAP_FUZZ_CASES", "0")) or None
 #: Cases per pristine input in CI: 7 bags x 30 + 2 positions files x 900 = 2,010 (a bag read
 #: costs ~0.15 s, most of it rosbags building its types; a positions file ~10 ms).

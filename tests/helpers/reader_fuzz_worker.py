@@ -21,10 +21,7 @@ import signal
 import sys
 import time
 import traceback
-from pathlib import Path
 from typing import Any
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def _rss_kb() -> int:
