@@ -11,12 +11,12 @@ stays as light as its configuration.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig
 from sprint_map.errors import SprintMapError
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.util.lazy import lazy_names
 
 if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
@@ -54,14 +54,4 @@ _LAZY = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.merge.commit
          **dict.fromkeys(_RECORDS, "sprint_map.storage.records")}
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'sprint_map' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, _LAZY)

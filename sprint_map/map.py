@@ -539,9 +539,9 @@ class SprintMap(MapReading):
         """A new view of the map for one :class:`~sprint_map.localize.localizer.Localizer` (what it
         reads: k-NN search, vertex locations, components and their edges, from pinned LMDB
         snapshots)."""
-        from sprint_map.localize.map_graph import MapGraphSource
+        from sprint_map.localize.stored_view import StoredMapView
 
-        return MapGraphSource(self.store)
+        return StoredMapView(self.store)
 
     def shared_cache(self) -> ComponentCache:
         """A thread-safe component cache of the map's ``hmm.cache_budget_bytes``, for

@@ -7,7 +7,7 @@ segmented IVF index (``segments.json``, the model, a segment file); both have ``
 middle and end), scattered (one bit flipped at 12 seeded offsets), truncated to half, or
 deleted; then ``info``, ``check``, ``localize``, ``export`` (the three formats) and
 ``ingest`` run as real processes of the ``sprint-map`` command line (forked from a warmed-up
-server, ``tests/map_fuzz_worker.py``: the same ``main`` the console script runs; ``check`` again
+server, ``tests/helpers/map_fuzz_worker.py``: the same ``main`` the console script runs; ``check`` again
 after an ``ingest`` that succeeded). Promises (issue 14):
 
 - no traceback (stderr never holds ``Traceback``) and no signal (no SIGBUS/SIGSEGV);
@@ -40,7 +40,7 @@ from sprint_map.errors import SprintMapError
 from sprint_map.storage.store import MapStore
 
 DIM = 16
-WORKER = Path(__file__).with_name("map_fuzz_worker.py")
+WORKER = Path(__file__).parent / "helpers" / "map_fuzz_worker.py"
 COUNTS: dict[str, int] = {}
 
 
@@ -287,7 +287,7 @@ def test_damaged_traces_are_refused_or_served_whole(pristine, tmp_path):
     from sprint_map.localize.trace import read_trace
     from sprint_map.map import SprintMap
     from sprint_map.viewer.app import create_view_app
-    from sprint_map.viewer.summary import MapSummary
+    from sprint_map.viewer.overview import MapOverview
 
     source = pristine["flat-compacted"][0]
     drive = source.parent / "drive.npy"
@@ -316,7 +316,7 @@ def test_damaged_traces_are_refused_or_served_whole(pristine, tmp_path):
     failures = []
     refused: set[str] = set()
     with SprintMap.open(source, readonly=True) as m:
-        summary = MapSummary(m)
+        summary = MapOverview(m)
         for name, path in cases:
             try:
                 trace = read_trace(path)

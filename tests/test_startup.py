@@ -99,6 +99,22 @@ def test_info_loads_no_standard_module_it_does_not_need(small_map):
     assert not {m.split(".")[0] for m in modules} & set(UNNEEDED_STDLIB)
 
 
+#: The package's own modules ``info`` has no use for: the sources, the trace, the progress bar
+#: and the output files (ingest and localize load them), compaction (compact and summarize),
+#: the multiprocessing they bring.
+UNNEEDED_OWN = ("sprint_map.frontend.sources", "sprint_map.frontend.bags",
+                "sprint_map.frontend.positions", "sprint_map.localize.trace",
+                "sprint_map.cli.progress", "sprint_map.util.output",
+                "sprint_map.storage.compaction", "sprint_map.storage.reduction",
+                "multiprocessing")
+
+
+def test_info_loads_none_of_the_package_it_does_not_need(small_map):
+    proc, modules = cli_modules("info", str(small_map), "--json")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert not modules & set(UNNEEDED_OWN), sorted(modules & set(UNNEEDED_OWN))
+
+
 def test_sprint_map_cli_imports_no_opencv():
     assert "cv2" not in loaded_after("import sprint_map.cli.main")
 
@@ -117,7 +133,7 @@ def test_faiss_loads_with_the_first_search(small_map):
 
 
 def test_no_module_imports_faiss_at_load():
-    """Every module of the package imports FAISS through ``util.lazy_faiss`` (on first use):
+    """Every module of the package imports FAISS through ``util.lazy`` (on first use):
     importing all of them (those whose optional extra is installed) loads no FAISS."""
     code = ("import importlib, pkgutil, sys, sprint_map\n"
             "for mod in pkgutil.walk_packages(sprint_map.__path__, 'sprint_map.'):\n"

@@ -4,7 +4,7 @@ Issue 14, item 10: non-UTF-8 bytes in ``--name``, in a source's file name, in ``
 ``init``'s path or in a token file ended in ``UnicodeEncodeError``/``UnicodeDecodeError``
 tracebacks. Python decodes arguments and file names with ``surrogateescape`` (a byte 0xff
 becomes U+DCFF), so such a ``str`` exists but is not text. The CLI rows are in
-``tests/test_bad_input.py``; these are the shared checks themselves.
+``tests/cli/test_bad_input.py``; these are the shared checks themselves.
 """
 
 from __future__ import annotations

@@ -368,13 +368,7 @@ def table(rows: list[dict[str, Any]], head: tuple[str, ...]) -> str:
 
 def run_bench_ray(work: Path, quick: bool) -> dict[str, Any]:
     """tools/bench_ray.py's sections (it prints its own tables); its JSON."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_ray",
-                                                  Path(__file__).with_name("bench_ray.py"))
-    assert spec is not None and spec.loader is not None
-    bench_ray = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_ray)
+    from tools import bench_ray
     out = work / "ray.json"
     bench_ray.main(["--json", str(out), *(["--quick"] if quick else [])])
     data: dict[str, Any] = json.loads(out.read_text())

@@ -5,7 +5,7 @@ a generated city, each street driven several times, every ``--edge-every`` frame
 joined both ways to the previous drive of its street, as merges add them), records a trace of
 a drive localised against it, then starts a real ``sprint-map view`` process (which summarises
 the map before announcing itself) and opens the page ``--runs`` times in Debian's Chromium
-(Selenium; the harness of the browser tests, ``sprint_map.viewer.browser``), measuring:
+(Selenium; the harness of the browser tests, ``tests.helpers.browser``), measuring:
 
 * ``summarise_s``: the view process from start to its announcement (open, overview computed);
 * ``first_paint_ms`` / ``first_contentful_paint_ms``: the browser's paint timing entries;
@@ -44,7 +44,7 @@ from sprint_map.config import MapConfig
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
-from sprint_map.viewer.browser import ViewProcess, chromium, console_errors, wait_for
+from tests.helpers.browser import ViewProcess, chromium, console_errors, wait_for
 
 DIM = 16
 TRACE_FRAMES = 300

@@ -6,7 +6,7 @@ Usage::
     python tools/compact_soak.py --kills 1000 [--json OUT] [--seed 1] [--kills-per-map 30]
                                  [--max-wait S] [--workdir DIR]
 
-The random-kill loop of ``tests/test_crash.py::test_random_kills_during_compaction``
+The random-kill loop of ``tests/storage/test_crash.py::test_random_kills_during_compaction``
 (``compact_kill_loop`` in ``tests/helpers/crash_worker.py``) at soak size: maps of six sequences with
 two removed; a compaction forked from a warmed-up zygote is killed a random delay after it is
 ready. After every kill the map must pass ``check`` and mean exactly what it meant before

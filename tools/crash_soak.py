@@ -6,7 +6,7 @@ Usage::
     python tools/crash_soak.py --kills 1000 [--json OUT] [--seed 1] [--kills-per-map 25]
                                [--max-wait 0.04] [--workdir DIR]
 
-The random-kill loop of ``tests/test_crash.py`` (``kill_loop`` in ``tests/helpers/crash_worker.py``),
+The random-kill loop of ``tests/storage/test_crash.py`` (``kill_loop`` in ``tests/helpers/crash_worker.py``),
 at soak size. Writers are forked from a warmed-up zygote process; each opens a map and adds a
 deterministic stream of sequences (one-shot and streamed adds, and groups of three committed
 in one transaction as ``ingest A B C --no-merge`` does, with edges that merge components) and is killed after a random delay (some during open and recovery). After every

@@ -3,7 +3,7 @@
 The town has four streets; six drives follow routes over them (each street seen under its own
 appearance change by each drive), one more drives streets nobody else did. The drives are
 ingested (localised, then merged), a seventh is localised with a trace, ``sprint-map view``
-serves the map and Debian's Chromium (Selenium, ``sprint_map.viewer.browser``) takes::
+serves the map and Debian's Chromium (Selenium, ``tests.helpers.browser``) takes::
 
     docs/viewer-overview.png   the overview
     docs/viewer-drive.png      a drive against one it matched (tue against mon)
@@ -24,7 +24,7 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
-from sprint_map.viewer.browser import ViewProcess, chromium, console_errors, wait_for
+from tests.helpers.browser import ViewProcess, chromium, console_errors, wait_for
 
 DIM = 64
 

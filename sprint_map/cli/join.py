@@ -7,7 +7,6 @@ from typing import Any
 import click
 
 from sprint_map.cli.common import emit, hmm_overrides, main
-from sprint_map.cli.progress import progress_display
 from sprint_map.fleet.runtime import RAY_HELP
 from sprint_map.map import SprintMap
 from sprint_map.util import dataclass_dict
@@ -57,6 +56,8 @@ def join(target: str, source: str, drive_names: tuple[str, ...], prefix: str, no
       sprint-map join city.map site.map --no-merge
       sprint-map join city.map van7.map --ray auto
     """
+    from sprint_map.cli.progress import progress_display  # loaded when run, not at start-up
+
     overrides = hmm_overrides(k, None, hmm_pairs)
     if ray_spec is not None:
         from sprint_map.fleet.join import farm_localise_join

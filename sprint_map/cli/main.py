@@ -27,20 +27,14 @@ from sprint_map.cli.common import (
     read_json_config,
     trace_option,
 )
-from sprint_map.cli.progress import progress_display
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
-from sprint_map.frontend.bags import BagOptions
 from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.positions import gnss_fixes
-from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
-from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
-from sprint_map.util.output import Output
 
 
 @main.command()
@@ -157,6 +151,15 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
       sprint-map ingest city.map drive.bag --image-topic /cam/image --every-m 2
       sprint-map ingest city.map drives/*/descriptors.npy  # each with its positions.csv
     """
+    # The front end's sources and the trace load here, not at start-up: `info` and the other
+    # commands never need them (tests/test_startup.py).
+    from sprint_map.cli.progress import progress_display
+    from sprint_map.frontend.bags import BagOptions
+    from sprint_map.frontend.positions import gnss_fixes
+    from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
+    from sprint_map.localize.trace import TraceRecorder
+    from sprint_map.util.output import Output
+
     bag = BagOptions(image_topic, gnss_topic, every_m)
     single = {"--name": name, "--positions": positions, "--trace": trace}
     for option, value in single.items():
@@ -310,6 +313,14 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map friday.npy --smooth --positions friday.csv --json  # GNSS
       sprint-map localize city.map friday.mcap --image-topic /cam/compressed --json
     """
+    # Loaded here, not at start-up (as in ingest).
+    from sprint_map.cli.progress import progress_display
+    from sprint_map.frontend.bags import BagOptions
+    from sprint_map.frontend.positions import gnss_fixes
+    from sprint_map.frontend.sources import drive_positions
+    from sprint_map.localize.trace import TraceRecorder
+    from sprint_map.util.output import Output
+
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
     if lag:

@@ -157,7 +157,7 @@ class QueryResult:
         self.merged = np.asarray(merged, dtype=bool).copy()
         self.edges_per_decision = edges_per_decision
 
-    def summary(self, ks: tuple[int, ...]) -> dict[str, Any]:
+    def row(self, ks: tuple[int, ...]) -> dict[str, Any]:
         """The JSON row of this query (see the module docstring for the merge metrics)."""
         knn = recall_at_k(self.knn_correct, self.has_match, ks)
         denom = max(int(self.has_match.sum()), 1)
@@ -195,10 +195,10 @@ class QueryResult:
             "edges_added": merge.edges_added if self.edges_added is None else self.edges_added,
             "edges_wrong": merge.edges_wrong,
             "novel_merged": round(merge.novel_merged, 4),
-            **self._twin_summary(),
+            **self._twin_counts(),
         }
 
-    def _twin_summary(self) -> dict[str, int]:
+    def _twin_counts(self) -> dict[str, int]:
         """``twin_frames``, and of them ``twin_merged`` and ``twin_merged_wrong``; nothing
         when the data set declares no twins."""
         if self.twin is None:
@@ -357,7 +357,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
         log(f"GNSS-aided run: fixes simulated at sigma {options.gnss_sigma} m")
         aided = _run_protocol(dataset, work_dir, config, options, hmm, log, describe_once, gt,
                               fixes_of)
-    rows_out = [r.summary(options.ks) for r in results]
+    rows_out = [r.row(options.ks) for r in results]
     overall = _overall(results, options.ks)
     out = {
         "dataset": str(dataset.path),
@@ -382,7 +382,7 @@ def run_evaluation(dataset: Dataset, work_dir: Path, config: MapConfig, options:
     if model is not None:
         out["gnss"] = {"sigma_m": options.gnss_sigma, "seed": options.gnss_seed,
                        "model": model.to_dict(), "config": dataclass_dict.to_dict(config.gnss),
-                       "queries": [r.summary(options.ks) for r in aided],
+                       "queries": [r.row(options.ks) for r in aided],
                        "overall": _overall(aided, options.ks)}
     return out
 
@@ -473,7 +473,7 @@ def _overall(results: list[QueryResult], ks: tuple[int, ...]) -> dict[str, Any]:
         edges_per_decision=results[0].edges_per_decision,
         twin=(None if all(r.twin is None for r in results) else _joined(results, "twin")),
     )
-    return joined.summary(ks)
+    return joined.row(ks)
 
 
 def _joined(results: list[QueryResult], field: str) -> np.ndarray:

@@ -57,7 +57,7 @@ from sprint_map.fleet.channel import (
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.exact_search import ExactFlat
-from sprint_map.util.lazy_faiss import faiss  # imported on first use
+from sprint_map.util.lazy import faiss  # imported on first use
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["ALIGN", "TRANSPORTS", "ShardWorker", "ShardedIndex", "alive_nodes", "merge_topk",

@@ -15,8 +15,9 @@ Public API (see ``docs/frontend.md``, "Front end"):
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from sprint_map.util.lazy import lazy_names
 
 if TYPE_CHECKING:
     from sprint_map.frontend.bags import BagOptions
@@ -41,13 +42,8 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'sprint_map.frontend' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"sprint_map.frontend.{module}"), name)
-    globals()[name] = value
-    return value
+__getattr__, __dir__ = lazy_names(__name__, {name: f"{__name__}.{module}"
+                                             for name, module in _LAZY.items()})
 
 
 __all__ = [

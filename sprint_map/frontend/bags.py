@@ -30,6 +30,7 @@ MCAP, and by the frame pass of a ROS 1 bag (whose index is read, not its data).
 from __future__ import annotations
 
 import functools
+import heapq
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map.errors import InputError
+from sprint_map.frontend.bagfiles import INSTALL_HINT, BagReadError, open_reader, reading
 from sprint_map.frontend.positions import Positions
 from sprint_map.util.arrays import Descriptors, Image
 from sprint_map.util.geo import GeoFrame, geodesic_points
@@ -46,15 +48,14 @@ from sprint_map.util.geo import GeoFrame, geodesic_points
 if TYPE_CHECKING:
     from sprint_map.frontend.descriptors import DescriptorSpec
 
-__all__ = ["BAG_SUFFIXES", "BagOptions", "BagReadError", "bag_index", "decode_ros_image",
-           "is_bag", "rosbags_available"]
+__all__ = ["BAG_SUFFIXES", "INSTALL_HINT", "BagOptions", "BagReadError", "bag_index",
+           "decode_ros_image", "is_bag", "open_reader", "rosbags_available"]
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 GNSS_TYPE = "sensor_msgs/msg/NavSatFix"
 _STATUS_FIX = 0  # sensor_msgs/NavSatStatus: -1 no fix, 0 fix, 1 SBAS, 2 GBAS
 _COVARIANCE_UNKNOWN = 0
-INSTALL_HINT = 'bags need the ros extra: pip install "sprint-map[ros]"'
 
 
 @dataclass(frozen=True)
@@ -68,10 +69,6 @@ class BagOptions:
     def __post_init__(self) -> None:
         if self.every_m is not None and not self.every_m > 0:
             raise InputError(f"--every-m must be > 0 metres, got {self.every_m}")
-
-
-class BagReadError(InputError):
-    """A bag that cannot be read (corrupt, truncated, not a bag)."""
 
 
 def rosbags_available() -> bool:
@@ -97,57 +94,19 @@ class BagIndex:
     times_ns: np.ndarray  # (n,) int64 record times of the kept image messages
     ordinals: np.ndarray  # (n,) int64 their ordinal among the topic's messages
     positions: Positions | None  # geographic, one row per kept frame
-
-
-def _rosbags_errors() -> tuple[type[BaseException], ...]:
-    from rosbags.highlevel import AnyReaderError
-    from rosbags.rosbag1 import ReaderError as Reader1Error
-    from rosbags.rosbag2 import ReaderError as Reader2Error
-
-    return (AnyReaderError, Reader1Error, Reader2Error, OSError, ValueError, KeyError,
-            IndexError, EOFError, AssertionError, TypeError)
-
-
-def open_reader(path: Path) -> Any:
-    """An open ``rosbags`` ``AnyReader`` of ``path`` (close it with ``reader.close()``).
-
-    Raises
-    ------
-    InputError
-        ``rosbags`` is not installed, or the bag cannot be opened.
-    """
-    try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise InputError(f"{path}: {INSTALL_HINT}") from None
-    errors = _rosbags_errors()
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        reader.open()
-    except errors as exc:
-        raise BagReadError(f"{path}: cannot read bag ({_reason(exc)})") from None
-    return reader
-
-
-def _reason(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text[:200]
+    image_count: int = 0  # messages of the image topic (every connection), before any selection
+    warnings: tuple[str, ...] = ()  # what the user should know (fixes dropped, ...)
 
 
 def _pick(path: Path, reader: Any, wanted: str | None, types: tuple[str, ...], what: str,
-          option: str, required: bool) -> Any:
-    """The connection of topic ``wanted``, or the only topic of one of ``types``."""
-    topics: dict[str, str] = {c.topic: c.msgtype for c in reader.connections}
-    if wanted is not None:
-        if wanted not in topics:
-            listing = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "none"
-            raise InputError(f"{path}: no topic {wanted!r} in the bag (topics: {listing})")
-        if topics[wanted] not in types:
-            raise InputError(f"{path}: topic {wanted!r} is {topics[wanted]}, not "
-                             f"{' or '.join(types)}")
-    else:
-        candidates = sorted(t for t, m in topics.items() if m in types)
+          option: str, required: bool) -> tuple[str, list[Any]] | None:
+    """Topic ``wanted``, or the only topic of one of ``types``, with every connection that
+    carries it (a topic re-advertised, or two recordings, has several), or None."""
+    topics: dict[str, set[str]] = {}
+    for conn in reader.connections:
+        topics.setdefault(conn.topic, set()).add(conn.msgtype)
+    if wanted is None:
+        candidates = sorted(t for t, m in topics.items() if m & set(types))
         if not candidates:
             if not required:
                 return None
@@ -156,43 +115,65 @@ def _pick(path: Path, reader: Any, wanted: str | None, types: tuple[str, ...], w
             raise InputError(f"{path}: several {what} topics ({', '.join(candidates)}): choose "
                              f"one with {option}")
         wanted = candidates[0]
-    return next(c for c in reader.connections if c.topic == wanted)
+    if wanted not in topics:
+        listing = ", ".join(f"{t} ({' and '.join(sorted(m))})"
+                            for t, m in sorted(topics.items())) or "none"
+        raise InputError(f"{path}: no topic {wanted!r} in the bag (topics: {listing})")
+    if topics[wanted] - set(types):
+        raise InputError(f"{path}: topic {wanted!r} is {' and '.join(sorted(topics[wanted]))}, "
+                         f"not {' or '.join(types)}")
+    return wanted, [c for c in reader.connections if c.topic == wanted]
 
 
-def _image_times(reader: Any, connection: Any) -> np.ndarray:
-    """Record times (ns) of the image topic's messages, in order: from a ROS 1 bag's index,
-    else by reading the topic (its data is not decoded). O(messages)."""
+def _image_times(reader: Any, connections: list[Any]) -> np.ndarray:
+    """Record times (ns) of the messages of ``connections`` (one topic), in the order the
+    frame pass reads them (time order, every connection): from a ROS 1 bag's index, else by
+    reading the topic (its data is not decoded). O(messages)."""
     if not reader.is2:
-        found: list[int] = []
-        for sub in reader.readers:
-            for conn in sub.connections:
-                if conn.topic == connection.topic:
-                    found.extend(entry.time for entry in sub.indexes[conn.id])
-        return np.sort(np.asarray(found, dtype=np.int64))
-    return np.fromiter((t for _, t, _ in reader.messages(connections=[connection])),
+        entries = heapq.merge(*(c.owner.indexes[c.id] for c in connections))
+        return np.fromiter((entry.time for entry in entries), dtype=np.int64)
+    return np.fromiter((t for _, t, _ in reader.messages(connections=connections)),
                        dtype=np.int64)
 
 
-def _fixes(reader: Any, connection: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                  np.ndarray]:
-    """(times ns, (m, 2) lat/lon, sigma_m, valid) of every NavSatFix of the topic. O(m)."""
+@dataclass(frozen=True)
+class _Fixes:
+    """Every NavSatFix of the GNSS topic, in time order."""
+
+    times: np.ndarray  # (m,) int64 record times
+    latlon: np.ndarray  # (m, 2)
+    sigma: np.ndarray  # (m,) metres, NaN: unknown
+    valid: np.ndarray  # (m,) bool
+    unbounded: int  # fixes dropped for a covariance that is not finite
+
+
+def _fixes(reader: Any, connections: list[Any]) -> _Fixes:
+    """The fixes of ``connections`` (one topic, every connection). A fix with ``status <
+    STATUS_FIX``, a coordinate not finite or out of range, or a known covariance whose
+    horizontal variance is not finite (a receiver saying it does not know where it is) is
+    not valid; a known variance <= 0 leaves the accuracy unknown. O(m)."""
     times, latlon, sigma, valid = [], [], [], []
-    for conn, t, raw in reader.messages(connections=[connection]):
+    unbounded = 0
+    for conn, t, raw in reader.messages(connections=connections):
         msg = reader.deserialize(raw, conn.msgtype)
         lat, lon = float(msg.latitude), float(msg.longitude)
         ok = (int(msg.status.status) >= _STATUS_FIX and math.isfinite(lat)
               and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180)
         cov = np.asarray(msg.position_covariance, dtype=np.float64)
         known = int(msg.position_covariance_type) != _COVARIANCE_UNKNOWN and len(cov) == 9
-        s = math.sqrt((cov[0] + cov[4]) / 2) if known and cov[0] + cov[4] > 0 else math.nan
+        var = float(cov[0] + cov[4]) if known else math.nan
+        if known and not math.isfinite(var):
+            unbounded += ok
+            ok = False
         times.append(t)
         latlon.append((lat, lon))
-        sigma.append(s)
+        sigma.append(math.sqrt(var / 2) if math.isfinite(var) and var > 0 else math.nan)
         valid.append(ok)
     order = np.argsort(np.asarray(times, dtype=np.int64), kind="stable")
-    return (np.asarray(times, dtype=np.int64)[order],
-            np.asarray(latlon, dtype=np.float64).reshape(-1, 2)[order],
-            np.asarray(sigma, dtype=np.float64)[order], np.asarray(valid, dtype=bool)[order])
+    return _Fixes(np.asarray(times, dtype=np.int64)[order],
+                  np.asarray(latlon, dtype=np.float64).reshape(-1, 2)[order],
+                  np.asarray(sigma, dtype=np.float64)[order],
+                  np.asarray(valid, dtype=bool)[order], unbounded)
 
 
 def interpolate_fixes(frame_ns: np.ndarray, fix_ns: np.ndarray, latlon: np.ndarray,
@@ -246,33 +227,46 @@ def bag_index(path: Path, reader: Any, options: BagOptions, stride: int) -> BagI
         No (or several) image topic, a named topic missing or of another type, no image
         message, ``--every-m`` without a GNSS topic, or a bag that cannot be read.
     """
-    image = _pick(path, reader, options.image_topic, IMAGE_TYPES, "image", "--image-topic",
-                  required=True)
-    gnss = _pick(path, reader, options.gnss_topic, (GNSS_TYPE,), "GNSS", "--gnss-topic",
-                 required=options.gnss_topic is not None or options.every_m is not None)
-    try:
-        times = _image_times(reader, image)
-        fixes = _fixes(reader, gnss) if gnss is not None else None
-    except _rosbags_errors() as exc:
-        raise BagReadError(f"{path}: cannot read bag ({_reason(exc)})") from None
+    with reading(path):
+        image = _pick(path, reader, options.image_topic, IMAGE_TYPES, "image",
+                      "--image-topic", required=True)
+        gnss = _pick(path, reader, options.gnss_topic, (GNSS_TYPE,), "GNSS", "--gnss-topic",
+                     required=options.gnss_topic is not None or options.every_m is not None)
+    assert image is not None
+    image_topic, gnss_topic = image[0], None if gnss is None else gnss[0]
+    with reading(path, image_topic):
+        times = _image_times(reader, image[1])
+    if np.any(np.diff(times) < 0):
+        raise BagReadError(f"{path}: topic {image_topic!r}: the bag's index lists its messages "
+                           "out of time order (a damaged index)")
+    fixes = None
+    if gnss is not None:
+        with reading(path, gnss_topic):
+            fixes = _fixes(reader, gnss[1])
     if not len(times):
-        raise InputError(f"{path}: no message on image topic {image.topic!r}")
+        raise InputError(f"{path}: no message on image topic {image_topic!r}")
     ordinals = np.arange(0, len(times), stride, dtype=np.int64)
-    times = times[ordinals]
+    kept = times[ordinals]
     positions = None
+    warnings = []
     if fixes is not None:
-        latlon, sigma = interpolate_fixes(times, *fixes)
+        if fixes.unbounded:
+            warnings.append(f"{path}: topic {gnss_topic!r}: {fixes.unbounded} of "
+                            f"{len(fixes.times)} fixes report a covariance that is not finite "
+                            "and were not used (frames near them have no fix)")
+        latlon, sigma = interpolate_fixes(kept, fixes.times, fixes.latlon, fixes.sigma,
+                                          fixes.valid)
         if options.every_m is not None:
             keep = _every_m(latlon, options.every_m)
             if not len(keep):
                 raise InputError(f"{path}: --every-m needs fixes, and no image of "
-                                 f"{image.topic!r} has one on {gnss.topic!r}")
-            ordinals, times, latlon, sigma = ordinals[keep], times[keep], latlon[keep], sigma[keep]
+                                 f"{image_topic!r} has one on {gnss_topic!r}")
+            ordinals, kept, latlon, sigma = ordinals[keep], kept[keep], latlon[keep], sigma[keep]
         positions = Positions(ordinals, latlon, None,
                               sigma if np.isfinite(sigma).any() else None,
-                              times.astype(np.float64) / 1e9, geographic=True)
-    return BagIndex(image.topic, None if gnss is None else gnss.topic, times, ordinals,
-                    positions)
+                              kept.astype(np.float64) / 1e9, geographic=True)
+    return BagIndex(image_topic, gnss_topic, kept, ordinals, positions, len(times),
+                    tuple(warnings))
 
 
 def decode_ros_image(msg: Any, msgtype: str, label: str, grayscale: bool) -> Image:
@@ -322,7 +316,7 @@ def decode_ros_image(msg: Any, msgtype: str, label: str, grayscale: bool) -> Ima
     return image if code[1] is None else cv2.cvtColor(image, code[1])
 
 
-def describe_messages(spec: DescriptorSpec, deserialize: Any, path: str,
+def describe_messages(spec: DescriptorSpec, deserialize: Any, path: Path, topic: str,
                       thumbnails: bool, chunk: list[tuple[int, str, bytes]]
                       ) -> tuple[Descriptors, list[bytes]]:
     """Deserialise, decode and describe a chunk of ``(ordinal, msgtype, raw)`` image messages
@@ -331,40 +325,47 @@ def describe_messages(spec: DescriptorSpec, deserialize: Any, path: str,
 
     images = []
     for ordinal, msgtype, raw in chunk:
-        label = f"{path}: image message {ordinal}"
-        try:
+        with reading(path, topic, ordinal):
             msg = deserialize(raw, msgtype)
-        except _rosbags_errors() as exc:
-            raise BagReadError(f"{label} cannot be read ({_reason(exc)})") from None
-        images.append(decode_ros_image(msg, msgtype, label, grayscale=spec.grayscale))
+            images.append(decode_ros_image(msg, msgtype, f"{path}: topic {topic!r}: image "
+                                           f"message {ordinal}", grayscale=spec.grayscale))
     rows = spec.describe_batch(images)
     return rows, [make_thumbnail(image) for image in images] if thumbnails else []
 
 
 def iter_image_messages(path: Path, reader: Any, index: BagIndex, chunk: int
                         ) -> Iterator[list[tuple[int, str, bytes]]]:
-    """The kept image messages as chunks of ``(ordinal, msgtype, raw)``, in order. O(bag)."""
+    """The kept image messages as chunks of ``(ordinal, msgtype, raw)``, in order: the
+    messages of every connection of the image topic, in the time order the index pass
+    numbered them (a message whose time is not the one the index pass found there is an
+    error: the bag changed, or its index and its data disagree). O(bag)."""
     connections = [c for c in reader.connections if c.topic == index.image_topic]
-    wanted = set(index.ordinals.tolist())
+    where = dict(zip(index.ordinals.tolist(), index.times_ns.tolist(), strict=True))
     out: list[tuple[int, str, bytes]] = []
     ordinal = 0
-    try:
-        for conn, _, raw in reader.messages(connections=connections):
-            if ordinal in wanted:
+    with reading(path, index.image_topic):
+        for conn, t, raw in reader.messages(connections=connections):
+            expected = where.get(ordinal)
+            if expected is not None:
+                if int(t) != expected:
+                    raise BagReadError(
+                        f"{path}: topic {index.image_topic!r}: image message {ordinal} is at "
+                        f"{int(t)} ns, its index said {expected} ns (the bag changed while "
+                        "read, or its index and data disagree)")
                 out.append((ordinal, conn.msgtype, bytes(raw)))
                 if len(out) == chunk:
                     yield out
                     out = []
             ordinal += 1
-    except _rosbags_errors() as exc:
-        raise BagReadError(f"{path}: cannot read bag ({_reason(exc)})") from None
     if out:
         yield out
     if ordinal <= int(index.ordinals[-1]):
-        raise BagReadError(f"{path}: the bag ended after {ordinal} of the images its index "
-                           "lists (truncated?)")
+        raise BagReadError(f"{path}: topic {index.image_topic!r}: the bag ended after "
+                           f"{ordinal} of the images its index lists (truncated?)")
 
 
-def describe_partial(spec: DescriptorSpec, reader: Any, path: Path, thumbnails: bool) -> Any:
+def describe_partial(spec: DescriptorSpec, reader: Any, path: Path, topic: str,
+                     thumbnails: bool) -> Any:
     """The worker function of the frame pass (see :func:`describe_messages`)."""
-    return functools.partial(describe_messages, spec, reader.deserialize, str(path), thumbnails)
+    return functools.partial(describe_messages, spec, reader.deserialize, path, topic,
+                             thumbnails)

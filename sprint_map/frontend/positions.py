@@ -24,12 +24,19 @@ import numpy as np
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
 from sprint_map.util.geo import GeoFrame
+from sprint_map.util.validation import regular_file
 
-__all__ = ["OPTIONAL_COLUMNS", "Positions", "gnss_fixes", "read_positions"]
+__all__ = ["MAX_FIELD_CHARS", "MAX_UNKNOWN_FRAMES", "OPTIONAL_COLUMNS", "Positions",
+           "gnss_fixes", "read_positions"]
 
 OPTIONAL_COLUMNS = ("heading_deg", "sigma_m")
 _PLANAR, _GEOGRAPHIC = ("x", "y"), ("lat", "lon")
 _EXPECTED = "frame,x,y[,heading_deg][,sigma_m] or frame,lat,lon[,heading_deg][,sigma_m]"
+#: The longest field read (a number is a few dozen characters); longer: an error.
+MAX_FIELD_CHARS = 1000
+#: The most frames a file may number for a source of unknown length (a video: 3.8 days at
+#: 30 fps; the result holds ~40 bytes per frame).
+MAX_UNKNOWN_FRAMES = 10**7
 
 
 @dataclass(frozen=True)
@@ -106,28 +113,85 @@ class Positions:
                          pick(self.sigma_m), pick(self.time), self.geographic)
 
 
-def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> Positions:
-    """Read the positions of the ``n_frames`` frames a source yielded from the CSV ``path``.
+def read_positions(path: str | Path, n_frames: int | np.ndarray | None, stride: int = 1, *,
+                   source_frames: int | None = None) -> Positions:
+    """Read the positions of the frames a source yielded from the CSV ``path``.
 
-    ``n_frames``: frames the source yielded (after ``stride``), or ``None`` (a video of unknown
-    length, ``stride`` 1) for frames ``0..max frame``. The CSV numbers the original frames, of
-    which ``0, stride, 2*stride, ...`` were kept; a row for frame ``n_frames * stride`` or later
-    is an error. Returns one row per kept frame, NaN where the file has no row.
+    ``n_frames``: the frames the source yielded, as their count (after ``stride``: the kept
+    frames are ``0, stride, 2*stride, ...`` of the source), as their source ordinals (an
+    increasing array: the frames a bag's ``--every-m`` kept), or ``None`` (a video of unknown
+    length, ``stride`` 1) for frames ``0..max frame`` (at most :data:`MAX_UNKNOWN_FRAMES`).
+    The CSV numbers the source's frames, before any selection: ``source_frames`` of them
+    (default: ``n_frames * stride``, or one past the last ordinal); a row for a frame at or
+    beyond that is a file longer than its drive, an error. A file whose rows are exactly
+    frames ``0..k-1`` for the ``k`` frames kept of a longer source numbers the kept frames,
+    not the source's: an error too (taken as it is, each kept frame would get another's
+    row). Returns one row per kept frame (``frames``: its source ordinal), NaN where the file
+    has no row.
 
     Raises :class:`InputError`, one line naming the file (and the line): a missing or
-    unreadable file, a bad header, a non-numeric or non-finite value, ``sigma_m <= 0``, a
-    latitude outside [-90, 90] or a longitude outside [-180, 180], a non-integer, negative or
-    repeated frame number, a frame beyond the drive, or no row at all. O(rows).
+    unreadable file, or one that is not a regular file; a bad header, a field that is not
+    CSV or longer than :data:`MAX_FIELD_CHARS`, a non-numeric or non-finite value,
+    ``sigma_m <= 0``, a latitude outside [-90, 90] or a longitude outside [-180, 180], a
+    non-integer, negative or repeated frame number, a frame beyond the drive, rows numbering
+    the kept frames, or no row at all. A UTF-8 byte-order mark is skipped. O(rows); memory
+    O(file size + frames).
     """
-    import csv  # (here: the CLI loads this module for every command)
-
     path = Path(path)
-    if (n_frames is not None and n_frames < 1) or stride < 1:
-        raise ValueError("n_frames and stride must be >= 1")
-    if n_frames is None and stride != 1:
-        raise ValueError("stride needs n_frames")
+    if stride < 1:
+        raise ValueError("stride must be >= 1")
+    kept: np.ndarray | None
+    if n_frames is None:
+        if stride != 1 or source_frames is not None:
+            raise ValueError("stride and source_frames need n_frames")
+        kept, limit = None, MAX_UNKNOWN_FRAMES
+    elif isinstance(n_frames, np.ndarray):
+        kept = np.asarray(n_frames, dtype=np.int64)
+        if stride != 1 or kept.ndim != 1 or not len(kept) or kept[0] < 0 \
+                or np.any(np.diff(kept) <= 0):
+            raise ValueError("source ordinals must be a non-empty increasing array, stride 1")
+        limit = int(kept[-1]) + 1 if source_frames is None else source_frames
+    else:
+        if n_frames < 1:
+            raise ValueError("n_frames must be >= 1")
+        kept = np.arange(n_frames, dtype=np.int64) * stride
+        limit = n_frames * stride if source_frames is None else source_frames
+    if kept is not None and limit <= int(kept[-1]):
+        raise ValueError("source_frames must exceed the last kept frame")
+    columns, rows = _read_rows(path, limit, kept is not None, stride)
+    if kept is None:
+        kept = np.arange(max(rows) + 1, dtype=np.int64)
+    elif len(kept) < limit and sorted(rows) == list(range(len(kept))) \
+            and not np.array_equal(kept, np.arange(len(kept))):
+        shown = ", ".join(str(f) for f in kept[:4].tolist()) + (", ..." if len(kept) > 4 else "")
+        raise InputError(
+            f"{path}: rows for frames 0..{len(kept) - 1}, one per kept frame, but a positions "
+            f"file numbers the source's frames: {len(kept)} of its {limit} were kept (frames "
+            f"{shown}); give one row per frame of the source")
+    geographic = "lat" in columns
+    first, second = _GEOGRAPHIC if geographic else _PLANAR
+    n = len(kept)
+    xy = np.full((n, 2), np.nan)
+    optional = {name: np.full(n, np.nan) for name in OPTIONAL_COLUMNS if name in columns}
+    for i, frame in enumerate(kept.tolist()):
+        row = rows.get(frame)
+        if row is None:
+            continue
+        values = row[1]
+        xy[i] = values[first], values[second]
+        for name, array in optional.items():
+            array[i] = values[name]
+    return Positions(kept, xy, optional.get("heading_deg"), optional.get("sigma_m"),
+                     geographic=geographic)
+
+
+def _read_rows(path: Path, limit: int, known: bool, stride: int
+               ) -> tuple[list[str], dict[int, tuple[int, dict[str, float]]]]:
+    """The header's columns and each frame's ``(line number, values)``, checked (see
+    :func:`read_positions`); frames at or beyond ``limit`` are refused. O(rows)."""
+    regular_file(path, "positions")
     try:
-        with path.open(newline="", encoding="utf-8") as handle:
+        with path.open(newline="", encoding="utf-8-sig") as handle:
             lines = [
                 (number, line)
                 for number, line in enumerate(handle, start=1)
@@ -141,12 +205,10 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> P
         raise InputError(f"{path}: empty positions file (expected header {_EXPECTED})")
 
     columns = _parse_header(path, *lines[0])
-    geographic = "lat" in columns
-    first, second = _GEOGRAPHIC if geographic else _PLANAR
     width = len(columns)
     rows: dict[int, tuple[int, dict[str, float]]] = {}  # frame -> (line number, values)
     for number, line in lines[1:]:
-        fields = next(csv.reader([line]))
+        fields = _fields(path, number, line)
         if len(fields) != width:
             raise InputError(f"{path}:{number}: expected {width} fields, got {len(fields)}")
         values: dict[str, float] = {}
@@ -155,7 +217,7 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> P
                 value = float(text)
             except ValueError:
                 raise InputError(
-                    f"{path}:{number}: {name} is not a number: {text.strip()!r}"
+                    f"{path}:{number}: {name} is not a number: {text.strip()[:40]!r}"
                 ) from None
             if not math.isfinite(value):
                 raise InputError(f"{path}:{number}: {name} is not finite: {text.strip()!r}")
@@ -169,31 +231,33 @@ def read_positions(path: str | Path, n_frames: int | None, stride: int = 1) -> P
             raise InputError(
                 f"{path}:{number}: frame {frame} repeated (first on line {rows[frame][0]})"
             )
-        if n_frames is not None and frame >= n_frames * stride:
+        if frame >= limit:
+            if not known:
+                raise InputError(f"{path}:{number}: frame {frame} is beyond the "
+                                 f"{MAX_UNKNOWN_FRAMES} frames read for a drive of unknown "
+                                 "length")
             raise InputError(
-                f"{path}:{number}: frame {frame} is beyond the drive ({n_frames} frames"
-                + (f" kept with stride {stride}" if stride > 1 else "") + "): a positions "
-                "file longer than its drive"
+                f"{path}:{number}: frame {frame} is beyond the drive ("
+                + (f"{-(-limit // stride)} frames kept with stride {stride}" if stride > 1
+                   else f"{limit} frames") + "): a positions file longer than its drive"
             )
         rows[frame] = (number, values)
-
     if not rows:
         raise InputError(f"{path}: no position rows after the header")
-    if n_frames is None:
-        n_frames = max(rows) + 1
-    frames = np.arange(n_frames, dtype=np.int64) * stride
-    xy = np.full((n_frames, 2), np.nan)
-    optional = {name: np.full(n_frames, np.nan) for name in OPTIONAL_COLUMNS if name in columns}
-    for i, frame in enumerate(frames.tolist()):
-        row = rows.get(frame)
-        if row is None:
-            continue
-        values = row[1]
-        xy[i] = values[first], values[second]
-        for name, array in optional.items():
-            array[i] = values[name]
-    return Positions(frames, xy, optional.get("heading_deg"), optional.get("sigma_m"),
-                     geographic=geographic)
+    return columns, rows
+
+
+def _fields(path: Path, number: int, line: str) -> list[str]:
+    """The CSV fields of one line. Raises :class:`InputError` for a line that is not CSV
+    (a stray or unterminated quote) or a field longer than :data:`MAX_FIELD_CHARS`."""
+    import csv  # (here: the CLI loads this module for every command)
+
+    if len(line) > MAX_FIELD_CHARS and max(map(len, line.split(","))) > MAX_FIELD_CHARS:
+        raise InputError(f"{path}:{number}: a field longer than {MAX_FIELD_CHARS} characters")
+    try:
+        return next(csv.reader([line], strict=True), [])
+    except csv.Error as exc:
+        raise InputError(f"{path}:{number}: not a CSV line ({exc})") from None
 
 
 def gnss_fixes(rows: Float64Array) -> Float64Array:
@@ -215,9 +279,7 @@ def _check_values(path: Path, number: int, values: dict[str, float]) -> None:
 
 
 def _parse_header(path: Path, number: int, line: str) -> list[str]:
-    import csv
-
-    names = [name.strip().lower() for name in next(csv.reader([line]))]
+    names = [name.strip().lower() for name in _fields(path, number, line)]
     pair = _GEOGRAPHIC if "lat" in names or "lon" in names else _PLANAR
     required = ("frame", *pair)
     known = set(required) | set(OPTIONAL_COLUMNS)

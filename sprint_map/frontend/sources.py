@@ -112,14 +112,28 @@ class FrameSource(ABC):
         self.thumbnails: list[bytes] | None = [] if options.thumbnails else None
         #: Positions the source itself carries (a bag's GNSS), else None.
         self.positions: Positions | None = None
-        #: What a reader should know about the frames read so far (complete once
-        #: :meth:`iter_batches` has ended): e.g. images of several sizes in one drive.
+        #: What a user should know about the source: about the frames read so far (complete
+        #: once :meth:`iter_batches` has ended; e.g. images of several sizes in one drive) and
+        #: what opening it found (a bag's fixes it could not use).
         self.warnings: list[str] = []
 
     @property
     @abstractmethod
     def count(self) -> int | None:
         """Frames the source yields, or ``None`` if unknown until read."""
+
+    @property
+    def source_frames(self) -> int | None:
+        """Frames of the source before any selection (``stride``, a bag's ``--every-m``), as
+        a positions file numbers them; ``None`` when unknown before reading (a video)."""
+        return None if self.count is None else self.count * self.stride
+
+    @property
+    def ordinals(self) -> np.ndarray | None:
+        """``(count,)`` int64: the number of each frame yielded among the source's frames
+        (its *source ordinal*: ``0, stride, ...``, or the frames ``--every-m`` kept), by
+        which positions, times and thumbnails are aligned; ``None`` for a video."""
+        return None if self.count is None else np.arange(self.count, dtype=np.int64) * self.stride
 
     @abstractmethod
     def _batches(self) -> Iterator[Descriptors]:
@@ -284,10 +298,15 @@ class ImageDirSource(FrameSource):
             self.positions = Positions(kept, self.positions.xy, time=self.positions.time,
                                        geographic=True)
         self.files: list[Path] = files[:: self.stride]
+        self._source_frames = len(files)
 
     @property
     def count(self) -> int:
         return len(self.files)
+
+    @property
+    def source_frames(self) -> int:
+        return self._source_frames
 
     def _batches(self) -> Iterator[Descriptors]:
         assert self.spec is not None
@@ -425,18 +444,28 @@ class BagSource(FrameSource):
         finally:
             reader.close()
         self.positions = self.index.positions
+        self.warnings.extend(self.index.warnings)
         self.image_topic, self.gnss_topic = self.index.image_topic, self.index.gnss_topic
 
     @property
     def count(self) -> int:
         return len(self.index.ordinals)
 
+    @property
+    def source_frames(self) -> int:
+        return self.index.image_count
+
+    @property
+    def ordinals(self) -> np.ndarray:
+        return self.index.ordinals
+
     def _batches(self) -> Iterator[Descriptors]:
         assert self.spec is not None
         reader = open_reader(self.path)
         try:
             chunk = _chunk_size(self.count, self.batch_size, self.workers)
-            work = describe_partial(self.spec, reader, self.path, self.thumbnails is not None)
+            work = describe_partial(self.spec, reader, self.path, self.index.image_topic,
+                                    self.thumbnails is not None)
             results = ordered_map(work, iter_image_messages(self.path, reader, self.index, chunk),
                                   self.workers, "thread")
             if self.thumbnails is not None:
@@ -470,10 +499,15 @@ class NpySource(FrameSource):
             )
         super().__init__(path, None, int(array.shape[1]), options)
         self.array = array[:: self.stride]
+        self._source_frames = int(array.shape[0])
 
     @property
     def count(self) -> int:
         return int(self.array.shape[0])
+
+    @property
+    def source_frames(self) -> int:
+        return self._source_frames
 
     def _batches(self) -> Iterator[Descriptors]:
         for start in range(0, self.count, self.batch_size):
@@ -636,7 +670,8 @@ def drive_positions(source: FrameSource, path: str | Path, positions: str | Path
     found = Path(positions) if positions is not None else own_positions(path)
     if found is None:
         return None
-    if source.count is None:  # a video: its frame count is known only once decoded
+    ordinals = source.ordinals
+    if ordinals is None:  # a video: its frame count is known only once decoded
         table = read_positions(found, None)
         return table.subset(np.arange(0, len(table), stride))
-    return read_positions(found, source.count, stride)
+    return read_positions(found, ordinals, source_frames=source.source_frames)

@@ -9,8 +9,9 @@ Its names are imported on first use (PEP 562): ``from sprint_map.hmm.config impo
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from sprint_map.util.lazy import lazy_names
 
 if TYPE_CHECKING:
     from sprint_map.hmm.cache import ComponentCache
@@ -49,14 +50,5 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _MODULES.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, {name: f"{__name__}.{module}"
+                                             for name, module in _MODULES.items()})

@@ -12,7 +12,7 @@ import numpy as np
 from sprint_map.hmm import support
 from sprint_map.hmm.decision import BeliefView
 from sprint_map.hmm.graph import ComponentGraph
-from sprint_map.hmm.transition import ComponentTransition, correlate
+from sprint_map.hmm.transition import ComponentTransition
 
 __all__ = ["ActiveComponent", "ActiveSet"]
 
@@ -115,7 +115,7 @@ class ActiveComponent:
                 if flush_below:
                     v = x[a:b]
                     np.putmask(v, v < flush_below, 0.0)
-                y = correlate(x[a:b], trans.krev, "full")
+                y = np.correlate(x[a:b], trans.krev, "full")
                 nb = b + trans.spread
                 self.live = None
                 self.n_propagated = b - a

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sprint_map.util import dataclass_dict
+from sprint_map.util.dataclass_dict import check_int, check_number
 
 __all__ = ["HMMConfig"]
 
@@ -102,45 +103,36 @@ class HMMConfig:
     cache_budget_bytes: int = 256 << 20
 
     def __post_init__(self) -> None:
-        if not _is_int(self.k) or self.k < 1:
-            raise ValueError("k must be an integer >= 1")
-        if not _is_int(self.smooth_k) or self.smooth_k < 0:
-            raise ValueError("smooth_k must be an integer >= 0")
+        check_int("k", self.k, 1)
+        check_int("smooth_k", self.smooth_k, 0)
         window = tuple(float(w) for w in self.window)
         if not window or not all(math.isfinite(w) and w >= 0 for w in window) or sum(window) <= 0:
             raise ValueError("window must be non-empty, finite, non-negative and not all zero")
         object.__setattr__(self, "window", window)
-        _finite_range("edge_weight", self.edge_weight, 0.0, math.inf)
-        _finite_range("prune_threshold", self.prune_threshold, 0.0, 1.0, hi_open=True)
-        if not _is_int(self.max_active_components) or self.max_active_components < 0:
-            raise ValueError("max_active_components must be an integer >= 0")
-        _finite_range("support_threshold", self.support_threshold, 0.0, 1.0, hi_open=True)
-        _finite_range("restart_prob", self.restart_prob, 0.0, 1.0)
-        _finite_range("new_place_prob", self.new_place_prob, 0.0, 1.0)
+        check_number("edge_weight", self.edge_weight, 0.0, math.inf)
+        check_number("prune_threshold", self.prune_threshold, 0.0, 1.0, hi_open=True)
+        check_int("max_active_components", self.max_active_components, 0)
+        check_number("support_threshold", self.support_threshold, 0.0, 1.0, hi_open=True)
+        check_number("restart_prob", self.restart_prob, 0.0, 1.0)
+        check_number("new_place_prob", self.new_place_prob, 0.0, 1.0)
         if self.restart_prob + self.new_place_prob >= 1:
             raise ValueError("restart_prob + new_place_prob must be < 1")
         if self.dist_scale is not None:
-            _finite_range("dist_scale", self.dist_scale, 0.0, math.inf, lo_open=True)
-        _finite_range("dist_scale_ema", self.dist_scale_ema, 0.0, 1.0, lo_open=True)
-        _finite_range("dist_scale_factor", self.dist_scale_factor, 0.0, math.inf, lo_open=True)
-        _finite_range("miss_margin", self.miss_margin, 0.0, 700.0)
-        _finite_range("novelty_margin", self.novelty_margin, -700.0, 700.0)
+            check_number("dist_scale", self.dist_scale, 0.0, math.inf, lo_open=True)
+        check_number("dist_scale_ema", self.dist_scale_ema, 0.0, 1.0, lo_open=True)
+        check_number("dist_scale_factor", self.dist_scale_factor, 0.0, math.inf, lo_open=True)
+        check_number("miss_margin", self.miss_margin, 0.0, 700.0)
+        check_number("novelty_margin", self.novelty_margin, -700.0, 700.0)
         if self.novelty_dist is not None:
-            _finite_range("novelty_dist", self.novelty_dist, 0.0, math.inf)
-        _finite_range("novelty_quantile", self.novelty_quantile, 0.0, 1.0)
-        if not _is_int(self.novelty_window) or self.novelty_window < 0:
-            raise ValueError("novelty_window must be an integer >= 0")
-        if not _is_int(self.place_radius) or self.place_radius < 0:
-            raise ValueError("place_radius must be an integer >= 0")
-        if not _is_int(self.place_hops) or self.place_hops < 0:
-            raise ValueError("place_hops must be an integer >= 0")
-        if not _is_int(self.contrast_reach) or self.contrast_reach < 0:
-            raise ValueError("contrast_reach must be an integer >= 0")
-        if not _is_int(self.decision_candidates) or self.decision_candidates < 1:
-            raise ValueError("decision_candidates must be an integer >= 1")
-        _finite_range("min_confidence", self.min_confidence, 0.0, 1.0)
-        if not _is_int(self.cache_budget_bytes) or self.cache_budget_bytes < 0:
-            raise ValueError("cache_budget_bytes must be an integer >= 0")
+            check_number("novelty_dist", self.novelty_dist, 0.0, math.inf)
+        check_number("novelty_quantile", self.novelty_quantile, 0.0, 1.0)
+        check_int("novelty_window", self.novelty_window, 0)
+        check_int("place_radius", self.place_radius, 0)
+        check_int("place_hops", self.place_hops, 0)
+        check_int("contrast_reach", self.contrast_reach, 0)
+        check_int("decision_candidates", self.decision_candidates, 1)
+        check_number("min_confidence", self.min_confidence, 0.0, 1.0)
+        check_int("cache_budget_bytes", self.cache_budget_bytes, 0)
 
     @property
     def window_len(self) -> int:
@@ -155,18 +147,3 @@ class HMMConfig:
     def to_dict(self) -> dict[str, Any]:
         """Return a JSON-ready dict."""
         return dataclass_dict.to_dict(self)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _finite_range(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False,
-                  hi_open: bool = False) -> None:
-    """Raise ValueError unless ``value`` is a real number in the given range."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number")
-    if value < lo or (lo_open and value == lo) or value > hi or (hi_open and value == hi):
-        left = "(" if lo_open else "["
-        right = ")" if hi_open else "]"
-        raise ValueError(f"{name} must be in {left}{lo}, {hi}{right}")

@@ -16,6 +16,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from sprint_map.util.union_find import UnionFind
+
 __all__ = ["ComponentGraph", "EMPTY_IDS", "EMPTY_WEIGHTS", "GraphSource", "MemoryGraphSource"]
 
 _I64 = np.int64
@@ -252,30 +254,6 @@ class GraphSource(Protocol):
         ...
 
 
-class _UnionFind:
-    """Union by size with path halving over ``n`` items (for MemoryGraphSource)."""
-
-    def __init__(self, n: int) -> None:
-        self.parent = list(range(n))
-        self.size = [1] * n
-
-    def find(self, a: int) -> int:
-        parent = self.parent
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    def union(self, a: int, b: int) -> None:
-        ra, rb = self.find(a), self.find(b)
-        if ra == rb:
-            return
-        if self.size[ra] < self.size[rb] or (self.size[ra] == self.size[rb] and rb < ra):
-            ra, rb = rb, ra
-        self.parent[rb] = ra
-        self.size[ra] += self.size[rb]
-
-
 class MemoryGraphSource:
     """In-memory :class:`GraphSource` built from sequence lengths and edges.
 
@@ -323,7 +301,7 @@ class MemoryGraphSource:
                 raise ValueError("edge weights must be finite and >= 0")
         src_seq = self._seq_of(src)
         dst_seq = self._seq_of(dst)
-        uf = _UnionFind(len(lengths))
+        uf = UnionFind(len(lengths))
         for a, b in zip(src_seq.tolist(), dst_seq.tolist(), strict=True):
             uf.union(a, b)
         roots = np.array([uf.find(s) for s in range(len(lengths))], dtype=_I64)

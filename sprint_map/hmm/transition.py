@@ -23,12 +23,10 @@ one, so propagation conserves mass. The filter then scales the propagated mass b
 
 from __future__ import annotations
 
-import importlib
 import math
 from bisect import bisect_left, bisect_right
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
-from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,32 +35,12 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.graph import EMPTY_IDS, EMPTY_WEIGHTS, ComponentGraph
 from sprint_map.hmm.support import insert_sorted, merge, merge_gap, ranges
 
-__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator", "correlate",
+__all__ = ["ComponentTransition", "FLUSH_BELOW", "FLUSH_EVERY", "PullOperator",
            "full_transition_matrix", "parts_pull_operator", "window_kernel"]
 
 _I64 = np.int64
 _FIRST = np.zeros(1, dtype=np.int64)
 
-
-def _compiled_correlate() -> Callable[[np.ndarray, np.ndarray, str], np.ndarray]:
-    """The compiled core of ``np.correlate`` (``numpy._core.multiarray.correlate2``), if any."""
-    for name in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy 2, numpy 1.26
-        try:
-            module = importlib.import_module(name)
-        except ImportError:  # pragma: no cover - depends on the numpy version
-            continue
-        function = getattr(module, "correlate2", None)
-        if function is not None:
-            return cast(Callable[[np.ndarray, np.ndarray, str], np.ndarray], function)
-    return cast(Callable[[np.ndarray, np.ndarray, str], np.ndarray],
-                np.correlate)  # pragma: no cover
-
-
-#: ``correlate(a, v, "full")`` is ``np.correlate(a, v, "full")``. ``np.correlate`` is a thin
-#: wrapper around the compiled ``correlate2`` whose ``__array_function__`` dispatch costs about
-#: 1 µs per call: as much as the convolution of a live window, and a tenth of a filter step.
-#: The compiled function is called directly when numpy has it (tests check both agree).
-correlate = _compiled_correlate()
 
 #: Every FLUSH_EVERY frames both filters set beliefs below FLUSH_BELOW to 0. Beliefs far behind
 #: the vehicle decay geometrically and would otherwise reach subnormal floats, on which every
@@ -268,7 +246,7 @@ class ComponentTransition:
                 z += np.bincount(start[pos] + (dst - lo[pos]), weights=moved, minlength=total)
         # Each window's output lands in [lo, hi + g): its own slots and the g free slots after
         # it (the next window is at least g away, or a gutter follows), never another window.
-        y = correlate(z, self.krev, "full")[:total]
+        y = np.correlate(z, self.krev, "full")[:total]
         x[out] = y
         mass = float(y.sum())
         overflow = 0.0
@@ -612,7 +590,7 @@ class PullOperator:
             if self.m_weight is not None:
                 v *= self.m_weight
             z[self.m_place] = v
-        y = correlate(z, self.kernel, "valid")  # y[p] = sum_k kernel[k] z[p + k]
+        y = np.correlate(z, self.kernel, "valid")  # y[p] = sum_k kernel[k] z[p + k]
         out: np.ndarray = y[self.src_place]
         if self.factor is not None:
             out *= self.factor

@@ -48,6 +48,7 @@ import numpy as np
 
 from sprint_map.errors import InputError
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.dataclass_dict import check_int
 
 __all__ = ["HEADING_HALF", "HEADING_MIN_SPAN_M", "MAX_COORD_M", "GnssAid", "GnssConfig", "PositionIndex", "consistent", "validate_fixes"]
 
@@ -98,13 +99,11 @@ class GnssConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0")
-        if not isinstance(self.max_added, int) or self.max_added < 0:
-            raise ValueError("max_added must be an integer >= 0")
+        check_int("max_added", self.max_added, 0)
         if not (isinstance(self.added_log_weight, int | float)
                 and -self.far_log_cap <= self.added_log_weight <= 0):
             raise ValueError("added_log_weight must be in [-far_log_cap, 0]")
-        if not isinstance(self.consistency_window, int) or self.consistency_window < 0:
-            raise ValueError("consistency_window must be an integer >= 0")
+        check_int("consistency_window", self.consistency_window, 0)
         if not (math.isfinite(self.offset_m) and self.offset_m >= 0):
             raise ValueError("offset_m must be a finite number >= 0")
         if not 0 < self.heading_gate_deg <= 180:

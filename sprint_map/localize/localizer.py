@@ -41,7 +41,7 @@ SEARCH_BATCH = 256
 
 class MapView(GraphSource, Protocol):
     """What a :class:`Localizer` reads of a map, through a view of its own
-    (:class:`sprint_map.localize.map_graph.MapGraphSource` is one).
+    (:class:`sprint_map.localize.stored_view.StoredMapView` is one).
 
     Besides the HMM's :class:`~sprint_map.hmm.graph.GraphSource` (components of vertices, a
     component's arrays): k-NN search, vertex -> ``(seq_id, image_id)``, the vertex count and
@@ -300,7 +300,7 @@ class Localizer:
 
     @contextmanager
     def pinned(self) -> Iterator[bool]:
-        """Read one snapshot of the map in the block (:meth:`MapGraphSource.pinned`): a writer
+        """Read one snapshot of the map in the block (:meth:`StoredMapView.pinned`): a writer
         committing meanwhile is not half seen. A map changed since the last snapshot (by a writer
         nobody told us of through :meth:`invalidate`) is caught up first; yields whether it
         had changed."""

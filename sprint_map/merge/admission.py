@@ -62,9 +62,10 @@ import numpy as np
 
 from sprint_map.merge.rule import MergeDecision
 from sprint_map.storage.records import EdgeSpec
+from sprint_map.util.dataclass_dict import check_int
 
 __all__ = ["ADMISSION_MODES", "COPY_STEPS", "Admission", "AdmissionPlan", "drive_step",
-           "place_distances", "plan_admission", "runs", "smooth_stored", "stored_frames"]
+           "place_distances", "plan_admission", "runs", "stored_mask", "stored_frames"]
 
 #: ``all``: store every frame (the default); ``novel``: store what the map does not hold.
 ADMISSION_MODES = ("all", "novel")
@@ -97,12 +98,9 @@ class Admission:
                              f"not {self.mode!r}")
         if not 0 <= self.max_step_ratio < math.inf:
             raise ValueError("admission max_step_ratio must be a finite number >= 0")
-        if not isinstance(self.min_run, int) or self.min_run < 1:
-            raise ValueError("admission min_run must be an integer >= 1")
-        if not isinstance(self.min_skip, int) or self.min_skip < 1:
-            raise ValueError("admission min_skip must be an integer >= 1")
-        if not isinstance(self.margin, int) or self.margin < 0:
-            raise ValueError("admission margin must be an integer >= 0")
+        check_int("admission min_run", self.min_run, 1)
+        check_int("admission min_skip", self.min_skip, 1)
+        check_int("admission margin", self.margin, 0)
 
 
 @dataclass(frozen=True)
@@ -169,10 +167,10 @@ def stored_frames(decisions: Sequence[MergeDecision], merged: np.ndarray,
     for a, b in runs(near & ~copy):
         if (a > 0 and copy[a - 1]) or (b < n and copy[b]):
             redundant[a:b] = True  # what a stored drive driven again left out, at its ends
-    return smooth_stored(redundant, admission)
+    return stored_mask(redundant, admission)
 
 
-def smooth_stored(redundant: np.ndarray, admission: Admission) -> np.ndarray:
+def stored_mask(redundant: np.ndarray, admission: Admission) -> np.ndarray:
     """Which frames of a drive (or a stored sequence) are kept, from which are redundant:
     stored runs shorter than ``min_run`` dropped, redundant stretches shorter than
     ``min_skip`` stored through, ``margin`` frames added either side of each stored run (see

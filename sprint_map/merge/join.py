@@ -44,6 +44,7 @@ from sprint_map.storage.join import JoinPlan, copy_drives, drive_rows, plan_join
 from sprint_map.storage.records import EdgeSpec, SequenceRecord
 from sprint_map.storage.store import MapStore
 from sprint_map.testing.crash import crash_point
+from sprint_map.util.union_find import UnionFind
 
 if TYPE_CHECKING:  # a copy (``merge=False``) loads no HMM
     from sprint_map.localize.gnss import GnssAid
@@ -242,19 +243,13 @@ def connected_drives(plan: JoinPlan, crossing: set[int]) -> dict[int, bool]:
     """Per imported drive (source seq_id): whether it reaches a drive the target held before
     the join, through ``crossing`` (the imported drives with a cross-map edge), the carried
     edges among imported drives and those to a drive the target held. O(n + links)."""
-    parent = {d.source.seq_id: d.source.seq_id for d in plan.drives}
-
-    def find(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    index = {d.source.seq_id: i for i, d in enumerate(plan.drives)}
+    sets = UnionFind(len(plan.drives))
     for a, b in plan.links:
-        parent[find(a)] = find(b)
-    seeds = {find(d.source.seq_id) for d in plan.drives
+        sets.union(index[a], index[b])
+    seeds = {sets.find(index[d.source.seq_id]) for d in plan.drives
              if d.present_as is not None or d.source.seq_id in crossing}
-    return {d.source.seq_id: find(d.source.seq_id) in seeds for d in plan.imports}
+    return {d.source.seq_id: sets.find(index[d.source.seq_id]) in seeds for d in plan.imports}
 
 
 def join_maps(smap: JoiningMap, source: MapStore, configs: tuple[dict[str, Any], dict[str, Any]],

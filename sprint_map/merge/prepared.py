@@ -37,7 +37,7 @@ from sprint_map.localize.localizer import (
 from sprint_map.merge.smoothing import MergeSettings, smoothed_decisions
 from sprint_map.storage.store import MapStore
 from sprint_map.util.arrays import Descriptors, DescriptorsLike
-from sprint_map.util.lazy_faiss import faiss  # imported on first use
+from sprint_map.util.lazy import faiss  # imported on first use
 
 __all__ = ["PreparableConfig", "PreparableMap", "PreparedDrive", "prepare_drive", "stale_reason"]
 

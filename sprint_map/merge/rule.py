@@ -63,6 +63,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from sprint_map.util.dataclass_dict import check_int
+
 __all__ = ["MergeDecision", "MergeRule", "run_ids", "run_lengths", "run_members",
            "select_merges", "teleports"]
 
@@ -127,22 +129,19 @@ class MergeRule:
             raise ValueError("threshold must be in [0, 1]")
         if not 0 <= self.max_novel <= 1:
             raise ValueError("max_novel must be in [0, 1]")
-        if not isinstance(self.window, int) or self.window < 0:
-            raise ValueError("window must be an integer >= 0")
+        check_int("window", self.window, 0)
         if not isinstance(self.min_agree, int) or not 0 <= self.min_agree <= 2 * self.window:
             raise ValueError("min_agree must be an integer in [0, 2 * window]")
         if not self.max_rate > 0:
             raise ValueError("max_rate must be > 0")
-        if not isinstance(self.min_run, int) or self.min_run < 0:
-            raise ValueError("min_run must be an integer >= 0")
+        check_int("min_run", self.min_run, 0)
         if not 0 <= self.dist_quantile <= 1:
             raise ValueError("dist_quantile must be in [0, 1]")
         if not 0 <= self.min_advance <= self.max_rate:
             raise ValueError("min_advance must be in [0, max_rate]")
         if not 0 <= self.max_contrast < math.inf:
             raise ValueError("max_contrast must be a finite number >= 0")
-        if not isinstance(self.verify_inliers, int) or self.verify_inliers < 0:
-            raise ValueError("verify_inliers must be an integer >= 0")
+        check_int("verify_inliers", self.verify_inliers, 0)
 
     @classmethod
     def permissive(cls, **changes: Any) -> MergeRule:

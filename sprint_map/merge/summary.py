@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.merge.admission import Admission, drive_step, runs, smooth_stored
+from sprint_map.merge.admission import Admission, drive_step, runs, stored_mask
 from sprint_map.storage.provenance import edge_table
 from sprint_map.storage.records import EdgeRecord, SequenceRecord
 from sprint_map.storage.reduction import Reduction
@@ -175,7 +175,7 @@ class _Summariser:
         """Decide ``seq`` (every older sequence is decided); return the frames it keeps."""
         rows = np.asarray(self.store.descriptors(seq.seq_id), dtype=np.float32)
         stand, dist, strength = self.stand_ins(seq, rows)
-        stored = smooth_stored(stand >= 0, self.admission)
+        stored = stored_mask(stand >= 0, self.admission)
         if stored.all():
             return seq.length
         dropped = np.flatnonzero(~stored)

@@ -26,6 +26,7 @@ import networkx as nx
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, StorageIOError
+from sprint_map.storage.components import MEMBER_KEY
 from sprint_map.storage.drive_stats import check_drive_stats
 from sprint_map.storage.generation import CURRENT_NAME, current_data, stale_generations
 from sprint_map.storage.index.check import check_segments, has_segments
@@ -51,9 +52,8 @@ from sprint_map.storage.records import CheckReport, SequenceRecord
 from sprint_map.storage.sightings import scan_sightings
 from sprint_map.storage.store import COUNTERS, INDEX_DIR, SHARDS_DIR, MapStore
 from sprint_map.storage.thumbnails import ThumbnailTest, scan_thumbnails
-from sprint_map.storage.union_find import MEMBER_KEY
 from sprint_map.util.atomic import PARTIAL_SUFFIX
-from sprint_map.util.lazy_faiss import faiss  # imported on first use
+from sprint_map.util.lazy import faiss  # imported on first use
 
 __all__ = ["CHECK_BLOCK", "MALFORMED", "MapRecords", "REPAIRABLE", "check_digests", "check_index",
            "check_map", "check_sequences", "check_shards", "check_sightings", "check_thumbnails", "edge_added_by",

@@ -111,7 +111,7 @@ def edge_table(store: RecordStore) -> EdgeTable:
 
     Notes
     -----
-    O(E): :meth:`MapReads.edge_table_from <sprint_map.storage.reads.MapReads.edge_table_from>`
+    O(E): :meth:`StoreReads.edge_table_from <sprint_map.storage.store_reads.StoreReads.edge_table_from>`
     over every source vertex, one cursor pass decoded with numpy.
     """
     with store.env.read() as txn:

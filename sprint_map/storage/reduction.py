@@ -37,6 +37,7 @@ from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import EdgeRecord, SequenceRecord
 from sprint_map.storage.removal import write_component
 from sprint_map.storage.sightings import SIGHTINGS_DB, decode_sighting, encode_sighting
+from sprint_map.util.union_find import UnionFind
 
 __all__ = ["Reduction", "reduced_edges", "reduced_sightings", "reduced_thumbnails",
            "regroup_all"]
@@ -194,25 +195,14 @@ def regroup_all(out: lmdb.Transaction, env: LmdbEnv, seqs: list[SequenceRecord],
     """
     ordered = sorted(seqs, key=lambda s: s.first_vertex)
     starts = np.array([s.first_vertex for s in ordered], dtype=np.int64)
-    parent = list(range(len(ordered)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
+    sets = UnionFind(len(ordered))
     if edges:
         ids = np.frombuffer(b"".join(k for k, _ in edges), dtype=">u8").astype(np.int64)
         at = np.searchsorted(starts, ids.reshape(-1, 2), side="right") - 1
         for a, b in np.unique(at, axis=0).tolist():
-            ra, rb = find(a), find(b)
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-    groups: dict[int, list[SequenceRecord]] = {}
-    for i, seq in enumerate(ordered):
-        groups.setdefault(find(i), []).append(seq)
-    for group in groups.values():
+            sets.union(a, b)
+    groups = [[ordered[i] for i in members] for members in sets.groups()]
+    for group in groups:
         write_component(out, env, group, prefer=min(s.seq_id for s in group))
     return len(groups)
 

@@ -23,15 +23,16 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError
+from sprint_map.storage.components import MEMBER_KEY, ComponentStore
 from sprint_map.storage.drive_stats import delete_drive_stats
 from sprint_map.storage.keys import COMP_VAL, EDGE_KEY, REMOVED_VAL, UF_VAL, read_u64, u32, u64
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.records import EdgeTable, RemoveResult, SequenceRecord
 from sprint_map.storage.sightings import delete_sightings
 from sprint_map.storage.thumbnails import delete_thumbnails
-from sprint_map.storage.union_find import MEMBER_KEY, UnionFindStore
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, SearchResult
+from sprint_map.util.union_find import UnionFind
 
 
 class RecordStore(Protocol):
@@ -42,7 +43,7 @@ class RecordStore(Protocol):
     def env(self) -> LmdbEnv: ...
 
     @property
-    def uf(self) -> UnionFindStore: ...
+    def uf(self) -> ComponentStore: ...
 
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int: ...
 
@@ -258,27 +259,15 @@ def regroup(store: RecordStore, txn: lmdb.Transaction, seqs: list[SequenceRecord
     """
     ordered = sorted(seqs, key=lambda s: s.first_vertex)
     starts = [s.first_vertex for s in ordered]
-    parent = list(range(len(ordered)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
+    sets = UnionFind(len(ordered))
     for i, seq in enumerate(ordered):
         for _, dst in edge_keys(txn, store.env.db("edges"), seq.first_vertex, seq.last_vertex):
             j = bisect.bisect_right(starts, dst) - 1
             if j < 0 or dst > ordered[j].last_vertex:
                 raise MapCorruptError(f"edge {seq.first_vertex}.. -> {dst} leaves the component "
                                       f"of sequence {seq.seq_id}")
-            a, b = find(i), find(j)
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    groups: dict[int, list[SequenceRecord]] = {}
-    for i, seq in enumerate(ordered):
-        groups.setdefault(find(i), []).append(seq)
-    return list(groups.values())
+            sets.union(i, j)
+    return [[ordered[i] for i in members] for members in sets.groups()]
 
 
 def write_component(txn: lmdb.Transaction, env: LmdbEnv, group: list[SequenceRecord],

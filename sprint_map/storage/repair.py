@@ -128,7 +128,7 @@ def rebuild_records(store: MapStore, areas: set[str],
     Notes
     -----
     O(sequences + edges) reads and puts, plus the union-find replay (see
-    :meth:`sprint_map.storage.union_find.UnionFindStore.rebuild`).
+    :meth:`sprint_map.storage.components.ComponentStore.rebuild`).
     """
     todo = [area for area in RECORD_AREAS if area in areas]
     if not todo:

@@ -39,6 +39,7 @@ from sprint_map.errors import (
     StorageIOError,
     UnknownSequenceError,
 )
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.drive_stats import encode_drive_stats, put_drive_stats
 from sprint_map.storage.keys import (
     DIGEST_BYTES,
@@ -56,7 +57,6 @@ from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.sightings import record_sightings
 from sprint_map.storage.store_config import StoreConfig
 from sprint_map.storage.thumbnails import put_thumbnails, validate_thumbnails
-from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.validation import (
     validate_descriptors,
@@ -84,7 +84,7 @@ class WritableMap(Protocol):
     def env(self) -> LmdbEnv: ...
 
     @property
-    def uf(self) -> UnionFindStore: ...
+    def uf(self) -> ComponentStore: ...
 
     @property
     def shards(self) -> ShardSet: ...

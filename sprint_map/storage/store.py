@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import lmdb
 import numpy as np
@@ -39,7 +39,7 @@ from sprint_map.errors import (
     StorageIOError,
 )
 from sprint_map.storage import learning
-from sprint_map.storage.compaction import compact_map
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.generation import (
     current_data,
     pin_current,
@@ -60,7 +60,6 @@ from sprint_map.storage.keys import (
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.lock import WriterLock
 from sprint_map.storage.provenance import unmerge_sequence
-from sprint_map.storage.reads import MapReads
 from sprint_map.storage.records import (
     AddResult,
     CompactReport,
@@ -69,7 +68,6 @@ from sprint_map.storage.records import (
     SequenceRecord,
     UnmergeResult,
 )
-from sprint_map.storage.reduction import Reduction
 from sprint_map.storage.removal import RemovedRanges, remove_sequences, search_live
 from sprint_map.storage.sequence_writer import SequenceWriter, record_live_sightings
 from sprint_map.storage.shards import ShardSet
@@ -80,11 +78,14 @@ from sprint_map.storage.store_config import (
     StoreConfig,
     decode_stored_config,
 )
-from sprint_map.storage.union_find import UnionFindStore
+from sprint_map.storage.store_reads import StoreReads
 from sprint_map.testing.crash import crash_point
 from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.atomic import fsync_dir, remove_partials
 from sprint_map.util.validation import decode_text, validate_descriptors
+
+if TYPE_CHECKING:  # compaction loads when a map is compacted, not when one is opened
+    from sprint_map.storage.reduction import Reduction
 
 LMDB_DIR = "map.lmdb"
 SHARDS_DIR = "shards"
@@ -92,12 +93,12 @@ INDEX_DIR = "index"
 COUNTERS = ("next_seq_id", "next_vertex_id", "n_sequences", "n_edges", "n_components")
 
 
-class MapStore(MapReads):
+class MapStore(StoreReads):
     """A map directory opened for reading, or for writing by this process alone.
 
     Use :meth:`create` or :meth:`open`; close with :meth:`close` or a ``with`` block. What it
     reads of the committed map (sequences, vertices, positions, thumbnails, sightings,
-    components, edges) is :class:`~sprint_map.storage.reads.MapReads`'.
+    components, edges) is :class:`~sprint_map.storage.store_reads.StoreReads`'.
 
     Notes
     -----
@@ -137,7 +138,7 @@ class MapStore(MapReads):
             raw_created = txn.get(b"created", db=meta)
             self.created = 0.0 if raw_created is None else decode_number(raw_created, "created",
                                                                          float)
-        self.uf = UnionFindStore(env)
+        self.uf = ComponentStore(env)
         self.shards = ShardSet(self.data_path / SHARDS_DIR, self.config.dim,
                                self.config.shard_rows)
         self.index = self.new_index(self.data_path / INDEX_DIR, writable=not readonly)
@@ -288,7 +289,7 @@ class MapStore(MapReads):
                 self._lock.release()
             raise
         self.data_path = data
-        self.uf = UnionFindStore(self.env)
+        self.uf = ComponentStore(self.env)
         self.shards = ShardSet(data / SHARDS_DIR, self.config.dim, self.config.shard_rows)
         self.index = index
         self._removed = None
@@ -556,11 +557,15 @@ class MapStore(MapReads):
 
     def compact(self) -> CompactReport:
         """Reclaim removed sequences' space: see :func:`compaction.compact_map`."""
+        from sprint_map.storage.compaction import compact_map
+
         return compact_map(self)
 
     def summarize(self, reduction: Reduction) -> CompactReport:
         """Write the map without the vertices ``reduction`` drops, as a new generation selected
         atomically: see :mod:`reduction` and :func:`compaction.compact_map`."""
+        from sprint_map.storage.compaction import compact_map
+
         return compact_map(self, reduction)
 
     def remove_sequences(self, seq_ids: Iterable[int]) -> RemoveResult:

@@ -15,8 +15,9 @@ works where OpenCV is not installed.
 
 from __future__ import annotations
 
-from importlib import import_module
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from sprint_map.util.lazy import lazy_names
 
 if TYPE_CHECKING:
     from sprint_map.synth.city import (
@@ -46,8 +47,5 @@ _HOME = {name: "sprint_map.synth.city" for name in __all__}
 _HOME.update(CONDITIONS="sprint_map.synth.conditions", Condition="sprint_map.synth.conditions")
 
 
-def __getattr__(name: str) -> Any:
-    """The city's public names, imported on first use. O(1) after the first import."""
-    if name not in _HOME:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(import_module(_HOME[name]), name)
+#: The city's public names, imported on first use. O(1) after the first import.
+__getattr__, __dir__ = lazy_names(__name__, _HOME)

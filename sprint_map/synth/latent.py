@@ -64,6 +64,7 @@ from sprint_map.frontend.dataset import frame_ranges
 from sprint_map.frontend.groundtruth import GroundTruth, GroundTruthSpec
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Float64Array
+from sprint_map.util.union_find import UnionFind
 
 __all__ = ["CONDITIONS", "LATENT_PRESETS", "LatentCondition", "LatentConfig", "LatentTraversal",
            "LatentWorld", "ROUTE_CANDIDATES", "SEASONS", "generate_latent", "make_latent"]
@@ -297,17 +298,10 @@ def _drop_edges(edges: list[tuple[int, int]], n_nodes: int, share: float,
 
 
 def _connected(edges: list[tuple[int, int]], n_nodes: int) -> bool:
-    parent = list(range(n_nodes))
-
-    def find(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    sets = UnionFind(n_nodes)
     for a, b in edges:
-        parent[find(a)] = find(b)
-    return len({find(n) for n in range(n_nodes)}) == 1
+        sets.union(a, b)
+    return len(sets.groups()) == 1
 
 
 def _ar1(rng: np.random.Generator, n: int, dim: int, corr: float) -> np.ndarray:

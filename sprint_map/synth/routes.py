@@ -144,7 +144,7 @@ def drive(
     ValueError
         If the route is too short for ``n_frames`` frames (plan it with a margin).
     """
-    path, turns = _smooth_path(layout, route, params.turn_radius_m)
+    path, turns = _rounded_path(layout, route, params.turn_radius_m)
     path = _offset_right(path, params.lane_m)
     seg = np.hypot(*np.diff(path, axis=0).T)
     arc = np.concatenate([[0.0], np.cumsum(seg)])
@@ -187,7 +187,7 @@ def drive(
     return Trajectory(xy, headings, tuple(route[: min(len(route), reached + 1)]))
 
 
-def _smooth_path(
+def _rounded_path(
     layout: CityLayout, route: Sequence[Node], radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Dense (0.25 m) centre-line polyline with rounded corners; also each node's index in it."""

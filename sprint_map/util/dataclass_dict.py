@@ -10,11 +10,16 @@ Every value is checked against its field's type before the dataclass sees it (it
 text, ``X | None``, ``tuple[X, ...]``, ``tuple[X, Y]``, ``dict[str, ...]``, ``Literal[...]``
 and nested config dataclasses as such. A refused value is one :class:`ConfigError` line naming
 the key (``MapConfig.hmm: k must be an integer, got 1.5``).
+
+The range checks of the ``__post_init__`` methods use the two rules here, :func:`check_int` and
+:func:`check_number`, so that every config says a bound the same way (a ValueError, which
+:func:`from_dict` turns into a ConfigError naming the config).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import types
 import typing
@@ -23,7 +28,7 @@ from typing import Any, TypeVar
 
 from sprint_map.errors import ConfigError
 
-__all__ = ["from_dict", "replace", "to_dict"]
+__all__ = ["check_int", "check_number", "from_dict", "replace", "to_dict"]
 
 T = TypeVar("T")
 
@@ -163,3 +168,22 @@ def replace(obj: T, **changes: Any) -> T:
     data = to_dict(obj)
     data.update(changes)
     return from_dict(type(obj), data)
+
+
+def check_int(name: str, value: Any, lo: int) -> None:
+    """Raise ValueError (``{name} must be an integer >= {lo}``) unless ``value`` is an integer
+    (not a bool) of at least ``lo``. O(1)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        raise ValueError(f"{name} must be an integer >= {lo}")
+
+
+def check_number(name: str, value: Any, lo: float, hi: float, *, lo_open: bool = False,
+                 hi_open: bool = False) -> None:
+    """Raise ValueError unless ``value`` is a finite real number (not a bool) in the range
+    ``[lo, hi]`` (``(`` / ``)`` where ``lo_open`` / ``hi_open``). O(1)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number")
+    if value < lo or (lo_open and value == lo) or value > hi or (hi_open and value == hi):
+        left = "(" if lo_open else "["
+        right = ")" if hi_open else "]"
+        raise ValueError(f"{name} must be in {left}{lo}, {hi}{right}")

@@ -34,7 +34,7 @@ import numpy as np
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.util.lazy_faiss import faiss
+    from sprint_map.util.lazy import faiss
 
 __all__ = ["BLAS_FROM_QUERIES", "MARGIN", "RETRY_FACTOR", "ExactFlat", "candidate_distances",
            "certified_search", "distance_error_bound", "margin_for", "pair_distances",

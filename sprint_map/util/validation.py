@@ -1,4 +1,4 @@
-"""The map's input rules: descriptors, positions, sequence names and text.
+"""The map's input rules: descriptors, positions, sequence names, text and input files.
 
 Bad input is refused with a specific error before anything is written. The store applies these
 rules to everything it is handed; the service applies the same ones to a request before it
@@ -8,6 +8,8 @@ the package but its errors.
 
 from __future__ import annotations
 
+import os
+import stat
 from typing import Any
 
 import numpy as np
@@ -21,7 +23,7 @@ from sprint_map.errors import (
 from sprint_map.util.arrays import Descriptors, Float64Array
 
 __all__ = ["MAX_DESCRIPTOR_VALUE", "check_described", "decode_text", "descriptor_problem", "name_key",
-           "parse_seq_ref", "shown", "validate_descriptors", "validate_name",
+           "parse_seq_ref", "regular_file", "shown", "validate_descriptors", "validate_name",
            "validate_positions"]
 
 #: The largest magnitude of a descriptor element. A larger one is an overflow (of a model, of
@@ -216,3 +218,27 @@ def parse_seq_ref(text: str, by_name: bool = False) -> int | str:
     if by_name or not text or not text.isascii() or not text.isdigit():
         return text
     return int(text)
+
+
+def regular_file(path: str | os.PathLike[str], what: str) -> int:
+    """The size of the input file ``path``, which must be a regular file (after symbolic
+    links): reading a FIFO would block forever, a device (a link to ``/dev/zero``) never end.
+    O(1), one ``stat``.
+
+    Raises
+    ------
+    InputError
+        ``path`` is missing or unreadable, or a FIFO, a device, a socket or a directory;
+        the message starts with ``path`` and names ``what`` it should be.
+    """
+    try:
+        info = os.stat(path)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read {what} ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(info.st_mode):
+        kind = next((name for test, name in (
+            (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+            (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+            (stat.S_ISDIR, "a directory")) if test(info.st_mode)), "not a regular file")
+        raise InputError(f"{path}: {what} must be a regular file, this is {kind}")
+    return info.st_size

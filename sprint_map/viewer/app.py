@@ -9,7 +9,7 @@ reads the map requires it (the page asks for it and sends it as a bearer header)
 Routes (a contract for the page):
 
 ``GET /``                                    the page
-``GET /viewer/api/overview``                 :meth:`MapSummary.overview`
+``GET /viewer/api/overview``                 :meth:`MapOverview.overview`
 ``GET /viewer/api/sequences/{seq}``          :func:`drive_detail`
 ``GET /viewer/api/matrix/{seq}/{other}``     :func:`match_matrix` (``?size=`` up to 512)
 ``GET /viewer/api/trace``                    :func:`playback.timeline` (404 without a trace)
@@ -33,7 +33,7 @@ from sprint_map.errors import UnknownSequenceError
 from sprint_map.localize.trace import Trace
 from sprint_map.viewer import playback
 from sprint_map.viewer.matrix import MATRIX_SIZE, drive_detail, match_matrix
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.overview import MapOverview
 
 if TYPE_CHECKING:
     from sprint_map.server.config import ServerConfig
@@ -55,7 +55,7 @@ def page_html() -> str:
             .replace("/*{{viewer.js}}*/", js.replace("</script", "<\\/script")))
 
 
-def viewer_router(summary: MapSummary, trace: Trace | None = None,
+def viewer_router(summary: MapOverview, trace: Trace | None = None,
                   dependencies: Sequence[Depends] = ()) -> APIRouter:
     """The page and its API over ``summary`` (and ``trace``, if one is shown).
 
@@ -137,12 +137,12 @@ def _need(trace: Trace | None) -> Trace:
     return trace
 
 
-def _thumbnail_count(summary: MapSummary, seq_id: int) -> int:
+def _thumbnail_count(summary: MapOverview, seq_id: int) -> int:
     """How many thumbnails the drive keeps (0: ingested without ``--thumbnails``)."""
     return int(summary.read(lambda: summary.map.thumbnail_count(seq_id)))
 
 
-def _thumbnail(summary: MapSummary, seq_id: int, image_id: int) -> bytes | None:
+def _thumbnail(summary: MapOverview, seq_id: int, image_id: int) -> bytes | None:
     try:
         data = summary.read(lambda: summary.map.thumbnail(seq_id, image_id))
     except UnknownSequenceError:
@@ -159,10 +159,10 @@ def mount_viewer(app: FastAPI, service: LocalisationService, guard: list[Any]) -
         with service.gate.shared():
             return fn()
 
-    app.include_router(viewer_router(MapSummary(service.map, shared), None, guard))
+    app.include_router(viewer_router(MapOverview(service.map, shared), None, guard))
 
 
-def create_view_app(summary: MapSummary, trace: Trace | None = None,
+def create_view_app(summary: MapOverview, trace: Trace | None = None,
                     token: str | None = None, config: ServerConfig | None = None) -> FastAPI:
     """The app of ``sprint-map view``: the page and its API (with ``token``: API routes need
     ``Authorization: Bearer <token>``, as in ``serve``, checked by ``serve``'s

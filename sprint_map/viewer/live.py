@@ -4,7 +4,7 @@ A reader opened before a ``compact`` keeps the old generation (its files stay on
 is open) and never sees a later commit. :class:`LiveMap` checks, before each read, whether the
 map it holds is still the live generation (:meth:`SprintMap.is_current`: one small file read)
 and if not opens the new one; the old one is closed, releasing its generation, as soon as no
-read is in flight. Reads are :data:`~sprint_map.viewer.summary.Reader` calls, so the viewer's
+read is in flight. Reads are :data:`~sprint_map.viewer.overview.Reader` calls, so the viewer's
 summary uses it as its ``read``.
 """
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.overview import MapOverview
 
 if TYPE_CHECKING:
     from sprint_map import EdgeInfo
@@ -64,7 +64,7 @@ def _precision_recall(dec: np.ndarray, ps: np.ndarray, pt: np.ndarray) -> dict[s
             if has_match.any() else None}
 
 
-def drive_detail(summary: MapSummary, seq_id: int) -> dict[str, Any] | None:
+def drive_detail(summary: MapOverview, seq_id: int) -> dict[str, Any] | None:
     """A drive's page header: its record, the drives it shares edges with (most first) and,
     when positions allow, its precision/recall against all of them. None: no such drive.
 
@@ -104,7 +104,7 @@ def drive_detail(summary: MapSummary, seq_id: int) -> dict[str, Any] | None:
     }
 
 
-def match_matrix(summary: MapSummary, seq_id: int, other: int, size: int = MATRIX_SIZE
+def match_matrix(summary: MapOverview, seq_id: int, other: int, size: int = MATRIX_SIZE
                  ) -> dict[str, Any]:
     """The similarity matrix of ``seq_id`` (rows) against ``other`` (columns) with the
     decisions between them (see the module notes).

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from sprint_map.localize.trace import Trace
-from sprint_map.viewer.summary import MapState, MapSummary
+from sprint_map.viewer.overview import MapOverview, MapState
 
 __all__ = ["PAGE", "frames", "timeline"]
 
@@ -39,7 +39,7 @@ def timeline(trace: Trace) -> dict[str, Any]:
     }
 
 
-def frames(trace: Trace, summary: MapSummary | None, start: int, count: int
+def frames(trace: Trace, summary: MapOverview | None, start: int, count: int
            ) -> list[dict[str, Any]]:
     """Frames ``start .. start + count - 1`` (clipped to the trace and to :data:`PAGE`).
 

@@ -44,7 +44,7 @@ def view_map(path: str | os.PathLike[str], *, trace: str | os.PathLike[str] | No
     from sprint_map.server.guard import ConnectionLimits, guarded_protocol
     from sprint_map.server.run import bind
     from sprint_map.viewer.app import create_view_app, page_html
-    from sprint_map.viewer.summary import MapSummary
+    from sprint_map.viewer.overview import MapOverview
 
     config = ServerConfig(host=host, port=port, token_file=token_file)
     token = load_token(config)
@@ -57,7 +57,7 @@ def view_map(path: str | os.PathLike[str], *, trace: str | os.PathLike[str] | No
         sock.close()
         raise
     try:
-        summary = MapSummary(live.map, live.read)
+        summary = MapOverview(live.map, live.read)
         live.on_switch = lambda fresh: setattr(summary, "map", fresh)
         start = time.perf_counter()
         summary.overview()

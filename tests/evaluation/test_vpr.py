@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from scipy.spatial import cKDTree
-from vpr_helpers import make_vpr_dataset, vpr_name
 
 from sprint_map.cli.main import main
 from sprint_map.errors import InputError
 from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.frontend.vpr import VprDataset, parse_vpr_name
+from tests.helpers.vpr import make_vpr_dataset, vpr_name
 
 
 def _cli(*args):
@@ -116,11 +116,7 @@ def test_benchmark_download_layout(tmp_path):
 def test_vpr_with_an_onnx_model(tmp_path):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "frontend"))
-    from onnx_graphs import projection_model
+    from tests.helpers.onnx_graphs import projection_model
 
     model = projection_model(tmp_path / "m.onnx", size=(16, 16), dim=32)
     root = make_vpr_dataset(tmp_path / "vpr", n_places=12, query_every=1)

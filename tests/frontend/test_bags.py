@@ -4,6 +4,7 @@ own writers: frames, GNSS matched by time, topics, --every-m, bad bags."""
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -12,13 +13,12 @@ from click.testing import CliRunner
 
 pytest.importorskip("rosbags")
 
-from bag_helpers import KINDS, drive_spec, write_bag  # noqa: E402
-
 from sprint_map.cli.main import main  # noqa: E402
 from sprint_map.errors import InputError  # noqa: E402
 from sprint_map.frontend.descriptors import DescriptorSpec  # noqa: E402
 from sprint_map.frontend.sources import open_source  # noqa: E402
 from sprint_map.map import SprintMap  # noqa: E402
+from tests.helpers.bags import KINDS, drive_spec, write_bag  # noqa: E402
 
 HOG = DescriptorSpec("hog")
 
@@ -189,3 +189,72 @@ def test_localize_a_bag(tmp_path):
     assert len(decisions) == 6
 
 
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_connection_of_the_topics_in_time_order(tmp_path, kind):
+    # issue 52 (4): the image topic on two connections (a topic re-advertised, two
+    # recordings), the fixes on two: every frame, in time order, with its own time and fix
+    spec = drive_spec(12, hz=5.0, gnss_hz=10.0, image_connections=2, gnss_connections=2)
+    spec.image_ns = [t + 37_000_000 for t in spec.image_ns]
+    one = drive_spec(12, hz=5.0, gnss_hz=10.0)
+    one.image_ns = spec.image_ns
+    src = open_source(write_bag(tmp_path / "two", kind, spec), HOG, batch_size=5)
+    want = open_source(write_bag(tmp_path / "one", kind, one), HOG, batch_size=5)
+    assert src.count == src.source_frames == 12
+    np.testing.assert_array_equal(src.ordinals, np.arange(12))
+    np.testing.assert_allclose(src.read_all(), want.read_all(), atol=1e-6)
+    np.testing.assert_allclose(src.positions.time, np.asarray(spec.image_ns) / 1e9)
+    t = (np.asarray(spec.image_ns) - spec.fixes[1].t_ns) / 1e9
+    np.testing.assert_allclose(src.positions.xy[:, 0], 59.91 + 10.0 * t / 111_320.0,
+                               rtol=0, atol=1e-10)  # between fixes of both connections
+    kept = open_source(write_bag(tmp_path / "every", kind, spec), HOG, thumbnails=True,
+                       bag=_options(every_m=5.0))
+    rows = kept.read_all()
+    assert kept.positions.frames.tolist() == kept.ordinals.tolist() == [0, 3, 6, 9]
+    np.testing.assert_allclose(rows, want.read_all()[[0, 3, 6, 9]], atol=1e-6)
+    assert len(kept.thumbnails) == 4
+
+
+def test_every_m_with_a_positions_file_of_one_row_per_image(tmp_path):
+    # issue 52 (5): --every-m with --positions: a CSV of one row per image of the bag was
+    # refused ("beyond the drive"), one of one row per kept image stored misaligned
+    spec = drive_spec(20, hz=5.0, speed_mps=10.0)  # 2 m between frames: 0, 3, 6, ... kept
+    bag = write_bag(tmp_path / "d", "ros1", spec)
+    csv = tmp_path / "pos.csv"
+    csv.write_text("frame,x,y\n" + "".join(f"{i},{i * 100.0},7\n" for i in range(20)))
+    assert _cli("init", tmp_path / "m", "--descriptor", "hog").exit_code == 0
+    done = _cli("ingest", tmp_path / "m", bag, "--every-m", 5, "--positions", csv)
+    assert done.exit_code == 0, done.output
+    with SprintMap.open(tmp_path / "m", readonly=True) as m:
+        np.testing.assert_array_equal(m.positions(0)[:, 0], [0, 300, 600, 900, 1200, 1500, 1800])
+    for rows, message in ((7, "one per kept frame"), (21, "beyond the drive")):
+        csv.write_text("frame,x,y\n" + "".join(f"{i},{i * 100.0},7\n" for i in range(rows)))
+        refused = _cli("localize", tmp_path / "m", bag, "--every-m", 5, "--positions", csv)
+        assert refused.exit_code == InputError.exit_code, refused.output
+        assert refused.output.startswith("Error: ") and message in refused.output
+        assert refused.output.count("\n") == 1
+
+
+@pytest.mark.parametrize("bad", [math.inf, math.nan])
+def test_a_fix_with_a_covariance_not_finite_is_not_used(tmp_path, bad):
+    # issue 52 (12): one NavSatFix with an inf covariance aborted the whole ingest with an
+    # error naming neither the bag nor the topic; it is a fix that does not know where it is
+    spec = drive_spec(10, hz=5.0, gnss_hz=10.0)
+    spec.image_ns = [t + 50_000_000 for t in spec.image_ns]  # frames between two fixes
+    spec.fixes[6].sigma = bad  # the fix at 0.5 s: frame 2 (0.45 s) has no fix
+    bag = write_bag(tmp_path / "d", "ros2-mcap", spec)
+    src = open_source(bag, HOG)
+    assert src.positions.fixed.tolist() == [True, True, False, True, True, True, True, True,
+                                            True, True]
+    assert np.isfinite(src.positions.sigma_m[src.positions.fixed]).all()
+    assert src.warnings == [f"{bag}: topic '/gnss/fix': 1 of {len(spec.fixes)} fixes report "
+                            "a covariance that is not finite and were not used (frames near "
+                            "them have no fix)"]
+    assert _cli("init", tmp_path / "m", "--descriptor", "hog").exit_code == 0
+    done = CliRunner().invoke(main, ["ingest", str(tmp_path / "m"), str(bag)])
+    assert done.exit_code == 0, done.output + done.stderr
+    assert done.stderr.startswith(f"Warning: {bag}: topic '/gnss/fix': 1 of")
+    with SprintMap.open(tmp_path / "m", readonly=True) as m:
+        pos = m.positions(0)
+        assert np.isnan(pos[2, :2]).all() and np.isfinite(pos[[0, 1, 3], :2]).all()

@@ -43,7 +43,7 @@ def _init_args(kind: str, tmp_path: Path) -> list[str]:
         return ["--descriptor", "hog"]
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
-    from onnx_graphs import projection_model
+    from tests.helpers.onnx_graphs import projection_model
 
     gray = kind == "onnx-gray"
     model = projection_model(tmp_path / "m.onnx", size=(16, 16), channels=1 if gray else 3,

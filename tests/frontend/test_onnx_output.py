@@ -14,18 +14,17 @@ from click.testing import CliRunner
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 
-from onnx_graphs import (  # noqa: E402
-    output_model,
-    projection_model,
-    reference_descriptors,
-    with_external_weights,
-)
-
 from sprint_map.cli.main import main  # noqa: E402
 from sprint_map.errors import InputError, InvalidDescriptorError  # noqa: E402
 from sprint_map.frontend.descriptors import DescriptorSpec  # noqa: E402
 from sprint_map.frontend.onnx_model import onnx_params  # noqa: E402
 from sprint_map.map import SprintMap  # noqa: E402
+from tests.helpers.onnx_graphs import (  # noqa: E402
+    output_model,
+    projection_model,
+    reference_descriptors,
+    with_external_weights,
+)
 
 
 def images(n: int, size=(8, 8), seed: int = 0) -> list[np.ndarray]:

@@ -122,3 +122,78 @@ def test_missing_and_binary_files(tmp_path):
     path.write_bytes(b"\xff\xfe\x00frame")
     with pytest.raises(InputError, match="binary.csv"):
         read_positions(path, 1)
+
+
+def test_a_utf8_byte_order_mark_is_skipped(tmp_path):
+    # issue 52 (11): before, "unknown column '\ufeffframe'"
+    path = tmp_path / "positions.csv"
+    path.write_bytes("\ufeffframe,x,y\n0,1,2\n1,3,4\n".encode())
+    np.testing.assert_array_equal(read_positions(path, 2).xy, [[1, 2], [3, 4]])
+
+
+@pytest.mark.parametrize("where", ["header", "row"])
+def test_a_field_beyond_the_csv_limit_is_one_error(tmp_path, where):
+    # issue 52 (11): a field over 131,072 characters was a _csv.Error traceback
+    huge = "1" * 200_000
+    text = (f"frame,x,y{huge}\n0,1,2\n" if where == "header" else f"frame,x,y\n0,1,{huge}\n")
+    with pytest.raises(InputError, match=rf"positions\.csv:{1 if where == 'header' else 2}: a "
+                                         "field longer than 1000 characters"):
+        read_positions(write(tmp_path, text), 1)
+
+
+@pytest.mark.parametrize("text", ['frame,x,y\n0,1,"2\n', 'frame,x,y\n0,1,"2"3\n'])
+def test_a_line_that_is_not_csv_is_one_error(tmp_path, text):
+    with pytest.raises(InputError, match=r"positions\.csv:2: not a CSV line"):
+        read_positions(write(tmp_path, text), 1)
+
+
+def test_a_positions_file_that_is_not_a_regular_file_is_refused(tmp_path):
+    # in a real process: before, a FIFO blocked for ever and /dev/zero was read for ever
+    import os
+    import subprocess
+    import sys
+
+    os.mkfifo(tmp_path / "fifo.csv")
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    code = ("import sys; from sprint_map.frontend import read_positions\n"
+            "from sprint_map.errors import InputError\n"
+            "try: read_positions(sys.argv[1], 1)\n"
+            "except InputError as exc: print(exc)")
+    for name, kind in (("fifo.csv", "a FIFO"), ("zero.csv", "a character device")):
+        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)],
+                              capture_output=True, text=True, timeout=30)
+        assert done.stdout == (f"{tmp_path / name}: positions must be a regular file, this "
+                               f"is {kind}\n"), done.stderr
+
+
+def test_source_ordinals_pick_their_rows(tmp_path):
+    # issue 52 (5): the frames --every-m kept (1, 4, 7 of 9) get the rows of frames 1, 4, 7
+    text = "frame,x,y\n" + "".join(f"{i},{i * 10},0\n" for i in range(9))
+    out = read_positions(write(tmp_path, text), np.array([1, 4, 7]), source_frames=9)
+    np.testing.assert_array_equal(out.frames, [1, 4, 7])
+    np.testing.assert_array_equal(out.xy[:, 0], [10, 40, 70])
+    gaps = read_positions(write(tmp_path, "frame,x,y\n4,1,1\n8,2,2\n"), np.array([1, 4, 7]),
+                          source_frames=9)
+    np.testing.assert_array_equal(gaps.fixed, [False, True, False])  # no row: no fix
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("frame,x,y\n" + "".join(f"{i},0,0\n" for i in range(10)),
+     r":11: frame 9 is beyond the drive \(9 frames\)"),
+    ("frame,x,y\n0,0,0\n1,0,0\n2,0,0\n",
+     r"rows for frames 0..2, one per kept frame, but a positions file numbers the source's "
+     r"frames: 3 of its 9 were kept \(frames 1, 4, 7\)"),
+])
+def test_a_file_longer_than_the_source_or_one_row_per_kept_frame_is_an_error(tmp_path, text,
+                                                                              message):
+    with pytest.raises(InputError, match=message):
+        read_positions(write(tmp_path, text), np.array([1, 4, 7]), source_frames=9)
+
+
+def test_one_row_per_kept_frame_of_a_strided_source_is_an_error(tmp_path):
+    text = "frame,x,y\n" + "".join(f"{i},0,0\n" for i in range(4))
+    with pytest.raises(InputError, match="one per kept frame"):  # before: rows 0 and 3 taken
+        read_positions(write(tmp_path, text), 4, stride=3, source_frames=10)
+    whole = "frame,x,y\n" + "".join(f"{i},{i},0\n" for i in range(10))
+    np.testing.assert_array_equal(read_positions(write(tmp_path, whole), 4, stride=3,
+                                                 source_frames=10).xy[:, 0], [0, 3, 6, 9])

@@ -24,7 +24,7 @@ Run as a script it is the child side (never imported by pytest as a test module)
         Forking a warmed-up process makes a kill-and-restart cycle cost milliseconds instead of
         a Python start-up (~0.7 s with numpy/faiss/cv2).
 
-Imported (by ``tests/test_crash.py`` and ``tools/crash_soak.py``) it is the parent side:
+Imported (by ``tests/storage/test_crash.py`` and ``tools/crash_soak.py``) it is the parent side:
 :class:`Zygote` (the client), :func:`verify` (after a kill: the map holds exactly a prefix of the
 stream, bit for bit, with the components of its edges) and :func:`kill_loop` (random kills).
 """

@@ -10,7 +10,7 @@ import numpy as np
 
 from sprint_map.config import MapConfig
 from sprint_map.hmm.graph import MemoryGraphSource
-from sprint_map.localize.map_graph import MapGraphSource
+from sprint_map.localize.stored_view import StoredMapView
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.store import MapStore
 from sprint_map.storage.store_config import StoreOptions
@@ -22,7 +22,7 @@ class TestMemoryGraphSource(GraphSourceContract):
         return MemoryGraphSource(lengths, edges), list(range(len(lengths)))
 
 
-class TestMapGraphSource(GraphSourceContract):
+class TestStoredMapView(GraphSourceContract):
     """The LMDB source over a map whose sequences were committed with these edges (each edge
     committed with the later of its two sequences, as a merge does)."""
 
@@ -41,4 +41,4 @@ class TestMapGraphSource(GraphSourceContract):
             result = store.add_sequence(rng.standard_normal((length, 4)).astype(np.float32),
                                         edges=mine)
             seq_ids.append(result.sequence.seq_id)
-        return MapGraphSource(store), seq_ids
+        return StoredMapView(store), seq_ids

@@ -12,7 +12,7 @@ import pytest
 from sprint_map.errors import ConfigError
 from sprint_map.hmm import ComponentCache, ComponentGraph, HMMConfig, MemoryGraphSource
 from sprint_map.hmm.support import merge
-from sprint_map.hmm.transition import ComponentTransition, correlate, full_transition_matrix
+from sprint_map.hmm.transition import ComponentTransition, full_transition_matrix
 
 # ---------------------------------------------------------------------------------- config
 
@@ -202,11 +202,3 @@ def test_component_transition_matches_the_sparse_matrix(window: tuple[float, ...
     scale = 1 - config.restart_prob - config.new_place_prob
     assert mass == pytest.approx(y.sum()) and mass + overflow == pytest.approx(scale * x.sum())
     np.testing.assert_allclose(np.asarray(matrix.sum(axis=0)).ravel(), scale)
-
-
-@pytest.mark.parametrize(("n", "w"), [(1, 1), (1, 5), (7, 3), (50, 5), (3, 8)])
-def test_correlate_is_numpy_correlate(n: int, w: int) -> None:
-    """The direct compiled call the filter uses agrees with ``np.correlate`` bit for bit."""
-    rng = np.random.default_rng(n * 10 + w)
-    a, v = rng.random(n), rng.random(w)
-    np.testing.assert_array_equal(correlate(a, v, "full"), np.correlate(a, v, "full"))

@@ -93,7 +93,7 @@ def test_a_new_appearance_of_a_known_place_is_stored_with_its_merge_edges():
     ("RRRRRRRRRRSSSSSSRRRRRR", "RRRRRRRRRRSSSSSSRRRRRR"),  # runs of min_run / min_skip stay
     ("SSS", "SSS"), ("RRR", "RRR"),  # a short drive is one run either way
 ])
-def test_short_runs_are_smoothed(pattern, expected):
+def test_short_runs_are_absorbed(pattern, expected):
     ds = [matched(i, i) if c == "R" else unmatched(i) for i, c in enumerate(pattern)]
     merged = np.array([c == "R" for c in pattern])
     got = stored_frames(ds, merged, NOVEL, np.where(merged, 0.5, np.inf))

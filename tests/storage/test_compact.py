@@ -1,6 +1,6 @@
 """``compact``: the space of removed sequences reclaimed, vertex ids renumbered consistently
 (edges, positions, descriptors bit for bit), readers open across a compaction, and the CLI of
-``remove`` and ``compact``. Kills at every compaction step: ``tests/test_crash.py``."""
+``remove`` and ``compact``. Kills at every compaction step: ``tests/storage/test_crash.py``."""
 
 from __future__ import annotations
 

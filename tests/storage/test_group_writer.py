@@ -1,7 +1,7 @@
 """GroupWriter (sprint_map/storage/group_writer.py): several sequences, one fsync of their rows,
 one LMDB transaction; each sequence whole or absent.
 
-Kills at the group's crash points run in ``tests/test_drives.py`` (a real ``ingest --no-merge``)
+Kills at the group's crash points run in ``tests/merge/test_drives.py`` (a real ``ingest --no-merge``)
 and in the random-kill loop of ``tests/helpers/crash_worker.py`` (its writers commit groups too); power
 loss and I/O errors at every file call of a group in ``tests/storage/test_faults.py``.
 """

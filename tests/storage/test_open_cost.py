@@ -14,11 +14,11 @@ from typing import Any
 import faiss
 import pytest
 
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.index.map_index import IndexStore
 from sprint_map.storage.lmdb_env import LmdbEnv
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store import MapStore
-from sprint_map.storage.union_find import UnionFindStore
 
 
 class ForbiddenDuringOpen(AssertionError):
@@ -65,7 +65,7 @@ def arm_guard(monkeypatch) -> Callable[[], list[bytes]]:
         for cls, names in (
             (ShardSet, ("rows", "take", "_map")),
             (IndexStore, ("load", "catch_up")),
-            (UnionFindStore, ("members", "components", "find")),
+            (ComponentStore, ("members", "components", "find")),
             (MapStore, ("sequences", "edges", "edges_from", "components", "disk_bytes")),
         ):
             for name in names:

@@ -13,7 +13,7 @@ import pytest
 
 from sprint_map.config import SCHEMA_VERSION, MapConfig, StoreOptions
 from sprint_map.errors import UnknownSequenceError
-from sprint_map.localize.map_graph import MapGraphSource
+from sprint_map.localize.stored_view import StoredMapView
 from sprint_map.map import SprintMap
 from sprint_map.storage.check import check_map
 from sprint_map.storage.keys import u64
@@ -146,7 +146,7 @@ def test_the_hmm_never_sees_a_removed_sequence(make_map, rng):
         store.add_sequence(random_descriptors(rng, 10, 8), edges=[
             EdgeSpec((None, 0), (0, 1)), EdgeSpec((None, 1), (1, 1)), EdgeSpec((2, 3), (None, 4))])
         store.remove_sequences([1])
-        source = MapGraphSource(store)
+        source = StoredMapView(store)
         with pytest.raises(ValueError, match="removed"):
             source.components_of(np.array([10]))
         for comp in store.components():

@@ -2,7 +2,7 @@
 
 In one process (the writer's own reads, as ``ingest`` and the server make them); the
 real-process version, readers beside a writer that merges and removes, is
-``tests/test_concurrency.py::test_localize_survives_merging_ingests_and_removes``.
+``tests/storage/test_concurrency.py::test_localize_survives_merging_ingests_and_removes``.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sprint_map.config import MapConfig
-from sprint_map.localize.map_graph import MapGraphSource
+from sprint_map.localize.stored_view import StoredMapView
 from sprint_map.storage.records import EdgeSpec
 from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
@@ -52,7 +52,7 @@ def test_a_pinned_source_reads_one_snapshot_and_reports_changes(tmp_path, rng):
     with MapStore.create(tmp_path / "m", MapConfig(dim=DIM)) as store:
         store.add_sequence(_rows(rng, 10), name="a")
         store.add_sequence(_rows(rng, 10), name="b")
-        source = MapGraphSource(store)
+        source = StoredMapView(store)
         with source.pinned() as changed:
             assert not changed  # the first pin
             assert source.components_of(np.array([5, 15])).tolist() == [0, 1]
@@ -80,7 +80,7 @@ def test_visible_is_what_the_pinned_snapshot_holds(tmp_path, rng):
     with MapStore.create(tmp_path / "m", MapConfig(dim=DIM)) as store:
         store.add_sequence(_rows(rng, 10), name="a")
         store.add_sequence(_rows(rng, 10), name="b")
-        source = MapGraphSource(store)
+        source = StoredMapView(store)
         ids = np.array([5, 15, 25, -1])
         with source.pinned():
             store.remove_sequences([0])
@@ -96,7 +96,7 @@ def test_pinned_component_look_ups_follow_each_snapshot(tmp_path, rng):
     with MapStore.create(tmp_path / "m", MapConfig(dim=DIM)) as store:
         for name, n in (("a", 10), ("b", 7), ("c", 12)):
             store.add_sequence(_rows(rng, n), name=name)
-        source = MapGraphSource(store)
+        source = StoredMapView(store)
         ids = rng.integers(0, 29, 40)
         with source.pinned():
             first = source.components_of(ids)

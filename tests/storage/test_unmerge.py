@@ -1,7 +1,7 @@
 """``edges`` (provenance listing) and ``unmerge`` (undo one drive's merge): the edges a drive
 added revoked in one commit, components rebuilt (only the affected ones) as the remaining edges
 say, checked against networkx; ``check`` catching a half-done unmerge or provenance unmerge
-could not trust. The CLI's JSON contracts: ``tests/test_cli.py``."""
+could not trust. The CLI's JSON contracts: ``tests/cli/test_cli.py``."""
 
 from __future__ import annotations
 

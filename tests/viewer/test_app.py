@@ -9,7 +9,7 @@ from fastapi.testclient import TestClient
 from sprint_map.localize.trace import TraceRecorder, read_trace
 from sprint_map.map import SprintMap
 from sprint_map.viewer.app import create_view_app, mount_viewer
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.overview import MapOverview
 
 pytestmark = pytest.mark.road_map(drives=3, frames=80, with_thumbnails=True)
 
@@ -29,7 +29,7 @@ def built(tmp_path, rng, road_map):
 def test_the_page_and_its_api(built):
     path, trace = built
     with SprintMap.open(path, readonly=True) as m:
-        client = TestClient(create_view_app(MapSummary(m), read_trace(trace)))
+        client = TestClient(create_view_app(MapOverview(m), read_trace(trace)))
         page = client.get("/")
         assert page.status_code == 200 and "<canvas" in page.text
         assert "sprintViewer" in page.text and "http" not in page.text.split("<body>")[1]
@@ -54,14 +54,14 @@ def test_the_page_and_its_api(built):
 def test_without_a_trace_its_routes_answer_404(built):
     path, _ = built
     with SprintMap.open(path, readonly=True) as m:
-        client = TestClient(create_view_app(MapSummary(m)))
+        client = TestClient(create_view_app(MapOverview(m)))
         assert client.get("/viewer/api/trace").status_code == 404
 
 
 def test_a_token_guards_the_api_not_the_page(built):
     path, _ = built
     with SprintMap.open(path, readonly=True) as m:
-        client = TestClient(create_view_app(MapSummary(m), token="s3cret"))
+        client = TestClient(create_view_app(MapOverview(m), token="s3cret"))
         assert client.get("/").status_code == 200
         assert client.get("/viewer/api/overview").status_code == 401
         ok = client.get("/viewer/api/overview", headers={"Authorization": "Bearer s3cret"})

@@ -16,7 +16,7 @@ from sprint_map.config import MapConfig
 from sprint_map.localize.trace import TraceRecorder
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
-from sprint_map.viewer.browser import (
+from tests.helpers.browser import (
     ViewProcess,
     chromium,
     chromium_available,

@@ -9,13 +9,13 @@ import pytest
 
 from sprint_map.map import SprintMap
 from sprint_map.viewer.matrix import RADIUS_M, drive_detail, match_matrix, pair_decisions
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.overview import MapOverview
 
 
 @pytest.fixture
 def summary(road_map):
     with SprintMap.open(road_map.path, readonly=True) as m:
-        yield MapSummary(m)
+        yield MapOverview(m)
 
 
 @pytest.mark.parametrize("size", [512, 37])

@@ -7,7 +7,7 @@ import pytest
 from click.testing import CliRunner
 
 from sprint_map.cli.main import main
-from sprint_map.viewer.browser import ViewProcess
+from tests.helpers.browser import ViewProcess
 
 pytestmark = pytest.mark.road_map(drives=2, frames=40)
 

@@ -15,8 +15,8 @@ from fastapi.testclient import TestClient
 from sprint_map.errors import UnknownSequenceError
 from sprint_map.map import SprintMap
 from sprint_map.viewer.app import create_view_app
-from sprint_map.viewer.browser import ViewProcess
-from sprint_map.viewer.summary import MapSummary
+from sprint_map.viewer.overview import MapOverview
+from tests.helpers.browser import ViewProcess
 from tests.helpers.road_map import build_road_map
 
 
@@ -56,7 +56,7 @@ def test_view_follows_compaction_and_releases_the_old_generation(road_map, tmp_p
 def test_a_drive_removed_during_a_request_is_a_404(road_map, monkeypatch):
     """Was: 500 UnknownSequenceError when another process removed the drive meanwhile."""
     with SprintMap.open(road_map, readonly=True) as m:
-        client = TestClient(create_view_app(MapSummary(m)), raise_server_exceptions=False)
+        client = TestClient(create_view_app(MapOverview(m)), raise_server_exceptions=False)
         assert client.get("/viewer/api/sequences/1").status_code == 200
 
         def gone(*args, **kwargs):

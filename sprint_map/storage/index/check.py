@@ -38,7 +38,7 @@ from sprint_map.storage.index.model import Model, gather_rows, read_faiss
 from sprint_map.storage.index.projection import Projection
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.store_config import StoreConfig
-from sprint_map.util.lazy_faiss import faiss  # imported on first use
+from sprint_map.util.lazy import faiss  # imported on first use
 
 #: Vertices per segment whose codes are compared with their shard rows re-encoded.
 CODE_SAMPLE = 8

@@ -34,7 +34,7 @@ from sprint_map.util.exact_search import ExactFlat
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.util.lazy_faiss import faiss
+    from sprint_map.util.lazy import faiss
 
 __all__ = ["FlatIndex", "file_bytes", "file_problem", "index_files"]
 

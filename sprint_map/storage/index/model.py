@@ -32,7 +32,7 @@ from sprint_map.util.atomic import publish
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.util.lazy_faiss import faiss
+    from sprint_map.util.lazy import faiss
 
 __all__ = ["APPROX_KINDS", "CORES", "KMEANS_ITER", "MIN_LISTS", "MIN_TRAIN", "Model",
            "PCA_SAMPLE", "POINTS_PER_LIST", "RowReader", "SAMPLE_SEED", "TRAIN_SAMPLE_BYTES",

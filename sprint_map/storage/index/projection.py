@@ -38,7 +38,7 @@ from sprint_map.util.arrays import Descriptors, Int64Array
 if TYPE_CHECKING:
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.util.lazy_faiss import faiss
+    from sprint_map.util.lazy import faiss
 
 __all__ = ["HELDOUT_TOLERANCE", "LEARNED", "LEARN_PCA_DIM", "LEARN_SHRINK", "PROJECTION_FILE",
            "LearnReport", "Learned", "Projection", "heldout_recall", "learn_projection",

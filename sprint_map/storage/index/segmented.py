@@ -79,7 +79,7 @@ if TYPE_CHECKING:
 
     import faiss
 else:  # imported on first use: commands that only read LMDB never load it
-    from sprint_map.util.lazy_faiss import faiss
+    from sprint_map.util.lazy import faiss
 
 __all__ = ["WITHIN_CACHE", "SegmentedIndex", "tier_plan"]
 

@@ -1,5 +1,5 @@
 // sprint-map viewer: plain JavaScript and canvas, no library, no network beyond this server.
-// The server summarises the map (sprint_map/viewer/summary.py); this page only draws.
+// The server summarises the map (sprint_map/viewer/overview.py); this page only draws.
 "use strict";
 (function () {
   const API = "/viewer/api";

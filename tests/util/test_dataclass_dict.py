@@ -92,3 +92,22 @@ def test_the_issue_cases_and_what_stays_accepted():
     assert dataclass_dict.replace(config, hmm=hmm).hmm is hmm
     with pytest.raises(ConfigError, match=r"^MapConfig\.hmm: expected a mapping, got int$"):
         MapConfig.from_dict({"dim": 8, "hmm": 3})
+
+
+@pytest.mark.parametrize(("value", "ok"), [(0, True), (3, True), (-1, False), (True, False),
+                                           (1.0, False), ("1", False)])
+def test_check_int_takes_integers_at_least_the_bound(value, ok):
+    if ok:
+        dataclass_dict.check_int("n", value, 0)
+    else:
+        with pytest.raises(ValueError, match=r"^n must be an integer >= 0$"):
+            dataclass_dict.check_int("n", value, 0)
+
+
+@pytest.mark.parametrize(("value", "says"), [
+    (float("nan"), "x must be a finite number"), (True, "x must be a finite number"),
+    (0.0, r"x must be in \(0.0, 1.0\]"), (1.5, r"x must be in \(0.0, 1.0\]")])
+def test_check_number_names_the_range(value, says):
+    dataclass_dict.check_number("x", 0.5, 0.0, 1.0, lo_open=True)  # inside
+    with pytest.raises(ValueError, match=f"^{says}$"):
+        dataclass_dict.check_number("x", value, 0.0, 1.0, lo_open=True)

@@ -1,4 +1,4 @@
-"""MapReads: what a map store reads of its committed records (the meta counters, sequences,
+"""StoreReads: what a map store reads of its committed records (the meta counters, sequences,
 vertices, positions, the geographic frame, thumbnails, sightings, components and edges).
 
 A mixin of :class:`~sprint_map.storage.store.MapStore` over its LMDB environment, shards and
@@ -15,6 +15,7 @@ import lmdb
 import numpy as np
 
 from sprint_map.errors import MapCorruptError, UnknownSequenceError
+from sprint_map.storage.components import ComponentStore
 from sprint_map.storage.drive_stats import get_drive_stats
 from sprint_map.storage.keys import (
     EDGE_KEY,
@@ -32,20 +33,19 @@ from sprint_map.storage.records import ComponentInfo, EdgeRecord, EdgeTable, Seq
 from sprint_map.storage.shards import ShardSet
 from sprint_map.storage.sightings import Sighting, get_sighting
 from sprint_map.storage.thumbnails import count_thumbnails, get_thumbnail
-from sprint_map.storage.union_find import UnionFindStore
 from sprint_map.util.arrays import Descriptors, Float64Array
 from sprint_map.util.validation import name_key, shown
 
-__all__ = ["MapReads"]
+__all__ = ["StoreReads"]
 
 
-class MapReads:
+class StoreReads:
     """Reads of a map's committed records (see the module docstring); the store provides
     ``env``, ``shards`` and ``uf``."""
 
     env: LmdbEnv
     shards: ShardSet
-    uf: UnionFindStore
+    uf: ComponentStore
 
     def counter(self, name: str, txn: lmdb.Transaction | None = None) -> int:
         if txn is None:

@@ -35,6 +35,12 @@ class BagSpec:
     extra_image_topics: tuple[str, ...] = ()
     extra_gnss_topics: tuple[str, ...] = ()
     extra: dict[str, int] = field(default_factory=dict)
+    # connections carrying the image / GNSS topic (a topic re-advertised, two recordings):
+    # message i goes on connection i % n
+    image_connections: int = 1
+    gnss_connections: int = 1
+    # ROS 2 only: zstd compression "file", "message" or "storage" (MCAP chunks), None: none
+    compression: str | None = None
 
 
 def _typestore(ros1: bool):
@@ -86,6 +92,25 @@ def _fix_msg(ts, fix: Fix):
         position_covariance_type=kind)
 
 
+def _qos(n: int) -> list:
+    """QoS profiles of a topic's ``n``-th connection (none for the first): a ROS 2 bag holds
+    two connections of one topic when they were offered with different profiles."""
+    if not n:
+        return []
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    never = QosTime(sec=0, nsec=0)
+    return [Qos(QosHistory.KEEP_LAST, n, QosReliability.RELIABLE, QosDurability.VOLATILE,
+                never, never, QosLiveliness.AUTOMATIC, never, False)]
+
+
 def write_bag(path: Path, kind: str, spec: BagSpec) -> Path:
     """Write ``spec`` as a bag of ``kind``; returns what to give ``ingest`` (a file or a
     folder)."""
@@ -94,41 +119,49 @@ def write_bag(path: Path, kind: str, spec: BagSpec) -> Path:
     image_type = ("sensor_msgs/msg/CompressedImage" if spec.compressed
                   else "sensor_msgs/msg/Image")
     fix_type = "sensor_msgs/msg/NavSatFix"
-    records = []  # (t, topic, msgtype, msg)
-    for image, t in zip(spec.images, spec.image_ns, strict=True):
+    records = []  # (t, topic, msgtype, connection number, msg)
+    for i, (image, t) in enumerate(zip(spec.images, spec.image_ns, strict=True)):
         msg = _image_msg(ts, image, t, spec.compressed, spec.encoding)
-        records.append((t, spec.image_topic, image_type, msg))
+        records.append((t, spec.image_topic, image_type, i % spec.image_connections, msg))
         for topic in spec.extra_image_topics:
-            records.append((t, topic, image_type, msg))
-    for fix in spec.fixes:
+            records.append((t, topic, image_type, 0, msg))
+    for i, fix in enumerate(spec.fixes):
         msg = _fix_msg(ts, fix)
-        records.append((fix.t_ns, spec.gnss_topic, fix_type, msg))
+        records.append((fix.t_ns, spec.gnss_topic, fix_type, i % spec.gnss_connections, msg))
         for topic in spec.extra_gnss_topics:
-            records.append((fix.t_ns, topic, fix_type, msg))
+            records.append((fix.t_ns, topic, fix_type, 0, msg))
     records.sort(key=lambda r: r[0])
-    topics = {(r[1], r[2]) for r in records}
+    connections = sorted({(r[1], r[2], r[3]) for r in records})
     if ros1:
         from rosbags.rosbag1 import Writer
 
         path = path.with_suffix(".bag")
         with Writer(path) as writer:
-            conns = {topic: writer.add_connection(topic, msgtype, typestore=ts)
-                     for topic, msgtype in sorted(topics)}
-            for t, topic, msgtype, msg in records:
-                writer.write(conns[topic], t, ts.serialize_ros1(msg, msgtype))
+            conns = {(topic, n): writer.add_connection(topic, msgtype, typestore=ts,
+                                                       callerid=f"/node{n}")
+                     for topic, msgtype, n in connections}
+            for t, topic, msgtype, n, msg in records:
+                writer.write(conns[topic, n], t, ts.serialize_ros1(msg, msgtype))
         return path
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.SQLITE3 if kind == "ros2-sqlite3" else StoragePlugin.MCAP
     folder = path if kind != "mcap" else path.with_name(path.name + "-dir")
-    with Writer(folder, version=9, storage_plugin=plugin) as writer:
-        conns = {topic: writer.add_connection(topic, msgtype, typestore=ts)
-                 for topic, msgtype in sorted(topics)}
-        for t, topic, msgtype, msg in records:
-            writer.write(conns[topic], t, ts.serialize_cdr(msg, msgtype))
+    writer = Writer(folder, version=9, storage_plugin=plugin)
+    if spec.compression is not None:
+        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+        writer.set_compression(CompressionMode[spec.compression.upper()],
+                               CompressionFormat.ZSTD)
+    with writer:
+        conns = {(topic, n): writer.add_connection(topic, msgtype, typestore=ts,
+                                                   offered_qos_profiles=_qos(n))
+                 for topic, msgtype, n in connections}
+        for t, topic, msgtype, n, msg in records:
+            writer.write(conns[topic, n], t, ts.serialize_cdr(msg, msgtype))
     if kind != "mcap":
         return folder
-    (found,) = folder.glob("*.mcap")
+    (found,) = folder.glob("*.mcap*")
     target = path.with_suffix(".mcap")
     shutil.move(found, target)
     shutil.rmtree(folder)

@@ -8,7 +8,7 @@
   a snapshot open for a second sees it unchanged, and the writer commits meanwhile (never
   blocked). A reader opened before the map grew adopts the new size.
 - A second writer is refused within a second by a message naming the lock (the CLI's one line
-  for it: ``tests/test_bad_input.py``).
+  for it: ``tests/cli/test_bad_input.py``).
 - A writer killed with -9 leaves no lock (the next writer opens at once) and its LMDB reader
   slot is cleared by the next open; a reader killed with -9 during a writer's session is cleared
   by the writer's next commit. A stuck (live) reader, by contrast, pins old pages: the file grows.
@@ -214,7 +214,7 @@ def test_readers_see_consistent_snapshots_and_never_block_the_writer(tmp_path, r
         cli = {cmd: subprocess.Popen([SPRINT_MAP, cmd, str(path), *extra, "--json"],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                for cmd, extra in (("info", []), ("check", []), ("localize", [str(query)]))}
-        second = _python(TRY_OPEN, str(path))  # (the CLI's message: tests/test_bad_input.py)
+        second = _python(TRY_OPEN, str(path))  # (the CLI's message: tests/cli/test_bad_input.py)
         out, err = writer.communicate(timeout=300)
         assert writer.returncode == 0, err
         (tmp_path / "stop").touch()

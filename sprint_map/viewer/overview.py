@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from sprint_map import SequenceRecord
     from sprint_map.map import SprintMap
 
-__all__ = ["EDGE_BUDGET", "POINT_BUDGET", "MapState", "MapSummary", "Reader", "direct"]
+__all__ = ["EDGE_BUDGET", "POINT_BUDGET", "MapState", "MapOverview", "Reader", "direct"]
 
 T = TypeVar("T")
 #: Runs one short read of the map (``direct``: just calls it; the server: under its gate).
@@ -63,7 +63,7 @@ def direct(fn: Callable[[], T]) -> T:
 class MapState:
     """The map as the viewer last read it: its drives, their components and positions.
 
-    Take it once per request (:meth:`MapSummary.state`) and look drives up here: O(1) each.
+    Take it once per request (:meth:`MapOverview.state`) and look drives up here: O(1) each.
     """
 
     key: tuple[Any, ...]
@@ -87,7 +87,7 @@ class MapState:
         return self.components[seq_id]
 
 
-class MapSummary:
+class MapOverview:
     """What the viewer knows of one map: its overview and per-drive positions, cached.
 
     Parameters

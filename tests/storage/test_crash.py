@@ -253,7 +253,7 @@ def test_every_crash_point_is_in_the_code_and_tested():
     tested |= set(REMOVE_POINTS) | set(COMPACT_POINTS)  # test_kill_at_each_{remove,compact}_point
     tested |= set(UNMERGE_POINTS)  # test_kill_at_each_unmerge_point
     tested |= set(SEGMENT_POINTS)  # tests/storage/test_segment_index.py (kill at each)
-    tested |= set(GROUP_POINTS)  # tests/test_drives.py (a real multi-drive ingest killed)
+    tested |= set(GROUP_POINTS)  # tests/merge/test_drives.py (a real multi-drive ingest killed)
     tested |= set(LEARN_POINTS)  # tests/storage/test_learning.py (learn and unlearn killed)
     tested |= set(SIGHTING_POINTS)  # tests/merge/test_admission.py (an admitted drive killed)
     tested |= set(SUMMARIZE_POINTS)  # tests/merge/test_merge_summary.py (summarize killed at each)

@@ -1,4 +1,4 @@
-"""Union-find over sequences, persisted in LMDB, with component membership lists.
+"""The map's components, persisted in LMDB: a union-find over sequences with membership lists.
 
 A component of the map is a set of sequences joined by inter-sequence edges; its id is the
 sequence id of its union-find root (so a component id can change when components merge: the
@@ -28,13 +28,13 @@ from sprint_map.errors import MapCorruptError
 from sprint_map.storage.keys import COMP_VAL, UF_VAL, RecordStruct, read_u32, u32
 from sprint_map.storage.lmdb_env import LmdbEnv
 
-__all__ = ["MEMBER_KEY", "UnionFindStore"]
+__all__ = ["MEMBER_KEY", "ComponentStore"]
 
 MEMBER_KEY = RecordStruct(">II")
 
 
-class UnionFindStore:
-    """Union-find operations on an open LMDB transaction of ``env``."""
+class ComponentStore:
+    """The persisted union-find's operations on an open LMDB transaction of ``env``."""
 
     def __init__(self, env: LmdbEnv) -> None:
         self._uf = env.db("uf")

@@ -9,13 +9,13 @@ import numpy as np
 from sprint_map.config import MapConfig
 from sprint_map.map import SprintMap
 from sprint_map.storage.records import EdgeSpec
-from sprint_map.viewer.summary import GRID, MapSummary
+from sprint_map.viewer.overview import GRID, MapOverview
 from tests.helpers.road_map import DIM, build_road_map
 
 
 def test_overview_draws_every_drive_on_its_positions_and_every_edge(road_map):
     with SprintMap.open(road_map.path, readonly=True) as m:
-        ov = MapSummary(m).overview()
+        ov = MapOverview(m).overview()
         stats, seqs = m.stats(), m.sequences()
         edges = m.edges()
         pos = {s.seq_id: m.positions(s.seq_id)[:, :2] for s in seqs}
@@ -52,7 +52,7 @@ def test_large_maps_are_summarised_within_the_budgets(tmp_path, rng):
             m.add_sequence(rng.standard_normal((n, DIM)).astype(np.float32), name=f"d{i}",
                            positions=np.c_[t, t * 0 + i, t * 0, t], edges=edges)
     with SprintMap.open(tmp_path / "m", readonly=True) as m:
-        ov = MapSummary(m, point_budget=100, edge_budget=20).overview()
+        ov = MapOverview(m, point_budget=100, edge_budget=20).overview()
         n_edges = m.stats()["edges"]
     assert ov["points"] == [max(2, int(100 * n / sum(lengths))) for n in lengths]
     xy = np.array(ov["xy"]).reshape(-1, 2)
@@ -69,7 +69,7 @@ def test_a_map_without_positions_is_drawn_as_a_layout_of_its_sequence_graph(tmp_
             edges = [EdgeSpec((None, 0), (i - 1, 0), 1.0)] if i in (1, 2) else []
             m.add_sequence(rng.standard_normal((10, DIM)).astype(np.float32), edges=edges)
     with SprintMap.open(tmp_path / "m", readonly=True) as m:
-        ov = MapSummary(m).overview()
+        ov = MapOverview(m).overview()
     assert ov["mode"] == "layout" and "xy" not in ov
     layout = np.array(ov["layout"]).reshape(-1, 2)
     assert layout.shape == (4, 2) and layout.min() >= 0 and layout.max() <= GRID
@@ -81,7 +81,7 @@ def test_a_map_without_positions_is_drawn_as_a_layout_of_its_sequence_graph(tmp_
 def test_the_overview_is_cached_until_the_map_changes(tmp_path, rng):
     build_road_map(tmp_path / "m", rng, drives=2, frames=60)
     with SprintMap.open(tmp_path / "m") as m:
-        summary = MapSummary(m)
+        summary = MapOverview(m)
         first = summary.overview()
         assert summary.overview() is first
         m.add_sequence(rng.standard_normal((30, DIM)).astype(np.float32), name="new")

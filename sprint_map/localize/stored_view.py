@@ -1,10 +1,10 @@
 """The HMM's view of a persistent map: components as compact arrays, loaded on demand.
 
-:class:`MapGraphSource` implements the :class:`sprint_map.hmm.graph.GraphSource` protocol over
+:class:`StoredMapView` implements the :class:`sprint_map.hmm.graph.GraphSource` protocol over
 LMDB, so the HMM (which knows nothing of storage) can ask for the component of a retrieved
 vertex and for a component's sequences and edges. Nothing else of the map is touched.
 
-It is also the localiser's one view of the map: :meth:`MapGraphSource.pinned` holds one
+It is also the localiser's one view of the map: :meth:`StoredMapView.pinned` holds one
 :class:`~sprint_map.storage.snapshot.MapSnapshot` for a whole ``localize`` (or one ``step``), and
 the search, the component look-ups and loads and ``locate`` all read that snapshot, so a writer
 committing meanwhile (a merge, a ``remove``) is never half seen.
@@ -27,10 +27,10 @@ from sprint_map.storage.snapshot import MapSnapshot
 from sprint_map.storage.store import MapStore
 from sprint_map.util.arrays import DescriptorsLike, SearchResult
 
-__all__ = ["MapGraphSource"]
+__all__ = ["StoredMapView"]
 
 
-class MapGraphSource:
+class StoredMapView:
     """GraphSource over a :class:`MapStore`.
 
     Notes
