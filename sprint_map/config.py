@@ -57,8 +57,8 @@ class MapConfig:
     admission : Admission
         Which frames are stored: all, or what the map lacks (:mod:`sprint_map.merge.admission`).
     centring : Centring
-        How descriptors enter the map's space: centred on their drive's running mean (the
-        default), or as given (:mod:`sprint_map.frontend.centring`; a map stored without it
+        How descriptors enter the map's space: as given (the default), or centred on their
+        drive's running mean (:mod:`sprint_map.frontend.centring`; a map stored without it
         was made before centring and keeps ``mode="none"``).
     """
 

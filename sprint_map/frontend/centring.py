@@ -21,13 +21,15 @@ rows a drive stores are the rows it was localised with. Its state is the running
 count (O(dim) memory per drive, whatever its length); :class:`CentringStats` is what the map
 stores with each drive (its frames and its mean: the drive's condition).
 
-``mode="none"`` keeps descriptors as they are: a map created before centring existed reads
-its config that way, since its rows were stored uncentred.
+``mode="none"`` (the default) keeps descriptors as they are, and a map created before
+centring existed reads its config that way. ``drive`` is opt-in (``init --centring drive``):
+on generated worlds with seasons it removes most of the alias cost and its wrong merges, but
+on the Nordland pair it costs merge precision (``docs/decisions.md``, "Centring is opt-in").
 
 Examples
 --------
 >>> import numpy as np
->>> centring = DriveCentring(Centring(), dim=2)
+>>> centring = DriveCentring(Centring("drive"), dim=2)
 >>> rows = centring.apply(np.array([[1.0, 0.0], [0.0, 1.0]], np.float32))
 >>> rows.astype(float).round(3).tolist()
 [[1.0, 0.0], [-0.447, 0.894]]
@@ -49,8 +51,8 @@ from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["CENTRING_MODES", "Centring", "CentringStats", "DriveCentring", "centre_batches"]
 
-#: ``drive``: centre every frame on its drive's running mean (the default); ``none``: as given.
-CENTRING_MODES = ("drive", "none")
+#: ``none``: descriptors as given (the default); ``drive``: centred on the drive's running mean.
+CENTRING_MODES = ("none", "drive")
 
 # a centred vector shorter than this is left as the zero vector (a frame equal to its mean)
 _ZERO_NORM = 1e-12
@@ -63,14 +65,14 @@ class Centring:
 
     Parameters
     ----------
-    mode : {"drive", "none"}
-        ``drive`` centres each frame on its drive's running mean; ``none`` keeps descriptors
-        as they are (maps made before centring).
+    mode : {"none", "drive"}
+        ``drive`` centres each frame on its drive's running mean; ``none`` (the default, and
+        every map made before centring) keeps descriptors as they are.
     prior_frames : int
         How many frames the map's mean condition weighs in a drive's running mean (0: none).
     """
 
-    mode: str = "drive"
+    mode: str = "none"
     prior_frames: int = 20
 
     def __post_init__(self) -> None:

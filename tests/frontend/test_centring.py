@@ -19,19 +19,19 @@ def drive() -> np.ndarray:
 
 
 def test_rows_do_not_depend_on_how_the_drive_is_batched(drive):
-    whole = DriveCentring(Centring(), 16).apply(drive)
+    whole = DriveCentring(Centring("drive"), 16).apply(drive)
     for size in (1, 7, 64):
-        c = DriveCentring(Centring(), 16)
+        c = DriveCentring(Centring("drive"), 16)
         parts = np.vstack([c.apply(drive[i:i + size]) for i in range(0, len(drive), size)])
         assert parts.tobytes() == whole.tobytes()
-    streamed = np.vstack(list(centre_batches(DriveCentring(Centring(), 16),
+    streamed = np.vstack(list(centre_batches(DriveCentring(Centring("drive"), 16),
                                              iter(np.array_split(drive, 5)))))
     assert streamed.tobytes() == whole.tobytes()
 
 
 def test_a_frame_is_centred_on_the_frames_before_it_only(drive):
-    whole = DriveCentring(Centring(), 16).apply(drive)
-    prefix = DriveCentring(Centring(), 16).apply(drive[:40])
+    whole = DriveCentring(Centring("drive"), 16).apply(drive)
+    prefix = DriveCentring(Centring("drive"), 16).apply(drive[:40])
     assert prefix.tobytes() == whole[:40].tobytes()  # later frames change nothing before them
     # the rule: minus the running mean with one zero prior frame, renormalised
     t = 10
@@ -47,7 +47,7 @@ def test_a_shared_condition_is_removed():
     season = 4 * rng.standard_normal(32)
     summer, winter = unit(places + 0.2 * rng.standard_normal((50, 32))), unit(places + season)
     raw_nn = np.argmin(((winter[:, None] - summer[None]) ** 2).sum(-1), axis=1)
-    s, w = (DriveCentring(Centring(), 32).apply(x) for x in (summer, winter))
+    s, w = (DriveCentring(Centring("drive"), 32).apply(x) for x in (summer, winter))
     nn = np.argmin(((w[:, None] - s[None]) ** 2).sum(-1), axis=1)
     assert (nn == np.arange(50)).mean() > (raw_nn == np.arange(50)).mean() + 0.2
 
@@ -60,7 +60,7 @@ def test_mode_none_keeps_rows_and_still_counts(drive):
 
 
 def test_preview_changes_nothing_and_bad_rows_are_refused_first(drive):
-    c = DriveCentring(Centring(), 16)
+    c = DriveCentring(Centring("drive"), 16)
     c.apply(drive[:5])
     before = c.preview(drive[5:6])
     assert c.frames == 5 and c.preview(drive[5:6]).tobytes() == before.tobytes()
@@ -70,20 +70,20 @@ def test_preview_changes_nothing_and_bad_rows_are_refused_first(drive):
         c.apply(bad)
     assert c.frames == 5  # refused: the state is as before
     c.advance(drive[5:6])
-    assert c.apply(drive[6:7]).tobytes() == DriveCentring(Centring(), 16).apply(
+    assert c.apply(drive[6:7]).tobytes() == DriveCentring(Centring("drive"), 16).apply(
         drive[:7])[6].reshape(1, -1).tobytes()
 
 
 def test_prior_weighs_the_first_frames_and_fresh_repeats_it(drive):
     prior = CentringStats(500, drive.mean(0) + 0.5)
-    c = DriveCentring(Centring(prior_frames=20), 16, prior)
+    c = DriveCentring(Centring("drive", prior_frames=20), 16, prior)
     rows = c.apply(drive[:3])
     mean0 = (20 * prior.mean.astype(np.float64) + drive[0]) / 21
     np.testing.assert_allclose(rows[0], (drive[0] - mean0) / np.linalg.norm(drive[0] - mean0),
                                atol=1e-6)
     assert c.fresh().apply(drive[:3]).tobytes() == rows.tobytes()
-    assert DriveCentring(Centring(prior_frames=0), 16, prior).apply(drive[:3]).tobytes() == \
-        DriveCentring(Centring(), 16).apply(drive[:3]).tobytes()
+    assert DriveCentring(Centring("drive", prior_frames=0), 16, prior).apply(drive[:3]).tobytes() == \
+        DriveCentring(Centring("drive"), 16).apply(drive[:3]).tobytes()
 
 
 def test_pool_is_frame_weighted():

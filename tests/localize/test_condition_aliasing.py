@@ -46,7 +46,7 @@ def answer_stream(tmp_path, world, centring: Centring) -> tuple[float, int, int]
 @pytest.mark.slow
 def test_centring_answers_by_place_where_raw_descriptors_alias(tmp_path):
     world = latent_world(0, 8, 80, None)
-    centred, ok_c, bad_c = answer_stream(tmp_path, world, Centring())
+    centred, ok_c, bad_c = answer_stream(tmp_path, world, Centring("drive"))
     raw, _, _ = answer_stream(tmp_path, world, Centring("none"))
     assert centred > raw + 0.15, (centred, raw)
     assert centred > 0.85 and ok_c > 0 and bad_c <= ok_c // 50

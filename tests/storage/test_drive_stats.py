@@ -27,7 +27,7 @@ def drives() -> list[np.ndarray]:
 
 @pytest.fixture
 def config() -> MapConfig:
-    return MapConfig(dim=DIM, store=StoreOptions(shard_rows=16))
+    return MapConfig(dim=DIM, store=StoreOptions(shard_rows=16), centring=Centring("drive"))
 
 
 def build(path, config, drives) -> None:
@@ -113,4 +113,4 @@ def test_a_map_stored_before_centring_reads_uncentred(tmp_path, drives):
         assert m.config.centring == Centring("none")
         m.ingest(drives[1], name="new", merge=False)
         assert m.descriptors(1).tobytes() == drives[1].tobytes()  # its space: as described
-    assert MapConfig(dim=DIM).centring.mode == "drive"  # a new map centres
+    assert MapConfig(dim=DIM).centring.mode == "none"  # centring is opt-in
