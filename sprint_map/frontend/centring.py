@@ -16,15 +16,15 @@ map's mean condition (the frame-weighted mean of the drives it stores, from thei
 statistics) worth ``prior_frames`` frames, so that the first frames of a drive are centred on
 something better than themselves; on an empty map (or with ``prior_frames=0``) one zero
 frame (the first frame is then its own direction, not the zero vector). A frame equal to its
-mean stays the zero vector. It is causal: a vehicle's answer for frame ``t`` never waits for later frames, and the
-rows a drive stores are the rows it was localised with. Its state is the running sum and the
+mean stays the zero vector. It is causal: a vehicle's answer for frame ``t`` never waits for
+later frames, and the rows a drive stores are the rows it was localised with. Its state is the running sum and the
 count (O(dim) memory per drive, whatever its length); :class:`CentringStats` is what the map
 stores with each drive (its frames and its mean: the drive's condition).
 
 ``mode="none"`` (the default) keeps descriptors as they are, and a map created before
 centring existed reads its config that way. ``drive`` is opt-in (``init --centring drive``):
 on generated worlds with seasons it removes most of the alias cost and its wrong merges, but
-on the Nordland pair it costs merge precision (``docs/decisions.md``, "Centring is opt-in").
+on the Nordland pair it costs merge precision (``docs/decisions.md``, "Drive centring, opt-in").
 
 Examples
 --------
