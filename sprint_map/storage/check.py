@@ -199,8 +199,10 @@ def check_map(store: MapStore, *, seed: int = 0,
     """Verify every invariant of ``store``; see ``docs/architecture.md``, "Invariants".
     ``thumbnail_decodes`` (the facade's: an image decoder) is run on every thumbnail."""
     report = CheckReport()
-    with store.env.read() as txn:
+    with store.env.read() as txn:  # one snapshot: a live writer's later drive is not a stray
         records = MapRecords.read(store, txn)
+        stats, problems = check_drive_stats(txn, store.env, (s.seq_id for s in records.seqs),
+                                            store.config.dim)
     report.checked.update(sequences=len(records.seqs), vertices=records.total,
                           edges=len(records.edges))
     _check_sequences(records, report)
@@ -216,9 +218,6 @@ def check_map(store: MapStore, *, seed: int = 0,
     _check_components(records, sequence_edges(records, report), report)
     check_thumbnails(store, records, report, thumbnail_decodes)
     check_sightings(store, records, report)
-    with store.env.read() as txn:
-        stats, problems = check_drive_stats(txn, store.env, (s.seq_id for s in records.seqs),
-                                            store.config.dim)
     for problem in problems:
         report.violation("drive_stats", problem)
     report.checked["drive_stats"] = stats
