@@ -28,6 +28,7 @@ import numpy as np
 from sprint_map import HMMConfig
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet.shards import alive_nodes, spread
+from sprint_map.frontend.centring import DriveCentring
 from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors
@@ -50,8 +51,11 @@ class ReplicaWorker:
         self.sessions: dict[str, Localizer] = {}
         self.map.search(np.zeros((1, self.map.config.dim), np.float32), 1)  # load the index
 
-    def open(self, session: str) -> None:
-        self.sessions[session] = Localizer(self.map, self.hmm, record=True)
+    def open(self, session: str) -> DriveCentring:
+        """Open ``session``; returns its centring, fresh (the prior it is localised with)."""
+        localizer = Localizer(self.map, self.hmm, record=True)
+        self.sessions[session] = localizer
+        return localizer.centring.fresh()
 
     def step(self, session: str, row: Descriptors, changed: list[int] | None
              ) -> tuple[FrameDecision, float, float]:
@@ -80,7 +84,7 @@ class RemoteLocalizer:
     """The serving process's handle on one session's localiser in a replica.
 
     Implements what the service uses of a :class:`~sprint_map.localize.localizer.Localizer`: ``step``,
-    ``invalidate``, ``smoothed``, ``timing``. The replica forgets the session when this handle is
+    ``invalidate``, ``smoothed``, ``timing``, ``centring``, ``hits`` (none here). The replica forgets the session when this handle is
     garbage-collected (the session committed, discarded or expired).
     """
 
@@ -91,8 +95,12 @@ class RemoteLocalizer:
         self.session = f"s{next(pool.counter)}"
         self.timing = Timing()
         self.record = True
+        #: the recorded hits are the replica's (its memory): none are held in this process
+        self.hits: list[tuple[np.ndarray, np.ndarray]] = []
         self._changed: set[int] | None = None
-        self._call(actor.open.remote(self.session))
+        #: the drive's centring as the replica began it (its prior): the commit centres the
+        #: posted rows with it, as the replica did frame by frame (``step`` sends them raw)
+        self.centring: DriveCentring = self._call(actor.open.remote(self.session))
         weakref.finalize(self, _forget, actor, self.session)
 
     def _call(self, ref: Any) -> Any:
