@@ -146,11 +146,32 @@ def test_no_merge_copies_every_drive_with_what_it_carries(maps):
         assert sizes == [1, 2, 2]  # t0+t1, s0+s1, far: no cross-map edge without a merge
 
 
+def test_the_drives_statistics_are_carried_renumbered(tmp_path, drives):
+    """Each imported drive's ``drive_stats`` record (its condition) arrives under its new id."""
+    target, source = tmp_path / "t", tmp_path / "s"
+    with SprintMap.create(target, MapConfig(dim=DIM)) as m:
+        ingest(m, "t0", drives["t0"])
+    with SprintMap.create(source, MapConfig(dim=DIM)) as m:
+        for name in ("s0", "s1"):
+            ingest(m, name, drives[name])
+        with m.store.env.read() as txn:
+            theirs = dict(txn.cursor(db=m.store.env.db("drive_stats")))
+    with SprintMap.open(target) as m:
+        m.join(source, merge=False)
+        with m.store.env.read() as txn:
+            got = dict(txn.cursor(db=m.store.env.db("drive_stats")))
+        assert m.check().ok
+    assert sorted(theirs) == [(0).to_bytes(4, "big"), (1).to_bytes(4, "big")]
+    assert got[(1).to_bytes(4, "big")] == theirs[(0).to_bytes(4, "big")]
+    assert got[(2).to_bytes(4, "big")] == theirs[(1).to_bytes(4, "big")]
+    assert len(got) == 3
+
+
 def test_a_per_drive_database_added_later_is_carried(tmp_path, monkeypatch, drives):
     """A database keyed by ``>I`` seq_id that this module does not know by name (a per-drive
-    statistics database another version adds) is copied with the drive, renumbered."""
-    monkeypatch.setattr(lmdb_env, "DB_NAMES", (*lmdb_env.DB_NAMES, "drive_stats"))
-    monkeypatch.setattr(lmdb_env, "OPTIONAL_DBS", lmdb_env.OPTIONAL_DBS | {"drive_stats"})
+    database another version adds) is copied with the drive, renumbered."""
+    monkeypatch.setattr(lmdb_env, "DB_NAMES", (*lmdb_env.DB_NAMES, "drive_extra"))
+    monkeypatch.setattr(lmdb_env, "OPTIONAL_DBS", lmdb_env.OPTIONAL_DBS | {"drive_extra"})
     monkeypatch.setattr(storage_join, "DB_NAMES", lmdb_env.DB_NAMES)
     target, source = tmp_path / "t", tmp_path / "s"
     with SprintMap.create(target, MapConfig(dim=DIM)) as m:
@@ -160,16 +181,16 @@ def test_a_per_drive_database_added_later_is_carried(tmp_path, monkeypatch, driv
             ingest(m, name, drives[name])
 
         def put(txn: Any) -> None:
-            db = m.store.env.db("drive_stats")
+            db = m.store.env.db("drive_extra")
             for seq in (0, 1):
-                txn.put(seq.to_bytes(4, "big"), f"stats of {seq}".encode(), db=db)
+                txn.put(seq.to_bytes(4, "big"), f"extra of {seq}".encode(), db=db)
 
         m.store.env.write(put)
     with SprintMap.open(target) as m:
         m.join(source, merge=False)
         with m.store.env.read() as txn:
-            got = dict(txn.cursor(db=m.store.env.db("drive_stats")))
-    assert got == {(1).to_bytes(4, "big"): b"stats of 0", (2).to_bytes(4, "big"): b"stats of 1"}
+            got = dict(txn.cursor(db=m.store.env.db("drive_extra")))
+    assert got == {(1).to_bytes(4, "big"): b"extra of 0", (2).to_bytes(4, "big"): b"extra of 1"}
 
 
 def test_joining_twice_is_a_no_op(maps):
