@@ -45,21 +45,17 @@ class MapConfig:
         ``"onnx"`` (a user's model: :mod:`sprint_map.frontend.onnx_model`).
     descriptor_params : dict
         Parameters of the descriptor kind (:class:`sprint_map.frontend.descriptors.DescriptorSpec`).
-    store : StoreOptions
-        How rows are stored and indexed (:class:`sprint_map.storage.store_config.StoreOptions`).
-    hmm : HMMConfig
-        Parameters of the place-recognition HMM (:class:`sprint_map.hmm.config.HMMConfig`).
-    merge : MergeRule
-        Which decisions become edges (:class:`sprint_map.merge.rule.MergeRule`).
+    store, hmm, merge : StoreOptions, HMMConfig, MergeRule
+        How rows are stored and indexed, the place-recognition HMM, which decisions become edges
+        (:mod:`sprint_map.storage.store_config`, :mod:`sprint_map.hmm.config`,
+        :mod:`sprint_map.merge.rule`).
     gnss : GnssConfig
-        How a drive's GNSS fixes weigh localisation and merging, where the map stores positions
-        (:mod:`sprint_map.localize.gnss`; a map stored without it takes the defaults).
+        How GNSS fixes weigh localisation and merging (:mod:`sprint_map.localize.gnss`).
     admission : Admission
         Which frames are stored: all, or what the map lacks (:mod:`sprint_map.merge.admission`).
     centring : Centring
-        How descriptors enter the map's space: as given (the default), or centred on their
-        drive's running mean (:mod:`sprint_map.frontend.centring`; a map stored without it
-        was made before centring and keeps ``mode="none"``).
+        Descriptors as given (the default) or centred on their drive's running mean
+        (:mod:`sprint_map.frontend.centring`). A stored map lacking a part takes its default.
     """
 
     dim: int

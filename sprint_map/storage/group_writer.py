@@ -98,15 +98,13 @@ class GroupWriter(UncommittedRows):
         Parameters
         ----------
         rows : array_like (N, dim), or an iterable of (n_i, dim) batches
-            An array is validated whole, with the positions and edges, before its first row is
-            written; batches are validated and written one at a time (memory bounded by the
-            batch), the records once the last is in.
+            An array is validated whole (with positions and edges) before a row is written;
+            batches one at a time (memory: one batch), the records after the last.
         name, source, positions, edges, thumbnails
-            As for :meth:`sprint_map.storage.store.MapStore.add_sequence`; ``name`` must not be
-            another sequence's of the group, and ``edges`` may reach the group's earlier
-            sequences. ``thumbnails`` are read after the last batch.
+            As for :meth:`sprint_map.storage.store.MapStore.add_sequence`; ``name`` unique in
+            the group, ``edges`` may reach its earlier sequences; thumbnails read last.
         stats : callable, optional
-            Called after the last batch: the drive's ``(frames, mean)`` to commit with it
+            Called after the last batch: the drive's ``(frames, mean)``
             (:mod:`sprint_map.storage.drive_stats`).
 
         Raises
@@ -117,8 +115,7 @@ class GroupWriter(UncommittedRows):
 
         Notes
         -----
-        O(N * dim) to validate, hash and write the rows (not fsynced: :meth:`commit` does it
-        once for the group), O(N + E) to validate the records.
+        O(N * dim) rows (fsynced once for the group by :meth:`commit`), O(N + E) records.
         """
         if self._done:
             raise SprintMapError("the group was already committed or aborted")
