@@ -76,8 +76,12 @@ from sprint_map.evaluation.runner import QueryResult, evaluate_query
 from sprint_map.frontend import GroundTruth
 from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
-from tools.bench_lifelong import score
-from tools.condition_worlds import (
+
+if __package__ in (None, ""):  # run as ``python tools/...``: ``tools`` from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tools.bench_lifelong import score  # noqa: E402
+from tools.condition_worlds import (  # noqa: E402
     Drive,
     World,
     city_world,

@@ -34,7 +34,11 @@ from sprint_map.frontend import GroundTruth
 from sprint_map.map import SprintMap
 from sprint_map.synth import CityConfig
 from sprint_map.synth.latent import LatentConfig
-from tools.bench_lifelong import LATENT, WORLDS, Drive, latent_drives, render_drives, score
+
+if __package__ in (None, ""):  # run as ``python tools/...``: ``tools`` from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tools.bench_lifelong import LATENT, WORLDS, Drive, latent_drives, render_drives, score  # noqa: E402
 
 
 def ingest_all(path: Path, drives: list[Drive], config: MapConfig) -> None:
