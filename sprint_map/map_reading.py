@@ -5,6 +5,11 @@ A mixin of the facade over its store (:class:`~sprint_map.storage.store.MapStore
 reads one consistent snapshot. Nothing here changes the map but the geographic frame that
 :meth:`MapReading.metric_positions` sets once, the first time a map is given latitudes (after
 checking that the map keeps no planar positions: a map keeps one frame).
+
+Every read of the map's LMDB may raise :class:`~sprint_map.errors.MapCorruptError` (a record
+that does not decode, a damaged map) or :class:`~sprint_map.errors.StorageIOError` (LMDB cannot
+be read); each method's ``Raises`` names them once more beside the errors of its arguments.
+The examples build a small map of random descriptors in a temporary directory.
 """
 
 from __future__ import annotations
@@ -36,34 +41,271 @@ class MapReading:
     store: MapStore
 
     def sequence(self, seq_id: int) -> SequenceRecord:
+        """The record of sequence ``seq_id``. O(log n_sequences).
+
+        Parameters
+        ----------
+        seq_id : int
+            A sequence id (as :meth:`sequences` lists them; never reused).
+
+        Returns
+        -------
+        SequenceRecord
+            Its ``seq_id``, ``name``, ``length`` (frames), ``first_vertex``, ``created`` (unix
+            time) and ``source``.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No live sequence ``seq_id`` (never added, or removed).
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> record = smap.sequence(0)
+        >>> record.name, record.length, record.first_vertex
+        ('mon', 5, 0)
+        >>> smap.sequence(7)
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.UnknownSequenceError: no sequence 7 in the map
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.sequence(seq_id)
 
     def sequences(self) -> list[SequenceRecord]:
+        """Every live sequence's record, in id order (removed ones are gone). O(n_sequences).
+
+        Returns
+        -------
+        list of SequenceRecord
+            As :meth:`sequence` gives them.
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> for name, n in (("mon", 5), ("tue", 3)):
+        ...     _ = smap.add_sequence(rng.standard_normal((n, 8)).astype(np.float32), name=name)
+        >>> [(s.seq_id, s.name, s.first_vertex) for s in smap.sequences()]
+        [(0, 'mon', 0), (1, 'tue', 5)]
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.sequences()
 
     def sequence_by_name(self, name: str) -> SequenceRecord:
-        """The sequence named ``name`` (UnknownSequenceError if none). O(log n_sequences)."""
+        """The record of the sequence named ``name``. O(log n_sequences).
+
+        Parameters
+        ----------
+        name : str
+            A sequence name (unique in a map; ``seq-<id>`` when none was given).
+
+        Returns
+        -------
+        SequenceRecord
+            As :meth:`sequence` gives it.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No sequence has that name (none can have ``""`` or a name with a newline).
+        InputError
+            ``name`` is not UTF-8 text.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> _ = smap.add_sequence(rng.standard_normal((3, 8)).astype(np.float32))
+        >>> smap.sequence_by_name("seq-1").length
+        3
+        >>> smap.sequence_by_name("sun")
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.UnknownSequenceError: no sequence named 'sun' in the map
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.sequence_by_name(name)
 
     def locate(self, vertex_ids: Iterable[int]) -> list[tuple[int, int]]:
         """``(seq_id, image_id)`` of each vertex id (as :meth:`search` returns them).
-        O(log n_sequences) per vertex."""
+        O(log n_sequences) per vertex.
+
+        Parameters
+        ----------
+        vertex_ids : iterable of int
+            Vertex ids (a sequence's frame ``i`` is vertex ``first_vertex + i``).
+
+        Returns
+        -------
+        list of (int, int)
+            One ``(seq_id, image_id)`` per vertex id, in order.
+
+        Raises
+        ------
+        UnknownSequenceError
+            A vertex of a removed sequence (its id stays until ``compact``).
+        MapCorruptError
+            A vertex id outside ``0..vertices-1`` (no search returns one); a damaged map.
+        StorageIOError
+            LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> for name, n in (("mon", 5), ("tue", 3)):
+        ...     _ = smap.add_sequence(rng.standard_normal((n, 8)).astype(np.float32), name=name)
+        >>> smap.locate([0, 4, 5, 7])
+        [(0, 0), (0, 4), (1, 0), (1, 2)]
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.locate(vertex_ids)
 
     def component_of(self, seq_id: int) -> int:
+        """The component sequence ``seq_id`` lies in: its union-find root's sequence id (the
+        drives joined to it by edges share it). O(alpha(n_sequences)) amortised.
+
+        Parameters
+        ----------
+        seq_id : int
+            A sequence id.
+
+        Returns
+        -------
+        int
+            The component's id, a sequence id of the component.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No live sequence ``seq_id``.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        A second drive of the same road merges into the first one's component:
+
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(road, name="mon")
+        >>> _ = smap.add_sequence(rng.standard_normal((30, 8)).astype(np.float32), name="far")
+        >>> again = road + 0.01 * rng.standard_normal(road.shape).astype(np.float32)
+        >>> smap.ingest(again, name="tue").added.edges_added > 0
+        True
+        >>> [smap.component_of(s) for s in (0, 1, 2)]
+        [0, 1, 0]
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.component_of(seq_id)
 
     def components(self) -> list[ComponentInfo]:
+        """Every component with its sequences and vertex count. O(n_sequences).
+
+        Returns
+        -------
+        list of ComponentInfo
+            ``component`` (its id: :meth:`component_of`), ``sequences`` (ids) and ``vertices``.
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(road, name="mon")
+        >>> _ = smap.add_sequence(rng.standard_normal((10, 8)).astype(np.float32), name="far")
+        >>> _ = smap.ingest(road + 0.01 * rng.standard_normal(road.shape).astype(np.float32))
+        >>> smap.components()
+        [ComponentInfo(component=0, sequences=[0, 2], vertices=60),
+         ComponentInfo(component=1, sequences=[1], vertices=10)]
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.components()
 
     def export_graphml(self, path: str | os.PathLike[str], level: str | None = None
                        ) -> ExportReport:
         """Write the map as GraphML for networkx, Gephi or Cytoscape.
 
-        ``level`` ``"vertex"`` (a node per frame, streamed) or ``"sequence"`` (a node per
-        drive); by default the vertex level up to ``VERTEX_LEVEL_LIMIT`` (100,000) vertices,
-        the sequence level beyond. Edges carry their probability and provenance. See
-        :mod:`sprint_map.export.graphml`.
+        Edges carry their probability and provenance; the file is published whole or not at
+        all. See :mod:`sprint_map.export.graphml`. O(V + E) time; the vertex level is streamed.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write (replaced if it exists), outside the map's directory.
+        level : {"vertex", "sequence"}, optional
+            A node per frame, or a node per drive; by default the vertex level up to
+            ``VERTEX_LEVEL_LIMIT`` (100,000) vertices, the sequence level beyond.
+
+        Returns
+        -------
+        ExportReport
+            What was written: ``level``, ``sequences``, ``nodes``, ``edges``, ``bytes``.
+
+        Raises
+        ------
+        InputError
+            An unknown ``level``; ``path`` a directory, inside the map, or not writable.
+        StorageIOError
+            Writing the file failed (nothing is published); LMDB cannot be read.
+        MapCorruptError
+            A damaged map.
+
+        Examples
+        --------
+        >>> import os, shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> out = tempfile.mkdtemp()
+        >>> report = smap.export_graphml(os.path.join(out, "map.graphml"))
+        >>> report.level, report.nodes, report.edges
+        ('vertex', 5, 0)
+        >>> smap.export_graphml(os.path.join(out, "map.graphml"), level="drive")
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.InputError: export level must be one of vertex, sequence, not 'drive'
+        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
         """
         from sprint_map.export import export_graphml
 
@@ -71,100 +313,422 @@ class MapReading:
 
     def export_csv(self, directory: str | os.PathLike[str]) -> ExportReport:
         """Write ``sequences.csv``, ``vertices.csv`` (with positions) and ``edges.csv`` into
-        ``directory``, streamed. See :mod:`sprint_map.export.tables`."""
+        ``directory``, streamed, all three published together. See
+        :mod:`sprint_map.export.tables`. O(V + E) time, O(S) memory.
+
+        Parameters
+        ----------
+        directory : str or path-like
+            Where to write them (made if absent; files of those names are replaced), outside
+            the map's directory.
+
+        Returns
+        -------
+        ExportReport
+            ``files`` (the three paths), ``nodes`` (vertex rows), ``edges``, ``bytes``.
+
+        Raises
+        ------
+        InputError
+            ``directory`` is a file, inside the map, or cannot be made or written.
+        StorageIOError
+            Writing a file failed (none is published); LMDB cannot be read.
+        MapCorruptError
+            A damaged map.
+
+        Examples
+        --------
+        >>> import os, shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> out = tempfile.mkdtemp()
+        >>> report = smap.export_csv(out)
+        >>> [os.path.basename(f) for f in report.files], report.nodes
+        (['sequences.csv', 'vertices.csv', 'edges.csv'], 5)
+        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
+        """
         from sprint_map.export import export_csv
 
         return export_csv(self.store, directory)
 
     def export_geojson(self, path: str | os.PathLike[str]) -> ExportReport:
-        """Write drives as lines on their positions and edges as segments, as GeoJSON.
+        """Write drives as lines on their positions and edges as segments, as GeoJSON
+        (latitude/longitude when the map keeps a :meth:`geo_frame`, else its planar ``x, y``).
+        See :mod:`sprint_map.export.geojson`. O(V + E).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write (replaced if it exists), outside the map's directory.
+
+        Returns
+        -------
+        ExportReport
+            ``nodes`` (drives drawn), ``edges`` (segments drawn), ``skipped_edges`` (edges
+            with an end without a position), ``bytes``.
 
         Raises
         ------
         InputError
-            No drive has positions. See :mod:`sprint_map.export.geojson`.
+            No drive has positions (nothing is written); ``path`` a directory, inside the
+            map, or not writable.
+        StorageIOError
+            Writing the file failed (nothing is published); LMDB cannot be read.
+        MapCorruptError
+            A damaged map.
+
+        Examples
+        --------
+        >>> import os, shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> rows = rng.standard_normal((5, 8)).astype(np.float32)
+        >>> _ = smap.add_sequence(rows, name="mon", positions=np.c_[np.arange(5.0), np.zeros(5)])
+        >>> out = tempfile.mkdtemp()
+        >>> smap.export_geojson(os.path.join(out, "map.geojson")).nodes
+        1
+        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
         """
         from sprint_map.export import export_geojson
 
         return export_geojson(self.store, path)
 
     def thumbnail(self, seq_id: int, image_id: int) -> bytes | None:
-        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``, or None when the
-        drive was ingested without ``--thumbnails``. O(log n).
+        """The JPEG thumbnail of frame ``image_id`` of sequence ``seq_id``. O(log n).
+
+        Parameters
+        ----------
+        seq_id, image_id : int
+            The frame: a sequence id and a frame number of it (``0..length-1``).
+
+        Returns
+        -------
+        bytes or None
+            The JPEG, or None when the drive was ingested without ``--thumbnails``.
 
         Raises
         ------
         UnknownSequenceError
             No such sequence, or no such frame in it.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> jpegs = [b"\\xff\\xd8 frame %d \\xff\\xd9" % i for i in range(3)]  # SOI ... EOI
+        >>> rows = rng.standard_normal((3, 8)).astype(np.float32)
+        >>> _ = smap.add_sequence(rows, name="mon", thumbnails=jpegs)
+        >>> smap.thumbnail(0, 2)
+        b'\\xff\\xd8 frame 2 \\xff\\xd9'
+        >>> smap.thumbnail(0, 3)
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.UnknownSequenceError: sequence 0 has no image 3 (it has 3)
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         return self.store.thumbnail(seq_id, image_id)
 
     def drive_stats(self, seq: int | str) -> CentringStats | None:
-        """The statistics sequence ``seq`` (id or name) was stored with: its drive's frames and
-        mean descriptor as described, the drive's condition (:mod:`sprint_map.frontend.centring`),
-        or None for a sequence stored before drive statistics existed. O(dim).
+        """The statistics sequence ``seq`` was stored with: its drive's frames and mean
+        descriptor as described, the drive's condition (:mod:`sprint_map.frontend.centring`).
+        O(dim).
+
+        Parameters
+        ----------
+        seq : int or str
+            A sequence id or name.
+
+        Returns
+        -------
+        CentringStats or None
+            ``frames`` and ``mean`` (float32, ``dim``); None for a sequence stored before
+            drive statistics existed.
 
         Raises
         ------
         UnknownSequenceError
             No such sequence.
+        InputError
+            A name that is not UTF-8 text.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=4))
+        >>> _ = smap.add_sequence(np.array([[1, 0, 0, 0], [0, 1, 0, 0]], np.float32), name="mon")
+        >>> stats = smap.drive_stats("mon")
+        >>> stats.frames, stats.mean.tolist()
+        (2, [0.5, 0.5, 0.0, 0.0])
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         seq_id = seq if isinstance(seq, int) else self.sequence_by_name(seq).seq_id
         got = self.store.drive_stats(seq_id)
         return None if got is None else CentringStats(*got)
 
     def thumbnail_count(self, seq_id: int) -> int:
-        """How many thumbnails sequence ``seq_id`` keeps: its length, or 0. O(log n + count).
+        """How many thumbnails sequence ``seq_id`` keeps (a drive keeps one per frame or
+        none). O(log n + count).
+
+        Parameters
+        ----------
+        seq_id : int
+            A sequence id.
+
+        Returns
+        -------
+        int
+            Its length, or 0.
 
         Raises
         ------
         UnknownSequenceError
             No such sequence.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> rows = np.ones((3, 8), np.float32)
+        >>> _ = smap.add_sequence(rows, thumbnails=[b"\\xff\\xd8 jpeg \\xff\\xd9"] * 3)
+        >>> _ = smap.add_sequence(rows)
+        >>> smap.thumbnail_count(0), smap.thumbnail_count(1)
+        (3, 0)
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         return self.store.thumbnail_count(seq_id)
 
     def edge_table(self) -> EdgeTable:
-        """Every edge as arrays of vertex ids, probabilities and provenance (for summaries of
-        large maps; :meth:`edges` gives ``(seq, image)`` records). O(E), one snapshot; see
-        :func:`sprint_map.storage.provenance.edge_table`."""
+        """Every edge as arrays of vertex ids, probabilities and provenance, in ``(src, dst)``
+        order (for summaries of large maps; ``SprintMap.edges`` gives ``(seq, image)``
+        records). O(E), one snapshot; see :func:`sprint_map.storage.provenance.edge_table`.
+
+        Returns
+        -------
+        EdgeTable
+            ``src``, ``dst`` (vertex ids, int64), ``prob`` (float64) and ``added_by`` (the
+            sequence whose merge wrote the edge; -1 for none), one entry per directed edge.
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map (an edge record of the wrong size); LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(road, name="mon")
+        >>> _ = smap.ingest(road + 0.01 * rng.standard_normal(road.shape).astype(np.float32))
+        >>> table = smap.edge_table()
+        >>> len(table) == smap.stats()["edges"], set(table.added_by.tolist())
+        (True, {1})
+        >>> int(table.src[0]), int(table.dst[0])  # mon's frame 0 -> the new drive's frame 0
+        (0, 30)
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return edge_table(self.store)
 
     def descriptors(self, seq_id: int) -> Descriptors:
+        """The descriptor rows of sequence ``seq_id`` as stored (centred, if the map's
+        ``centring`` is on; as given otherwise). O(length * dim) bytes read.
+
+        Parameters
+        ----------
+        seq_id : int
+            A sequence id.
+
+        Returns
+        -------
+        ndarray of float32, shape (length, dim)
+            A read-only memory-mapped view when the rows lie in one shard file (valid while
+            the map is open), else a copy.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No live sequence ``seq_id``.
+        MapCorruptError, StorageIOError
+            A damaged map (a shard shorter than its rows); a shard or LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> rows = rng.standard_normal((5, 8)).astype(np.float32)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rows, name="mon")
+        >>> got = smap.descriptors(0)
+        >>> got.shape, got.dtype, bool((got == rows).all())
+        ((5, 8), dtype('float32'), True)
+        >>> del got; smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.descriptors(seq_id)
 
     def positions(self, seq_id: int) -> Float64Array | None:
-        """``(length, 4)`` ``x, y, heading_deg, timestamp`` of a sequence (a fifth column
-        ``sigma_m`` when a fix has an accuracy; NaN rows: frames without a fix), or None.
-        O(length)."""
+        """The positions sequence ``seq_id`` was stored with, in the map's frame
+        (:meth:`position_frame`). O(length).
+
+        Parameters
+        ----------
+        seq_id : int
+            A sequence id.
+
+        Returns
+        -------
+        ndarray of float64, shape (length, 4) or (length, 5), or None
+            ``x, y, heading_deg, timestamp`` per frame, a fifth column ``sigma_m`` when a
+            fix has an accuracy; NaN rows: frames without a fix; NaN columns: not given.
+            None when the drive has no position.
+
+        Raises
+        ------
+        UnknownSequenceError
+            No live sequence ``seq_id``.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> xy = np.array([[0.0, 0.0], [1.5, 0.0], [np.nan, np.nan]])  # frame 2: no fix
+        >>> _ = smap.add_sequence(np.ones((3, 8), np.float32), name="mon", positions=xy)
+        >>> smap.positions(0)
+        array([[0. , 0. , nan, nan],
+               [1.5, 0. , nan, nan],
+               [nan, nan, nan, nan]])
+        >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), name="tue")
+        >>> smap.positions(1) is None
+        True
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.positions(seq_id)
 
     def geo_frame(self) -> GeoFrame | None:
         """The UTM zone this map keeps latitude/longitude in (set by the first geographic
-        positions it was given), or None. O(1)."""
+        positions it was given: :meth:`metric_positions`). O(1).
+
+        Returns
+        -------
+        GeoFrame or None
+            The zone and hemisphere; None for a map never given latitude/longitude.
+
+        Raises
+        ------
+        MapCorruptError
+            The stored frame record is not a JSON object (a damaged map).
+        InputError
+            A JSON record that is not a UTM frame (a damaged map).
+        StorageIOError
+            LMDB cannot be read.
+
+        Examples
+        --------
+        See :meth:`metric_positions`.
+        """
         record = self.store.geo_frame()
         return None if record is None else GeoFrame.from_dict(record)
 
     def position_frame(self) -> GeoFrame | str | None:
-        """The frame of the positions this map keeps: its :class:`GeoFrame` (UTM zone) when
-        it was given latitude/longitude, ``"planar"`` when it holds positions given as
-        ``x, y`` (no geographic frame recorded), None before any position. O(1)."""
+        """The frame of the positions this map keeps. O(1).
+
+        Returns
+        -------
+        GeoFrame, "planar" or None
+            Its :class:`GeoFrame` (UTM zone) when it was given latitude/longitude,
+            ``"planar"`` when it holds positions given as ``x, y`` (no geographic frame
+            recorded), None before any position.
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> print(smap.position_frame())
+        None
+        >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), positions=np.zeros((2, 2)))
+        >>> smap.position_frame()
+        'planar'
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         frame = self.geo_frame()
         if frame is not None:
             return frame
         return "planar" if self.store.has_positions() else None
 
     def metric_positions(self, positions: Positions | None) -> Float64Array | None:
-        """Positions as the map stores them (``(n, 5)`` ``x, y, heading, time, sigma_m``):
-        latitude/longitude are projected into the map's UTM zone, which the first geographic
-        positions a map is given choose (the zone of their first fix) and store, once, in a
-        transaction of their own (a read-only map only projects into it). Planar positions
-        are taken as they are. O(n).
+        """Positions as the map stores them: latitude/longitude are projected into the map's
+        UTM zone, which the first geographic positions a map is given choose (the zone of
+        their first fix) and store, once, in a transaction of their own (a read-only map only
+        projects into it). Planar positions are taken as they are. O(n).
+
+        Parameters
+        ----------
+        positions : Positions or None
+            A drive's positions (:mod:`sprint_map.frontend.positions`), planar or geographic.
+
+        Returns
+        -------
+        ndarray of float64, shape (n, 5), or None
+            ``x, y, heading_deg, time, sigma_m`` (NaN: not given; NaN ``x, y``: no fix);
+            None for None.
 
         Raises
         ------
         InputError
             Geographic positions without a single fix; positions of the other frame than the
             map's (:meth:`check_position_frames`).
+        StorageIOError
+            Storing the frame failed (nothing is stored); LMDB cannot be read.
+        MapCorruptError
+            A damaged map.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.frontend.positions import Positions
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> latlon = np.array([[59.3293, 18.0686], [59.3294, 18.0688]])  # Stockholm
+        >>> rows = smap.metric_positions(Positions(np.arange(2), latlon, geographic=True))
+        >>> smap.geo_frame(), rows.shape
+        (GeoFrame(zone=34, south=False), (2, 5))
+        >>> np.round(rows[:, :2]).tolist()  # easting, northing (metres)
+        [[333230.0, 6580391.0], [333242.0, 6580402.0]]
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         return self.metric_positions_of([positions])[0]
 
@@ -173,10 +737,40 @@ class MapReading:
         other and with the map (:meth:`position_frame`): latitude/longitude into a map of
         planar ``x, y`` or the reverse, or both kinds in one call. O(len(tables)).
 
+        Parameters
+        ----------
+        tables : sequence of Positions or None
+            The positions of the drives of one call (None: a drive without).
+
+        Returns
+        -------
+        None
+            When they fit.
+
         Raises
         ------
         InputError
             Naming the frame the map keeps and the one given.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.frontend.positions import Positions
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), positions=np.zeros((2, 2)))
+        >>> planar = Positions(np.arange(2), np.zeros((2, 2)))
+        >>> smap.check_position_frames([planar, None])
+        >>> latlon = Positions(np.arange(2), np.full((2, 2), 45.0), geographic=True)
+        >>> smap.check_position_frames([latlon])
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.InputError: latitude/longitude positions given to a map of planar x, y
+        positions: give x,y positions in the map's frame, or use another map
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         kinds = {"geographic" if t.geographic else "planar" for t in tables if t is not None}
         if len(kinds) > 1:
@@ -200,7 +794,48 @@ class MapReading:
                             ) -> list[Float64Array | None]:
         """:meth:`metric_positions` of several drives' positions (one ingest), checked
         together first (:meth:`check_position_frames`): nothing is stored when any is refused.
-        O(total rows)."""
+        The first fix of any of them chooses a new map's UTM zone. O(total rows).
+
+        Parameters
+        ----------
+        tables : sequence of Positions or None
+            The drives' positions, in drive order (None: a drive without).
+
+        Returns
+        -------
+        list of (ndarray of float64, shape (n, 5)) or None
+            One per table, as :meth:`metric_positions` gives it.
+
+        Raises
+        ------
+        InputError
+            Both frames among ``tables``, or the other frame than the map's; geographic
+            positions without any fix.
+        StorageIOError
+            Storing the frame failed (nothing is stored); LMDB cannot be read.
+        MapCorruptError
+            A damaged map.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.frontend.positions import Positions
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> nofix = Positions(np.arange(1), np.full((1, 2), np.nan), geographic=True)
+        >>> south = Positions(np.arange(1), np.array([[-33.87, 151.21]]), geographic=True)
+        >>> [None if r is None else r.shape for r in smap.metric_positions_of([nofix, None, south])]
+        [(1, 5), None, (1, 5)]
+        >>> smap.geo_frame()  # chosen by the first fix: Sydney's
+        GeoFrame(zone=56, south=True)
+        >>> smap.metric_positions_of([Positions(np.arange(1), np.zeros((1, 2))), south])
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.InputError: positions mix latitude/longitude and planar x, y: a map
+        keeps one frame (give all drives lat,lon or all x,y)
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         self.check_position_frames(tables)
         out: list[Float64Array | None] = []
         for positions in tables:
@@ -220,47 +855,250 @@ class MapReading:
         return out
 
     def vertex_rows(self, start: int, stop: int | None = None) -> Descriptors:
-        """Descriptor rows of vertex ids ``start..stop-1`` as stored (``stop`` None: up to the
-        last committed vertex), removed sequences' rows included (their ids stay until
-        ``compact``). A read-only view when the range lies in one shard file.
+        """Descriptor rows of vertex ids ``start..stop-1`` as stored, removed sequences' rows
+        included (their ids stay until ``compact``): what a retrieval shard of the fleet loads
+        (:mod:`sprint_map.fleet.shards`). O((stop - start) * dim) bytes read.
 
-        Notes
-        -----
-        O((stop - start) * dim) bytes read; what a retrieval shard of the fleet loads
-        (:mod:`sprint_map.fleet.shards`).
+        Parameters
+        ----------
+        start : int
+            The first vertex id.
+        stop : int, optional
+            One past the last; None: up to the last committed vertex.
+
+        Returns
+        -------
+        ndarray of float32, shape (stop - start, dim)
+            A read-only memory-mapped view when the range lies in one shard file, else a copy.
+
+        Raises
+        ------
+        IndexError
+            A range outside ``0..vertices`` (or ``stop < start``).
+        MapCorruptError, StorageIOError
+            A damaged map; a shard or LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=2))
+        >>> _ = smap.add_sequence(np.array([[0, 1], [2, 3], [4, 5]], np.float32), name="mon")
+        >>> _ = smap.add_sequence(np.array([[6, 7]], np.float32), name="tue")
+        >>> _ = smap.remove_sequences(["mon"])
+        >>> smap.vertex_rows(1).tolist()  # mon's rows stay until compact
+        [[2.0, 3.0], [4.0, 5.0], [6.0, 7.0]]
+        >>> smap.close(); shutil.rmtree(smap.path)
         """
         total = self.stats()["vertices"]
         return self.store.shards.rows(start, total if stop is None else stop, total)
 
     def removed_ranges(self) -> RemovedRanges:
-        """The vertex ranges of removed sequences (hidden from every search). O(removed)."""
+        """The vertex ranges of removed sequences, hidden from every search until ``compact``
+        reclaims them. O(removed) (cached until the next removal).
+
+        Returns
+        -------
+        RemovedRanges
+            ``first``, ``last`` (inclusive) and ``seq_ids`` arrays, sorted; ``count``
+            (ranges), ``vertices`` and ``contains(vertex_ids)`` (a mask).
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> for name, n in (("mon", 5), ("tue", 3)):
+        ...     _ = smap.add_sequence(np.ones((n, 8), np.float32), name=name)
+        >>> _ = smap.remove_sequences(["mon"])
+        >>> removed = smap.removed_ranges()
+        >>> removed.count, removed.vertices, removed.contains(np.array([4, 5])).tolist()
+        (1, 5, [True, False])
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         with self.store.env.read() as txn:
             return self.store.removed_ranges(txn)
 
     def stats(self) -> dict[str, int]:
-        """Counts of sequences, vertices, edges and components. O(1)."""
+        """Counts of the map, from its meta record. O(1).
+
+        Returns
+        -------
+        dict of str to int
+            ``sequences`` and ``components`` (live), ``vertices`` (every vertex id given, a
+            removed sequence's included until ``compact``) and ``edges`` (directed).
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A counter missing or of the wrong size (a damaged map); LMDB cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> smap.stats()
+        {'sequences': 1, 'vertices': 5, 'edges': 0, 'components': 1}
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.stats()
 
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
-        """Exact k-NN over all committed descriptors: ``(squared L2 distances, vertex ids)``.
+        """k-NN over all live committed descriptors (removed sequences' filtered out), with
+        exact distances (the approximate index re-ranks its candidates on the true rows).
         ``queries`` are in the map's space: a drive's descriptors pass through
-        :meth:`~sprint_map.map.SprintMap.drive_centring` first."""
+        :meth:`~sprint_map.map.SprintMap.drive_centring` first. O(vertices * dim) a query
+        with the exact index; the approximate one scans O(sqrt(vertices)) codes.
+
+        Parameters
+        ----------
+        queries : array_like, shape (q, dim)
+            Query descriptors (converted to float32).
+        k : int
+            Hits per query; more than the map holds is allowed (padded).
+
+        Returns
+        -------
+        distances : ndarray of float32, shape (q, k)
+            Exact squared L2 distances, ascending in each row (padding: float32's largest).
+        ids : ndarray of int64, shape (q, k)
+            Vertex ids (:meth:`locate` names their frames); -1 for padding, at the end.
+
+        Raises
+        ------
+        DescriptorShapeError
+            ``queries`` not numeric, not 2-D, or not of the map's dimension.
+        EmptySequenceError
+            No query row.
+        InvalidDescriptorError
+            A query holding NaN or Inf.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB, a shard or the index cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng = np.random.default_rng(0)
+        >>> rows = rng.standard_normal((6, 8)).astype(np.float32)
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(rows, name="mon")
+        >>> distances, ids = smap.search(rows[[3]] + 0.01, 8)
+        >>> smap.locate([ids[0, 0]]), ids[0, -2:].tolist()  # frame 3 first; 2 hits of padding
+        ([(0, 3)], [-1, -1])
+        >>> float(distances[0, 0]) < 0.01
+        True
+        >>> smap.search(rows[3], 1)
+        Traceback (most recent call last):
+            ...
+        sprint_map.errors.DescriptorShapeError: descriptors must be a 2-D array (N x 8), got (8,)
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.search(queries, k)
 
     def search_within(self, queries: DescriptorsLike, k: int, start: int,
                       stop: int | None = None) -> SearchResult:
         """:meth:`search` among vertex ids ``[start, stop)`` only, on the map's approximate
-        index (ValueError while it is exact): what a retrieval shard of the fleet answers.
-        O(the index segments holding ids of the range)."""
+        index: what a retrieval shard of the fleet answers (its range: whole segments,
+        :meth:`index_segments`). O(the index segments holding ids of the range).
+
+        Parameters
+        ----------
+        queries : array_like, shape (q, dim)
+            Query descriptors, as for :meth:`search`.
+        k : int
+            Hits per query.
+        start : int
+            The first vertex id of the range.
+        stop : int, optional
+            One past its last (None: to the last committed vertex).
+
+        Returns
+        -------
+        distances, ids : ndarray, shape (q, k)
+            As :meth:`search` gives them, every id in the range.
+
+        Raises
+        ------
+        ValueError
+            The map's index is exact (``flat``, or ``auto`` while the map is small).
+        DescriptorShapeError, EmptySequenceError, InvalidDescriptorError
+            Queries refused, as by :meth:`search`.
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB, a shard or the index cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> smap.search_within(np.ones((1, 8)), 2, 0)
+        Traceback (most recent call last):
+            ...
+        ValueError: a search within a vertex range needs the approximate index; this map's ...
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.search_within(queries, k, start, stop)
 
     def index_segments(self) -> list[tuple[int, int]]:
-        """Vertex ranges ``(start, stop)`` of the approximate index's sealed segments (none
-        while it is exact): where retrieval shards cut the map. O(segments)."""
+        """Vertex ranges of the approximate index's sealed segments: where retrieval shards
+        cut the map (:mod:`sprint_map.fleet.shards`). O(segments) once the index is loaded
+        (loading it catches it up with the shards first).
+
+        Returns
+        -------
+        list of (int, int)
+            ``(start, stop)`` of each sealed segment, in order; none while the index is
+            exact or before its first segment is sealed.
+
+        Raises
+        ------
+        MapCorruptError, StorageIOError
+            A damaged map; LMDB, a shard or the index cannot be read.
+
+        Examples
+        --------
+        >>> import shutil, tempfile
+        >>> import numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> smap.index_segments()  # a small map's index is exact
+        []
+        >>> smap.close(); shutil.rmtree(smap.path)
+        """
         return self.store.index_segments()
 
     @staticmethod
     def cap_search_threads(n: int) -> None:
         """Use at most ``n`` OpenMP threads for the searches of the calling thread from now on
-        (any map; e.g. the service's batch searcher, whose other core answers HTTP)."""
+        (any map; e.g. the service's batch searcher, whose other core answers HTTP). O(1).
+
+        Parameters
+        ----------
+        n : int
+            The most threads; values below 1 count as 1.
+
+        Returns
+        -------
+        None
+
+        Examples
+        --------
+        >>> from sprint_map import SprintMap
+        >>> SprintMap.cap_search_threads(1)  # this thread's searches: one thread each
+        """
         cap_threads(n)
