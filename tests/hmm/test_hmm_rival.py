@@ -9,8 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from sprint_map.hmm import FullGraphFilter, HMMConfig, MemoryGraphSource, ObservationModel
-from sprint_map.hmm import SprintFilter
+from sprint_map.hmm import (
+    FullGraphFilter,
+    HMMConfig,
+    MemoryGraphSource,
+    ObservationModel,
+    SprintFilter,
+)
 from sprint_map.hmm.observation import sequence_first_of
 
 
