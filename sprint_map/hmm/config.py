@@ -69,8 +69,9 @@ class HMMConfig:
     #: Log-likelihood advantage of the farthest hit over an unretrieved vertex.
     miss_margin: float = 1.0
     #: The *drive rival* (issue 51; 0: off): a hit's advantage is measured from the nearer of
-    #: ``d_far`` and its drive's closest other hit more than this many images away, so a drive
-    #: close to the frame everywhere (its condition, not the place) gains nothing.
+    #: ``d_far`` and its drive's closest other hit (among the ``k`` nearest) more than this many
+    #: images away, so a drive close to the frame everywhere (its condition) gains nothing.
+    #: Off: on the Nordland pair it costs merge precision (``docs/decisions.md``, "Front end").
     rival_reach: int = 0
     #: Log-likelihood of the sink over an unretrieved vertex. Between 0 and ``miss_margin`` the
     #: sink beats stale hypotheses the retrieval no longer supports, not retrieved ones.

@@ -12,8 +12,9 @@ repeated ids keep their smallest distance) and kernel scale ``T``:
   farthest hit. This is the exponential kernel ``exp(-d / T)`` made relative to the frame.
 * with ``rival_reach = R > 0`` (the *drive rival*, issue 51) and a source that tells each
   vertex's sequence: ``d_far`` in hit ``i``'s ratio becomes ``min(d_far, d_r)``, ``d_r`` the
-  distance of the nearest other hit of the same sequence more than ``R`` images from it, and
-  the advantage is clipped at 0: ``log L_i = max(min(d_far, d_r) - d_i, 0) / T + miss_margin``.
+  distance of the nearest other hit of the same sequence more than ``R`` images from it (among
+  the frame's ``k`` nearest: a deep pass's rivals are the causal filter's), and the advantage
+  is clipped at 0: ``log L_i = max(min(d_far, d_r) - d_i, 0) / T + miss_margin``.
   A drive near the frame everywhere (its condition, not the place) has such rivals and gains
   nothing over the farthest hit; a place's sharp minimum has none and keeps its ratio (SeqSLAM's
   local contrast, along the stored drive). O(k^2) more per frame, in numpy.
