@@ -32,7 +32,7 @@ FLAT_RECORD = {
             "edge_weight": 1.0, "prune_threshold": 0.0001, "max_active_components": 8,
             "support_threshold": 1e-06, "restart_prob": 0.01, "new_place_prob": 0.01,
             "dist_scale": None, "dist_scale_ema": 0.05, "dist_scale_factor": 0.5,
-            "miss_margin": 1.0, "novelty_margin": 0.25, "novelty_dist": None,
+            "miss_margin": 1.0, "rival_reach": 0, "novelty_margin": 0.25, "novelty_dist": None,
             "novelty_quantile": 0.85, "novelty_window": 100, "place_radius": 2, "place_hops": 4,
             "contrast_reach": 20, "decision_candidates": 4, "min_confidence": 0.2,
             "cache_budget_bytes": 268435456},

@@ -68,6 +68,11 @@ class HMMConfig:
     dist_scale_factor: float = 0.5
     #: Log-likelihood advantage of the farthest hit over an unretrieved vertex.
     miss_margin: float = 1.0
+    #: The *drive rival* (issue 51; 0: off): a hit's advantage is measured from the nearer of
+    #: ``d_far`` and its drive's closest other hit (among the ``k`` nearest) more than this many
+    #: images away, so a drive close to the frame everywhere (its condition) gains nothing.
+    #: Off: on the Nordland pair it costs merge precision (``docs/decisions.md``, "Front end").
+    rival_reach: int = 0
     #: Log-likelihood of the sink over an unretrieved vertex. Between 0 and ``miss_margin`` the
     #: sink beats stale hypotheses the retrieval no longer supports, not retrieved ones.
     novelty_margin: float = 0.25
@@ -122,6 +127,7 @@ class HMMConfig:
         check_number("dist_scale_ema", self.dist_scale_ema, 0.0, 1.0, lo_open=True)
         check_number("dist_scale_factor", self.dist_scale_factor, 0.0, math.inf, lo_open=True)
         check_number("miss_margin", self.miss_margin, 0.0, 700.0)
+        check_int("rival_reach", self.rival_reach, 0)
         check_number("novelty_margin", self.novelty_margin, -700.0, 700.0)
         if self.novelty_dist is not None:
             check_number("novelty_dist", self.novelty_dist, 0.0, math.inf)

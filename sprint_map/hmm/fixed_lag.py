@@ -40,7 +40,7 @@ from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision
 from sprint_map.hmm.graph import GraphSource
-from sprint_map.hmm.observation import ObservationModel
+from sprint_map.hmm.observation import ObservationModel, sequence_first_of
 from sprint_map.hmm.smoother import (
     DecisionScratch,
     FrameBelief,
@@ -100,7 +100,7 @@ class FixedLagSmoother:
         self.config = config
         self.source = source
         self.filter = SprintFilter(config, source, cache)
-        self._obs = ObservationModel(config)
+        self._obs = ObservationModel(config, sequence_first_of(source))
         self._scratch = DecisionScratch()
         self.reset()
 

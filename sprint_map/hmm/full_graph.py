@@ -71,10 +71,17 @@ class FullGraphFilter:
         self._vids = np.empty(self.n_vertices, dtype=_I64)
         for g, off in zip(graphs, self._offsets.tolist(), strict=True):
             self._vids[off: off + g.n_vertices] = g.vertex_ids()
-        self._obs = ObservationModel(config)
+        self._obs = ObservationModel(config, self.sequence_first)
         self._eps = config.restart_prob
         self._nu = config.new_place_prob
         self.reset()
+
+    def sequence_first(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """The first vertex id of each vertex's sequence (the drive rival's look-up)."""
+        ids = np.asarray(vertex_ids, dtype=_I64)
+        at = np.maximum(np.searchsorted(self._firsts, ids, side="right") - 1, 0)
+        out: np.ndarray = self._firsts[at]
+        return out
 
     def reset(self) -> None:
         """Forget the belief (all mass off the map until the first frame)."""

@@ -329,6 +329,13 @@ class MemoryGraphSource:
     def _seq_of(self, vids: np.ndarray) -> np.ndarray:
         return np.searchsorted(self.seq_first, vids, side="right") - 1
 
+    def sequence_first(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """The first vertex id of each vertex's sequence (the drive rival's look-up;
+        :func:`~sprint_map.hmm.observation.sequence_first_of`). O(m log S)."""
+        vids = np.asarray(vertex_ids, dtype=_I64)
+        out: np.ndarray = self.seq_first[np.maximum(self._seq_of(vids), 0)]
+        return out
+
     @property
     def component_ids(self) -> list[int]:
         """Ids of all components, ascending."""

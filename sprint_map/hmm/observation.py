@@ -10,6 +10,14 @@ repeated ids keep their smallest distance) and kernel scale ``T``:
 * hit ``i``: ``log L_i = (d_far - d_i) / T + miss_margin``. An unretrieved vertex is only known
   to be at least as far as ``d_far``; ``miss_margin`` is how much less likely it is than the
   farthest hit. This is the exponential kernel ``exp(-d / T)`` made relative to the frame.
+* with ``rival_reach = R > 0`` (the *drive rival*, issue 51) and a source that tells each
+  vertex's sequence: ``d_far`` in hit ``i``'s ratio becomes ``min(d_far, d_r)``, ``d_r`` the
+  distance of the nearest other hit of the same sequence more than ``R`` images from it (among
+  the frame's ``k`` nearest: a deep pass's rivals are the causal filter's), and the advantage
+  is clipped at 0: ``log L_i = max(min(d_far, d_r) - d_i, 0) / T + miss_margin``.
+  A drive near the frame everywhere (its condition, not the place) has such rivals and gains
+  nothing over the farthest hit; a place's sharp minimum has none and keeps its ratio (SeqSLAM's
+  local contrast, along the stored drive). O(k^2) more per frame, in numpy.
 * sink ("off the map"): ``log L_s = novelty_margin``; if ``novelty_dist`` is set and
   ``d_1 > novelty_dist``, at least the value of a hit at ``novelty_dist``.
 * a frame without valid hits carries no information: ``log L_s = 0`` like every vertex.
@@ -27,13 +35,26 @@ whose distances live on very different scales (HoG: spread ~0.03; patch-normalis
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from sprint_map.hmm.config import HMMConfig
 
-__all__ = ["Observation", "ObservationModel"]
+__all__ = ["Observation", "ObservationModel", "SequenceFirst", "sequence_first_of"]
+
+#: Vertex ids (int64) -> the first vertex id of each one's sequence (a source's
+#: ``sequence_first``): two hits are of one sequence iff these agree.
+SequenceFirst = Callable[[np.ndarray], np.ndarray]
+
+
+def sequence_first_of(source: Any) -> SequenceFirst | None:
+    """``source.sequence_first`` if the graph source has one (the drive rival needs it), else
+    None (the rival is then off)."""
+    found = getattr(source, "sequence_first", None)
+    return found if callable(found) else None
 
 _CLIP = 200.0
 _MIN_SCALE = 1e-12
@@ -72,6 +93,9 @@ class ObservationModel:
     Parameters
     ----------
     config : HMMConfig
+    sequence_first : callable, optional
+        Each vertex's sequence (:data:`SequenceFirst`), for ``config.rival_reach``; without it
+        the rival is off.
 
     Notes
     -----
@@ -80,9 +104,12 @@ class ObservationModel:
     """
 
     __slots__ = ("_ema", "_factor", "_fixed", "_margin", "_novelty_dist", "_novelty_margin",
-                 "_one_hit", "_plain", "_scale", "_sink_const")
+                 "_k", "_one_hit", "_plain", "_reach", "_scale", "_seq_first", "_sink_const")
 
-    def __init__(self, config: HMMConfig) -> None:
+    def __init__(self, config: HMMConfig, sequence_first: SequenceFirst | None = None) -> None:
+        self._reach = config.rival_reach if sequence_first is not None else 0
+        self._seq_first = sequence_first
+        self._k = config.k
         self._fixed = config.dist_scale
         self._ema = config.dist_scale_ema
         self._factor = config.dist_scale_factor
@@ -232,11 +259,29 @@ class ObservationModel:
                 self._scale + self._ema * (gap - self._scale))
         scale = self._scale_now()
         margin = self._margin
-        if (d_far - d_near) / scale + margin <= _CLIP:  # the largest exponent: no clip needed
+        if self._reach and len(ds) > 1:
+            lik = self._rival_liks(vids, ds, d_far, scale)
+        elif (d_far - d_near) / scale + margin <= _CLIP:  # the largest exponent: no clip needed
             lik = [math.exp((d_far - d) / scale + margin) for d in ds]
         else:
             lik = [math.exp(min((d_far - d) / scale + margin, _CLIP)) for d in ds]
         return vids, ds, lik, self._sink_lik(d_near, d_far, scale), scale
+
+    def _rival_liks(self, vids: list[int], ds: list[float], d_far: float, scale: float
+                    ) -> list[float]:
+        """The likelihood ratios under the drive rival (module notes). O(k^2) in numpy."""
+        assert self._seq_first is not None
+        v = np.asarray(vids, dtype=np.int64)
+        d = np.asarray(ds, dtype=np.float64)
+        first = np.asarray(self._seq_first(v), dtype=np.int64)
+        rivals = (first[:, None] == first[None, :]) & (np.abs(v[:, None] - v[None, :])
+                                                        > self._reach)
+        if len(d) > self._k:  # rivals among the frame's k nearest (a deep pass's 64 too)
+            rivals &= (d <= np.partition(d, self._k - 1)[self._k - 1])[None, :]
+        ref = np.minimum(np.where(rivals, d[None, :], d_far).min(axis=1), d_far)
+        log = np.minimum(np.maximum(ref - d, 0.0) / scale + self._margin, _CLIP)
+        out: list[float] = np.exp(log).tolist()
+        return out
 
     def _weighted(self, hit_ids: np.ndarray, hit_dists: np.ndarray,
                   weights: np.ndarray | None, sink_weight: float

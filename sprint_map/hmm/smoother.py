@@ -43,7 +43,7 @@ from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import BeliefView, Decision, decide, place_contrast, top_positions
 from sprint_map.hmm.graph import GraphSource
-from sprint_map.hmm.observation import ObservationModel
+from sprint_map.hmm.observation import ObservationModel, sequence_first_of
 from sprint_map.hmm.sprint_filter import SprintFilter
 from sprint_map.hmm.transition import (
     ComponentTransition,
@@ -259,7 +259,7 @@ class ForwardBackward:
                  cache: ComponentCache | None = None) -> None:
         self.config = config
         self.filter = SprintFilter(config, source, cache)
-        self._obs = ObservationModel(config)
+        self._obs = ObservationModel(config, sequence_first_of(source))
         self.frames: list[FrameBelief] = []
 
     def reset(self) -> None:

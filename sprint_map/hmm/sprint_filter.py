@@ -42,7 +42,7 @@ from sprint_map.hmm.cache import ComponentCache
 from sprint_map.hmm.config import HMMConfig
 from sprint_map.hmm.decision import Decision, decide, top_candidates
 from sprint_map.hmm.graph import GraphSource
-from sprint_map.hmm.observation import ObservationModel
+from sprint_map.hmm.observation import ObservationModel, sequence_first_of
 from sprint_map.hmm.support import TRIM_EVERY, runs
 from sprint_map.hmm.transition import FLUSH_BELOW, FLUSH_EVERY, ComponentTransition
 
@@ -112,7 +112,7 @@ class SprintFilter:
         self.config = config
         self.source = source
         self.cache = cache if cache is not None else ComponentCache(config.cache_budget_bytes)
-        self._obs = ObservationModel(config)
+        self._obs = ObservationModel(config, sequence_first_of(source))
         self._one_hit_lik = self._obs.one_hit_lik
         self._sink_lik_const = self._obs.sink_lik_const
         self._active = ActiveSet()

@@ -140,8 +140,24 @@ class StoredMapView:
             out[missing] = self._components_read(ids[missing], known)
         return out
 
-    def _components_read(self, ids: np.ndarray, known: KnownSequences | None) -> np.ndarray:
-        """:meth:`components_of` from LMDB (each sequence met recorded in ``known``)."""
+    def sequence_first(self, vertex_ids: np.ndarray) -> np.ndarray:
+        """The first vertex id of each global vertex id's sequence (the HMM's drive rival,
+        :func:`~sprint_map.hmm.observation.sequence_first_of`); the same reads as
+        :meth:`components_of`, from memory for the sequences known at the pinned version."""
+        ids = np.asarray(vertex_ids, dtype=np.int64).ravel()
+        snap = self._snapshot
+        if snap is None:
+            firsts = np.empty(len(ids), dtype=np.int64)
+            self._components_read(ids, None, firsts)
+            return firsts
+        self.components_of(ids)  # every range now known at this version
+        assert self._known is not None
+        return self._known.firsts(ids)
+
+    def _components_read(self, ids: np.ndarray, known: KnownSequences | None,
+                         firsts: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`components_of` from LMDB (each sequence met recorded in ``known``; each
+        vertex's sequence's first vertex written to ``firsts`` if given)."""
         store = self.store
         out = np.empty(len(ids), dtype=np.int64)
         with self._txn() as txn:
@@ -160,6 +176,8 @@ class StoredMapView:
                 if vid < found[1]:  # the floor seek passed a removed range: never a hit
                     raise ValueError(f"vertex {vid} belonged to a removed sequence")
                 out[i] = found[0]
+                if firsts is not None:
+                    firsts[i] = found[1]
         return out
 
     def load_component(self, component_id: int) -> ComponentGraph:
@@ -236,3 +254,13 @@ class KnownSequences:
         safe = np.maximum(at, 0)
         missing: np.ndarray = (at < 0) | (ids > lasts[safe])
         return roots[safe], missing
+
+    def firsts(self, ids: np.ndarray) -> np.ndarray:
+        """The first vertex of the known range holding each of ``ids`` (each must be known:
+        :meth:`lookup` found it)."""
+        if self._arrays is None:
+            self.lookup(ids[:0])
+        assert self._arrays is not None
+        starts = self._arrays[0]
+        out: np.ndarray = starts[np.maximum(starts.searchsorted(ids, "right") - 1, 0)]
+        return out

@@ -75,6 +75,14 @@ class GraphSourceContract:
         many = source.components_of(np.array([9, 0, 9, 14], dtype=np.int64))
         assert one.shape == (1,) and many.tolist() == [one[0], one[0], one[0], many[3]]
 
+    def test_sequence_first_names_each_vertex_sequence(self, built):
+        """The drive rival's look-up (``HMMConfig.rival_reach``): the first vertex id of each
+        vertex's sequence."""
+        source, _ = built
+        ids = np.arange(sum(self.LENGTHS), dtype=np.int64)[::-1].copy()
+        want = np.repeat([self.first(s) for s in range(len(self.LENGTHS))], self.LENGTHS)[::-1]
+        assert source.sequence_first(ids).tolist() == want.tolist()
+
     def test_load_component_gives_its_sequences_and_edges(self, built):
         source, seq_ids = built
         for group in self.GROUPS:

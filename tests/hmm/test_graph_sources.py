@@ -42,3 +42,10 @@ class TestStoredMapView(GraphSourceContract):
                                         edges=mine)
             seq_ids.append(result.sequence.seq_id)
         return StoredMapView(store), seq_ids
+
+    def test_sequence_first_pinned_reads_the_known_ranges(self, tmp_path: Path):
+        source, _ = self.make(tmp_path, self.LENGTHS, self.EDGES)
+        ids = np.array([14, 0, 5, 11, 26, 20], dtype=np.int64)
+        with source.pinned():
+            assert source.sequence_first(ids).tolist() == [12, 0, 5, 5, 25, 19]
+            assert source.sequence_first(ids[:2]).tolist() == [12, 0]  # from memory now
