@@ -518,7 +518,7 @@ class SprintMap(MapReading):
         under ``exclusive()`` (a lock that excludes this process's searches and commits). For
         a service's writer thread, between commits; True if the index was retrained. See
         :meth:`sprint_map.storage.index.map_index.IndexStore.retrain_beside`."""
-        self.store.index.defer_retrain = True
+        self.store.defer_index_retraining()
         return self.store.retrain_index_beside(exclusive)
 
     def learn(self) -> dict[str, Any]:
