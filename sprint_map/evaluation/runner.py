@@ -42,14 +42,18 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map import HMMConfig
+from sprint_map import (
+    Dataset,
+    FrameDecision,
+    GnssModel,
+    GroundTruth,
+    HMMConfig,
+    Traversal,
+    simulate_fixes,
+)
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
-from sprint_map.frontend.dataset import Dataset, Traversal
-from sprint_map.frontend.gnss import GnssModel, simulate_fixes
-from sprint_map.frontend.groundtruth import GroundTruth
-from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Descriptors

@@ -28,10 +28,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sprint_map import HMMConfig
+from sprint_map import HMMConfig, VprDataset
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError, InputError
-from sprint_map.frontend.vpr import VprDataset
 from sprint_map.map import SprintMap
 from sprint_map.util.atomic import publish_bytes
 

@@ -29,11 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map import HMMConfig
+from sprint_map import HMMConfig, IngestResult, PreparedDrive
 from sprint_map.errors import SprintMapError
 from sprint_map.map import SprintMap
-from sprint_map.merge.commit import IngestResult
-from sprint_map.merge.prepared import PreparedDrive
 from sprint_map.util.arrays import Descriptors
 
 __all__ = ["FarmResult", "LocalisedDrive", "farm_ingest", "localise_drive"]

@@ -14,10 +14,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from sprint_map import HMMConfig
+from sprint_map import DriveLocalisation, HMMConfig, LocaliseMany
 from sprint_map.errors import SprintMapError
 from sprint_map.map import SprintMap
-from sprint_map.merge.join import DriveLocalisation, LocaliseMany
 
 __all__ = ["TASK_RETRIES", "farm_localise_join", "localise_joined_drive"]
 

@@ -21,9 +21,8 @@ from typing import Any
 import anyio
 import numpy as np
 
+from sprint_map import LaggedLocalizer, Localizer, validate_lag
 from sprint_map.errors import SprintMapError
-from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
-from sprint_map.localize.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig

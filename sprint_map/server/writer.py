@@ -23,10 +23,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sprint_map import AddResult
-from sprint_map.localize.localizer import FrameDecision
+from sprint_map import AddResult, DriveWriter, FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
 from sprint_map.util.arrays import Descriptors
