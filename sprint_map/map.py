@@ -646,13 +646,8 @@ class SprintMap(MapReading):
         if lag:
             from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
 
-            validate_lag(lag)
-            if smooth or observe is not None or thumbnails is not None:
-                raise InputError("a lag answers frames as the drive goes: it cannot be "
-                                 "combined with smoothing the whole drive, thumbnails or a trace")
-            if fixes is not None:
-                raise InputError("GNSS fixes are not supported with a lag: localise with "
-                                 "--positions without --lag, or with --lag without positions")
+            validate_lag(lag, whole_drive=smooth or observe is not None or thumbnails is not None,
+                         fixes=fixes is not None)
             base = hmm or self.config.hmm
             lagged = LaggedLocalizer(self, lag, dataclass_dict.replace(base, **overrides)
                                      if overrides else base)

@@ -334,12 +334,7 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
     if lag:
         from sprint_map import validate_lag
 
-        validate_lag(lag)
-    if lag and (smooth or trace):
-        raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
-                         "--smooth (the whole drive) or --trace")
-    if lag and positions:
-        raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
+        validate_lag(lag, whole_drive=bool(smooth or trace), fixes=bool(positions), flags=True)
     overrides = hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
             progress_display("localising", quiet, after="smoothing" if smooth else None
