@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
     from sprint_map.localize.trace import Trace, TraceRecorder, read_trace
     from sprint_map.map import SprintMap
+    from sprint_map.map_service import MapService
     from sprint_map.merge.commit import DriveWriter, IngestResult
     from sprint_map.merge.drives import Drive
     from sprint_map.merge.join import DriveLocalisation, LocaliseMany
@@ -68,6 +69,7 @@ _USER = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.merge.commit
 
 #: The doors of the layers on top: each name they use of the layers below, and its module.
 _DOORS = {
+    "MapService": "sprint_map.map_service",
     "DriveWriter": "sprint_map.merge.commit",
     "PreparedDrive": "sprint_map.merge.prepared",
     "DriveLocalisation": "sprint_map.merge.join", "LocaliseMany": "sprint_map.merge.join",
@@ -92,7 +94,7 @@ __all__ = ["MAX_IMAGE_PIXELS", "MAX_LAG", "SCHEMA_VERSION", "AddResult", "BagOpt
            "CheckReport", "CompactReport", "ComponentInfo", "Dataset", "DescriptorSpec", "Drive",
            "DriveCentring", "DriveLocalisation", "DriveWriter", "EdgeInfo", "EdgeSpec",
            "FrameDecision", "GnssModel", "GroundTruth", "HMMConfig", "IngestResult",
-           "LaggedLocalizer", "LocaliseMany", "Localizer", "MapConfig",
+           "LaggedLocalizer", "LocaliseMany", "Localizer", "MapConfig", "MapService",
            "PreparedDrive", "RemoveResult", "RepairReport", "SequenceRecord", "SprintMap",
            "SprintMapError", "Timing", "Trace", "TraceRecorder", "Traversal", "UnmergeResult",
            "VprDataset", "describe_encoded", "drive_names", "drive_positions", "gnss_fixes",

@@ -46,7 +46,7 @@ USER_NAMES = [
 DOOR_NAMES = [
     "BagOptions", "Dataset", "DescriptorSpec", "DriveCentring", "DriveLocalisation",
     "DriveWriter", "GnssModel", "GroundTruth", "LaggedLocalizer", "LocaliseMany",
-    "MAX_IMAGE_PIXELS", "MAX_LAG", "PreparedDrive", "Trace", "TraceRecorder",
+    "MAX_IMAGE_PIXELS", "MAX_LAG", "MapService", "PreparedDrive", "Trace", "TraceRecorder",
     "Traversal", "VprDataset", "describe_encoded", "drive_names", "drive_positions",
     "gnss_fixes", "onnx_params", "own_positions", "read_trace", "simulate_fixes",
     "validate_lag"]

@@ -16,7 +16,7 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 - ``lifelong``: the decisions and the mask of the ingest that committed the drive;
   ``edges_added`` is the commit's count.
 - ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
-  (:meth:`SprintMap.select_merges <sprint_map.map.SprintMap.select_merges>`), and
+  (:meth:`MapService.select_merges <sprint_map.map_service.MapService.select_merges>`), and
   ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
   decision when ``config.merge.both_ways``).
 
@@ -263,7 +263,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     db_names = list(names.values())
     frames = np.arange(len(rows))
     kmax = max(ks)
-    _, ids = m.search(m.drive_centring().apply(rows), kmax)  # in the map's space
+    _, ids = m.search(m.service.drive_centring().apply(rows), kmax)  # in the map's space
     located = m.locate(ids[ids >= 0].ravel())
     seq = np.full(ids.shape, -1)
     img = np.full(ids.shape, -1)
@@ -296,7 +296,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     )
     if smooth:
         smoothed = m.smoothed(localizer, thumbnails=thumbnails)
-        result.score_merge(smoothed, m.select_merges(smoothed), gt, names,
+        result.score_merge(smoothed, m.service.select_merges(smoothed), gt, names,
                            _edges_per_decision(m.config))
     return result, decisions
 

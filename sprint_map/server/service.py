@@ -89,7 +89,7 @@ class LocalisationService:
         self.metrics = Metrics()
         self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
                                         config.max_buffered_bytes)
-        self.cache = smap.shared_cache()
+        self.cache = smap.service.shared_cache()
         self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
                                    self.registry)
         #: Frames of all sessions searched together; None: each alone (batch_max_frames 0,
