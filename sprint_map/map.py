@@ -142,12 +142,8 @@ class SprintMap(MapLocalizing, MapWriting):
         return cls(MapStore.open(path, readonly=readonly, check_config=stored_config))
 
     def close(self) -> None:
-        """Persist the index (writer) and release the map; closing twice does nothing.
-
-        Raises
-        ------
-        StorageIOError
-            The index could not be persisted (it is a cache: the map lost nothing).
+        """Persist the index (writer) and release the map; closing twice does nothing. An
+        index that could not be saved is a warning (:attr:`warnings`: it is a cache).
 
         Examples
         --------

@@ -74,7 +74,7 @@ class MapLocalizing(MapReading):
         InputError
             ``fixes`` out of range.
         ConfigError
-            An override that is not a valid HMM parameter.
+            An override that is not an HMM parameter, or out of its range.
 
         Examples
         --------
@@ -136,6 +136,8 @@ class MapLocalizing(MapReading):
             (:func:`~sprint_map.localize.lagged.validate_lag`); fixes not one per frame.
         DescriptorShapeError
             Descriptors that are not (N, dim).
+        ConfigError
+            An override that is not an HMM parameter, or out of its range.
 
         Notes
         -----

@@ -106,6 +106,18 @@ class MapService:
             A sequence of the map already has ``name``.
         InputError
             ``name`` is not a valid name (not UTF-8 text, too long, ...).
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     with m.service.begin_drive("monday") as drive:
+        ...         _ = drive.append(road)
+        ...         done = drive.commit([], None)  # no decision: appended as it is
+        ...     print(done.added.sequence.name, m.stats()["vertices"])
+        monday 30
         """
         config = self.map.config
         return DriveWriter(SequenceWriter(self.store, name, source, reserved),
@@ -139,6 +151,17 @@ class MapService:
             A batch whose dimension is not the map's.
         InvalidDescriptorError
             A batch holding NaN or infinite values.
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     _ = m.add_sequence(road, name="monday")
+        ...     prepared = m.service.prepare_ingest([road])  # a farm's worker, read-only
+        ...     print(len(prepared.decisions), m.stats()["sequences"])
+        30 1
         """
         from sprint_map.merge.prepared import prepare_drive
 
@@ -178,6 +201,18 @@ class MapService:
         -----
         The staleness check costs O(N * M * dim) for the M vertices committed since the
         snapshot (:func:`sprint_map.merge.prepared.stale_reason`).
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     _ = m.add_sequence(road, name="monday")
+        ...     prepared = m.service.prepare_ingest([road])
+        ...     result, why = m.service.commit_prepared(prepared, [road], "tuesday")
+        ...     print(result.added.sequence.name, why, result.merged.sum())
+        tuesday None 30
         """
         from sprint_map.merge.prepared import stale_reason
 
@@ -217,6 +252,8 @@ class MapService:
         ------
         NotAMapError
             ``source`` holds no map.
+        InputError
+            ``source`` is this map.
         UnknownSequenceError
             ``source`` has no sequence of one of the ids.
         """
@@ -239,6 +276,17 @@ class MapService:
         -------
         numpy.ndarray
             One bool per decision: True where it would be merged.
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     _ = m.add_sequence(road, name="monday")
+        ...     decisions, _ = m.localize(road, smooth=True)
+        ...     print(m.service.select_merges(decisions).sum())
+        30
         """
         return select_merges(decisions, self.map.config.merge)
 
@@ -255,7 +303,19 @@ class MapService:
         Raises
         ------
         ReadOnlyMapError
-            The map is open read-only (when the group ends and persists the index).
+            The map is open read-only.
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     _ = m.add_sequence(road, name="monday")
+        ...     with m.service.group_commit():  # the index persisted once, after both
+        ...         _ = m.ingest(road, name="tuesday"), m.ingest(road, name="wednesday")
+        ...     print(m.stats()["sequences"], m.stats()["components"])
+        3 1
         """
         return self.store.group_commit()
 
@@ -311,6 +371,16 @@ class MapService:
         -------
         MapView
             The view (:class:`sprint_map.localize.stored_view.StoredMapView`).
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     _ = m.add_sequence(road, name="monday")
+        ...     print(m.service.view().vertices)
+        30
         """
         from sprint_map.localize.stored_view import StoredMapView
 
@@ -340,6 +410,16 @@ class MapService:
         -------
         DriveCentring
             A fresh one (it has seen no frame).
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        ...     rows = m.service.drive_centring().apply(road)  # centring "none": as given
+        ...     print(rows.shape, bool((rows == road).all()), m.service.condition_prior())
+        (30, 16) True None
 
         Notes
         -----

@@ -371,6 +371,20 @@ class MapWriting(MapUpkeep):
             A writer is at work on ``source``.
         IncompatibleMapError, UnknownSequenceError, DuplicateNameError, UnconnectedJoinError
             Refused before anything is written (both maps unchanged).
+
+        Examples
+        --------
+        >>> import tempfile, numpy as np
+        >>> from sprint_map import MapConfig, SprintMap
+        >>> rng, folder = np.random.default_rng(0), tempfile.mkdtemp()
+        >>> road = rng.standard_normal((30, 16)).astype(np.float32)
+        >>> with SprintMap.create(folder + "/a.map", MapConfig(dim=16)) as a:
+        ...     _ = a.add_sequence(road, name="monday")
+        >>> with SprintMap.create(folder + "/b.map", MapConfig(dim=16)) as b:
+        ...     _ = b.add_sequence(road + 0.01 * rng.standard_normal((30, 16)), name="tuesday")
+        ...     joined = b.join(folder + "/a.map")
+        ...     print(joined.vertices_copied, [s.name for s in b.sequences()], b.stats()["components"])
+        30 ['tuesday', 'monday'] 1
         """
         from sprint_map.merge.join import join_maps
         from sprint_map.storage.join import open_source_map

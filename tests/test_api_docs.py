@@ -19,7 +19,7 @@ OWN_MODULES = ("sprint_map.map", "sprint_map.map_localizing", "sprint_map.map_wr
 
 #: Methods that raise none of the project's errors (nor any other on purpose).
 RAISES_NOTHING = {
-    "SprintMap.check", "SprintMap.info", "SprintMap.is_current",
+    "SprintMap.check", "SprintMap.close", "SprintMap.info", "SprintMap.is_current",
     "MapService.condition_prior", "MapService.drive_centring", "MapService.position_index",
     "MapService.select_merges", "MapService.shared_cache", "MapService.view",
 }
