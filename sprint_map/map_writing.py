@@ -383,8 +383,10 @@ class MapWriting(MapUpkeep):
         >>> with SprintMap.create(folder + "/b.map", MapConfig(dim=16)) as b:
         ...     _ = b.add_sequence(road + 0.01 * rng.standard_normal((30, 16)), name="tuesday")
         ...     joined = b.join(folder + "/a.map")
-        ...     print(joined.vertices_copied, [s.name for s in b.sequences()], b.stats()["components"])
-        30 ['tuesday', 'monday'] 1
+        ...     print(joined.vertices_copied, [s.name for s in b.sequences()])
+        ...     print(b.stats()["components"])
+        30 ['tuesday', 'monday']
+        1
         """
         from sprint_map.merge.join import join_maps
         from sprint_map.storage.join import open_source_map
