@@ -15,7 +15,7 @@ from sprint_map import MapService, SprintMap
 #: The modules whose methods make SprintMap's own API (``map_reading.py``'s reads are documented
 #: on their own).
 OWN_MODULES = ("sprint_map.map", "sprint_map.map_localizing", "sprint_map.map_writing",
-               "sprint_map.map_upkeep", "sprint_map.map_service")
+               "sprint_map.map_upkeep", "sprint_map.map_service", "sprint_map.map_supply")
 
 #: Methods that raise none of the project's errors (nor any other on purpose).
 RAISES_NOTHING = {
