@@ -296,7 +296,7 @@ def copy_bench(vertices: int, dim: int, drive_frames: int, root: Path, seed: int
     rng = np.random.default_rng(seed)
     config = MapConfig(dim=dim, store=StoreOptions(index_type=index_type))
     for name in ("target", "source"):
-        with SprintMap.create(root / name, config) as m, m.group_commit():
+        with SprintMap.create(root / name, config) as m, m.service.group_commit():
             for i, start in enumerate(range(0, vertices, drive_frames)):
                 n = min(drive_frames, vertices - start)
                 rows = rng.standard_normal((n, dim)).astype(np.float32)

@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 
 import click
 
+from sprint_map import DescriptorSpec, Drive, IngestResult
 from sprint_map.cli.common import (
     bag_options,
     emit,
@@ -30,10 +31,7 @@ from sprint_map.cli.common import (
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError, SprintMapError
 from sprint_map.fleet.runtime import RAY_HELP
-from sprint_map.frontend.descriptors import DescriptorSpec
 from sprint_map.map import SprintMap
-from sprint_map.merge.commit import IngestResult
-from sprint_map.merge.drives import Drive
 from sprint_map.util import dataclass_dict
 
 
@@ -88,7 +86,7 @@ def init(map_path: str, dim: int | None, descriptor: str | None, model: str | No
         raise InputError("--descriptor onnx needs --model FILE" if kind == "onnx"
                          else "--model and --model-card are for --descriptor onnx")
     if kind == "onnx":
-        from sprint_map.frontend.onnx_model import onnx_params
+        from sprint_map import onnx_params
 
         params = onnx_params(str(model), model_card)
         if dim is not None and dim != params["dim"]:
@@ -162,11 +160,15 @@ def ingest(map_path: str, sources: tuple[str, ...], name: str | None, positions:
     """
     # The front end's sources and the trace load here, not at start-up: `info` and the other
     # commands never need them (tests/test_startup.py).
+    from sprint_map import (
+        BagOptions,
+        TraceRecorder,
+        drive_names,
+        drive_positions,
+        gnss_fixes,
+        own_positions,
+    )
     from sprint_map.cli.progress import progress_display
-    from sprint_map.frontend.bags import BagOptions
-    from sprint_map.frontend.positions import gnss_fixes
-    from sprint_map.frontend.sources import drive_names, drive_positions, own_positions
-    from sprint_map.localize.trace import TraceRecorder
     from sprint_map.util.output import Output
 
     bag = BagOptions(image_topic, gnss_topic, every_m)
@@ -323,24 +325,16 @@ def localize(map_path: str, source: str, as_json: bool, out: str | None, smooth:
       sprint-map localize city.map friday.mcap --image-topic /cam/compressed --json
     """
     # Loaded here, not at start-up (as in ingest).
+    from sprint_map import BagOptions, TraceRecorder, drive_positions, gnss_fixes
     from sprint_map.cli.progress import progress_display
-    from sprint_map.frontend.bags import BagOptions
-    from sprint_map.frontend.positions import gnss_fixes
-    from sprint_map.frontend.sources import drive_positions
-    from sprint_map.localize.trace import TraceRecorder
     from sprint_map.util.output import Output
 
     if thumbnails and not smooth:
         raise InputError("--thumbnails verifies smoothed decisions: add --smooth")
     if lag:
-        from sprint_map.localize.lagged import validate_lag
+        from sprint_map import validate_lag
 
-        validate_lag(lag)
-    if lag and (smooth or trace):
-        raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
-                         "--smooth (the whole drive) or --trace")
-    if lag and positions:
-        raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag")
+        validate_lag(lag, whole_drive=bool(smooth or trace), fixes=bool(positions), flags=True)
     overrides = hmm_overrides(k, window, hmm_pairs)
     with SprintMap.open(map_path, readonly=True) as m, contextlib.ExitStack() as outputs, \
             progress_display("localising", quiet, after="smoothing" if smooth else None

@@ -92,9 +92,9 @@ def eval_(dataset: str, layout: str, protocol: str, out_dir: str | None, databas
     if model is not None or model_card is not None:
         raise InputError("--model is for --layout vpr (a traversal data set's map: init "
                          "--descriptor onnx, then ingest)")
+    from sprint_map import Dataset
     from sprint_map.evaluation.report import markdown_table, write_report
     from sprint_map.evaluation.runner import EvalOptions, config_for, run_evaluation
-    from sprint_map.frontend.dataset import Dataset
 
     gt: dict[str, Any] = {}
     for key, value in (("alignment", alignment), ("tolerance_frames", tolerance),
@@ -126,14 +126,14 @@ def _eval_vpr(dataset: str, out_dir: str | None, descriptor: str,
               map_pairs: tuple[str, ...], k: int | None, window: str | None,
               hmm_pairs: tuple[str, ...], quiet: bool) -> None:
     """``eval --layout vpr``: recall@1/5/10/20 of k-NN and SPRINT into results.json."""
+    from sprint_map import VprDataset
     from sprint_map.evaluation.vpr import markdown_recall, run_vpr_evaluation
-    from sprint_map.frontend.vpr import VprDataset
 
     if descriptor == "precomputed":
         raise InputError("--layout vpr describes the images: --descriptor auto, hog or patchnorm")
     data = VprDataset.open(dataset)
     if model[0] is not None:
-        from sprint_map.frontend.onnx_model import onnx_params
+        from sprint_map import onnx_params
 
         params = onnx_params(model[0], model[1])
         config = MapConfig(dim=params["dim"], descriptor="onnx", descriptor_params=params)

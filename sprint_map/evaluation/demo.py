@@ -18,11 +18,11 @@ import os
 from pathlib import Path
 from typing import Any
 
+from sprint_map import Dataset
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError, InputError
 from sprint_map.evaluation.report import write_report
 from sprint_map.evaluation.runner import EvalOptions, Log, config_for, run_evaluation
-from sprint_map.frontend.dataset import Dataset
 
 __all__ = ["CITY_FRAMES", "CITY_TRAVERSALS", "DATASETS", "LATENT_FRAMES", "LATENT_TRAVERSALS",
            "NORDLAND_ENV", "find_nordland", "run_demo"]

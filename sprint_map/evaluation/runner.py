@@ -16,7 +16,7 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 - ``lifelong``: the decisions and the mask of the ingest that committed the drive;
   ``edges_added`` is the commit's count.
 - ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
-  (:meth:`SprintMap.select_merges <sprint_map.map.SprintMap.select_merges>`), and
+  (:meth:`MapService.select_merges <sprint_map.map_service.MapService.select_merges>`), and
   ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
   decision when ``config.merge.both_ways``).
 
@@ -42,14 +42,18 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map import HMMConfig
+from sprint_map import (
+    Dataset,
+    FrameDecision,
+    GnssModel,
+    GroundTruth,
+    HMMConfig,
+    Traversal,
+    simulate_fixes,
+)
 from sprint_map.config import MapConfig
 from sprint_map.errors import InputError
 from sprint_map.evaluation.metrics import merge_metrics, percentiles, pr_curve, recall_at_k
-from sprint_map.frontend.dataset import Dataset, Traversal
-from sprint_map.frontend.gnss import GnssModel, simulate_fixes
-from sprint_map.frontend.groundtruth import GroundTruth
-from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import Descriptors
@@ -259,7 +263,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     db_names = list(names.values())
     frames = np.arange(len(rows))
     kmax = max(ks)
-    _, ids = m.search(m.drive_centring().apply(rows), kmax)  # in the map's space
+    _, ids = m.search(m.service.drive_centring().apply(rows), kmax)  # in the map's space
     located = m.locate(ids[ids >= 0].ravel())
     seq = np.full(ids.shape, -1)
     img = np.full(ids.shape, -1)
@@ -292,7 +296,7 @@ def evaluate_query(m: SprintMap, query: str, rows: Descriptors, gt: GroundTruth,
     )
     if smooth:
         smoothed = m.smoothed(localizer, thumbnails=thumbnails)
-        result.score_merge(smoothed, m.select_merges(smoothed), gt, names,
+        result.score_merge(smoothed, m.service.select_merges(smoothed), gt, names,
                            _edges_per_decision(m.config))
     return result, decisions
 

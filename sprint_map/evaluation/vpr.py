@@ -28,10 +28,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sprint_map import HMMConfig
+from sprint_map import HMMConfig, VprDataset
 from sprint_map.config import MapConfig
 from sprint_map.errors import ConfigError, InputError
-from sprint_map.frontend.vpr import VprDataset
 from sprint_map.map import SprintMap
 from sprint_map.util.atomic import publish_bytes
 
@@ -102,7 +101,7 @@ def run_vpr_evaluation(data: VprDataset, out_dir: Path, config: MapConfig,
         queries = query_source.read_all()
         # k-NN in the map's space: the queries as one drive, centred (SPRINT's localizer
         # centres them itself as it steps them, in this order)
-        _, ids = m.search(m.drive_centring().apply(queries), min(k, len(data.database)))
+        _, ids = m.search(m.service.drive_centring().apply(queries), min(k, len(data.database)))
         knn = np.full((len(queries), k), -1, dtype=np.int64)
         knn[:, : ids.shape[1]] = ids  # one sequence from vertex 0: vertex id = database index
         localizer = m.localizer(hmm)

@@ -3,11 +3,11 @@
 ``sprint-map ingest MAP A B C ... --ray ...`` hands each drive to a Ray task that opens the map
 read-only (a shared filesystem: ``docs/fleet.md``, "Where the map files live"), decodes and
 describes the drive's images (or reads its ``.npy``) and localises it against one snapshot of
-the map
-(:meth:`SprintMap.prepare_ingest`). The caller is the single writer: it takes the drives back in
-the given order and commits each (:meth:`SprintMap.commit_prepared`), localising again in the
-writer any drive whose snapshot is stale for what it touched; so the map that results equals
-serial ingest in the same order, the same sequences and the same edges.
+the map (:meth:`MapService.prepare_ingest <sprint_map.map_service.MapService.prepare_ingest>`).
+The caller is the single writer: it takes the drives back in the given order and commits each
+(:meth:`MapService.commit_prepared <sprint_map.map_service.MapService.commit_prepared>`),
+localising again in the writer any drive whose snapshot is stale for what it touched; so the
+map that results equals serial ingest in the same order, the same sequences and the same edges.
 
 Faults: a task whose worker dies is retried by Ray (``max_retries``) and only the writer
 commits, once per drive, in order: a killed worker loses and duplicates no drive. A writer
@@ -29,11 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map import HMMConfig
+from sprint_map import HMMConfig, IngestResult, PreparedDrive
 from sprint_map.errors import SprintMapError
 from sprint_map.map import SprintMap
-from sprint_map.merge.commit import IngestResult
-from sprint_map.merge.prepared import PreparedDrive
 from sprint_map.util.arrays import Descriptors
 
 __all__ = ["FarmResult", "LocalisedDrive", "farm_ingest", "localise_drive"]
@@ -75,7 +73,7 @@ def localise_drive(map_path: str, source: str, stride: int = 1, merge: bool = Tr
     with SprintMap.open(map_path, readonly=True) as smap:
         src = smap.open_source(source, stride=stride)
         batches = [np.array(b, dtype=np.float32) for b in src.iter_batches()]
-        prepared = smap.prepare_ingest(batches, merge=merge, hmm=hmm)
+        prepared = smap.service.prepare_ingest(batches, merge=merge, hmm=hmm)
         return LocalisedDrive(source, src.name, batches, prepared, os.getpid())
 
 
@@ -128,7 +126,7 @@ def farm_ingest(smap: SprintMap, sources: Sequence[str], *, names: Sequence[str 
         drive = _get(ray, ref)
         submit()  # keep the window full while this drive commits
         name = names[i] if i < len(names) and names[i] is not None else drive.name
-        result, why = smap.commit_prepared(drive.prepared, drive.batches, name, hmm=hmm,
+        result, why = smap.service.commit_prepared(drive.prepared, drive.batches, name, hmm=hmm,
                                            source=str(source))
         done = FarmResult(str(source), result, why)
         out.append(done)

@@ -3,10 +3,10 @@
 Every imported drive of a join is localised against the same map, the target as it was before
 the join (:mod:`sprint_map.merge.join`), so the drives are independent: each is a Ray task that
 opens the target and the source read-only (a shared filesystem, as for the ingest farm:
-``docs/fleet.md``) and returns the drive's cross-map edges
-(:meth:`SprintMap.localise_for_join`). The writer commits them all in the join's one
-transaction. The result equals the serial join's: the same drives, localised by the same code
-against the same snapshot (the target does not change until the join commits).
+``docs/fleet.md``) and returns the drive's cross-map edges (:meth:`MapService.localise_for_join
+<sprint_map.map_service.MapService.localise_for_join>`). The writer commits them all in the
+join's one transaction. The result equals the serial join's: the same drives, localised by the
+same code against the same snapshot (the target does not change until the join commits).
 """
 
 from __future__ import annotations
@@ -14,10 +14,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from sprint_map import HMMConfig
+from sprint_map import DriveLocalisation, HMMConfig, LocaliseMany
 from sprint_map.errors import SprintMapError
 from sprint_map.map import SprintMap
-from sprint_map.merge.join import DriveLocalisation, LocaliseMany
 
 __all__ = ["TASK_RETRIES", "farm_localise_join", "localise_joined_drive"]
 
@@ -29,7 +28,7 @@ def localise_joined_drive(target: str, source: str, seq_id: int, hmm: HMMConfig 
                           ) -> DriveLocalisation:
     """Localise drive ``seq_id`` of map ``source`` against map ``target`` (a Ray task)."""
     with SprintMap.open(target, readonly=True) as smap:
-        return smap.localise_for_join(source, [seq_id], hmm)[0]
+        return smap.service.localise_for_join(source, [seq_id], hmm)[0]
 
 
 def farm_localise_join(target: str, source: str, hmm: HMMConfig | None = None,

@@ -25,11 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map import HMMConfig
+from sprint_map import DriveCentring, FrameDecision, HMMConfig, Localizer, Timing
 from sprint_map.errors import ReplicaLostError
 from sprint_map.fleet.shards import alive_nodes, spread
-from sprint_map.frontend.centring import DriveCentring
-from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
 from sprint_map.map import SprintMap
 from sprint_map.util.arrays import Descriptors
 

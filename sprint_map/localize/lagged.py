@@ -47,12 +47,29 @@ __all__ = ["MAX_LAG", "LaggedLocalizer", "validate_lag"]
 _NO_HITS = (np.empty(0, np.int64), np.empty(0, np.float32))
 
 
-def validate_lag(lag: object) -> int:
-    """``lag`` as frames (``0 .. MAX_LAG``), or :class:`InputError` with one clear line."""
+def validate_lag(lag: object, *, whole_drive: bool = False, fixes: bool = False,
+                 flags: bool = False) -> int:
+    """``lag`` as frames (``0 .. MAX_LAG``), or :class:`InputError` with one clear line.
+
+    The rule of the lag, for the facade and the CLI alike: a lag answers frames as the drive
+    goes, so a non-zero one excludes ``whole_drive`` (smoothing the whole drive, its
+    thumbnails or a trace) and GNSS ``fixes``. ``flags``: word the refusal as the CLI's
+    options (``--smooth``, ``--positions``).
+    """
     try:
-        return check_lag(lag)
+        lag = check_lag(lag)
     except ValueError as exc:
         raise InputError(str(exc)) from None
+    if lag and whole_drive:
+        raise InputError("--lag answers frames as the drive goes: it cannot be combined with "
+                         "--smooth (the whole drive) or --trace" if flags else
+                         "a lag answers frames as the drive goes: it cannot be combined with "
+                         "smoothing the whole drive, thumbnails or a trace")
+    if lag and fixes:
+        raise InputError("--lag does not weigh GNSS fixes: drop --positions, or --lag" if flags
+                         else "GNSS fixes are not supported with a lag: localise with "
+                         "--positions without --lag, or with --lag without positions")
+    return lag
 
 
 class LaggedLocalizer:

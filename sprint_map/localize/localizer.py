@@ -33,7 +33,7 @@ from sprint_map.util.arrays import Descriptors, DescriptorsLike, SearchResult
 from sprint_map.util.validation import validate_descriptors
 
 __all__ = ["SEARCH_BATCH", "FrameDecision", "LocalizableMap", "Localizer", "LocalizerConfig",
-           "MapView", "Timing", "nearest_hit", "recorded_k"]
+           "LocalizerService", "MapView", "Timing", "nearest_hit", "recorded_k"]
 
 #: Query rows per batched k-NN search in :meth:`Localizer.localize`.
 SEARCH_BATCH = 256
@@ -73,16 +73,25 @@ class LocalizerConfig(Protocol):
     def hmm(self) -> HMMConfig: ...
 
 
-class LocalizableMap(Protocol):
-    """A map a :class:`Localizer` can read (:class:`sprint_map.map.SprintMap` is one): its
-    config and a new :class:`MapView` for each localizer."""
-
-    @property
-    def config(self) -> LocalizerConfig: ...
+class LocalizerService(Protocol):
+    """What a :class:`Localizer` makes itself of, from a map's service API
+    (:class:`sprint_map.map_service.MapService` is one): a new :class:`MapView` for each
+    localizer and a new drive's centring."""
 
     def view(self) -> MapView: ...
 
     def drive_centring(self) -> DriveCentring: ...
+
+
+class LocalizableMap(Protocol):
+    """A map a :class:`Localizer` can read (:class:`sprint_map.map.SprintMap` is one): its
+    config and its service API."""
+
+    @property
+    def config(self) -> LocalizerConfig: ...
+
+    @property
+    def service(self) -> LocalizerService: ...
 
 
 @dataclass(frozen=True)
@@ -221,7 +230,7 @@ class Localizer:
                  in_map_space: bool = False) -> None:
         self.map = smap
         self.config = hmm or smap.config.hmm
-        self.source = smap.view()
+        self.source = smap.service.view()
         # A cache may be shared by localizers over the same map (the server's sessions).
         self.cache = cache if cache is not None else ComponentCache(self.config.cache_budget_bytes)
         self.filter = SprintFilter(self.config, self.source, self.cache)
@@ -242,7 +251,7 @@ class Localizer:
         #: searched centred on the frames before it, in the map's space (``in_map_space``:
         #: the frames are a stored drive's rows, centred already, searched as they are).
         self.centring = (DriveCentring(Centring("none"), smap.config.dim) if in_map_space
-                         else smap.drive_centring())
+                         else smap.service.drive_centring())
 
     def centred(self, descriptor: DescriptorsLike) -> Descriptors:
         """The next frame as this localizer searches it (nothing changes): what a caller of

@@ -3,9 +3,9 @@
 This is the one commit path of a localised drive. :meth:`SprintMap.ingest
 <sprint_map.map.SprintMap.ingest>` streams the rows in while it localises them (and so does
 ``ingest_drives``, drive after drive), :meth:`SprintMap.merge <sprint_map.map.SprintMap.merge>`
-hands them in whole, :meth:`SprintMap.commit_prepared
-<sprint_map.map.SprintMap.commit_prepared>` commits a drive an ingest farm localised, and the
-service's writer thread (:mod:`sprint_map.server.writer`) appends them beside the frames and
+hands them in whole, :meth:`MapService.commit_prepared
+<sprint_map.map_service.MapService.commit_prepared>` commits a drive an ingest farm localised,
+and the service's writer thread (:mod:`sprint_map.server.writer`) appends them beside the frames and
 commits under its map gate; all of them end in :meth:`DriveWriter.commit`, which
 
 1. runs the map's merge rule (:mod:`sprint_map.merge.rule`) over the drive's decisions and
@@ -144,10 +144,10 @@ class DriveCommit:
 class DriveWriter:
     """One drive being written into a map open for writing; use as a context manager.
 
-    Made by :meth:`SprintMap.begin_drive <sprint_map.map.SprintMap.begin_drive>`. Rows go to the
-    map's shards as they are appended, invisible to readers until :meth:`commit` (with
-    admission ``novel`` they are held in memory until then: which ones are stored is known
-    only at the commit).
+    Made by :meth:`MapService.begin_drive <sprint_map.map_service.MapService.begin_drive>`.
+    Rows go to the map's shards as they are appended, invisible to readers until
+    :meth:`commit` (with admission ``novel`` they are held in memory until then: which ones
+    are stored is known only at the commit).
 
     Parameters
     ----------

@@ -42,7 +42,8 @@ if TYPE_CHECKING:
     from sprint_map.merge.commit import IngestResult
     from sprint_map.storage.group_writer import GroupWriter
 
-__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "append_group", "ingest_drives"]
+__all__ = ["DEFAULT_GROUP_DRIVES", "Drive", "IngestingMap", "IngestingService", "append_group",
+           "ingest_drives"]
 
 #: Drives per group, by default: appended, one transaction; localised, one index persist.
 DEFAULT_GROUP_DRIVES = 16
@@ -67,6 +68,17 @@ class Drive:
     fixes: np.ndarray | None = None
 
 
+class IngestingService(Protocol):
+    """What :func:`ingest_drives` uses of a map's service API
+    (:class:`sprint_map.map_service.MapService` is one): groups of commits, drives' centring."""
+
+    def group_commit(self) -> AbstractContextManager[None]: ...
+
+    def begin_group(self) -> GroupWriter: ...
+
+    def drive_centring(self) -> DriveCentring: ...
+
+
 class IngestingMap(Protocol):
     """What :func:`ingest_drives` uses of a map open for writing
     (:class:`sprint_map.map.SprintMap` is one)."""
@@ -85,11 +97,8 @@ class IngestingMap(Protocol):
         fixes: np.ndarray | None = None,
     ) -> IngestResult: ...
 
-    def group_commit(self) -> AbstractContextManager[None]: ...
-
-    def begin_group(self) -> GroupWriter: ...
-
-    def drive_centring(self) -> DriveCentring: ...
+    @property
+    def service(self) -> IngestingService: ...
 
 
 def ingest_drives(
@@ -129,7 +138,7 @@ def ingest_drives(
     for start in range(0, len(drives), group_drives):
         group: list[IngestResult] = []
         try:
-            with smap.group_commit():
+            with smap.service.group_commit():
                 if merge:
                     for i, drive in enumerate(drives[start : start + group_drives]):
                         if i:
@@ -167,11 +176,11 @@ def append_group(smap: IngestingMap, drives: Sequence[Drive], out: list[IngestRe
     from sprint_map.merge.commit import IngestResult
 
     failure: Exception | None = None
-    with smap.begin_group() as writer:
+    with smap.service.begin_group() as writer:
         for i, drive in enumerate(drives):
             if i:
                 crash_point("group.between_drives")
-            centring = smap.drive_centring()
+            centring = smap.service.drive_centring()
 
             def stats(c: DriveCentring = centring) -> tuple[int, np.ndarray]:
                 return c.stats.frames, c.stats.mean

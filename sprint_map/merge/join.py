@@ -37,6 +37,7 @@ import numpy as np
 
 from sprint_map.errors import IncompatibleMapError, UnconnectedJoinError
 from sprint_map.hmm.config import HMMConfig
+from sprint_map.localize.localizer import LocalizerService
 from sprint_map.merge.commit import merge_edges
 from sprint_map.merge.prepared import PreparableMap
 from sprint_map.merge.rule import select_merges
@@ -49,16 +50,25 @@ from sprint_map.util.union_find import UnionFind
 if TYPE_CHECKING:  # a copy (``merge=False``) loads no HMM
     from sprint_map.localize.gnss import GnssAid
 
-__all__ = ["DriveLocalisation", "JoinResult", "JoinedDrive", "JoiningMap", "check_compatible",
+__all__ = ["DriveLocalisation", "JoinResult", "JoinedDrive", "JoiningMap", "JoiningService",
+           "LocaliseMany", "check_compatible",
            "connected_drives", "join_maps", "localise_drive"]
+
+
+class JoiningService(LocalizerService, Protocol):
+    """What a join uses of the target's service API (:class:`sprint_map.map_service.MapService`
+    is one): what a localizer is made of, and the GNSS aid of a drive's fixes."""
+
+    def gnss_aid(self, fixes: np.ndarray | None, frames: int | None, *, index: bool = True
+                 ) -> GnssAid | None: ...
 
 
 class JoiningMap(PreparableMap, Protocol):
     """What a join uses of the target (:class:`sprint_map.map.SprintMap` is one): what
-    localising a drive reads, and the GNSS aid of a drive's fixes."""
+    localising a drive reads, and its service API."""
 
-    def gnss_aid(self, fixes: np.ndarray | None, frames: int | None, *, index: bool = True
-                 ) -> GnssAid | None: ...
+    @property
+    def service(self) -> JoiningService: ...
 
 
 #: What a farm's worker does for one drive: localise source drive ``seq_id`` (its record
@@ -223,7 +233,7 @@ def localise_drive(smap: JoiningMap, source: MapStore, record: SequenceRecord,
     thumbs = [source.thumbnail(record.seq_id, i) for i in range(record.length)] \
         if source.thumbnail_count(record.seq_id) else None
     # the source's rows are centred already: searched as they are
-    localizer = Localizer(smap, hmm, record=True, gnss=smap.gnss_aid(fixes, record.length),
+    localizer = Localizer(smap, hmm, record=True, gnss=smap.service.gnss_aid(fixes, record.length),
                           in_map_space=True)
     for batch in drive_rows(source, record, total, SEARCH_BATCH):
         for _ in localizer.iter_localize(iter([np.asarray(batch)])):

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from sprint_map.localize.lagged import MAX_LAG
+from sprint_map import MAX_LAG
 from sprint_map.server.auth import token_matches
 from sprint_map.server.errors import ApiError
 from sprint_map.server.fastpath import FRAME_PATH, FrameFastPath

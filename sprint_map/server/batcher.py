@@ -45,8 +45,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sprint_map import FrameDecision
 from sprint_map.errors import SprintMapError
-from sprint_map.localize.localizer import FrameDecision
 from sprint_map.map import SprintMap
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.server.gate import MapGate

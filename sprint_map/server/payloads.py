@@ -13,10 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from sprint_map import MAX_IMAGE_PIXELS, DescriptorSpec, describe_encoded
 from sprint_map.errors import SprintMapError
-from sprint_map.frontend.descriptors import DescriptorSpec
-from sprint_map.frontend.image_path import describe_encoded
-from sprint_map.frontend.imageheader import MAX_IMAGE_PIXELS
 from sprint_map.server.errors import ApiError, from_library
 from sprint_map.util.arrays import Descriptors, DescriptorsLike
 from sprint_map.util.validation import validate_descriptors, validate_name

@@ -21,9 +21,8 @@ from typing import Any
 import anyio
 import numpy as np
 
+from sprint_map import LaggedLocalizer, Localizer, validate_lag
 from sprint_map.errors import SprintMapError
-from sprint_map.localize.lagged import LaggedLocalizer, validate_lag
-from sprint_map.localize.localizer import Localizer
 from sprint_map.map import SprintMap
 from sprint_map.server.batcher import FrameBatcher
 from sprint_map.server.config import ServerConfig
@@ -90,7 +89,7 @@ class LocalisationService:
         self.metrics = Metrics()
         self.registry = SessionRegistry(config.max_sessions, config.max_frames_per_session,
                                         config.max_buffered_bytes)
-        self.cache = smap.shared_cache()
+        self.cache = smap.service.shared_cache()
         self.writer = CommitWriter(smap, self.gate, self._changed, config.commit_queue_size,
                                    self.registry)
         #: Frames of all sessions searched together; None: each alone (batch_max_frames 0,

@@ -22,14 +22,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sprint_map.localize.lagged import LaggedLocalizer
-from sprint_map.localize.localizer import FrameDecision, Localizer
-from sprint_map.merge.commit import DriveWriter
+from sprint_map import DriveWriter, FrameDecision, LaggedLocalizer, Localizer
 from sprint_map.server.errors import ApiError, busy, unknown_session
 from sprint_map.util.arrays import Descriptors
 
 if TYPE_CHECKING:
-    from sprint_map.frontend.centring import DriveCentring
+    from sprint_map import DriveCentring
 
 __all__ = ["CLAIMED_NAMES", "CLOSED", "COMMITTING", "OPEN", "Session", "SessionRegistry"]
 

@@ -1,7 +1,7 @@
 """CommitWriter: the single writer thread through which every commit goes, in order.
 
 A commit is what ``SprintMap.ingest`` does at the end of a drive, through the same path
-(:meth:`SprintMap.begin_drive <sprint_map.map.SprintMap.begin_drive>`,
+(:meth:`MapService.begin_drive <sprint_map.map_service.MapService.begin_drive>`,
 :meth:`DriveWriter.commit <sprint_map.merge.commit.DriveWriter.commit>`): the drive's descriptors and
 the decisions the merge rule selects as edges, in one LMDB transaction. It is acknowledged (its future resolves) only after that transaction returned,
 i.e. once durable (LMDB ``sync=True``). The slow part, writing and fsyncing the shard rows,
@@ -23,10 +23,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sprint_map import AddResult
-from sprint_map.localize.localizer import FrameDecision
+from sprint_map import AddResult, DriveWriter, FrameDecision
 from sprint_map.map import SprintMap
-from sprint_map.merge.commit import DriveWriter
 from sprint_map.server.errors import busy
 from sprint_map.server.gate import MapGate
 from sprint_map.util.arrays import Descriptors
@@ -181,9 +179,9 @@ class CommitWriter:
 
     def _retrain_index(self) -> None:
         """Retrain the approximate index if the map outgrew it, beside the frames: only the
-        switch to the new generation holds the gate (``SprintMap.retrain_index_beside``)."""
+        switch to the new generation holds the gate (``SprintMap.service.retrain_index_beside``)."""
         try:
-            if self.smap.retrain_index_beside(self.gate.exclusive):
+            if self.smap.service.retrain_index_beside(self.gate.exclusive):
                 log.info("index trained again beside the sessions")
         except Exception:  # the commits are durable; the old index goes on answering
             log.exception("index retraining failed; the previous index is kept")
@@ -201,10 +199,10 @@ class CommitWriter:
         # The map changes only in this thread: the smoothing sees the map the commit extends.
         decisions = job.smoothed() if job.smoothed is not None else job.decisions
         if job.name is not None or self.names is None:
-            begun = smap.begin_drive(job.name, job.source, centring=job.centring)
+            begun = smap.service.begin_drive(job.name, job.source, centring=job.centring)
         else:
             begun = self.names.begin_default(
-                lambda taken: smap.begin_drive(None, job.source, taken, job.centring))
+                lambda taken: smap.service.begin_drive(None, job.source, taken, job.centring))
         held = 0.0
 
         @contextmanager

@@ -525,6 +525,11 @@ class MapStore(StoreReads):
         return [f"rebuilt the index from the shards ({total} vertices): "
                 f"{self.index.describe()['type']}"]
 
+    def defer_index_retraining(self) -> None:
+        """Stop retraining the approximate index inside commits (``index_retrain_growth``):
+        :meth:`retrain_index_beside` does it instead, between commits. O(1)."""
+        self.index.defer_retrain = True
+
     def retrain_index_beside(self, exclusive: Callable[[], AbstractContextManager[object]]
                              ) -> bool:
         """Retrain the approximate index if the map outgrew it (``index_retrain_growth``)

@@ -29,8 +29,8 @@ from fastapi.params import Depends
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from fastapi.routing import APIRoute
 
+from sprint_map import Trace
 from sprint_map.errors import UnknownSequenceError
-from sprint_map.localize.trace import Trace
 from sprint_map.viewer import playback
 from sprint_map.viewer.matrix import MATRIX_SIZE, drive_detail, match_matrix
 from sprint_map.viewer.overview import MapOverview

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from sprint_map.localize.trace import Trace
+from sprint_map import Trace
 from sprint_map.viewer.overview import MapOverview, MapState
 
 __all__ = ["PAGE", "frames", "timeline"]

@@ -38,7 +38,7 @@ def view_map(path: str | os.PathLike[str], *, trace: str | os.PathLike[str] | No
     """
     import uvicorn
 
-    from sprint_map.localize.trace import read_trace
+    from sprint_map import read_trace
     from sprint_map.server.auth import check_bind, load_token, served_hosts
     from sprint_map.server.config import ServerConfig
     from sprint_map.server.guard import ConnectionLimits, guarded_protocol

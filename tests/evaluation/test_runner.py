@@ -163,7 +163,7 @@ def test_pairs_scores_the_merge_that_would_be_made(tmp_path, detour_dataset):
         assert [s.name for s in m.sequences()] == ["a-summer"] and not m.edges()
         rows = describe(m, data["c-detour"], 1)
         decisions, _ = m.localize(rows, smooth=True)
-        merged = m.select_merges(decisions)
+        merged = m.service.select_merges(decisions)
         db = m.sequences()[0].seq_id
     correct = np.array([d.seq_id == db and d.image_id is not None
                         and bool(gt.correct("c-detour", d.frame, "a-summer", d.image_id))

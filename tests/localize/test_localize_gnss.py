@@ -242,8 +242,8 @@ def test_identical_twins_are_resolved_by_gnss(twins):
     with SprintMap.open(path, readonly=True) as m:
         image_only, _ = m.localize(query, smooth=True)
         aided, _ = m.localize(query, smooth=True, fixes=fixes)
-        merged = m.select_merges(aided)
-        refused = m.select_merges(image_only)
+        merged = m.service.select_merges(aided)
+        refused = m.service.select_merges(image_only)
         street0 = m.sequence_by_name("street-0").seq_id
     # image only: two identical streets, the lookalike tests refuse both
     assert not refused.any()
@@ -276,8 +276,8 @@ def test_a_decision_far_from_its_fix_is_never_merged(one_street, offset_m):
     with SprintMap.open(path, readonly=True) as m:
         image_only, _ = m.localize(query, smooth=True)
         aided, _ = m.localize(query, smooth=True, fixes=fixes)
-        assert m.select_merges(image_only).sum() >= 80
-        merged = m.select_merges(aided)
+        assert m.service.select_merges(image_only).sum() >= 80
+        merged = m.service.select_merges(aided)
     fixed = ~np.isnan(fixes[:, 0])
     assert not merged[fixed].any()
     for d in aided:

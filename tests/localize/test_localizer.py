@@ -156,7 +156,7 @@ def test_ingest_merges_smoothed_decisions(tmp_path, rng, world):
         smoothed, _ = m.localize(b, smooth=True)
         res = m.ingest(b, name="b")
         assert [d.best for d in res.decisions] == [d.best for d in smoothed]
-        assert res.merged.tolist() == m.select_merges(smoothed).tolist()
+        assert res.merged.tolist() == m.service.select_merges(smoothed).tolist()
         assert res.added.edges_added == 2 * int(res.merged.sum()) > 0
         out = res.to_dict()
         assert all("novel_prob" in d and "merged" in d for d in out["decisions"])
@@ -174,10 +174,10 @@ def test_a_deeper_search_answers_every_frame_but_merges_only_the_k_model(tmp_pat
         deep, _ = m.localize(q, smooth=True)
         shallow, _ = m.localize(q, smooth=True, smooth_k=0)
         wide, _ = m.localize(q, smooth=True, k=m.config.hmm.smooth_k, smooth_k=0)
-        accepted = m.select_merges(shallow)
+        accepted = m.service.select_merges(shallow)
         assert 0 < accepted.sum() < len(q)
         assert [d.confirmed for d in deep] == accepted.tolist()
-        assert not m.select_merges(deep)[~accepted].any()
+        assert not m.service.select_merges(deep)[~accepted].any()
         assert [d.novel_prob for d in deep] == [d.novel_prob for d in shallow]
         radius = m.config.hmm.place_radius
         for d, s, w, ok in zip(deep, shallow, wide, accepted, strict=True):
@@ -226,7 +226,7 @@ def test_novelty_is_calibrated_on_short_consistent_runs_too(tmp_path, rng):
     with SprintMap.create(tmp_path / "m", MapConfig(dim=DIM)) as m:
         m.add_sequence(mapped, name="mapped")
         smoothed, _ = m.localize(query, smooth=True)
-        merged = m.select_merges(smoothed)
+        merged = m.service.select_merges(smoothed)
         assert merged[:100].mean() > 0.9 and not merged[100:].any()  # the stretch: too short
         far = [d.distance for d in smoothed[stretch]]
         assert max(d.distance for d in smoothed[:100]) < min(far)
@@ -251,7 +251,7 @@ def test_smoothed_novelty_is_calibrated_on_the_drive(tmp_path, rng):
         smoothed, _ = m.localize(query, smooth=True)
         far = [d.distance for d in smoothed[detour]]
         assert max(d.distance for d in smoothed[:150]) < min(far)
-        merged = m.select_merges(smoothed)
+        merged = m.service.select_merges(smoothed)
         assert merged[:150].mean() > 0.9 and not merged[detour].any()
         assert min(d.novel_prob for d in smoothed[153:167]) > 0.5
         # What the calibration takes away (with the distance gate off: it catches this too).

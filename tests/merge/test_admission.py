@@ -351,7 +351,7 @@ def test_frames_whose_best_hit_is_a_copy_are_not_stored_even_unmatched(novel_map
         novel_map.remove_sequences([0])
     decisions = [FrameDecision(i, None, None, 0.1, novel_prob=0.9, distance=1e-4, nearest=i)
                  for i in range(100)]
-    with novel_map.begin_drive("unmatched") as drive:
+    with novel_map.service.begin_drive("unmatched") as drive:
         drive.append(rows)
         done = drive.commit(decisions)
     stored = 0 if done.plan is None else done.plan.frames_stored

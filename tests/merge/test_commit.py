@@ -65,7 +65,7 @@ def test_everything_is_validated_before_a_row_is_written(smap, rng, bad):
 
 def test_a_name_is_checked_when_the_drive_begins(smap, rng):
     with pytest.raises(InputError):
-        smap.begin_drive("")
+        smap.service.begin_drive("")
     with pytest.raises(DuplicateNameError):  # "a" was committed without these rows
         smap.merge(rng.standard_normal((3, DIM)), [], name="a")
 
@@ -86,7 +86,7 @@ def test_exclusive_section_holds_the_commit_and_the_hook(smap, rng):
         if op == "fsync":
             events.append("fsync")
 
-    with smap.begin_drive(None, "cam", reserved={"seq-2"}) as drive:
+    with smap.service.begin_drive(None, "cam", reserved={"seq-2"}) as drive:
         assert drive.name == "seq-2-2"  # a default name avoids the reserved ones
         drive.append(rng.standard_normal((4, DIM)))
         previous = set_file_hook(seam)
@@ -116,7 +116,7 @@ def test_a_retry_of_a_committed_drive_is_reported_not_added(smap, rng):
 
 def test_leaving_without_a_commit_leaves_nothing(smap, rng):
     before = smap.stats()
-    with smap.begin_drive("c") as drive:
+    with smap.service.begin_drive("c") as drive:
         drive.append(rng.standard_normal((4, DIM)))
     assert smap.stats() == before
     added = smap.add_sequence(rng.standard_normal((2, DIM)), name="c",

@@ -190,7 +190,7 @@ def test_a_drive_that_contradicts_itself_does_not_merge_the_revisit(drives, tmp_
         m.add_sequence(rows[0], name=day.name, thumbnails=thumbs[0])
         for label, images in (("honest", honest), ("lying", lying)):
             decisions, _ = m.localize(twice, smooth=True, thumbnails=images)
-            merged[label] = m.select_merges(decisions)
+            merged[label] = m.service.select_merges(decisions)
     assert merged["honest"][:70].sum() >= 40 and merged["honest"][70:].sum() >= 40
     assert not merged["lying"][70:].any()
     assert (merged["honest"] | ~merged["lying"]).all()

@@ -70,14 +70,14 @@ def test_remove_forgets_them_compact_and_summarize_keep_them(tmp_path, config, d
 def test_the_prior_is_the_maps_mean_condition(tmp_path, config, drives):
     build(tmp_path / "m", config, drives[:2])
     with SprintMap.open(tmp_path / "m") as m:
-        prior = m.condition_prior()
+        prior = m.service.condition_prior()
         assert prior is not None and prior.frames == 50
         want = (drives[0].astype(np.float64).sum(0) + drives[1].sum(0)) / 50
         np.testing.assert_allclose(prior.mean, want, rtol=1e-5, atol=1e-5)
         m.ingest(drives[2], name="d2", merge=False)  # stored centred with that prior
         expect = DriveCentring(config.centring, DIM, prior).apply(drives[2])
         assert m.descriptors(2).tobytes() == expect.tobytes()
-        assert m.condition_prior().frames == 75  # pooled again after the commit
+        assert m.service.condition_prior().frames == 75  # pooled again after the commit
 
 
 def test_check_finds_a_broken_record_and_repair_drops_it(tmp_path, config, drives):
