@@ -24,7 +24,7 @@ class MapSearch:
         """k-NN over all live committed descriptors (removed sequences' filtered out), with
         exact distances (the approximate index re-ranks its candidates on the true rows).
         ``queries`` are in the map's space: a drive's descriptors pass through
-        :meth:`~sprint_map.map.SprintMap.drive_centring` first. O(vertices * dim) a query
+        :meth:`~sprint_map.map_service.MapService.drive_centring` first. O(vertices * dim) a query
         with the exact index; the approximate one scans O(sqrt(vertices)) codes.
 
         Parameters
