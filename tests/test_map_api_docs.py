@@ -12,14 +12,14 @@ import pytest
 
 from sprint_map import MapService, SprintMap
 
-#: The modules whose methods make SprintMap's own API (``map_reading.py``'s reads are documented
-#: on their own).
+#: The modules whose methods make SprintMap's API and its service's: every mixin of the facade.
 OWN_MODULES = ("sprint_map.map", "sprint_map.map_localizing", "sprint_map.map_writing",
-               "sprint_map.map_upkeep", "sprint_map.map_service", "sprint_map.map_supply")
+               "sprint_map.map_upkeep", "sprint_map.map_reading", "sprint_map.map_positions",
+               "sprint_map.map_search", "sprint_map.map_service", "sprint_map.map_supply")
 
 #: Methods that raise none of the project's errors (nor any other on purpose).
 RAISES_NOTHING = {
-    "SprintMap.check", "SprintMap.close", "SprintMap.info", "SprintMap.is_current",
+    "SprintMap.cap_search_threads", "SprintMap.check", "SprintMap.close", "SprintMap.info", "SprintMap.is_current",
     "MapService.condition_prior", "MapService.drive_centring", "MapService.position_index",
     "MapService.select_merges", "MapService.shared_cache", "MapService.view",
 }
