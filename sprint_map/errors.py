@@ -105,6 +105,11 @@ class ConfigError(SprintMapError):
 
     exit_code = 15
 
+    def __init__(self, message: str, unknown: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        #: The options no config field has (``MapConfig.hmm.rival_reach``), when that is why.
+        self.unknown = unknown
+
 
 class StorageIOError(SprintMapError):
     """An operating-system I/O error (EIO, ENOSPC, ...) aborted an operation."""

@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, Protocol, TypeVar
 
-from sprint_map.errors import ConfigError, MapCorruptError, SprintMapError
+from sprint_map.errors import ConfigError, MapCorruptError, SchemaVersionError, SprintMapError
 from sprint_map.util import dataclass_dict
 
 __all__ = ["INDEX_TYPES", "MIN_TRAIN", "READABLE_SCHEMA_VERSIONS", "SCHEMA_VERSION", "ConfigRecord",
@@ -199,13 +199,19 @@ class StoreConfig(StoreOptions):
 def decode_stored_config(decode: Callable[[dict[str, Any]], _Config], data: Any) -> _Config:
     """``decode(data)`` of a map's stored config record (decoded JSON), or MapCorruptError if
     it is not a valid config: not an object, or values the config refuses (of the wrong type
-    or out of range: a map is only ever created with a valid one). The store decodes its
+    or out of range: a map is only ever created with a valid one). Options no field has are a
+    later release's (SchemaVersionError, naming them), not damage. The store decodes its
     fields with it (:class:`StoreConfig`), the facade the whole config. O(fields)."""
     if not isinstance(data, dict):
         raise MapCorruptError("corrupt map record config: not a JSON object")
     try:
         return decode(data)
     except ConfigError as exc:
+        if exc.unknown:  # well-formed options of a later release, not damage
+            raise SchemaVersionError(
+                f"the map's config has option(s) this sprint-map does not know "
+                f"({', '.join(exc.unknown)}): it was made by a newer sprint-map; upgrade to "
+                f"open it") from exc
         raise MapCorruptError(f"corrupt map record config: {exc}") from exc
     except SprintMapError:
         raise

@@ -63,7 +63,8 @@ def from_dict(cls: type[T], data: Mapping[str, Any], *, where: str | None = None
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(str(key) for key in set(data) - set(fields))
     if unknown:
-        raise ConfigError(f"{where}: unknown option(s) {', '.join(unknown)}")
+        raise ConfigError(f"{where}: unknown option(s) {', '.join(unknown)}",
+                          unknown=tuple(f"{where}.{key}" for key in unknown))
     hints = typing.get_type_hints(cls)
     kwargs: dict[str, Any] = {}
     for name, value in data.items():

@@ -162,10 +162,11 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[str, Path]:
     """``npy``: precomputed map with sequence "first"; ``img``: HoG map with sequence "images";
     ``newer``: a map of a schema version newer than this code's; ``badconfig``: a map whose
-    stored config has a value of the wrong type (``shard_rows`` 1.5)."""
+    stored config has a value of the wrong type (``shard_rows`` 1.5); ``laterconfig``: one whose
+    stored config has an option a later release added (``hmm.later_option``)."""
     root = tmp_path_factory.mktemp("templates")
     paths = {"npy": root / "npy.map", "img": root / "img.map", "newer": root / "newer.map",
-             "badconfig": root / "badconfig.map"}
+             "badconfig": root / "badconfig.map", "laterconfig": root / "laterconfig.map"}
     with SprintMap.create(paths["npy"], MapConfig(dim=DIM)) as m:
         m.add_sequence(np.load(inputs / "good.npy"), name="first")
         m.search(np.load(inputs / "one.npy"), k=1)  # the index is persisted at close: a failed
@@ -185,6 +186,14 @@ def templates(tmp_path_factory: pytest.TempPathFactory, inputs: Path) -> dict[st
     with env.begin(write=True) as txn:
         config = json.loads(txn.get(b"config", db=meta))
         config["store"]["shard_rows"] = 1.5
+        txn.put(b"config", json.dumps(config).encode(), db=meta)
+    env.close()
+    shutil.copytree(paths["npy"], paths["laterconfig"])
+    env = lmdb.open(str(paths["laterconfig"] / LMDB_DIR), max_dbs=MAX_DBS)
+    meta = env.open_db(b"meta")
+    with env.begin(write=True) as txn:
+        config = json.loads(txn.get(b"config", db=meta))
+        config["hmm"]["later_option"] = 3  # as a later release stores its new field
         txn.put(b"config", json.dumps(config).encode(), db=meta)
     env.close()
     return paths
@@ -359,6 +368,11 @@ CASES: dict[str, Case] = {
     **{f"stored-config-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/one.npy" if cmd in (
         "ingest", "localize") else ""), MapCorruptError, "corrupt map record config: MapConfig.store: "
         "shard_rows must be an integer, got 1.5", map="badconfig")
+       for cmd in ("info", "check", "ingest", "localize")},
+    # An option no field has is a later release's map: the newer schema's error, not damage.
+    **{f"later-config-{cmd}": Case(f"{cmd} {{map}}" + (" {in}/one.npy" if cmd in (
+        "ingest", "localize") else ""), SchemaVersionError, "option(s) this sprint-map does not "
+        "know (MapConfig.hmm.later_option): it was made by a newer sprint-map", map="laterconfig")
        for cmd in ("info", "check", "ingest", "localize")},
     "hmm-float-k": Case("localize {map} {in}/good.npy --hmm k=1.5", ConfigError,
                         "HMMConfig: k must be an integer, got 1.5"),
