@@ -147,9 +147,8 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> m = SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16))
+        >>> from sprint_map.examples import example_map
+        >>> m = example_map(dim=16)
         >>> m.close()
         >>> m.closed
         True
@@ -199,9 +198,9 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile
-        >>> from sprint_map import MapConfig, MapService, SprintMap
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> from sprint_map import MapService
+        >>> from sprint_map.examples import example_map
+        >>> with example_map(dim=16) as m:
         ...     print(isinstance(m.service, MapService), m.service is m.service)
         True True
         """
@@ -219,9 +218,8 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> from sprint_map.examples import example_map
+        >>> with example_map(dim=16) as m:
         ...     print(m.is_current())
         True
         """
@@ -258,11 +256,9 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 40}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     merged = m.ingest(road, name="tuesday").merged.sum()  # an edge each way
         ...     print(merged, len(m.edges(added_by="tuesday")), len(m.edges("monday")))
         40 80 80
@@ -319,11 +315,8 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((20, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 20}, dim=16) as m:
         ...     print(m.check().ok)
         True
         """
@@ -343,9 +336,8 @@ class SprintMap(MapLocalizing, MapWriting):
 
         Examples
         --------
-        >>> import tempfile
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> from sprint_map.examples import example_map
+        >>> with example_map(dim=16) as m:
         ...     info = m.info()
         >>> info["dim"], info["sequences"], info["removed_vertices"]
         (16, 0, 0)

@@ -78,11 +78,9 @@ class MapLocalizing(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 40}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     decisions = m.localizer(k=5).localize(road[:20])
         ...     print(len(decisions), decisions[-1].image_id)
         20 19
@@ -147,11 +145,9 @@ class MapLocalizing(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 40}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     causal, _ = m.localize(road[10:30])
         ...     lagged, _ = m.localize(road[10:30], lag=3)
         ...     print([d.image_id for d in causal[-3:]], len(lagged))
@@ -211,11 +207,9 @@ class MapLocalizing(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 40}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     localizer = m.localizer(record=True)
         ...     _ = localizer.localize(road[5:25])
         ...     print([d.image_id for d in m.smoothed(localizer)[:3]])

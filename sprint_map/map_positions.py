@@ -55,10 +55,9 @@ class MapPositions:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map()
         >>> xy = np.array([[0.0, 0.0], [1.5, 0.0], [np.nan, np.nan]])  # frame 2: no fix
         >>> _ = smap.add_sequence(np.ones((3, 8), np.float32), name="mon", positions=xy)
         >>> smap.positions(0)
@@ -68,7 +67,7 @@ class MapPositions:
         >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), name="tue")
         >>> smap.positions(1) is None
         True
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.positions(seq_id)
 
@@ -114,16 +113,15 @@ class MapPositions:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map()
         >>> print(smap.position_frame())
         None
         >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), positions=np.zeros((2, 2)))
         >>> smap.position_frame()
         'planar'
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         frame = self.geo_frame()
         if frame is not None:
@@ -159,18 +157,17 @@ class MapPositions:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.examples import example_map
         >>> from sprint_map.frontend.positions import Positions
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> smap = example_map()
         >>> latlon = np.array([[59.3293, 18.0686], [59.3294, 18.0688]])  # Stockholm
         >>> rows = smap.metric_positions(Positions(np.arange(2), latlon, geographic=True))
         >>> smap.geo_frame(), rows.shape
         (GeoFrame(zone=34, south=False), (2, 5))
         >>> np.round(rows[:, :2]).tolist()  # easting, northing (metres)
         [[333230.0, 6580391.0], [333242.0, 6580402.0]]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.metric_positions_of([positions])[0]
 
@@ -198,11 +195,10 @@ class MapPositions:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.examples import example_map
         >>> from sprint_map.frontend.positions import Positions
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> smap = example_map()
         >>> _ = smap.add_sequence(np.ones((2, 8), np.float32), positions=np.zeros((2, 2)))
         >>> planar = Positions(np.arange(2), np.zeros((2, 2)))
         >>> smap.check_position_frames([planar, None])
@@ -212,7 +208,7 @@ class MapPositions:
             ...
         sprint_map.errors.InputError: latitude/longitude positions given to a map of planar x, y
         positions: give x,y positions in the map's frame, or use another map
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         kinds = {"geographic" if t.geographic else "planar" for t in tables if t is not None}
         if len(kinds) > 1:
@@ -260,11 +256,10 @@ class MapPositions:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.examples import example_map
         >>> from sprint_map.frontend.positions import Positions
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> smap = example_map()
         >>> nofix = Positions(np.arange(1), np.full((1, 2), np.nan), geographic=True)
         >>> south = Positions(np.arange(1), np.array([[-33.87, 151.21]]), geographic=True)
         >>> [None if r is None else r.shape for r in smap.metric_positions_of([nofix, None, south])]
@@ -276,7 +271,7 @@ class MapPositions:
             ...
         sprint_map.errors.InputError: positions mix latitude/longitude and planar x, y: a map
         keeps one frame (give all drives lat,lon or all x,y)
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         self.check_position_frames(tables)
         out: list[Float64Array | None] = []

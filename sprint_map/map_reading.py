@@ -60,12 +60,8 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> record = smap.sequence(0)
         >>> record.name, record.length, record.first_vertex
         ('mon', 5, 0)
@@ -73,7 +69,7 @@ class MapReading(MapPositions, MapSearch):
         Traceback (most recent call last):
             ...
         sprint_map.errors.UnknownSequenceError: no sequence 7 in the map
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.sequence(seq_id)
 
@@ -92,16 +88,11 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> for name, n in (("mon", 5), ("tue", 3)):
-        ...     _ = smap.add_sequence(rng.standard_normal((n, 8)).astype(np.float32), name=name)
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5, "tue": 3})
         >>> [(s.seq_id, s.name, s.first_vertex) for s in smap.sequences()]
         [(0, 'mon', 0), (1, 'tue', 5)]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.sequences()
 
@@ -129,20 +120,17 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
-        >>> _ = smap.add_sequence(rng.standard_normal((3, 8)).astype(np.float32))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
+        >>> _ = smap.add_sequence(np.ones((3, 8), np.float32))  # named by its id
         >>> smap.sequence_by_name("seq-1").length
         3
         >>> smap.sequence_by_name("sun")
         Traceback (most recent call last):
             ...
         sprint_map.errors.UnknownSequenceError: no sequence named 'sun' in the map
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.sequence_by_name(name)
 
@@ -171,16 +159,11 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> for name, n in (("mon", 5), ("tue", 3)):
-        ...     _ = smap.add_sequence(rng.standard_normal((n, 8)).astype(np.float32), name=name)
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5, "tue": 3})
         >>> smap.locate([0, 4, 5, 7])
         [(0, 0), (0, 4), (1, 0), (1, 2)]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.locate(vertex_ids)
 
@@ -209,20 +192,16 @@ class MapReading(MapPositions, MapSearch):
         --------
         A second drive of the same road merges into the first one's component:
 
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(road, name="mon")
-        >>> _ = smap.add_sequence(rng.standard_normal((30, 8)).astype(np.float32), name="far")
-        >>> again = road + 0.01 * rng.standard_normal(road.shape).astype(np.float32)
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 30, "far": 30})
+        >>> road = smap.descriptors(0)
+        >>> again = road + 0.01 * np.random.default_rng(1).standard_normal(road.shape)
         >>> smap.ingest(again, name="tue").added.edges_added > 0
         True
         >>> [smap.component_of(s) for s in (0, 1, 2)]
         [0, 1, 0]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.component_of(seq_id)
 
@@ -241,19 +220,15 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(road, name="mon")
-        >>> _ = smap.add_sequence(rng.standard_normal((10, 8)).astype(np.float32), name="far")
-        >>> _ = smap.ingest(road + 0.01 * rng.standard_normal(road.shape).astype(np.float32))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 30, "far": 10})
+        >>> road = smap.descriptors(0)
+        >>> _ = smap.ingest(road + 0.01 * np.random.default_rng(1).standard_normal(road.shape))
         >>> smap.components()
         [ComponentInfo(component=0, sequences=[0, 2], vertices=60),
          ComponentInfo(component=1, sequences=[1], vertices=10)]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.components()
 
@@ -289,11 +264,8 @@ class MapReading(MapPositions, MapSearch):
         Examples
         --------
         >>> import os, shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> out = tempfile.mkdtemp()
         >>> report = smap.export_graphml(os.path.join(out, "map.graphml"))
         >>> report.level, report.nodes, report.edges
@@ -302,7 +274,7 @@ class MapReading(MapPositions, MapSearch):
         Traceback (most recent call last):
             ...
         sprint_map.errors.InputError: export level must be one of vertex, sequence, not 'drive'
-        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
+        >>> smap.close(); shutil.rmtree(out)
         """
         from sprint_map.export import export_graphml
 
@@ -336,16 +308,13 @@ class MapReading(MapPositions, MapSearch):
         Examples
         --------
         >>> import os, shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rng.standard_normal((5, 8)).astype(np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> out = tempfile.mkdtemp()
         >>> report = smap.export_csv(out)
         >>> [os.path.basename(f) for f in report.files], report.nodes
         (['sequences.csv', 'vertices.csv', 'edges.csv'], 5)
-        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
+        >>> smap.close(); shutil.rmtree(out)
         """
         from sprint_map.export import export_csv
 
@@ -381,15 +350,15 @@ class MapReading(MapPositions, MapSearch):
         --------
         >>> import os, shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.examples import example_map
         >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> smap = example_map()
         >>> rows = rng.standard_normal((5, 8)).astype(np.float32)
         >>> _ = smap.add_sequence(rows, name="mon", positions=np.c_[np.arange(5.0), np.zeros(5)])
         >>> out = tempfile.mkdtemp()
         >>> smap.export_geojson(os.path.join(out, "map.geojson")).nodes
         1
-        >>> smap.close(); shutil.rmtree(smap.path); shutil.rmtree(out)
+        >>> smap.close(); shutil.rmtree(out)
         """
         from sprint_map.export import export_geojson
 
@@ -417,11 +386,10 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> from sprint_map.examples import example_map
         >>> rng = np.random.default_rng(0)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> smap = example_map()
         >>> jpegs = [b"\\xff\\xd8 frame %d \\xff\\xd9" % i for i in range(3)]  # SOI ... EOI
         >>> rows = rng.standard_normal((3, 8)).astype(np.float32)
         >>> _ = smap.add_sequence(rows, name="mon", thumbnails=jpegs)
@@ -431,7 +399,7 @@ class MapReading(MapPositions, MapSearch):
         Traceback (most recent call last):
             ...
         sprint_map.errors.UnknownSequenceError: sequence 0 has no image 3 (it has 3)
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.thumbnail(seq_id, image_id)
 
@@ -462,15 +430,14 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=4))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map(dim=4)
         >>> _ = smap.add_sequence(np.array([[1, 0, 0, 0], [0, 1, 0, 0]], np.float32), name="mon")
         >>> stats = smap.drive_stats("mon")
         >>> stats.frames, stats.mean.tolist()
         (2, [0.5, 0.5, 0.0, 0.0])
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         seq_id = seq if isinstance(seq, int) else self.sequence_by_name(seq).seq_id
         got = self.store.drive_stats(seq_id)
@@ -499,16 +466,15 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map()
         >>> rows = np.ones((3, 8), np.float32)
         >>> _ = smap.add_sequence(rows, thumbnails=[b"\\xff\\xd8 jpeg \\xff\\xd9"] * 3)
         >>> _ = smap.add_sequence(rows)
         >>> smap.thumbnail_count(0), smap.thumbnail_count(1)
         (3, 0)
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.thumbnail_count(seq_id)
 
@@ -530,20 +496,17 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> road = rng.standard_normal((30, 8)).astype(np.float32)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(road, name="mon")
-        >>> _ = smap.ingest(road + 0.01 * rng.standard_normal(road.shape).astype(np.float32))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 30})
+        >>> road = smap.descriptors(0)
+        >>> _ = smap.ingest(road + 0.01 * np.random.default_rng(1).standard_normal(road.shape))
         >>> table = smap.edge_table()
         >>> len(table) == smap.stats()["edges"], set(table.added_by.tolist())
         (True, {1})
         >>> int(table.src[0]), int(table.dst[0])  # mon's frame 0 -> the new drive's frame 0
         (0, 30)
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return edge_table(self.store)
 
@@ -571,17 +534,14 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> rows = rng.standard_normal((5, 8)).astype(np.float32)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rows, name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
+        >>> rows = np.random.default_rng(0).standard_normal((5, 8)).astype(np.float32)
         >>> got = smap.descriptors(0)
         >>> got.shape, got.dtype, bool((got == rows).all())
         ((5, 8), dtype('float32'), True)
-        >>> del got; smap.close(); shutil.rmtree(smap.path)
+        >>> del got; smap.close()
         """
         return self.store.descriptors(seq_id)
 
@@ -611,16 +571,15 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=2))
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map(dim=2)
         >>> _ = smap.add_sequence(np.array([[0, 1], [2, 3], [4, 5]], np.float32), name="mon")
         >>> _ = smap.add_sequence(np.array([[6, 7]], np.float32), name="tue")
         >>> _ = smap.remove_sequences(["mon"])
         >>> smap.vertex_rows(1).tolist()  # mon's rows stay until compact
         [[2.0, 3.0], [4.0, 5.0], [6.0, 7.0]]
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         total = self.stats()["vertices"]
         return self.store.shards.rows(start, total if stop is None else stop, total)
@@ -642,17 +601,14 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> for name, n in (("mon", 5), ("tue", 3)):
-        ...     _ = smap.add_sequence(np.ones((n, 8), np.float32), name=name)
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5, "tue": 3})
         >>> _ = smap.remove_sequences(["mon"])
         >>> removed = smap.removed_ranges()
         >>> removed.count, removed.vertices, removed.contains(np.array([4, 5])).tolist()
         (1, 5, [True, False])
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         with self.store.env.read() as txn:
             return self.store.removed_ranges(txn)
@@ -673,14 +629,11 @@ class MapReading(MapPositions, MapSearch):
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> smap.stats()
         {'sequences': 1, 'vertices': 5, 'edges': 0, 'components': 1}
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.stats()
 

@@ -54,13 +54,9 @@ class MapSearch:
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rng = np.random.default_rng(0)
-        >>> rows = rng.standard_normal((6, 8)).astype(np.float32)
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(rows, name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 6})
+        >>> rows = smap.descriptors(0)
         >>> distances, ids = smap.search(rows[[3]] + 0.01, 8)
         >>> smap.locate([ids[0, 0]]), ids[0, -2:].tolist()  # frame 3 first; 2 hits of padding
         ([(0, 3)], [-1, -1])
@@ -70,7 +66,7 @@ class MapSearch:
         Traceback (most recent call last):
             ...
         sprint_map.errors.DescriptorShapeError: descriptors must be a 2-D array (N x 8), got (8,)
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.search(queries, k)
 
@@ -107,16 +103,14 @@ class MapSearch:
 
         Examples
         --------
-        >>> import shutil, tempfile
         >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> smap.search_within(np.ones((1, 8)), 2, 0)
         Traceback (most recent call last):
             ...
         ValueError: a search within a vertex range needs the approximate index; this map's ...
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.search_within(queries, k, start, stop)
 
@@ -138,14 +132,11 @@ class MapSearch:
 
         Examples
         --------
-        >>> import shutil, tempfile
-        >>> import numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> smap = SprintMap.create(tempfile.mkdtemp(), MapConfig(dim=8))
-        >>> _ = smap.add_sequence(np.ones((5, 8), np.float32), name="mon")
+        >>> from sprint_map.examples import example_map
+        >>> smap = example_map({"mon": 5})
         >>> smap.index_segments()  # a small map's index is exact
         []
-        >>> smap.close(); shutil.rmtree(smap.path)
+        >>> smap.close()
         """
         return self.store.index_segments()
 

@@ -105,10 +105,10 @@ class MapService(MapSupply):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> import numpy as np
+        >>> from sprint_map.examples import example_map
         >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> with example_map(dim=16) as m:
         ...     with m.service.begin_drive("monday") as drive:
         ...         _ = drive.append(road)
         ...         done = drive.commit([], None)  # no decision: appended as it is
@@ -150,11 +150,9 @@ class MapService(MapSupply):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     prepared = m.service.prepare_ingest([road])  # a farm's worker, read-only
         ...     print(len(prepared.decisions), m.stats()["sequences"])
         30 1
@@ -200,11 +198,9 @@ class MapService(MapSupply):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     prepared = m.service.prepare_ingest([road])
         ...     result, why = m.service.commit_prepared(prepared, [road], "tuesday")
         ...     print(result.added.sequence.name, why, result.merged.sum())
@@ -275,11 +271,9 @@ class MapService(MapSupply):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     decisions, _ = m.localize(road, smooth=True)
         ...     print(m.service.select_merges(decisions).sum())
         30
@@ -303,11 +297,9 @@ class MapService(MapSupply):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     with m.service.group_commit():  # the index persisted once, after both
         ...         _ = m.ingest(road, name="tuesday"), m.ingest(road, name="wednesday")
         ...     print(m.stats()["sequences"], m.stats()["components"])

@@ -73,11 +73,8 @@ class MapSupply:
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
         ...     print(m.service.view().vertices)
         30
         """
@@ -112,10 +109,10 @@ class MapSupply:
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> import numpy as np
+        >>> from sprint_map.examples import example_map
         >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> with example_map(dim=16) as m:
         ...     rows = m.service.drive_centring().apply(road)  # centring "none": as given
         ...     print(rows.shape, bool((rows == road).all()), m.service.condition_prior())
         (30, 16) True None

@@ -52,11 +52,8 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((10, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 10}, dim=16) as m:
         ...     print(m.sequence_id("monday"), m.sequence_id(0))
         0 0
         """
@@ -89,11 +86,8 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rows = np.random.default_rng(0).standard_normal((2, 10, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(rows[0], name="monday"), m.add_sequence(rows[1], name="tue")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 10, "tue": 10}, dim=16) as m:
         ...     removed = m.remove_sequences(["monday"])
         ...     print([s.name for s in m.sequences()], m.info()["removed_vertices"])
         ['tue'] 10
@@ -127,11 +121,9 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 40}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     _ = m.ingest(road, name="tuesday")
         ...     _ = m.unmerge("tuesday")
         ...     print(m.edges(added_by="tuesday"), m.stats()["components"])
@@ -160,11 +152,8 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> rows = np.random.default_rng(0).standard_normal((2, 10, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(rows[0], name="monday"), m.add_sequence(rows[1], name="tue")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 10, "tue": 10}, dim=16) as m:
         ...     _ = m.remove_sequences(["monday"])
         ...     report = m.compact()
         ...     print(report.vertices_before, report.vertices_after, m.info()["removed_vertices"])
@@ -197,11 +186,8 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((20, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 20}, dim=16) as m:
         ...     report = m.summarize()
         ...     print(report["vertices_before"], report["vertices_after"] <= 20)
         20 True
@@ -237,11 +223,9 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((20, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 20}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     _ = m.rebuild_index()
         ...     print(m.search(road[:1], 1)[1].tolist())
         [[0]]
@@ -283,9 +267,8 @@ class MapUpkeep(MapReading):
 
         Examples
         --------
-        >>> import tempfile
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> from sprint_map.examples import example_map
+        >>> with example_map(dim=16) as m:
         ...     print(m.unlearn())
         False
         """

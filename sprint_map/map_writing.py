@@ -192,11 +192,11 @@ class MapWriting(MapUpkeep):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
+        >>> import numpy as np
+        >>> from sprint_map.examples import example_map
         >>> rng = np.random.default_rng(0)
         >>> road = rng.standard_normal((40, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> with example_map(dim=16) as m:
         ...     first = m.ingest(road, name="monday")  # an empty map: appended as it is
         ...     again = m.ingest(road + 0.01 * rng.standard_normal((40, 16)), name="tuesday")
         ...     print(again.added.sequence.name, m.stats()["components"])
@@ -272,10 +272,11 @@ class MapWriting(MapUpkeep):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import Drive, MapConfig, SprintMap
+        >>> import numpy as np
+        >>> from sprint_map import Drive
+        >>> from sprint_map.examples import example_map
         >>> rows = np.random.default_rng(0).standard_normal((2, 20, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
+        >>> with example_map(dim=16) as m:
         ...     done = m.ingest_drives([Drive(rows[0], "a"), Drive(rows[1], "b")], merge=False)
         ...     print([r.added.sequence.name for r in done])
         ['a', 'b']
@@ -313,11 +314,9 @@ class MapWriting(MapUpkeep):
 
         Examples
         --------
-        >>> import tempfile, numpy as np
-        >>> from sprint_map import MapConfig, SprintMap
-        >>> road = np.random.default_rng(0).standard_normal((30, 16)).astype(np.float32)
-        >>> with SprintMap.create(tempfile.mkdtemp() + "/city.map", MapConfig(dim=16)) as m:
-        ...     _ = m.add_sequence(road, name="monday")
+        >>> from sprint_map.examples import example_map
+        >>> with example_map({"monday": 30}, dim=16) as m:
+        ...     road = m.descriptors(0)
         ...     decisions, _ = m.localize(road, smooth=True)
         ...     print(m.merge(road, decisions, name="again").sequence.name)
         again
