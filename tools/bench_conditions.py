@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
+import re
 import shutil
 import sys
 import tempfile
@@ -470,10 +470,15 @@ def headline(summaries: list[dict[str, Any]]) -> dict[str, float | None]:
 
 
 def parse_arm(text: str) -> tuple[str, list[str]]:
-    words = shlex.split(text)
-    if not words or "=" in words[0]:
+    """``'LABEL KEY=VALUE ...'`` -> ``(LABEL, ['KEY=VALUE', ...])``. A value runs to the next
+    ``KEY=``, so JSON keeps its quotes and spaces (``centring={"mode": "drive"}``)."""
+    label, _, rest = text.strip().partition(" ")
+    if not label or "=" in label:
         raise SystemExit(f"--arm: expected 'LABEL KEY=VALUE ...', got {text!r}")
-    return words[0], words[1:]
+    words = re.split(r"\s+(?=[A-Za-z_][\w.]*=)", rest.strip()) if rest.strip() else []
+    if any("=" not in word for word in words):
+        raise SystemExit(f"--arm: expected 'LABEL KEY=VALUE ...', got {text!r}")
+    return label, words
 
 
 def main(argv: list[str] | None = None) -> int:

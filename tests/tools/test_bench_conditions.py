@@ -31,6 +31,18 @@ def test_set_changes_flat_and_dotted_keys() -> None:
         bench_conditions.apply_sets(base, ["no-equals-sign"])
 
 
+def test_an_arm_keeps_json_values_whole() -> None:
+    """A value runs to the next KEY=: JSON keeps its quotes and spaces (shlex stripped them)."""
+    label, sets = bench_conditions.parse_arm('centred centring={"mode": "drive"} hmm.k=13')
+    assert (label, sets) == ("centred", ['centring={"mode": "drive"}', "hmm.k=13"])
+    changed = bench_conditions.apply_sets(MapConfig(dim=8), sets)
+    assert changed.centring.mode == "drive" and changed.hmm.k == 13
+    assert bench_conditions.parse_arm("raw") == ("raw", [])
+    for bad in ("k=1 hmm.k=2", "centred drive"):
+        with pytest.raises(SystemExit):
+            bench_conditions.parse_arm(bad)
+
+
 def test_cross_season_frames_are_held_only_under_the_other_season() -> None:
     def line(lo: int, n: int) -> np.ndarray:
         return np.column_stack([np.arange(n), np.arange(lo, lo + n, dtype=float), np.zeros(n)])
