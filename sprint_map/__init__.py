@@ -22,6 +22,7 @@ from sprint_map.hmm.config import HMMConfig
 from sprint_map.util.lazy import lazy_names
 
 if TYPE_CHECKING:
+    from sprint_map.facade.service import MapService
     from sprint_map.frontend.bags import BagOptions
     from sprint_map.frontend.centring import DriveCentring
     from sprint_map.frontend.dataset import Dataset, Traversal
@@ -38,7 +39,6 @@ if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
     from sprint_map.localize.trace import Trace, TraceRecorder, read_trace
     from sprint_map.map import SprintMap
-    from sprint_map.map_service import MapService
     from sprint_map.merge.commit import DriveWriter, IngestResult
     from sprint_map.merge.drives import Drive
     from sprint_map.merge.join import DriveLocalisation, LocaliseMany
@@ -69,7 +69,7 @@ _USER = {"SprintMap": "sprint_map.map", "IngestResult": "sprint_map.merge.commit
 
 #: The doors of the layers on top: each name they use of the layers below, and its module.
 _DOORS = {
-    "MapService": "sprint_map.map_service",
+    "MapService": "sprint_map.facade.service",
     "DriveWriter": "sprint_map.merge.commit",
     "PreparedDrive": "sprint_map.merge.prepared",
     "DriveLocalisation": "sprint_map.merge.join", "LocaliseMany": "sprint_map.merge.join",

@@ -36,7 +36,7 @@ def example_map(drives: Mapping[str, int] | None = None, *, dim: int | None = No
     (appended as they are, not merged); drive ``i``'s rows are the ``i``-th draw
     ``rng.standard_normal((frames, dim)).astype(np.float32)`` of one
     ``rng = np.random.default_rng(seed)``, so an example that drew its rows so reads the
-    same rows back with :meth:`~sprint_map.map_reading.MapReading.descriptors`. The folder
+    same rows back with :meth:`~sprint_map.facade.reading.MapReading.descriptors`. The folder
     is removed when the interpreter exits (:mod:`atexit`; a map still open then is removed
     too): close the map when done, and keep nothing in the folder.
 

@@ -10,46 +10,40 @@ The CLI is a thin layer over this class; everything it does can be done from Pyt
         print(m.info())
 
 The user's verbs are here and in the facade's mixins: its reads
-(:class:`~sprint_map.map_reading.MapReading`), localisation
-(:class:`~sprint_map.map_localizing.MapLocalizing`), drives added
-(:class:`~sprint_map.map_writing.MapWriting`), drives forgotten and the map's upkeep
-(:class:`~sprint_map.map_upkeep.MapUpkeep`). The plumbing that the service and the fleet need
+(:class:`~sprint_map.facade.reading.MapReading`), localisation
+(:class:`~sprint_map.facade.localizing.MapLocalizing`), drives added
+(:class:`~sprint_map.facade.writing.MapWriting`), drives forgotten and the map's upkeep
+(:class:`~sprint_map.facade.upkeep.MapUpkeep`). The plumbing that the service and the fleet need
 (drives committed as they stream, prepared drives, views, caches) is the map's service API,
-:attr:`SprintMap.service` (:class:`~sprint_map.map_service.MapService`).
+:attr:`SprintMap.service` (:class:`~sprint_map.facade.service.MapService`).
 """
 
 from __future__ import annotations
 
 import os
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from sprint_map.config import MapConfig
-from sprint_map.map_localizing import MapLocalizing
-from sprint_map.map_service import MapService
-from sprint_map.map_writing import MapWriting, stored_config
+from sprint_map.facade.core import stored_config
+from sprint_map.facade.writing import MapWriting
 from sprint_map.storage.generation import current_data
 from sprint_map.storage.provenance import list_edges
 from sprint_map.storage.records import CheckReport, EdgeInfo, RepairReport
 from sprint_map.storage.store import MapStore
 
-if TYPE_CHECKING:  # imported where used: ``info`` and ``sequences`` need no HMM and no OpenCV
-    pass
-
-
 __all__ = ["SprintMap", "stored_config"]
 
 
-class SprintMap(MapLocalizing, MapWriting):
+class SprintMap(MapWriting):
     """A persistent place-recognition map.
 
     Open with :meth:`create` or :meth:`open`, preferably as a context manager; one process at a
     time may open a map for writing, any number for reading (each sees consistent snapshots).
     Its reads (sequences, vertices, descriptors, positions, thumbnails, exports, search) are
-    :class:`~sprint_map.map_reading.MapReading`'s, its localisation
-    :class:`~sprint_map.map_localizing.MapLocalizing`'s, its changes (ingest, join)
-    :class:`~sprint_map.map_writing.MapWriting`'s and its upkeep (remove, unmerge, compact, ...)
-    :class:`~sprint_map.map_upkeep.MapUpkeep`'s; :attr:`service` is the API of the service
+    :class:`~sprint_map.facade.reading.MapReading`'s, its localisation
+    :class:`~sprint_map.facade.localizing.MapLocalizing`'s, its changes (ingest, join)
+    :class:`~sprint_map.facade.writing.MapWriting`'s and its upkeep (remove, unmerge, compact, ...)
+    :class:`~sprint_map.facade.upkeep.MapUpkeep`'s; :attr:`service` is the API of the service
     and the fleet.
 
     Parameters
@@ -57,11 +51,6 @@ class SprintMap(MapLocalizing, MapWriting):
     store : MapStore
         The open store (:meth:`create` and :meth:`open` make it).
     """
-
-    def __init__(self, store: MapStore) -> None:
-        self.store = store
-        self._config = stored_config(store.config_record)
-        self._service = MapService(self)
 
     # --- lifecycle --------------------------------------------------------------------------
     @classmethod
@@ -171,41 +160,6 @@ class SprintMap(MapLocalizing, MapWriting):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @property
-    def path(self) -> Path:
-        """The map's directory."""
-        return self.store.path
-
-    @property
-    def config(self) -> MapConfig:
-        """The map's configuration, as stored."""
-        return self._config
-
-    @property
-    def readonly(self) -> bool:
-        """Whether the map was opened for reading only."""
-        return self.store.readonly
-
-    @property
-    def closed(self) -> bool:
-        """Whether :meth:`close` was called (nothing can be read any more)."""
-        return self.store.env is None
-
-    @property
-    def service(self) -> MapService:
-        """The map's service API: the plumbing that ``server`` and ``fleet`` drive the map
-        with (:class:`~sprint_map.map_service.MapService`), one per map.
-
-        Examples
-        --------
-        >>> from sprint_map import MapService
-        >>> from sprint_map.examples import example_map
-        >>> with example_map(dim=16) as m:
-        ...     print(isinstance(m.service, MapService), m.service is m.service)
-        True True
-        """
-        return self._service
-
     def is_current(self) -> bool:
         """Whether the generation this map opened is still the live one: False once a
         ``compact`` selected a new copy (a reader then sees no later commit: reopen the map).
@@ -224,11 +178,6 @@ class SprintMap(MapLocalizing, MapWriting):
         True
         """
         return current_data(self.path) == self.store.data_path
-
-    @property
-    def warnings(self) -> list[str]:
-        """Problems that failed no call and lost nothing (e.g. the index cache not saved)."""
-        return self.store.warnings
 
     # --- reading and checking ---------------------------------------------------------------
     def edges(self, seq: int | str | None = None, *, added_by: int | str | None = None

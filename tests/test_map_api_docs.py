@@ -13,9 +13,10 @@ import pytest
 from sprint_map import MapService, SprintMap
 
 #: The modules whose methods make SprintMap's API and its service's: every mixin of the facade.
-OWN_MODULES = ("sprint_map.map", "sprint_map.map_localizing", "sprint_map.map_writing",
-               "sprint_map.map_upkeep", "sprint_map.map_reading", "sprint_map.map_positions",
-               "sprint_map.map_search", "sprint_map.map_service", "sprint_map.map_supply")
+OWN_MODULES = ("sprint_map.map", "sprint_map.facade.core", "sprint_map.facade.localizing",
+               "sprint_map.facade.writing", "sprint_map.facade.upkeep", "sprint_map.facade.reading",
+               "sprint_map.facade.positions", "sprint_map.facade.search",
+               "sprint_map.facade.service", "sprint_map.facade.supply")
 
 #: Methods that raise none of the project's errors (nor any other on purpose).
 RAISES_NOTHING = {

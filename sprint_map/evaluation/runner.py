@@ -16,7 +16,7 @@ rule (:mod:`sprint_map.merge.rule`) turns into edges. The merge metrics
 - ``lifelong``: the decisions and the mask of the ingest that committed the drive;
   ``edges_added`` is the commit's count.
 - ``pairs``: the query is not merged; the merge rule is applied to its smoothed decisions
-  (:meth:`MapService.select_merges <sprint_map.map_service.MapService.select_merges>`), and
+  (:meth:`MapService.select_merges <sprint_map.facade.service.MapService.select_merges>`), and
   ``edges_added``/``edges_wrong`` count the edges that merging it *would* add (2 per merged
   decision when ``config.merge.both_ways``).
 

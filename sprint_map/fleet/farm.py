@@ -3,9 +3,9 @@
 ``sprint-map ingest MAP A B C ... --ray ...`` hands each drive to a Ray task that opens the map
 read-only (a shared filesystem: ``docs/fleet.md``, "Where the map files live"), decodes and
 describes the drive's images (or reads its ``.npy``) and localises it against one snapshot of
-the map (:meth:`MapService.prepare_ingest <sprint_map.map_service.MapService.prepare_ingest>`).
+the map (:meth:`MapService.prepare_ingest <sprint_map.facade.service.MapService.prepare_ingest>`).
 The caller is the single writer: it takes the drives back in the given order and commits each
-(:meth:`MapService.commit_prepared <sprint_map.map_service.MapService.commit_prepared>`),
+(:meth:`MapService.commit_prepared <sprint_map.facade.service.MapService.commit_prepared>`),
 localising again in the writer any drive whose snapshot is stale for what it touched; so the
 map that results equals serial ingest in the same order, the same sequences and the same edges.
 

@@ -4,7 +4,7 @@ Every imported drive of a join is localised against the same map, the target as 
 the join (:mod:`sprint_map.merge.join`), so the drives are independent: each is a Ray task that
 opens the target and the source read-only (a shared filesystem, as for the ingest farm:
 ``docs/fleet.md``) and returns the drive's cross-map edges (:meth:`MapService.localise_for_join
-<sprint_map.map_service.MapService.localise_for_join>`). The writer commits them all in the
+<sprint_map.facade.service.MapService.localise_for_join>`). The writer commits them all in the
 join's one transaction. The result equals the serial join's: the same drives, localised by the
 same code against the same snapshot (the target does not change until the join commits).
 """

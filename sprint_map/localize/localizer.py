@@ -75,7 +75,7 @@ class LocalizerConfig(Protocol):
 
 class LocalizerService(Protocol):
     """What a :class:`Localizer` makes itself of, from a map's service API
-    (:class:`sprint_map.map_service.MapService` is one): a new :class:`MapView` for each
+    (:class:`sprint_map.facade.service.MapService` is one): a new :class:`MapView` for each
     localizer and a new drive's centring."""
 
     def view(self) -> MapView: ...

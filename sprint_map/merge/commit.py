@@ -4,7 +4,7 @@ This is the one commit path of a localised drive. :meth:`SprintMap.ingest
 <sprint_map.map.SprintMap.ingest>` streams the rows in while it localises them (and so does
 ``ingest_drives``, drive after drive), :meth:`SprintMap.merge <sprint_map.map.SprintMap.merge>`
 hands them in whole, :meth:`MapService.commit_prepared
-<sprint_map.map_service.MapService.commit_prepared>` commits a drive an ingest farm localised,
+<sprint_map.facade.service.MapService.commit_prepared>` commits a drive an ingest farm localised,
 and the service's writer thread (:mod:`sprint_map.server.writer`) appends them beside the frames and
 commits under its map gate; all of them end in :meth:`DriveWriter.commit`, which
 
@@ -144,7 +144,7 @@ class DriveCommit:
 class DriveWriter:
     """One drive being written into a map open for writing; use as a context manager.
 
-    Made by :meth:`MapService.begin_drive <sprint_map.map_service.MapService.begin_drive>`.
+    Made by :meth:`MapService.begin_drive <sprint_map.facade.service.MapService.begin_drive>`.
     Rows go to the map's shards as they are appended, invisible to readers until
     :meth:`commit` (with admission ``novel`` they are held in memory until then: which ones
     are stored is known only at the commit).

@@ -70,7 +70,7 @@ class Drive:
 
 class IngestingService(Protocol):
     """What :func:`ingest_drives` uses of a map's service API
-    (:class:`sprint_map.map_service.MapService` is one): groups of commits, drives' centring."""
+    (:class:`sprint_map.facade.service.MapService` is one): groups of commits, drives' centring."""
 
     def group_commit(self) -> AbstractContextManager[None]: ...
 

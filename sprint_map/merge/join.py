@@ -56,7 +56,7 @@ __all__ = ["DriveLocalisation", "JoinResult", "JoinedDrive", "JoiningMap", "Join
 
 
 class JoiningService(LocalizerService, Protocol):
-    """What a join uses of the target's service API (:class:`sprint_map.map_service.MapService`
+    """What a join uses of the target's service API (:class:`sprint_map.facade.service.MapService`
     is one): what a localizer is made of, and the GNSS aid of a drive's fixes."""
 
     def gnss_aid(self, fixes: np.ndarray | None, frames: int | None, *, index: bool = True

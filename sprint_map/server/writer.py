@@ -1,7 +1,7 @@
 """CommitWriter: the single writer thread through which every commit goes, in order.
 
 A commit is what ``SprintMap.ingest`` does at the end of a drive, through the same path
-(:meth:`MapService.begin_drive <sprint_map.map_service.MapService.begin_drive>`,
+(:meth:`MapService.begin_drive <sprint_map.facade.service.MapService.begin_drive>`,
 :meth:`DriveWriter.commit <sprint_map.merge.commit.DriveWriter.commit>`): the drive's descriptors and
 the decisions the merge rule selects as edges, in one LMDB transaction. It is acknowledged (its future resolves) only after that transaction returned,
 i.e. once durable (LMDB ``sync=True``). The slow part, writing and fsyncing the shard rows,

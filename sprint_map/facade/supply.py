@@ -1,5 +1,5 @@
 """MapSupply: what a localizer of a :class:`~sprint_map.map.SprintMap` is made of, the part
-of its service API (:class:`~sprint_map.map_service.MapService`) that makes localizers: a view
+of its service API (:class:`~sprint_map.facade.service.MapService`) that makes localizers: a view
 of the map per localizer, a component cache shared by threads, a new drive's centring and the
 map's mean condition, and a drive's GNSS aid against the positions the map stores.
 
@@ -127,7 +127,7 @@ class MapSupply:
 
     def condition_prior(self) -> CentringStats | None:
         """The map's mean condition: the frame-weighted mean of its drives' statistics
-        (:meth:`SprintMap.drive_stats <sprint_map.map_reading.MapReading.drive_stats>`).
+        (:meth:`SprintMap.drive_stats <sprint_map.facade.reading.MapReading.drive_stats>`).
         Cached until the map changes; O(sequences * dim) when pooled.
 
         Returns

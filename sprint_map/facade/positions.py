@@ -2,7 +2,7 @@
 map's one frame (latitude/longitude projected into a UTM zone, or planar x, y), and the checks that
 keep a map to one frame.
 
-A mixin of :class:`~sprint_map.map_reading.MapReading` over the map's store. Nothing here changes
+A mixin of :class:`~sprint_map.facade.reading.MapReading` over the map's store. Nothing here changes
 the map but the geographic frame that :meth:`MapPositions.metric_positions_of` sets once, the first
 time a writable map is given latitudes (after checking that it keeps no planar positions). Every read
 of the map's LMDB may raise :class:`~sprint_map.errors.MapCorruptError` or
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from sprint_map.errors import InputError
-from sprint_map.storage.store import MapStore
+from sprint_map.facade.core import MapCore
 from sprint_map.util.arrays import Float64Array
 from sprint_map.util.geo import GeoFrame
 
@@ -25,10 +25,8 @@ if TYPE_CHECKING:  # imported where used
 __all__ = ["MapPositions"]
 
 
-class MapPositions:
+class MapPositions(MapCore):
     """The facade's positions and frames (see the module docstring) over ``store``."""
-
-    store: MapStore
 
     def positions(self, seq_id: int) -> Float64Array | None:
         """The positions sequence ``seq_id`` was stored with, in the map's frame

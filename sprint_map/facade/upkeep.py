@@ -13,22 +13,17 @@ import time
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
-from sprint_map.map_reading import MapReading
+from sprint_map.facade.reading import MapReading
 from sprint_map.storage.records import CompactReport, RemoveResult, UnmergeResult
 
 if TYPE_CHECKING:
-    from sprint_map.config import MapConfig
+    pass
 
 __all__ = ["MapUpkeep"]
 
 
 class MapUpkeep(MapReading):
     """The facade's upkeep (see the module docstring) over ``store``."""
-
-    if TYPE_CHECKING:  # the facade's own (sprint_map.map.SprintMap)
-        @property
-        def config(self) -> MapConfig:
-            raise NotImplementedError
 
     def sequence_id(self, seq: int | str) -> int:
         """The id of sequence ``seq``.

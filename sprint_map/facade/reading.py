@@ -1,7 +1,7 @@
 """MapReading: what :class:`~sprint_map.map.SprintMap` reads of its map: sequences and their
 vertices, descriptors, thumbnails, drive statistics, components, edges and exports; positions and
-frames (:class:`~sprint_map.map_positions.MapPositions`) and k-NN search
-(:class:`~sprint_map.map_search.MapSearch`) are its bases.
+frames (:class:`~sprint_map.facade.positions.MapPositions`) and k-NN search
+(:class:`~sprint_map.facade.search.MapSearch`) are its bases.
 
 A mixin of the facade over its store (:class:`~sprint_map.storage.store.MapStore`); each call
 reads one consistent snapshot and changes nothing. Every read of the map's LMDB may raise
@@ -17,12 +17,11 @@ import os
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
+from sprint_map.facade.positions import MapPositions
+from sprint_map.facade.search import MapSearch
 from sprint_map.frontend.centring import CentringStats
-from sprint_map.map_positions import MapPositions
-from sprint_map.map_search import MapSearch
 from sprint_map.storage.provenance import edge_table
 from sprint_map.storage.records import ComponentInfo, EdgeTable, SequenceRecord
-from sprint_map.storage.store import MapStore
 from sprint_map.util.arrays import Descriptors
 
 if TYPE_CHECKING:  # imported where used
@@ -35,7 +34,6 @@ __all__ = ["MapReading"]
 class MapReading(MapPositions, MapSearch):
     """The facade's reads (see the module docstring) over ``store``."""
 
-    store: MapStore
 
     def sequence(self, seq_id: int) -> SequenceRecord:
         """The record of sequence ``seq_id``. O(log n_sequences).

@@ -1,30 +1,28 @@
 """MapSearch: the facade's k-NN search over the map's descriptor index: all live rows, one
 sequence's range, the index's segments, and the search threads' cap.
 
-A mixin of :class:`~sprint_map.map_reading.MapReading` over the map's store; each search reads
+A mixin of :class:`~sprint_map.facade.reading.MapReading` over the map's store; each search reads
 the committed rows (removed sequences' filtered out) with exact distances. The examples build a
 small map in a temporary directory.
 """
 
 from __future__ import annotations
 
+from sprint_map.facade.core import MapCore
 from sprint_map.storage.index.model import cap_threads
-from sprint_map.storage.store import MapStore
 from sprint_map.util.arrays import DescriptorsLike, SearchResult
 
 __all__ = ["MapSearch"]
 
 
-class MapSearch:
+class MapSearch(MapCore):
     """The facade's k-NN search (see the module docstring) over ``store``."""
-
-    store: MapStore
 
     def search(self, queries: DescriptorsLike, k: int) -> SearchResult:
         """k-NN over all live committed descriptors (removed sequences' filtered out), with
         exact distances (the approximate index re-ranks its candidates on the true rows).
         ``queries`` are in the map's space: a drive's descriptors pass through
-        :meth:`~sprint_map.map_service.MapService.drive_centring` first. O(vertices * dim) a query
+        :meth:`~sprint_map.facade.service.MapService.drive_centring` first. O(vertices * dim) a query
         with the exact index; the approximate one scans O(sqrt(vertices)) codes.
 
         Parameters

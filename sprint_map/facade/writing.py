@@ -1,6 +1,6 @@
 """MapWriting: how :class:`~sprint_map.map.SprintMap` adds drives to its map: as they are, or
 localised and merged (ingest, merge), several in groups, or joined from another map. Removing,
-unmerging and the map's upkeep are :class:`~sprint_map.map_upkeep.MapUpkeep`'s.
+unmerging and the map's upkeep are :class:`~sprint_map.facade.upkeep.MapUpkeep`'s.
 
 A mixin of the facade over its store (:class:`~sprint_map.storage.store.MapStore`); every
 change is one atomic commit (or a new generation selected atomically), and needs a map open
@@ -17,50 +17,27 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sprint_map.config import MapConfig
+from sprint_map.facade.core import stored_config
+from sprint_map.facade.localizing import MapLocalizing
+from sprint_map.facade.upkeep import MapUpkeep
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.map_service import MapService
-from sprint_map.map_upkeep import MapUpkeep
 from sprint_map.merge.commit import IngestResult
 from sprint_map.merge.drives import DEFAULT_GROUP_DRIVES, Drive, ingest_drives
 from sprint_map.storage.records import (
     AddResult,
     EdgeSpec,
 )
-from sprint_map.storage.store_config import decode_stored_config
 from sprint_map.util.arrays import DescriptorsLike
 
 if TYPE_CHECKING:
     from sprint_map.localize.localizer import FrameDecision, Localizer
     from sprint_map.merge.join import JoinResult, LocaliseMany
 
-__all__ = ["MapWriting", "stored_config"]
+__all__ = ["MapWriting"]
 
 
-def stored_config(record: dict[str, Any]) -> MapConfig:
-    """The configuration a map stores (its meta record, decoded JSON), or MapCorruptError if
-    it is not a valid config (:func:`~sprint_map.storage.store_config.decode_stored_config`).
-    The store checks its own fields of it when it opens
-    (:func:`sprint_map.storage.store.decode_config`); this checks the rest. A record without
-    ``centring`` is a map made before centring: its rows are stored as given, so it reads as
-    ``centring={"mode": "none"}``. O(fields).
-    """
-    if isinstance(record, dict) and "centring" not in record:
-        record = {**record, "centring": {"mode": "none"}}
-    return decode_stored_config(MapConfig.from_dict, record)
-
-
-class MapWriting(MapUpkeep):
+class MapWriting(MapUpkeep, MapLocalizing):
     """The facade's changes (see the module docstring) over ``store``."""
-
-    if TYPE_CHECKING:  # the facade's own (sprint_map.map.SprintMap)
-        @property
-        def service(self) -> MapService:
-            raise NotImplementedError
-
-        def smoothed(self, localizer: Any, descriptors: DescriptorsLike | None = None,
-                     thumbnails: Sequence[bytes] | None = None) -> list[FrameDecision]:
-            raise NotImplementedError
 
     # --- drives -----------------------------------------------------------------------------
     def add_sequence(

@@ -17,37 +17,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sprint_map.errors import DescriptorShapeError, InputError
+from sprint_map.facade.reading import MapReading
 from sprint_map.hmm.config import HMMConfig
-from sprint_map.map_reading import MapReading
 from sprint_map.util import dataclass_dict
 from sprint_map.util.arrays import DescriptorsLike
 from sprint_map.util.validation import decode_text
 
 if TYPE_CHECKING:  # imported where used: reading a map needs no HMM and no OpenCV
-    from sprint_map.config import MapConfig
     from sprint_map.frontend.bags import BagOptions
     from sprint_map.frontend.sources import FrameSource, ProgressCallback
     from sprint_map.localize.localizer import FrameDecision, Localizer, Timing
-    from sprint_map.map_service import MapService
 
 __all__ = ["MapLocalizing"]
 
 
 class MapLocalizing(MapReading):
     """The facade's localisation (see the module docstring)."""
-
-    if TYPE_CHECKING:  # the facade's own (sprint_map.map.SprintMap)
-        @property
-        def config(self) -> MapConfig:
-            raise NotImplementedError
-
-        @property
-        def service(self) -> MapService:
-            raise NotImplementedError
-
-        @property
-        def warnings(self) -> list[str]:
-            raise NotImplementedError
 
     def localizer(self, hmm: HMMConfig | None = None, *, record: bool = False,
                   fixes: np.ndarray | None = None, **overrides: Any) -> Localizer:

@@ -6,7 +6,7 @@ here drives them from outside one call: a drive committed as it streams in
 (:meth:`MapService.begin_drive`, the server's sessions), a drive localised by a farm's worker
 and committed by the writer (:meth:`MapService.prepare_ingest`,
 :meth:`MapService.commit_prepared`), the views, caches, centring and GNSS aid a localizer is
-made of (:class:`~sprint_map.map_supply.MapSupply`), and the index retrained beside the
+made of (:class:`~sprint_map.facade.supply.MapSupply`), and the index retrained beside the
 commits (the service's writer thread). One service per map.
 """
 
@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from sprint_map.facade.supply import MapSupply
 from sprint_map.frontend.centring import DriveCentring
-from sprint_map.map_supply import MapSupply
 from sprint_map.merge.commit import DriveWriter, IngestResult
 from sprint_map.merge.rule import select_merges
 from sprint_map.storage.group_writer import GroupWriter
